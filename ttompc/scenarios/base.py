@@ -1,0 +1,323 @@
+"""The scenario interface: everything the SCP engine, the datasets, the transformer rollout and MPC need to know
+about one optimal-control problem family.
+
+A scenario describes problems of the form (paper Eq. 5)
+
+    min  Σ_k w·c(u_k)                        c = ‖·‖₁ (free-flyer), ‖·‖₂ (RPOD), ½‖·‖₂² (quadrotor)
+    s.t. x_{k+1} = f_k(x_k, u_k)             k = 0..N-1, with x_0 = x_start and x_N = x_goal
+         convex constraints (boxes, cones, waypoints)
+         non-convex constraints (keep-out zones; the free-flyer thruster bound)
+
+on a grid of N controls u_0..u_{N-1} and N+1 states x_0..x_N (x_N is the state after the last control; datasets
+store x_0..x_{N-1} like the reference). The engine only ever sees the *convex model* of a window [t, t+H) around a
+reference trajectory: affine dynamics (A_k, B_k, c_k) and per-step dense constraint blocks. Scenarios therefore stay
+small and declarative, and one engine (``ttompc.solvers.scp``) serves all of them.
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+from dataclasses import dataclass, field
+from collections.abc import Sequence
+from typing import Any, ClassVar, Literal, Protocol
+
+import numpy as np
+
+CostNorm = Literal["l1", "l2", "quad"]
+
+
+class InfeasibleProblemError(ValueError):
+    """A problem that cannot have a feasible solution (e.g. the start lies inside a keep-out zone)."""
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One sampled problem instance. ``params`` carries scenario-specific data (RPOD: chief orbit, horizon, port).
+
+    Arrays are in the *optimisation* representation of the scenario (RPOD: scaled ROE in metres).
+    """
+
+    x0: np.ndarray
+    goal: np.ndarray
+    dt: float
+    n_steps: int
+    params: dict[str, Any] = field(default_factory=dict)
+    seed: int | None = None
+
+    def __post_init__(self) -> None:
+        x0 = np.asarray(self.x0, dtype=np.float64)
+        goal = np.asarray(self.goal, dtype=np.float64)
+        if x0.ndim != 1 or goal.shape != x0.shape:
+            raise ValueError(f"Problem: x0 and goal must be 1-D of equal length, got {x0.shape} and {goal.shape}")
+        if not (self.dt > 0 and self.n_steps > 0):
+            raise ValueError(f"Problem: dt and n_steps must be positive, got dt={self.dt}, n_steps={self.n_steps}")
+        object.__setattr__(self, "x0", x0)
+        object.__setattr__(self, "goal", goal)
+
+
+@dataclass(frozen=True)
+class Window:
+    """The time window [start, start + length) of a (possibly receding-horizon) subproblem.
+
+    ``reaches_end`` windows carry the terminal condition x_N = goal; others get a terminal cost instead.
+    """
+
+    start: int
+    length: int
+    n_total: int
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.start < self.n_total and 1 <= self.length <= self.n_total - self.start):
+            raise ValueError(f"Window [{self.start}, {self.start}+{self.length}) outside [0, {self.n_total})")
+
+    @property
+    def stop(self) -> int:
+        return self.start + self.length
+
+    @property
+    def reaches_end(self) -> bool:
+        return self.stop == self.n_total
+
+    @property
+    def steps(self) -> np.ndarray:
+        """Absolute indices of the window's controls (its states are these plus ``stop``)."""
+        return np.arange(self.start, self.stop)
+
+    @classmethod
+    def full(cls, problem: Problem) -> Window:
+        return cls(0, problem.n_steps, problem.n_steps)
+
+
+@dataclass
+class ConvexModel:
+    """Affine discrete dynamics of a window: x_{j+1} = A[j] x_j + B[j] u_j + c[j], j = 0..H-1 (window-relative)."""
+
+    A: np.ndarray  # (H, n, n)
+    B: np.ndarray  # (H, n, m)
+    c: np.ndarray  # (H, n)
+
+
+class BlockKind(str, enum.Enum):
+    INEQ = "ineq"  # Gx x + Gu u <= h            (hard, or soft with an exact L1 penalty on a slack)
+    EQ = "eq"  # Gx x + Gu u == h               (hard, or soft with a weighted 2-norm penalty in MPC)
+    SOC = "soc"  # ‖Gx[1:] x + Gu[1:] u - h[1:]‖₂ <= Gx[0] x + Gu[0] u - h[0]
+
+
+@dataclass
+class ConstraintBlock:
+    """Per-step dense constraint rows on (x_k, u_k) for the listed window-relative steps.
+
+    ``Gx`` (K, M, n), ``Gu`` (K, M, m) or None, ``h`` (K, M). The sparsity pattern is dense per step so that the
+    engine can keep one matrix structure and only update values between SCP iterations.
+    ``nonconvex`` blocks are linearisations (re-computed from the reference every iteration); ``obstacle`` blocks
+    are the ones dropped by the REL relaxation. ``soft`` inequality rows get a slack with an exact penalty.
+    """
+
+    name: str
+    kind: BlockKind
+    steps: np.ndarray  # (K,) window-relative state indices 0..H (index H is the post-final state)
+    Gx: np.ndarray
+    Gu: np.ndarray | None
+    h: np.ndarray
+    nonconvex: bool = False
+    obstacle: bool = False
+    soft: bool = False
+    weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        K = len(self.steps)
+        if self.Gx.ndim != 3 or self.Gx.shape[0] != K or self.h.shape != self.Gx.shape[:2]:
+            raise ValueError(
+                f"block {self.name!r}: Gx {self.Gx.shape}, h {self.h.shape} do not match {K} steps"
+            )
+        if self.Gu is not None and self.Gu.shape[:2] != self.Gx.shape[:2]:
+            raise ValueError(f"block {self.name!r}: Gu {self.Gu.shape} does not match Gx {self.Gx.shape}")
+
+    @property
+    def rows_per_step(self) -> int:
+        return self.Gx.shape[1]
+
+
+@dataclass(frozen=True)
+class SCPSettings:
+    """Trust-region SCP settings (fact sheet §5.1): Δ shrinks geometrically from ``tr_start`` to ``tr_end`` over
+    ``max_iters`` iterations; stop when the state step and the cost change are both below tolerance."""
+
+    tr_start: float
+    tr_end: float
+    max_iters: int = 20
+    cost_tol: float = 1e-6
+    penalty: float = 1e3  # exact-penalty weight on slacks (virtual control, linearised constraints)
+    feas_tol: float = 1e-4  # max nonlinear constraint violation accepted as feasible
+
+    @property
+    def shrink(self) -> float:
+        return float((self.tr_end / self.tr_start) ** (1.0 / self.max_iters))
+
+
+@dataclass(frozen=True)
+class MPCWeights:
+    """Soft-mode receding-horizon weights (fact sheet §6.6, §7.5, §8.5).
+
+    cost = fuel·Σc(u) + end·‖x_N − goal‖₂ (window reaches the end) or ‖P (x_{t+H} − x̄)‖₂ otherwise, with
+    P = terminal·I for warm-start targets (TTO, REL-MPC) and P = diag(dist) towards the goal for DIST-MPC.
+    """
+
+    fuel: float
+    end: float
+    terminal: float
+    dist: tuple[float, ...]
+    waypoint: float = 1.0
+
+
+class BatchedModel(Protocol):
+    """Batched torch dynamics in the model representation, for B problems at once.
+
+    ``step(S, A, k)`` maps states (B, n) and controls (B, m) at absolute step k to the next states (B, n);
+    ``violations(S, k)`` counts violated keep-out constraints (B,) of states at step k (float tensor).
+    """
+
+    def step(self, S: Any, A: Any, k: int) -> Any: ...
+
+    def violations(self, S: Any, k: int) -> Any: ...
+
+
+class Scenario(abc.ABC):
+    """A family of optimal-control problems. Subclasses are registered with ``@register``."""
+
+    name: ClassVar[str]
+    version: ClassVar[str]
+    state_dim: ClassVar[int] = 6
+    control_dim: ClassVar[int] = 3
+    n_steps: ClassVar[int] = 100
+    cost_norm: ClassVar[CostNorm]
+    rel_is_convex: ClassVar[bool] = False
+    scp: ClassVar[SCPSettings]
+    mpc: ClassVar[MPCWeights]
+    state_labels: ClassVar[tuple[str, ...]]
+    control_labels: ClassVar[tuple[str, ...]]
+
+    # ----------------------------------------------------------------------------------------------------- problems
+    @abc.abstractmethod
+    def sample(self, rng: np.random.Generator) -> Problem:
+        """Draw one problem using only ``rng`` (reproducible, no global state)."""
+
+    def validate(self, problem: Problem) -> None:
+        """Raise ``InfeasibleProblemError`` for problems that cannot have a solution; shape errors as ValueError."""
+        n = self.state_dim
+        if problem.x0.shape != (n,):
+            raise ValueError(f"{self.name}: x0 must have shape ({n},), got {problem.x0.shape}")
+        if problem.n_steps != self.n_steps:
+            raise ValueError(f"{self.name}: problems have {self.n_steps} steps, got {problem.n_steps}")
+        if not (np.all(np.isfinite(problem.x0)) and np.all(np.isfinite(problem.goal))):
+            raise ValueError(f"{self.name}: x0/goal contain non-finite values")
+
+    # ----------------------------------------------------------------------------------------------------- dynamics
+    @abc.abstractmethod
+    def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Exact dynamics x_{k+1} = f_k(x_k, u_k) (the 'environment'); vectorised over leading axes of x, u."""
+
+    def rollout(self, problem: Problem, U: np.ndarray, start: int = 0, x: np.ndarray | None = None) -> np.ndarray:
+        """Propagate controls U (H, m) with the exact dynamics from x (default x0) at step ``start``: (H+1, n)."""
+        x = problem.x0 if x is None else np.asarray(x, dtype=np.float64)
+        out = [x]
+        for j, u in enumerate(U):
+            x = self.step(problem, start + j, x, u)
+            out.append(x)
+        return np.stack(out)
+
+    @abc.abstractmethod
+    def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
+        """Affine model of the dynamics on ``window`` around a reference (H+1, n), (H, m)."""
+
+    # ---------------------------------------------------------------------------------------------- constraints
+    @abc.abstractmethod
+    def constraints(
+        self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray, *, obstacles: bool
+    ) -> list[ConstraintBlock]:
+        """Convex constraints plus linearisations of the non-convex ones (obstacle blocks only if ``obstacles``).
+
+        Block *shapes and step sets* must depend only on (problem family, window, obstacles), never on the
+        reference values, so that the engine can reuse one matrix structure across SCP iterations.
+        Window state 0 is fixed, so non-convex blocks should not include step 0.
+        """
+
+    @abc.abstractmethod
+    def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
+        """Number of violated keep-out constraints at each state of X (T, n) whose first index is ``start``: (T,)
+        int. This is the per-step count behind the constraint-to-go."""
+
+    def constraint_violation(self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window) -> float:
+        """Largest violation of the *nonlinear* problem on a window: dynamics defect, constraint blocks
+        evaluated with their exact (non-linearised) meaning. Used for feasibility status."""
+        Xs = self.rollout(problem, U, start=window.start, x=X[0])
+        defect = float(np.max(np.abs(Xs - X)))
+        return max(defect, self.path_violation(problem, X, U, window))
+
+    @abc.abstractmethod
+    def path_violation(self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window) -> float:
+        """Largest violation of the exact path constraints (keep-out depth, bounds, cones, waypoints) on X, U."""
+
+    # ----------------------------------------------------------------------------------------------------- cost
+    def stage_cost(self, U: np.ndarray) -> np.ndarray:
+        """c(u_k) for each row of U (..., m)."""
+        return stage_cost(U, self.cost_norm)
+
+    def cost(self, U: np.ndarray) -> float:
+        return float(np.sum(self.stage_cost(U)))
+
+    # --------------------------------------------------------------------------------------- representations
+    def to_model_states(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
+        """Optimisation states (T, n) -> the transformer's state representation (RPOD: RTN). Identity by default."""
+        return np.asarray(X, dtype=np.float64)
+
+    def from_model_states(self, problem: Problem, S: np.ndarray, start: int = 0) -> np.ndarray:
+        return np.asarray(S, dtype=np.float64)
+
+    def model_goal(self, problem: Problem) -> np.ndarray:
+        """Goal in the transformer's state representation."""
+        return self.to_model_states(problem, problem.goal[None], start=problem.n_steps)[0]
+
+    @abc.abstractmethod
+    def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> BatchedModel:
+        """The approximate dynamics used by the transformer rollout (paper §IV-B), batched in torch over problems,
+        acting on the *model* representation (RPOD: RTN). See ``BatchedModel``."""
+
+    def problem_features(self, problem: Problem) -> dict[str, np.ndarray]:
+        """Flat arrays that, with x0 and goal, reconstruct the problem (stored in datasets)."""
+        return {}
+
+    @abc.abstractmethod
+    def problem_from_features(self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]) -> Problem:
+        """Inverse of (x0, goal, dt, problem_features)."""
+
+    # ----------------------------------------------------------------------------------------------- guesses
+    def initial_guess(
+        self, problem: Problem, window: Window | None = None, x_start: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Straight line from the window's first state (default x0) to the goal, zero controls (the reference's
+        REL guess): states (H+1, n), controls (H, m)."""
+        window = window or Window.full(problem)
+        x_start = problem.x0 if x_start is None else np.asarray(x_start, dtype=np.float64)
+        s = np.linspace(0.0, 1.0, window.length + 1)[:, None]
+        X = (1 - s) * x_start + s * problem.goal
+        return X, np.zeros((window.length, self.control_dim))
+
+    # ------------------------------------------------------------------------------------------------ plotting
+    def plot(self, ax: Any, problem: Problem, trajectories: dict[str, np.ndarray]) -> None:
+        """Draw keep-out zones and trajectories (dict label -> states (T, n)) on a matplotlib axis."""
+        for label, X in trajectories.items():
+            ax.plot(X[:, 0], X[:, 1], label=label)
+        ax.legend()
+
+
+def stage_cost(U: np.ndarray, norm: CostNorm) -> np.ndarray:
+    U = np.asarray(U, dtype=np.float64)
+    if norm == "l1":
+        return np.sum(np.abs(U), axis=-1)
+    if norm == "l2":
+        return np.linalg.norm(U, axis=-1)
+    if norm == "quad":
+        return 0.5 * np.sum(U * U, axis=-1)
+    raise ValueError(f"unknown cost norm {norm!r}")

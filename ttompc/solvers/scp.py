@@ -1,0 +1,166 @@
+"""Sequential convex programming: one trust-region loop for REL and the full problem, every scenario, open loop
+and receding horizon.
+
+Each iteration linearises the scenario around the current reference, solves the convex subproblem (built once per
+structure and updated in place, see ``subproblem.py``) and moves the reference. Two formulations:
+
+* ``"penalized"`` (default, SCvx-style): every linearised/state constraint and the terminal condition get slack
+  variables with an exact L1 penalty, plus virtual control on nonlinear dynamics, so each subproblem is feasible and
+  the method never gives up on a solvable problem. Wherever the hard subproblem is feasible and the penalty exceeds
+  its multipliers the two formulations take the same step, so costs match the reference where it succeeds.
+* ``"reference"``: hard linearised constraints exactly as the authors' code; an infeasible subproblem ends the
+  solve with status INFEASIBLE. Kept for comparisons (``bench/solver_speed.py``).
+
+The result keeps the whole iterate history and returns the best feasible iterate (lowest cost among iterates whose
+nonlinear violation is within tolerance), not merely the last one (fact sheet §11).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
+
+Formulation = Literal["penalized", "reference"]
+TrustNorm = Literal["l2", "linf"]
+
+
+class SCPStatus(str, enum.Enum):
+    OPTIMAL = "optimal"  # stopping rule met by a feasible iterate
+    FEASIBLE = "feasible"  # iteration cap reached; best iterate satisfies the nonlinear constraints
+    INFEASIBLE = "infeasible"  # no iterate satisfies the nonlinear constraints within tolerance
+    SOLVER_ERROR = "solver_error"  # the convex solver failed numerically on the first subproblem
+
+
+@dataclass
+class IterateRecord:
+    iteration: int
+    cost: float  # Σ c(u_k) of the iterate (unweighted stage cost)
+    objective: float  # subproblem objective value (incl. terminal terms and penalties)
+    violation: float  # max violation of the nonlinear constraints at the iterate
+    step: float  # max_k ‖x_k − x̄_k‖₂ (distance from the previous reference)
+    trust_radius: float
+    solver_time: float  # raw convex solve time (s)
+    solver_status: str
+
+
+@dataclass
+class SCPResult:
+    status: SCPStatus
+    X: np.ndarray  # (H+1, n) states of the returned (best feasible, else least-violating) iterate
+    U: np.ndarray  # (H, m)
+    cost: float
+    violation: float
+    iterations: int  # number of convex subproblems solved
+    solve_time: float  # wall time of the whole solve (s)
+    solver_time: float  # sum of raw convex solve times (s)
+    window: Window
+    history: list[IterateRecord] = field(default_factory=list)
+    best_iteration: int = -1
+
+    @property
+    def success(self) -> bool:
+        return self.status in (SCPStatus.OPTIMAL, SCPStatus.FEASIBLE)
+
+    def summary(self) -> dict[str, float | int | str]:
+        return {
+            "status": self.status.value,
+            "cost": self.cost,
+            "iterations": self.iterations,
+            "solve_time": self.solve_time,
+            "solver_time": self.solver_time,
+            "violation": self.violation,
+        }
+
+
+@dataclass(frozen=True)
+class TerminalCost:
+    """Soft terminal term ‖diag(weights) (x_{t+H} − target)‖₂ replacing the terminal equality (MPC)."""
+
+    target: np.ndarray
+    weights: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "target", np.asarray(self.target, dtype=np.float64))
+        object.__setattr__(self, "weights", np.broadcast_to(np.asarray(self.weights, float), self.target.shape))
+
+
+def solve_scp(
+    scenario: Scenario,
+    problem: Problem,
+    X_init: np.ndarray,
+    U_init: np.ndarray,
+    *,
+    window: Window | None = None,
+    obstacles: bool = True,
+    terminal: TerminalCost | None = None,
+    fuel_weight: float = 1.0,
+    soft_equalities: bool = False,
+    settings: SCPSettings | None = None,
+    backend: str = "clarabel",
+    formulation: Formulation = "penalized",
+    trust_norm: TrustNorm | None = None,
+) -> SCPResult:
+    """Solve the (windowed) problem by SCP from the guess (X_init (H+1, n), U_init (H, m)).
+
+    X_init[0] is the fixed initial state of the window. Without ``terminal`` a window that reaches the end gets
+    x_N = goal (hard, or penalised in the penalized formulation); windows that stop early need a ``terminal``.
+    ``obstacles=False`` gives the REL relaxation. ``soft_equalities`` turns waypoint-type equalities into weighted
+    2-norm penalties (MPC soft mode). ``trust_norm`` defaults to l2 (SOC) for conic backends, linf for QP ones.
+    """
+    from ttompc.solvers.engine import run_scp
+
+    window = window or Window.full(problem)
+    return run_scp(
+        scenario,
+        problem,
+        np.asarray(X_init, dtype=np.float64),
+        np.asarray(U_init, dtype=np.float64),
+        window=window,
+        obstacles=obstacles,
+        terminal=terminal,
+        fuel_weight=fuel_weight,
+        soft_equalities=soft_equalities,
+        settings=settings or scenario.scp,
+        backend=backend,
+        formulation=formulation,
+        trust_norm=trust_norm,
+    )
+
+
+def solve_rel(
+    scenario: Scenario,
+    problem: Problem,
+    *,
+    window: Window | None = None,
+    x_start: np.ndarray | None = None,
+    **kwargs,
+) -> SCPResult:
+    """The REL relaxation (no keep-out constraints) from the straight-line guess; a single convex solve when the
+    scenario's REL is convex (RPOD), otherwise SCP (free-flyer heading-dependent thruster bound, quadrotor drag)."""
+    window = window or Window.full(problem)
+    X0, U0 = scenario.initial_guess(problem, window, x_start)
+    if scenario.rel_is_convex:
+        kwargs.setdefault("settings", _single_solve(kwargs.get("settings") or scenario.scp))
+    return solve_scp(scenario, problem, X0, U0, window=window, obstacles=False, **kwargs)
+
+
+def solve_problem(scenario: Scenario, problem: Problem, **kwargs) -> tuple[SCPResult, SCPResult | None]:
+    """REL, then SCP warm-started from the REL solution (the dataset pipeline, fact sheet §1). The SCP is skipped
+    (None) when REL fails."""
+    rel = solve_rel(scenario, problem, **kwargs)
+    if not rel.success:
+        return rel, None
+    return rel, solve_scp(scenario, problem, rel.X, rel.U, **kwargs)
+
+
+def _single_solve(settings: SCPSettings) -> SCPSettings:
+    """Settings for a convex problem: one iteration, no trust region."""
+    return SCPSettings(
+        tr_start=np.inf, tr_end=np.inf, max_iters=1, cost_tol=settings.cost_tol, penalty=settings.penalty,
+        feas_tol=settings.feas_tol,
+    )
