@@ -1,0 +1,3 @@
+from ttompc.data.stats import NormStats
+
+__all__ = ["NormStats"]

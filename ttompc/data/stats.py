@@ -1,0 +1,61 @@
+"""Normalisation statistics of a trajectory dataset: global per-dimension mean/std over all samples and steps
+(fact sheet §3.3, ``timestep_norm=False``), for the five modalities. Stored in dataset manifests and checkpoints
+as plain lists, so a checkpoint alone is enough to plan."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+KEYS = ("states", "actions", "goals", "rtg", "ctg")
+EPS = 1e-6  # added to σ like the reference, so constant dimensions (RPOD goal) normalise to 0
+
+
+@dataclass
+class NormStats:
+    mean: dict[str, np.ndarray]
+    std: dict[str, np.ndarray]
+
+    def __post_init__(self) -> None:
+        missing = [k for k in KEYS if k not in self.mean or k not in self.std]
+        if missing:
+            raise ValueError(f"NormStats is missing entries for {missing}")
+        self.mean = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in self.mean.items()}
+        self.std = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in self.std.items()}
+
+    def normalize(self, key: str, x: Any) -> Any:
+        """(x − μ)/(σ + ε) for numpy arrays or torch tensors (last axis = feature dim)."""
+        return (x - self._like(self.mean[key], x)) / (self._like(self.std[key], x) + EPS)
+
+    def denormalize(self, key: str, x: Any) -> Any:
+        return x * (self._like(self.std[key], x) + EPS) + self._like(self.mean[key], x)
+
+    @staticmethod
+    def _like(v: np.ndarray, x: Any) -> Any:
+        if isinstance(x, np.ndarray):
+            return v.astype(x.dtype, copy=False)
+        import torch
+
+        return torch.as_tensor(v, dtype=x.dtype, device=x.device)
+
+    def to_dict(self) -> dict[str, dict[str, list[float]]]:
+        return {"mean": {k: self.mean[k].tolist() for k in KEYS}, "std": {k: self.std[k].tolist() for k in KEYS}}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> NormStats:
+        try:
+            return cls(mean=dict(d["mean"]), std=dict(d["std"]))
+        except KeyError as err:
+            raise ValueError(f"normalisation statistics need 'mean' and 'std', missing {err}") from None
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> NormStats:
+        """Statistics over arrays shaped (..., dim) per key (all leading axes pooled)."""
+        mean, std = {}, {}
+        for k in KEYS:
+            a = np.asarray(arrays[k], dtype=np.float64)
+            a = a.reshape(-1, a.shape[-1]) if a.ndim > 1 else a.reshape(-1, 1)
+            mean[k], std[k] = a.mean(axis=0), a.std(axis=0)
+        return cls(mean, std)
