@@ -41,7 +41,10 @@ class NormStats:
         return torch.as_tensor(v, dtype=x.dtype, device=x.device)
 
     def to_dict(self) -> dict[str, dict[str, list[float]]]:
-        return {"mean": {k: self.mean[k].tolist() for k in KEYS}, "std": {k: self.std[k].tolist() for k in KEYS}}
+        return {
+            "mean": {k: self.mean[k].tolist() for k in KEYS},
+            "std": {k: self.std[k].tolist() for k in KEYS},
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> NormStats:

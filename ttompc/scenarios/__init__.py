@@ -21,8 +21,11 @@ from ttompc.scenarios.base import (
 
 _REGISTRY: dict[str, type[Scenario]] = {}
 # Built-in scenarios are imported on first use so that importing the registry stays cheap.
-_BUILTIN = {"freeflyer": "ttompc.scenarios.freeflyer", "quadrotor": "ttompc.scenarios.quadrotor",
-            "rpod": "ttompc.scenarios.rpod"}
+_BUILTIN = {
+    "freeflyer": "ttompc.scenarios.freeflyer",
+    "quadrotor": "ttompc.scenarios.quadrotor",
+    "rpod": "ttompc.scenarios.rpod",
+}
 _INSTANCES: dict[str, Scenario] = {}
 
 

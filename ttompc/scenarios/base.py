@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import abc
 import enum
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
@@ -49,9 +49,13 @@ class Problem:
         x0 = np.asarray(self.x0, dtype=np.float64)
         goal = np.asarray(self.goal, dtype=np.float64)
         if x0.ndim != 1 or goal.shape != x0.shape:
-            raise ValueError(f"Problem: x0 and goal must be 1-D of equal length, got {x0.shape} and {goal.shape}")
+            raise ValueError(
+                f"Problem: x0 and goal must be 1-D of equal length, got {x0.shape} and {goal.shape}"
+            )
         if not (self.dt > 0 and self.n_steps > 0):
-            raise ValueError(f"Problem: dt and n_steps must be positive, got dt={self.dt}, n_steps={self.n_steps}")
+            raise ValueError(
+                f"Problem: dt and n_steps must be positive, got dt={self.dt}, n_steps={self.n_steps}"
+            )
         object.__setattr__(self, "x0", x0)
         object.__setattr__(self, "goal", goal)
 
@@ -193,6 +197,9 @@ class Scenario(abc.ABC):
     n_steps: ClassVar[int] = 100
     cost_norm: ClassVar[CostNorm]
     rel_is_convex: ClassVar[bool] = False
+    exact_linear_dynamics: ClassVar[bool] = (
+        False  # affine dynamics independent of the reference: no virtual control
+    )
     scp: ClassVar[SCPSettings]
     mpc: ClassVar[MPCWeights]
     state_labels: ClassVar[tuple[str, ...]]
@@ -218,7 +225,9 @@ class Scenario(abc.ABC):
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Exact dynamics x_{k+1} = f_k(x_k, u_k) (the 'environment'); vectorised over leading axes of x, u."""
 
-    def rollout(self, problem: Problem, U: np.ndarray, start: int = 0, x: np.ndarray | None = None) -> np.ndarray:
+    def rollout(
+        self, problem: Problem, U: np.ndarray, start: int = 0, x: np.ndarray | None = None
+    ) -> np.ndarray:
         """Propagate controls U (H, m) with the exact dynamics from x (default x0) at step ``start``: (H+1, n)."""
         x = problem.x0 if x is None else np.asarray(x, dtype=np.float64)
         out = [x]
@@ -228,7 +237,9 @@ class Scenario(abc.ABC):
         return np.stack(out)
 
     @abc.abstractmethod
-    def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
+    def convex_model(
+        self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray
+    ) -> ConvexModel:
         """Affine model of the dynamics on ``window`` around a reference (H+1, n), (H, m)."""
 
     # ---------------------------------------------------------------------------------------------- constraints
@@ -240,7 +251,8 @@ class Scenario(abc.ABC):
 
         Block *shapes and step sets* must depend only on (problem family, window, obstacles), never on the
         reference values, so that the engine can reuse one matrix structure across SCP iterations.
-        Window state 0 is fixed, so non-convex blocks should not include step 0.
+        Window state 0 is fixed, so keep-out blocks should not include step 0; blocks with controls (Gu) may only
+        use steps 0..H-1.
         """
 
     @abc.abstractmethod
@@ -289,7 +301,9 @@ class Scenario(abc.ABC):
         return {}
 
     @abc.abstractmethod
-    def problem_from_features(self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]) -> Problem:
+    def problem_from_features(
+        self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]
+    ) -> Problem:
         """Inverse of (x0, goal, dt, problem_features)."""
 
     # ----------------------------------------------------------------------------------------------- guesses

@@ -86,7 +86,9 @@ class TerminalCost:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "target", np.asarray(self.target, dtype=np.float64))
-        object.__setattr__(self, "weights", np.broadcast_to(np.asarray(self.weights, float), self.target.shape))
+        object.__setattr__(
+            self, "weights", np.broadcast_to(np.asarray(self.weights, float), self.target.shape)
+        )
 
 
 def solve_scp(
@@ -161,6 +163,10 @@ def solve_problem(scenario: Scenario, problem: Problem, **kwargs) -> tuple[SCPRe
 def _single_solve(settings: SCPSettings) -> SCPSettings:
     """Settings for a convex problem: one iteration, no trust region."""
     return SCPSettings(
-        tr_start=np.inf, tr_end=np.inf, max_iters=1, cost_tol=settings.cost_tol, penalty=settings.penalty,
+        tr_start=np.inf,
+        tr_end=np.inf,
+        max_iters=1,
+        cost_tol=settings.cost_tol,
+        penalty=settings.penalty,
         feas_tol=settings.feas_tol,
     )

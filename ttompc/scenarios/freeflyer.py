@@ -1,0 +1,215 @@
+"""Free-flyer testbed (fact sheet §8): a planar air-bearing robot with four thruster clusters crossing a granite
+table with four circular obstacles.
+
+State x = [x, y, ψ, ẋ, ẏ, ψ̇] (m, rad, m/s, rad/s); control a = [Δv_x, Δv_y, a_ψ] is an impulse in the global
+frame with Δψ̇ = (m/J)·a_ψ. Dynamics are the impulsive double integrator x_{k+1} = A (x_k + B a_k). The per-thruster
+bound |Λ⁻¹ R_BG(ψ) a| ≤ Δv_max is non-convex through the heading, so it is linearised in (ψ, a) every iteration
+and REL is itself an SCP (obstacles off, bound on).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ttompc.scenarios import register
+from ttompc.scenarios.base import (
+    BlockKind,
+    ConstraintBlock,
+    ConvexModel,
+    InfeasibleProblemError,
+    MPCWeights,
+    Problem,
+    Scenario,
+    SCPSettings,
+    Window,
+)
+from ttompc.scenarios.keepout import keepout_block
+
+MASS = 16.0  # kg
+INERTIA = 0.18  # kg m²
+ROBOT_RADIUS = 0.15  # m
+F_MAX = 0.2  # N per thruster cluster
+LEVER = 0.11461  # m
+DT = 0.4  # s
+N_STEPS = 100
+DV_MAX = F_MAX * DT / MASS  # 0.005 m/s per thruster per step
+TABLE = (np.array([0.15, 0.15]), np.array([3.35, 2.35]))  # position box (table shrunk by the robot radius)
+START_REGION = (np.array([0.15, 0.15]), np.array([0.35, 2.35]))
+GOAL_REGION = (np.array([3.15, 0.15]), np.array([3.35, 2.35]))
+OBSTACLES = np.array([[1.0, 0.7], [1.5, 1.7], [2.5, 0.75], [2.5, 1.75]])
+OBSTACLE_RADIUS = 0.2
+SAFETY_MARGIN = 1.1
+R_EFF = (OBSTACLE_RADIUS + ROBOT_RADIUS) * SAFETY_MARGIN  # 0.385 m, used in OCP, MPC, ctg and rollouts
+VIOLATION_TOL = 1e-5  # m; an SCP solution touching an obstacle boundary is not a violation
+
+# Thruster allocation pseudo-inverse Λ⁻¹ (4×3): body (F_x, F_y, τ) -> cluster Δv.
+LAMBDA_INV = np.array(
+    [
+        [0.0, 0.5, 1 / (4 * LEVER)],
+        [0.5, 0.0, -1 / (4 * LEVER)],
+        [0.0, 0.5, -1 / (4 * LEVER)],
+        [0.5, 0.0, 1 / (4 * LEVER)],
+    ]
+)
+A_STEP = np.eye(6) + DT * np.block([[np.zeros((3, 3)), np.eye(3)], [np.zeros((3, 6))]])
+B_IMP = np.vstack([np.zeros((3, 3)), np.diag([1.0, 1.0, MASS / INERTIA])])
+
+
+def thruster_dv(psi: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Per-cluster Δv Λ⁻¹ R_BG(ψ) a for headings (...,) and global impulses (..., 3): (..., 4)."""
+    c, s = np.cos(psi), np.sin(psi)
+    body = np.stack([c * a[..., 0] + s * a[..., 1], -s * a[..., 0] + c * a[..., 1], a[..., 2]], axis=-1)
+    return body @ LAMBDA_INV.T
+
+
+@register
+class FreeFlyer(Scenario):
+    name: ClassVar[str] = "freeflyer"
+    version: ClassVar[str] = "1.0"
+    n_steps: ClassVar[int] = N_STEPS
+    cost_norm = "l1"
+    rel_is_convex: ClassVar[bool] = False
+    exact_linear_dynamics: ClassVar[bool] = True
+    scp: ClassVar[SCPSettings] = SCPSettings(
+        tr_start=10.0, tr_end=0.005, max_iters=20, cost_tol=1e-6, penalty=1e2, feas_tol=1e-4
+    )
+    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=9.9, terminal=1.0, dist=(1, 1, 1, 7, 7, 7))
+    state_labels = ("x [m]", "y [m]", "ψ [rad]", "vx [m/s]", "vy [m/s]", "ω [rad/s]")
+    control_labels = ("Δvx [m/s]", "Δvy [m/s]", "aψ [m/s]")
+
+    def sample(self, rng: np.random.Generator) -> Problem:
+        x0 = np.zeros(6)
+        goal = np.zeros(6)
+        x0[:2] = rng.uniform(*START_REGION)
+        goal[:2] = rng.uniform(*GOAL_REGION)
+        x0[2], goal[2] = rng.uniform(-np.pi, np.pi, size=2)
+        return Problem(x0=x0, goal=goal, dt=DT, n_steps=N_STEPS)
+
+    def validate(self, problem: Problem) -> None:
+        super().validate(problem)
+        for label, p in (("start", problem.x0[:2]), ("goal", problem.goal[:2])):
+            d = np.linalg.norm(OBSTACLES - p, axis=1)
+            if np.any(d < R_EFF):
+                j = int(np.argmin(d))
+                raise InfeasibleProblemError(
+                    f"freeflyer: {label} {p.round(3).tolist()} lies inside obstacle {j} "
+                    f"(distance {d[j]:.3f} m < inflated radius {R_EFF:.3f} m)"
+                )
+            if np.any(p < TABLE[0]) or np.any(p > TABLE[1]):
+                raise InfeasibleProblemError(f"freeflyer: {label} {p.round(3).tolist()} is off the table")
+
+    def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return (x + u @ B_IMP.T) @ A_STEP.T
+
+    def convex_model(
+        self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray
+    ) -> ConvexModel:
+        H = window.length
+        A = np.broadcast_to(A_STEP, (H, 6, 6))
+        return ConvexModel(A=A, B=np.broadcast_to(A_STEP @ B_IMP, (H, 6, 3)), c=np.zeros((H, 6)))
+
+    def constraints(
+        self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray, *, obstacles: bool
+    ) -> list[ConstraintBlock]:
+        H = window.length
+        blocks = [self._table_box(H), self._thruster_bound(X_ref, U_ref)]
+        if obstacles:
+            blocks.append(keepout_block(X_ref[1:, :2], OBSTACLES, R_EFF, steps=np.arange(1, H + 1), n=6))
+        return blocks
+
+    @staticmethod
+    def _table_box(H: int) -> ConstraintBlock:
+        steps = np.arange(1, H + 1)
+        G = np.zeros((4, 6))
+        G[0, 0], G[1, 1], G[2, 0], G[3, 1] = 1.0, 1.0, -1.0, -1.0
+        h = np.concatenate([TABLE[1], -TABLE[0]])
+        K = len(steps)
+        return ConstraintBlock(
+            "table",
+            BlockKind.INEQ,
+            steps,
+            np.broadcast_to(G, (K, 4, 6)),
+            None,
+            np.broadcast_to(h, (K, 4)),
+            soft=True,
+        )
+
+    @staticmethod
+    def _thruster_bound(X_ref: np.ndarray, U_ref: np.ndarray) -> ConstraintBlock:
+        """|B_bb(ψ̄) a + A_bb(ψ̄, ā)(ψ − ψ̄)| ≤ Δv_max, the first-order model of |Λ⁻¹R_BG(ψ)a| (fact sheet §8.4)."""
+        H = len(U_ref)
+        psi = X_ref[:H, 2]
+        c, s = np.cos(psi), np.sin(psi)
+        R_BG = np.zeros((H, 3, 3))
+        R_BG[:, 0, 0], R_BG[:, 0, 1], R_BG[:, 1, 0], R_BG[:, 1, 1], R_BG[:, 2, 2] = c, s, -s, c, 1.0
+        B_bb = LAMBDA_INV @ R_BG  # (H, 4, 3)
+        ax, ay = U_ref[:, 0], U_ref[:, 1]
+        u1, u2 = -c * ax - s * ay, -s * ax + c * ay
+        A_bb = 0.5 * np.stack([u1, u2, u1, u2], axis=1)  # ∂(Λ⁻¹R_BG(ψ)ā)/∂ψ at ψ̄: (H, 4)
+        Gx = np.zeros((H, 8, 6))
+        Gx[:, :4, 2], Gx[:, 4:, 2] = A_bb, -A_bb
+        Gu = np.concatenate([B_bb, -B_bb], axis=1)
+        off = A_bb * psi[:, None]
+        h = np.concatenate([DV_MAX + off, DV_MAX - off], axis=1)
+        return ConstraintBlock(
+            "thrusters", BlockKind.INEQ, np.arange(H), Gx, Gu, h, nonconvex=True, soft=True
+        )
+
+    def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
+        d = np.linalg.norm(np.asarray(X)[:, None, :2] - OBSTACLES[None], axis=-1)
+        return np.sum(d < R_EFF - VIOLATION_TOL, axis=1)
+
+    def path_violation(self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window) -> float:
+        d = np.linalg.norm(X[1:, None, :2] - OBSTACLES[None], axis=-1)
+        depth = np.max(R_EFF - d, initial=0.0)
+        box = np.max(np.concatenate([X[1:, :2] - TABLE[1], TABLE[0] - X[1:, :2]]), initial=0.0)
+        thrust = np.max(np.abs(thruster_dv(X[:-1, 2], U)) - DV_MAX, initial=0.0)
+        return float(max(depth, box, thrust))
+
+    def problem_from_features(
+        self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]
+    ) -> Problem:
+        return Problem(x0=x0, goal=goal, dt=float(dt), n_steps=N_STEPS)
+
+    def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _FreeFlyerTorch:
+        return _FreeFlyerTorch(device)
+
+    def plot(self, ax: Any, problem: Problem, trajectories: dict[str, np.ndarray]) -> None:
+        import matplotlib.patches as mpatches
+
+        ax.add_patch(mpatches.Rectangle((0, 0), 3.5, 2.5, fill=False, color="k"))
+        for c in OBSTACLES:
+            ax.add_patch(mpatches.Circle(c, OBSTACLE_RADIUS, color="tab:red", alpha=0.6))
+            ax.add_patch(mpatches.Circle(c, R_EFF, color="tab:red", alpha=0.15))
+        for label, X in trajectories.items():
+            ax.plot(X[:, 0], X[:, 1], label=label)
+        ax.plot(*problem.x0[:2], "ko")
+        ax.plot(*problem.goal[:2], "k*", markersize=10)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.legend(loc="upper left", fontsize=8)
+
+
+class _FreeFlyerTorch:
+    """Impulsive double integrator in torch, batched (the transformer's approximate model)."""
+
+    def __init__(self, device: Any) -> None:
+        import torch
+
+        self._torch = torch
+        self.device = device
+        self._A = torch.as_tensor(A_STEP, device=device)
+        self._B = torch.as_tensor(B_IMP, device=device)
+        self._obs = torch.as_tensor(OBSTACLES, device=device)
+
+    def step(self, S: Any, A: Any, k: int) -> Any:
+        dtype = S.dtype
+        return (S + A @ self._B.to(dtype).T) @ self._A.to(dtype).T
+
+    def violations(self, S: Any, k: int) -> Any:
+        d = self._torch.linalg.norm(S[:, None, :2] - self._obs.to(S.dtype)[None], dim=-1)
+        return (d < R_EFF - VIOLATION_TOL).sum(dim=1).to(S.dtype)
