@@ -1,0 +1,88 @@
+"""The transformer: shapes, causality, and KV-cached decoding equal to a full forward."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ttompc.model import ModelConfig, TrajectoryGPT
+
+N, M, L, B = 6, 3, 7, 2
+
+
+def _model(dtype: torch.dtype = torch.float32, seed: int = 0) -> TrajectoryGPT:
+    torch.manual_seed(seed)
+    cfg = ModelConfig(state_dim=N, control_dim=M, n_embd=32, n_layer=2, n_head=4, max_steps=10, dropout=0.1)
+    return TrajectoryGPT(cfg).to(dtype).eval()
+
+
+def _inputs(dtype: torch.dtype = torch.float32, seed: int = 1) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    r = lambda *s: torch.randn(*s, generator=g, dtype=dtype)  # noqa: E731
+    return {
+        "goals": r(B, L, N),
+        "rtg": r(B, L, 1),
+        "ctg": r(B, L, 1),
+        "states": r(B, L, N),
+        "actions": r(B, L, M),
+        "timesteps": torch.arange(L).expand(B, -1),
+    }
+
+
+def test_shapes_and_paper_size() -> None:
+    a, s = _model()(**_inputs())
+    assert a.shape == (B, L, M) and s.shape == (B, L, N)
+    paper = TrajectoryGPT(ModelConfig())
+    assert 10.5e6 < paper.num_parameters() < 11.5e6  # the reference prints "GPT size: 11.1M parameters"
+
+
+def test_rejects_bad_config() -> None:
+    with pytest.raises(ValueError, match="divisible"):
+        ModelConfig(n_embd=30, n_head=4)
+
+
+@pytest.mark.parametrize("field", ["goals", "rtg", "ctg", "states", "actions"])
+def test_causality(field: str) -> None:
+    """Changing step j's token never changes predictions that precede it in the token order."""
+    model, x = _model(), _inputs()
+    a0, s0 = model(**x)
+    j = 4
+    y = dict(x)
+    y[field] = x[field].clone()
+    y[field][:, j] += 10.0
+    a1, s1 = model(**y)
+    torch.testing.assert_close(a1[:, :j], a0[:, :j], rtol=0, atol=1e-6)
+    torch.testing.assert_close(s1[:, :j], s0[:, :j], rtol=0, atol=1e-6)
+    if field == "actions":  # the action token comes after the state token of its own step
+        torch.testing.assert_close(a1[:, j], a0[:, j], rtol=0, atol=1e-6)
+        assert (s1[:, j] - s0[:, j]).abs().max() > 1e-5
+    else:
+        assert (a1[:, j] - a0[:, j]).abs().max() > 1e-5
+
+
+@pytest.mark.parametrize(("dtype", "atol"), [(torch.float32, 1e-5), (torch.float64, 1e-10)])
+def test_kv_cache_matches_full_forward(dtype: torch.dtype, atol: float) -> None:
+    """Feeding the tokens in uneven chunks through the cache gives the full forward's hidden states."""
+    model, x = _model(dtype), _inputs(dtype)
+    tokens = model.embed_sequence(**x)  # (B, 5L, d)
+    full = model.encode(tokens)
+    cache = model.new_cache(B)
+    chunks, i = [], 0
+    for size in (4, 1, 5, 2, 3, 1, 9, 10):
+        chunks.append(model.encode(tokens[:, i : i + size], cache))
+        i += size
+    assert i == tokens.shape[1] and cache.length == i
+    torch.testing.assert_close(torch.cat(chunks, dim=1), full, rtol=0, atol=atol)
+    # A fork continues independently of its parent.
+    fork = cache.fork()
+    extra = torch.randn(B, 1, model.cfg.n_embd, dtype=dtype)
+    model.encode(extra, fork)
+    assert fork.length == cache.length + 1
+    torch.testing.assert_close(fork.k[:, :, :, : cache.length], cache.k[:, :, :, : cache.length], rtol=0, atol=0)
+
+
+def test_cache_overflow_is_an_error() -> None:
+    model = _model()
+    cache = model.new_cache(1)
+    with pytest.raises(ValueError, match="overflow"):
+        model.encode(torch.zeros(1, model.cfg.max_tokens + 1, model.cfg.n_embd), cache)

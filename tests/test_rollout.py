@@ -1,0 +1,109 @@
+"""The autoregressive rollout: cached == full recompute, restarts from a context, MPC cache reuse, conditioning."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ttompc.data.stats import NormStats
+from ttompc.model import ModelConfig, TrajectoryGPT
+from ttompc.rollout import RolloutContext, rollout
+
+B, STEPS = 3, 12
+
+
+def _model(dtype: torch.dtype) -> TrajectoryGPT:
+    torch.manual_seed(0)
+    cfg = ModelConfig(n_embd=32, n_layer=2, n_head=4, max_steps=STEPS)
+    return TrajectoryGPT(cfg).to(dtype)  # left in train mode on purpose: rollouts must switch dropout off
+
+
+def _start(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(3)
+    s0 = torch.randn(B, 6, generator=g, dtype=dtype)
+    goal = torch.randn(B, 6, generator=g, dtype=dtype)
+    return s0, goal, torch.tensor([-1.0, -2.0, -3.0], dtype=dtype)
+
+
+@pytest.mark.parametrize(("dtype", "atol"), [(torch.float32, 1e-5), (torch.float64, 1e-10)])
+@pytest.mark.parametrize("clipped", [True, False])
+def test_cached_equals_full_recompute(
+    toy, toy_stats: NormStats, dtype: torch.dtype, atol: float, clipped: bool
+) -> None:
+    model, (s0, goal, rtg0) = _model(dtype), _start(dtype)
+    dyn = toy.batched_model([])
+    fast = rollout(model, toy_stats, dyn, "l1", s0, goal, rtg0, 0.0, use_cache=True, clipped=clipped)
+    slow = rollout(model, toy_stats, dyn, "l1", s0, goal, rtg0, 0.0, use_cache=False, clipped=clipped)
+    assert fast.states.shape == (B, STEPS + 1, 6) and fast.actions.shape == (B, STEPS, 3)
+    assert fast.rtg.shape == (B, STEPS + 1) and fast.ctg.shape == (B, STEPS + 1)
+    for name in ("states", "actions", "rtg", "ctg"):
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=0, atol=atol)
+    assert model.training  # restored
+
+
+def test_conditioning_updates(toy, toy_stats: NormStats) -> None:
+    model, (s0, goal, rtg0) = _model(torch.float64), _start(torch.float64)
+    dyn = toy.batched_model([])
+    s0[0, :3] = 0.0  # inside the toy keep-out ball
+    res = rollout(model, toy_stats, dyn, "l1", s0, goal, rtg0, 2.0, clipped=False)
+    torch.testing.assert_close(res.rtg[:, 1:] - res.rtg[:, :-1], res.actions.abs().sum(-1))  # rtg += c(a)
+    torch.testing.assert_close(
+        res.states[:, 1:],
+        dyn.step(res.states[:, :-1].reshape(-1, 6), res.actions.reshape(-1, 3), 0).reshape(B, STEPS, 6),
+    )
+    viol = torch.stack([dyn.violations(res.states[:, k], k) for k in range(1, STEPS + 1)], dim=1)
+    torch.testing.assert_close(res.ctg[:, 1:], 2.0 - viol.cumsum(1))
+    clipped = rollout(model, toy_stats, dyn, "l1", s0, goal, rtg0, 2.0, clipped=True)
+    assert torch.all(clipped.ctg == 2.0)
+
+
+@pytest.mark.parametrize("use_cache", [True, False])
+def test_restart_from_context_equals_slice(toy, toy_stats: NormStats, use_cache: bool) -> None:
+    model, (s0, goal, rtg0) = _model(torch.float64), _start(torch.float64)
+    dyn = toy.batched_model([])
+    full = rollout(model, toy_stats, dyn, "l1", s0, goal, rtg0, 0.0)
+    t0 = 5
+    ctx = RolloutContext(
+        model,
+        toy_stats,
+        dyn,
+        "l1",
+        full.states[:, : t0 + 1],
+        goal[:, None].expand(-1, t0 + 1, -1),
+        full.rtg[:, : t0 + 1],
+        full.ctg[:, : t0 + 1],
+        full.actions[:, :t0],
+        use_cache=use_cache,
+    )
+    part = ctx.rollout(STEPS - t0)
+    assert part.start == t0
+    for name in ("states", "actions", "rtg", "ctg"):
+        torch.testing.assert_close(getattr(part, name), getattr(full, name)[:, t0:], rtol=0, atol=1e-10)
+
+
+def test_mpc_context_reuses_cache_correctly(toy, toy_stats: NormStats) -> None:
+    """advance() + rollout() on the cached context equals a from-scratch recompute of the same history."""
+    model, (s0, goal, rtg0) = _model(torch.float64), _start(torch.float64)
+    dyn = toy.batched_model([])
+    ctx = RolloutContext.start(model, toy_stats, dyn, "l1", s0, goal, rtg0, 1.0)
+    g = torch.Generator().manual_seed(7)
+    for t in range(4):
+        plan = ctx.rollout(min(4, STEPS - t))
+        executed = plan.actions[:, 0] + 0.01 * torch.randn(B, 3, generator=g, dtype=torch.float64)
+        measured = dyn.step(ctx.states[:, -1], executed, t) + 0.01 * torch.randn(B, 6, generator=g, dtype=torch.float64)
+        ctx.advance(executed, measured)
+        assert ctx.t == t + 1 and ctx._cache is not None and ctx._cache.length == 5 * (t + 1)
+    fresh = RolloutContext(
+        model, toy_stats, dyn, "l1", ctx.states, ctx.goals, ctx.rtg, ctx.ctg, ctx.actions, use_cache=False
+    )
+    a, b = ctx.rollout(6), fresh.rollout(6)
+    torch.testing.assert_close(a.states, b.states, rtol=0, atol=1e-10)
+    torch.testing.assert_close(a.actions, b.actions, rtol=0, atol=1e-10)
+    # The MPC context subtracts measured violations from ctg (reference behaviour) and adds c(a) to rtg.
+    torch.testing.assert_close(ctx.rtg[:, 1:] - ctx.rtg[:, :-1], ctx.actions.abs().sum(-1))
+
+
+def test_rejects_horizon_beyond_model(toy, toy_stats: NormStats) -> None:
+    model, (s0, goal, rtg0) = _model(torch.float32), _start(torch.float32)
+    with pytest.raises(ValueError, match="outside"):
+        rollout(model, toy_stats, toy.batched_model([]), "l1", s0, goal, rtg0, horizon=STEPS + 1)

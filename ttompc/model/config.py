@@ -1,0 +1,38 @@
+"""Architecture hyper-parameters of the trajectory transformer (fact sheet §2.1). Plain dataclass so that it can be
+a section of the OmegaConf training recipe and be stored as a primitive dict in checkpoints and planner bundles."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+Activation = Literal["relu", "gelu", "silu"]
+
+TOKENS_PER_STEP = 5  # goal, rtg, ctg, state, action
+
+
+@dataclass
+class ModelConfig:
+    state_dim: int = 6
+    control_dim: int = 3
+    n_embd: int = 384  # paper size: 384 wide, 6 layers, 6 heads (11M parameters)
+    n_layer: int = 6
+    n_head: int = 6
+    mlp_ratio: int = 4
+    dropout: float = 0.1
+    activation: Activation = "relu"  # the reference's HF DecisionTransformerConfig default
+    max_steps: int = 100  # timestep-embedding table size = longest context in steps (5 tokens per step)
+    bias: bool = True
+    init_std: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.n_embd % self.n_head != 0:
+            raise ValueError(f"n_embd ({self.n_embd}) must be divisible by n_head ({self.n_head})")
+        if min(self.state_dim, self.control_dim, self.n_layer, self.max_steps, self.mlp_ratio) < 1:
+            raise ValueError(f"model dimensions must be positive: {self}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    @property
+    def max_tokens(self) -> int:
+        return TOKENS_PER_STEP * self.max_steps

@@ -1,0 +1,275 @@
+"""Model-based autoregressive rollout of the trajectory transformer (paper §IV-B, fact sheet §2.6 "dyn" mode).
+
+At every step k the transformer reads (goal_k, rtg_k, ctg_k, state_k) after the history and emits a normalised
+control; it is de-normalised and propagated with the scenario's approximate model (``Scenario.batched_model``) to
+give state_{k+1}; the conditioning is updated (rtg_{k+1} = rtg_k + c(a_k), i.e. minus the reward;
+ctg_{k+1} = ctg_k, or ctg_k − violations(state_{k+1}) with ``clipped=False``) and the target is held.
+
+One implementation serves open-loop warm starts (start at step 0) and MPC (start at step t after an executed
+prefix). ``RolloutContext`` keeps the executed history of B episodes and, with ``use_cache=True``, the KV cache of
+that history: each receding-horizon rollout forks the cache and only encodes the new tokens, so neither the prefix
+nor earlier generated steps are ever re-encoded. ``use_cache=False`` re-encodes the whole prefix at every step like
+the reference (for timing parity and tests).
+
+All tensors going in and out are *un-normalised* and in the scenario's *model* representation; the context
+normalises with ``NormStats`` (keys states, actions, goals, rtg, ctg) internally.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ttompc.data.stats import NormStats
+from ttompc.model.gpt import KVCache, TrajectoryGPT
+from ttompc.scenarios.base import BatchedModel, CostNorm
+
+
+def stage_cost_torch(U: Tensor, norm: CostNorm) -> Tensor:
+    """c(u) for controls (..., m) -> (...): the torch twin of ``ttompc.scenarios.base.stage_cost``."""
+    if norm == "l1":
+        return U.abs().sum(dim=-1)
+    if norm == "l2":
+        return torch.linalg.vector_norm(U, dim=-1)
+    if norm == "quad":
+        return 0.5 * (U * U).sum(dim=-1)
+    raise ValueError(f"unknown cost norm {norm!r}")
+
+
+@dataclass
+class RolloutResult:
+    """A generated window [start, start + H) for B problems (un-normalised, model representation).
+
+    ``states`` (B, H+1, n) with states[:, 0] the measured start state; ``actions`` (B, H, m); ``rtg``/``ctg`` (B, H+1):
+    the conditioning fed at steps start..start+H-1, then the value that would follow the last action.
+    """
+
+    states: Tensor
+    actions: Tensor
+    rtg: Tensor
+    ctg: Tensor
+    start: int
+
+
+class RolloutContext:
+    """Executed history of B episodes plus (optionally) its KV cache, kept across receding-horizon steps.
+
+    Histories: states/goals (B, t+1, ·) (step t is the current, not yet acted-on step), actions (B, t, m),
+    rtg/ctg (B, t+1). Build with ``start`` (step 0) or the constructor with a past context (any t0 = t).
+    """
+
+    def __init__(
+        self,
+        model: TrajectoryGPT,
+        stats: NormStats,
+        dynamics: BatchedModel,
+        cost_norm: CostNorm,
+        states: Tensor,
+        goals: Tensor,
+        rtg: Tensor,
+        ctg: Tensor,
+        actions: Tensor | None = None,
+        *,
+        use_cache: bool = True,
+    ) -> None:
+        p = next(model.parameters())
+        self.model, self.stats, self.dynamics, self.cost_norm = model, stats, dynamics, cost_norm
+        self.use_cache = use_cache
+        as_t = lambda x: torch.as_tensor(x, dtype=p.dtype, device=p.device)  # noqa: E731
+        self.states, self.goals = as_t(states), as_t(goals)
+        self.rtg, self.ctg = as_t(rtg), as_t(ctg)
+        B, T, n = self.states.shape
+        m = model.cfg.control_dim
+        self.actions = as_t(actions) if actions is not None else self.states.new_zeros(B, 0, m)
+        if self.goals.shape != (B, T, n) or self.rtg.shape != (B, T) or self.ctg.shape != (B, T):
+            raise ValueError(
+                f"history shapes disagree: states {tuple(self.states.shape)}, goals {tuple(self.goals.shape)}, "
+                f"rtg {tuple(self.rtg.shape)}, ctg {tuple(self.ctg.shape)}"
+            )
+        if self.actions.shape != (B, T - 1, m):
+            raise ValueError(f"actions must be (B, {T - 1}, {m}) for {T} states, got {tuple(self.actions.shape)}")
+        self._cache: KVCache | None = None  # tokens of the completed steps 0..t-1, built on first use
+
+    @classmethod
+    def start(
+        cls,
+        model: TrajectoryGPT,
+        stats: NormStats,
+        dynamics: BatchedModel,
+        cost_norm: CostNorm,
+        state0: Tensor,
+        goal: Tensor,
+        rtg0: Tensor | float,
+        ctg0: Tensor | float = 0.0,
+        *,
+        use_cache: bool = True,
+    ) -> RolloutContext:
+        """Episode start at step 0: state0/goal (B, n), rtg0 (the reference uses −J_REL) and ctg0 (B,) or scalars."""
+        state0 = torch.as_tensor(state0)
+        B = state0.shape[0]
+        col = lambda v: torch.as_tensor(v, dtype=state0.dtype).expand(B).reshape(B, 1)  # noqa: E731
+        return cls(
+            model,
+            stats,
+            dynamics,
+            cost_norm,
+            state0[:, None],
+            torch.as_tensor(goal)[:, None],
+            col(rtg0),
+            col(ctg0),
+            use_cache=use_cache,
+        )
+
+    @property
+    def t(self) -> int:
+        """The current step (the next action to choose is a_t)."""
+        return self.states.shape[1] - 1
+
+    @property
+    def batch(self) -> int:
+        return self.states.shape[0]
+
+    # -------------------------------------------------------------------------------------------- normalisation
+    def _norm_step(
+        self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        s = self.stats
+        return (
+            s.normalize("goals", goals),
+            s.normalize("rtg", rtg[..., None]),
+            s.normalize("ctg", ctg[..., None]),
+            s.normalize("states", states),
+        )
+
+    def _timesteps(self, start: int, stop: int) -> Tensor:
+        return torch.arange(start, stop, device=self.states.device).expand(self.batch, -1)
+
+    def _embed_steps(self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, start: int) -> Tensor:
+        """First four tokens of steps start.. (B, 4L, d) from un-normalised (B, L, ·) values."""
+        ts = self._timesteps(start, start + states.shape[1])
+        return self.model.embed_step(*self._norm_step(goals, rtg, ctg, states), ts)
+
+    def _embed_actions(self, actions: Tensor, start: int) -> Tensor:
+        ts = self._timesteps(start, start + actions.shape[1])
+        return self.model.embed_actions(self.stats.normalize("actions", actions), ts)
+
+    def _history_cache(self) -> KVCache:
+        """The KV cache of all completed steps 0..t-1 (built once, then extended by ``advance``)."""
+        if self._cache is None:
+            self._cache = self.model.new_cache(self.batch)
+            t = self.t
+            if t > 0:
+                ts = self._timesteps(0, t)
+                g, r, c, s = self._norm_step(self.goals[:, :t], self.rtg[:, :t], self.ctg[:, :t], self.states[:, :t])
+                a = self.stats.normalize("actions", self.actions)
+                self.model.encode(self.model.embed_sequence(g, r, c, s, a, ts), self._cache)
+        return self._cache
+
+    # -------------------------------------------------------------------------------------------------- public
+    @torch.no_grad()
+    def rollout(self, horizon: int, *, clipped: bool = True) -> RolloutResult:
+        """Generate ``horizon`` steps from the current step t on a fork of the history (the context is unchanged)."""
+        t0, model = self.t, self.model
+        if horizon < 1 or t0 + horizon > model.cfg.max_steps:
+            raise ValueError(f"rollout [{t0}, {t0 + horizon}) outside the model's {model.cfg.max_steps} steps")
+        was_training = model.training
+        model.eval()
+        try:
+            S, A, R, C = [self.states[:, -1]], [], [self.rtg[:, -1]], [self.ctg[:, -1]]
+            goal = self.goals[:, -1]  # the target is held over the generated window
+            cache = self._history_cache().fork() if self.use_cache else None
+            for j in range(horizon):
+                k = t0 + j
+                if cache is not None:
+                    tok = self._embed_steps(goal[:, None], R[-1][:, None], C[-1][:, None], S[-1][:, None], k)
+                    if j > 0:  # the previous generated action joins the cache together with this step's tokens
+                        tok = torch.cat([self._embed_actions(A[-1][:, None], k - 1), tok], dim=1)
+                    a_norm = model.action_head(model.encode(tok, cache)[:, -1])  # (B, m)
+                else:
+                    a_norm = self._full_recompute(S, A, R, C, goal)
+                a = self.stats.denormalize("actions", a_norm)
+                s_next = self.dynamics.step(S[-1], a, k).to(a.dtype)
+                A.append(a)
+                S.append(s_next)
+                R.append(R[-1] + stage_cost_torch(a, self.cost_norm))
+                C.append(C[-1] if clipped else C[-1] - self.dynamics.violations(s_next, k + 1).to(a.dtype))
+        finally:
+            model.train(was_training)
+        return RolloutResult(
+            states=torch.stack(S, dim=1),
+            actions=torch.stack(A, dim=1),
+            rtg=torch.stack(R, dim=1),
+            ctg=torch.stack(C, dim=1),
+            start=t0,
+        )
+
+    def _full_recompute(
+        self, S: list[Tensor], A: list[Tensor], R: list[Tensor], C: list[Tensor], goal: Tensor
+    ) -> Tensor:
+        """Reference-style step: encode history + generated steps 0..k from scratch, read the action at step k."""
+        cat = lambda hist, new: torch.cat([hist[:, :-1], torch.stack(new, dim=1)], dim=1)  # noqa: E731
+        states, rtg, ctg = cat(self.states, S), cat(self.rtg, R), cat(self.ctg, C)
+        L = states.shape[1]
+        goals = torch.cat([self.goals[:, :-1], goal[:, None].expand(-1, len(S), -1)], dim=1)
+        dummy = states.new_zeros(self.batch, 1, self.model.cfg.control_dim)  # a_k: not visible to the state token
+        actions = torch.cat([self.actions, *(a[:, None] for a in A), dummy], dim=1)
+        g, r, c, s = self._norm_step(goals, rtg, ctg, states)
+        a_pred, _ = self.model(g, r, c, s, self.stats.normalize("actions", actions), self._timesteps(0, L))
+        return a_pred[:, -1]
+
+    @torch.no_grad()
+    def advance(self, action: Tensor, next_state: Tensor, goal: Tensor | None = None, *, clipped: bool = False) -> None:
+        """Record the executed action a_t (B, m) and the measured state s_{t+1} (B, n) (optionally a new goal).
+
+        Like the reference MPC context, rtg_{t+1} = rtg_t + c(a_t) and ctg_{t+1} = ctg_t − violations(s_{t+1})
+        (``clipped=True`` keeps ctg constant instead). The cached history is extended by the five tokens of step t.
+        """
+        t = self.t
+        p = self.states
+        action = torch.as_tensor(action, dtype=p.dtype, device=p.device).reshape(self.batch, -1)
+        next_state = torch.as_tensor(next_state, dtype=p.dtype, device=p.device).reshape(self.batch, -1)
+        goal = self.goals[:, -1] if goal is None else torch.as_tensor(goal, dtype=p.dtype, device=p.device)
+        if self._cache is not None:
+            tok = torch.cat(
+                [
+                    self._embed_steps(self.goals[:, -1:], self.rtg[:, -1:], self.ctg[:, -1:], self.states[:, -1:], t),
+                    self._embed_actions(action[:, None], t),
+                ],
+                dim=1,
+            )
+            was_training = self.model.training
+            self.model.eval()
+            try:
+                self.model.encode(tok, self._cache)
+            finally:
+                self.model.train(was_training)
+        rtg = self.rtg[:, -1] + stage_cost_torch(action, self.cost_norm)
+        ctg = self.ctg[:, -1]
+        if not clipped:
+            ctg = ctg - self.dynamics.violations(next_state, t + 1).to(p.dtype)
+        self.actions = torch.cat([self.actions, action[:, None]], dim=1)
+        self.states = torch.cat([self.states, next_state[:, None]], dim=1)
+        self.goals = torch.cat([self.goals, goal[:, None]], dim=1)
+        self.rtg = torch.cat([self.rtg, rtg[:, None]], dim=1)
+        self.ctg = torch.cat([self.ctg, ctg[:, None]], dim=1)
+
+
+def rollout(
+    model: TrajectoryGPT,
+    stats: NormStats,
+    dynamics: BatchedModel,
+    cost_norm: CostNorm,
+    state0: Tensor,
+    goal: Tensor,
+    rtg0: Tensor | float,
+    ctg0: Tensor | float = 0.0,
+    horizon: int | None = None,
+    *,
+    use_cache: bool = True,
+    clipped: bool = True,
+) -> RolloutResult:
+    """One-shot open-loop rollout from step 0 over ``horizon`` steps (default: the model's ``max_steps``)."""
+    ctx = RolloutContext.start(model, stats, dynamics, cost_norm, state0, goal, rtg0, ctg0, use_cache=use_cache)
+    return ctx.rollout(horizon or model.cfg.max_steps, clipped=clipped)
