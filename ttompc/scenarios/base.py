@@ -260,16 +260,21 @@ class Scenario(abc.ABC):
         """Number of violated keep-out constraints at each state of X (T, n) whose first index is ``start``: (T,)
         int. This is the per-step count behind the constraint-to-go."""
 
-    def constraint_violation(self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window) -> float:
-        """Largest violation of the *nonlinear* problem on a window: dynamics defect, constraint blocks
-        evaluated with their exact (non-linearised) meaning. Used for feasibility status."""
-        Xs = self.rollout(problem, U, start=window.start, x=X[0])
-        defect = float(np.max(np.abs(Xs - X)))
-        return max(defect, self.path_violation(problem, X, U, window))
+    def constraint_violation(
+        self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window, *, obstacles: bool = True
+    ) -> float:
+        """Largest violation of the *nonlinear* problem on a window: dynamics defect (one-step, so errors do not
+        compound) and the exact path constraints. Used for the feasibility status of SCP iterates."""
+        X_next = np.stack([self.step(problem, window.start + j, X[j], U[j]) for j in range(window.length)])
+        defect = float(np.max(np.abs(X_next - X[1:]), initial=0.0))
+        return max(defect, self.path_violation(problem, X, U, window, obstacles=obstacles))
 
     @abc.abstractmethod
-    def path_violation(self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window) -> float:
-        """Largest violation of the exact path constraints (keep-out depth, bounds, cones, waypoints) on X, U."""
+    def path_violation(
+        self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window, *, obstacles: bool = True
+    ) -> float:
+        """Largest violation of the exact path constraints on window states X (H+1, n) and controls U (H, m):
+        keep-out depth (only if ``obstacles``), bounds, cones, waypoints. Window state 0 is fixed and excluded."""
 
     # ----------------------------------------------------------------------------------------------------- cost
     def stage_cost(self, U: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from ttompc.scenarios.base import (
     SCPSettings,
     Window,
 )
-from ttompc.scenarios.keepout import keepout_block
+from ttompc.scenarios.keepout import keepout_block, keepout_distance
 
 MASS = 16.0  # kg
 INERTIA = 0.18  # kg m²
@@ -162,9 +162,12 @@ class FreeFlyer(Scenario):
         d = np.linalg.norm(np.asarray(X)[:, None, :2] - OBSTACLES[None], axis=-1)
         return np.sum(d < R_EFF - VIOLATION_TOL, axis=1)
 
-    def path_violation(self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window) -> float:
-        d = np.linalg.norm(X[1:, None, :2] - OBSTACLES[None], axis=-1)
-        depth = np.max(R_EFF - d, initial=0.0)
+    def path_violation(
+        self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window, *, obstacles: bool = True
+    ) -> float:
+        depth = 0.0
+        if obstacles:
+            depth = np.max(-keepout_distance(X[1:, :2], OBSTACLES, R_EFF), initial=0.0)
         box = np.max(np.concatenate([X[1:, :2] - TABLE[1], TABLE[0] - X[1:, :2]]), initial=0.0)
         thrust = np.max(np.abs(thruster_dv(X[:-1, 2], U)) - DV_MAX, initial=0.0)
         return float(max(depth, box, thrust))

@@ -1,0 +1,156 @@
+"""Convex solver backends for assembled subproblems. Each is set up once per structure and then updated in place.
+
+* ``clarabel`` (default): interior-point conic solver shipped with cvxpy; handles the SOC trust region, the
+  2-norm costs (RPOD) and the approach cone. Data updates keep the KKT symbolic factorisation.
+* ``osqp``: ADMM QP solver for subproblems without cones (quadrotor with an ∞-norm trust region); warm-started
+  from the previous primal/dual iterate, which matters when many bounds are active (engineering notes).
+* ``piqp`` (optional extra ``ttompc[fast]``): interior-point QP solver, insensitive to active sets.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ttompc.solvers.subproblem import AssembledSubproblem
+
+
+@dataclass
+class BackendSolution:
+    z: np.ndarray | None
+    objective: float
+    ok: bool  # a usable (optimal or almost optimal) primal solution
+    infeasible: bool  # the solver certified primal infeasibility
+    status: str
+    solve_time: float
+
+
+class ClarabelBackend:
+    name = "clarabel"
+    supports_cones = True
+
+    def __init__(self, sub: AssembledSubproblem) -> None:
+        import clarabel
+
+        self._clarabel = clarabel
+        self.sub = sub
+        self.settings = clarabel.DefaultSettings()
+        self.settings.verbose = False
+        self.settings.presolve_enable = False  # required for in-place data updates
+        self.settings.input_sparse_dropzeros = False
+        self.cones = []
+        for kind, dim in sub.cones:
+            if dim == 0:
+                continue
+            if kind == "zero":
+                self.cones.append(clarabel.ZeroConeT(dim))
+            elif kind == "nonneg":
+                self.cones.append(clarabel.NonnegativeConeT(dim))
+            else:
+                self.cones.append(clarabel.SecondOrderConeT(dim))
+        self.solver = None
+
+    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
+        t0 = time.perf_counter()
+        if self.solver is None:
+            self.solver = self._clarabel.DefaultSolver(
+                self.sub.P, self.sub.q, self.sub.matrix(a_values), b, self.cones, self.settings
+            )
+        else:
+            self.solver.update(A=a_values, b=b)
+        sol = self.solver.solve()
+        elapsed = time.perf_counter() - t0
+        status = str(sol.status)
+        ok = status in ("Solved", "AlmostSolved")
+        infeasible = "PrimalInfeasible" in status
+        return BackendSolution(np.asarray(sol.x) if ok else None, float(sol.obj_val), ok, infeasible, status, elapsed)
+
+
+class OSQPBackend:
+    """OSQP on l ≤ Az ≤ u; the zero cone gives l = u = b, the nonnegative cone l = −∞, u = b."""
+
+    name = "osqp"
+    supports_cones = False
+
+    def __init__(self, sub: AssembledSubproblem, eps: float = 1e-7, max_iter: int = 20000) -> None:
+        import osqp
+
+        _reject_cones(sub, self.name)
+        self._osqp = osqp
+        self.sub = sub
+        self.n_zero = dict(sub.cones)["zero"]
+        self.eps, self.max_iter = eps, max_iter
+        self.solver = None
+
+    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
+        t0 = time.perf_counter()
+        lower = np.full_like(b, -np.inf)
+        lower[: self.n_zero] = b[: self.n_zero]
+        if self.solver is None:
+            self.solver = self._osqp.OSQP()
+            self.solver.setup(
+                P=sp.triu(self.sub.P, format="csc"), q=self.sub.q, A=self.sub.matrix(a_values), l=lower, u=b,
+                eps_abs=self.eps, eps_rel=self.eps, max_iter=self.max_iter, polishing=True, verbose=False,
+                warm_starting=True,
+            )
+        else:  # keeps the previous primal/dual iterate as the warm start
+            self.solver.update(Ax=a_values, l=lower, u=b)
+        res = self.solver.solve()
+        elapsed = time.perf_counter() - t0
+        status = str(res.info.status)
+        ok = status in ("solved", "solved inaccurate")
+        infeasible = "primal infeasible" in status
+        return BackendSolution(np.asarray(res.x) if ok else None, float(res.info.obj_val), ok, infeasible, status,
+                               elapsed)
+
+
+class PIQPBackend:
+    """PIQP (sparse interface): min ½xᵀPx + cᵀx s.t. Ax = b, h_l ≤ Gx ≤ h_u."""
+
+    name = "piqp"
+    supports_cones = False
+
+    def __init__(self, sub: AssembledSubproblem) -> None:
+        import piqp
+
+        _reject_cones(sub, self.name)
+        self._piqp = piqp
+        self.sub = sub
+        self.n_zero = dict(sub.cones)["zero"]
+
+    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
+        t0 = time.perf_counter()
+        A = self.sub.matrix(a_values).tocsr()
+        nz = self.n_zero
+        solver = self._piqp.SparseSolver()
+        solver.settings.verbose = False
+        solver.setup(self.sub.P, self.sub.q, A[:nz].tocsc(), b[:nz], A[nz:].tocsc(), None, b[nz:])
+        status = solver.solve()
+        elapsed = time.perf_counter() - t0
+        name = str(status)
+        ok = "PIQP_SOLVED" in name
+        infeasible = "PRIMAL_INFEASIBLE" in name
+        z = np.asarray(solver.result.x) if ok else None
+        return BackendSolution(z, float(solver.result.info.primal_obj), ok, infeasible, name, elapsed)
+
+
+BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "piqp": PIQPBackend}
+
+
+def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPBackend | PIQPBackend:
+    try:
+        cls = BACKENDS[name]
+    except KeyError:
+        raise ValueError(f"unknown solver backend {name!r}; choose from {sorted(BACKENDS)}") from None
+    return cls(sub)
+
+
+def _reject_cones(sub: AssembledSubproblem, name: str) -> None:
+    if any(kind == "soc" for kind, _ in sub.cones):
+        raise ValueError(
+            f"backend {name!r} solves QPs only, but this subproblem has second-order cones (2-norm cost, 2-norm trust "
+            "region, approach cone or a soft terminal norm); use backend='clarabel' or trust_norm='linf'"
+        )

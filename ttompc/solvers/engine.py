@@ -1,0 +1,195 @@
+"""The SCP iteration (see ``scp.py`` for the public API and the formulation)."""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from typing import Protocol
+
+import numpy as np
+
+from ttompc.scenarios.base import BlockKind, ConstraintBlock, Problem, Scenario, SCPSettings, Window
+from ttompc.solvers.backends import BackendSolution, make_backend
+from ttompc.solvers.scp import IterateRecord, SCPResult, SCPStatus, TerminalCost
+from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
+
+
+class SubproblemSolver(Protocol):
+    def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]: ...
+
+
+class AssembledSolver:
+    """Assembled structure + a persistent backend: only values change between calls."""
+
+    def __init__(self, spec: SubproblemSpec, backend: str) -> None:
+        self.sub = AssembledSubproblem(spec)
+        self.backend = make_backend(backend, self.sub)
+
+    def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
+        a_values, b = self.sub.update(data)
+        sol = self.backend.solve(a_values, b)
+        if sol.z is None:
+            return None, None, sol
+        X, U = self.sub.split(sol.z)
+        return X, U, sol
+
+
+_CACHE: OrderedDict[tuple[SubproblemSpec, str], SubproblemSolver] = OrderedDict()
+_CACHE_SIZE = 64
+
+
+def get_solver(spec: SubproblemSpec, backend: str) -> SubproblemSolver:
+    """One solver per (structure, backend), least-recently-used cache (MPC windows produce a handful of keys)."""
+    key = (spec, backend)
+    solver = _CACHE.get(key)
+    if solver is None:
+        if backend == "cvxpy-naive":
+            from ttompc.solvers.naive import NaiveCvxpySolver
+
+            solver = NaiveCvxpySolver(spec)
+        else:
+            solver = AssembledSolver(spec, backend)
+        _CACHE[key] = solver
+        if len(_CACHE) > _CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    else:
+        _CACHE.move_to_end(key)
+    return solver
+
+
+def run_scp(
+    scenario: Scenario,
+    problem: Problem,
+    X_init: np.ndarray,
+    U_init: np.ndarray,
+    *,
+    window: Window,
+    obstacles: bool,
+    terminal: TerminalCost | None,
+    fuel_weight: float,
+    soft_equalities: bool,
+    settings: SCPSettings,
+    backend: str,
+    formulation: str,
+    trust_norm: str | None,
+) -> SCPResult:
+    t_start = time.perf_counter()
+    H, n, m = window.length, scenario.state_dim, scenario.control_dim
+    if X_init.shape != (H + 1, n) or U_init.shape != (H, m):
+        raise ValueError(
+            f"{scenario.name}: warm start must have shapes ({H + 1}, {n}) and ({H}, {m}) for a window of {H} steps, "
+            f"got {X_init.shape} and {U_init.shape}"
+        )
+    if not (np.all(np.isfinite(X_init)) and np.all(np.isfinite(U_init))):
+        raise ValueError(f"{scenario.name}: warm start contains non-finite values")
+    if formulation not in ("penalized", "reference"):
+        raise ValueError(f"unknown SCP formulation {formulation!r}; choose 'penalized' or 'reference'")
+    if terminal is None and not window.reaches_end:
+        raise ValueError(f"window [{window.start}, {window.stop}) stops before the end and needs a terminal cost")
+    if window.start == 0:
+        scenario.validate(problem)
+    penalized = formulation == "penalized"
+    use_tr = bool(np.isfinite(settings.tr_start))
+    if trust_norm is None:
+        trust_norm = "l2" if backend in ("clarabel", "cvxpy-naive") else "linf"
+    shrink = settings.shrink if use_tr else 1.0
+
+    X_ref, U_ref = X_init.copy(), U_init.copy()
+    x_start = X_init[0].copy()
+    delta = settings.tr_start
+    history: list[IterateRecord] = []
+    best: tuple[float, np.ndarray, np.ndarray, float, int] | None = None  # (merit, X, U, violation, iteration)
+    least_bad: tuple[float, np.ndarray, np.ndarray, int] | None = None  # fallback: smallest violation
+    prev_merit: float | None = None
+    status: SCPStatus | None = None
+    solver_time = 0.0
+
+    for it in range(settings.max_iters):
+        model = scenario.convex_model(problem, window, X_ref, U_ref)
+        blocks = scenario.constraints(problem, window, X_ref, U_ref, obstacles=obstacles)
+        if not penalized:  # the reference formulation: every linearised constraint is hard
+            blocks = [_hard(b) for b in blocks]
+        spec = SubproblemSpec(
+            H=H, n=n, m=m, cost_norm=scenario.cost_norm, fuel_weight=float(fuel_weight), penalized=penalized,
+            virtual_control=penalized and not scenario.exact_linear_dynamics,
+            trust=trust_norm if use_tr else "none", terminal="hard" if terminal is None else "soft",
+            soft_equalities=soft_equalities, penalty=float(settings.penalty),
+            blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+        )
+        data = SubproblemData(
+            x_start=x_start, model=model, blocks=blocks, X_ref=X_ref, delta=float(delta), goal=problem.goal,
+            terminal_target=None if terminal is None else terminal.target,
+            terminal_weights=None if terminal is None else terminal.weights,
+        )
+        X, U, sol = get_solver(spec, backend).solve(data)
+        solver_time += sol.solve_time
+        if X is None or U is None:
+            history.append(IterateRecord(it, np.nan, np.nan, np.nan, np.nan, float(delta), sol.solve_time, sol.status))
+            # the reference formulation gives up on an infeasible subproblem, like the authors' code
+            failed = SCPStatus.INFEASIBLE if (sol.infeasible and not penalized) else SCPStatus.SOLVER_ERROR
+            if failed is SCPStatus.INFEASIBLE or best is None:
+                status = failed
+            break
+        cost = scenario.cost(U)
+        merit = fuel_weight * cost + _terminal_term(X, terminal) + _soft_eq_term(blocks, X, U, soft_equalities)
+        violation = scenario.constraint_violation(problem, X, U, window, obstacles=obstacles)
+        if terminal is None:
+            violation = max(violation, float(np.max(np.abs(X[-1] - problem.goal))))
+        step = float(np.max(np.linalg.norm(X - X_ref, axis=1)))
+        history.append(IterateRecord(it, cost, merit, violation, step, float(delta), sol.solve_time, sol.status))
+        if violation <= settings.feas_tol and (best is None or merit < best[0]):
+            best = (merit, X, U, violation, it)
+        if least_bad is None or violation < least_bad[0]:
+            least_bad = (violation, X, U, it)
+        converged = it >= 1 and step <= settings.tr_end and prev_merit is not None and (
+            abs(merit - prev_merit) <= settings.cost_tol
+        )
+        X_ref, U_ref, prev_merit = X, U, merit
+        delta *= shrink
+        if converged or not use_tr:
+            status = SCPStatus.OPTIMAL if violation <= settings.feas_tol else SCPStatus.INFEASIBLE
+            break
+
+    failed = status in (SCPStatus.INFEASIBLE, SCPStatus.SOLVER_ERROR)
+    if best is not None and (penalized or not failed):
+        status = SCPStatus.OPTIMAL if status is SCPStatus.OPTIMAL else SCPStatus.FEASIBLE
+    elif not failed:
+        status = SCPStatus.INFEASIBLE if least_bad is not None else SCPStatus.SOLVER_ERROR
+    if best is not None and status in (SCPStatus.OPTIMAL, SCPStatus.FEASIBLE):
+        _, X_out, U_out, viol_out, best_it = best
+    elif least_bad is not None:
+        viol_out, X_out, U_out, best_it = least_bad
+    else:
+        X_out, U_out, viol_out, best_it = X_init, U_init, float("inf"), -1
+    return SCPResult(
+        status=status, X=X_out, U=U_out, cost=scenario.cost(U_out), violation=float(viol_out),
+        iterations=len(history), solve_time=time.perf_counter() - t_start, solver_time=solver_time, window=window,
+        history=history, best_iteration=best_it,
+    )
+
+
+def _hard(block: ConstraintBlock) -> ConstraintBlock:
+    if not block.soft:
+        return block
+    return ConstraintBlock(block.name, block.kind, block.steps, block.Gx, block.Gu, block.h, block.nonconvex,
+                           block.obstacle, soft=False, weight=block.weight)
+
+
+def _terminal_term(X: np.ndarray, terminal: TerminalCost | None) -> float:
+    if terminal is None:
+        return 0.0
+    return float(np.linalg.norm(terminal.weights * (X[-1] - terminal.target)))
+
+
+def _soft_eq_term(blocks: list[ConstraintBlock], X: np.ndarray, U: np.ndarray, soft: bool) -> float:
+    if not soft:
+        return 0.0
+    total = 0.0
+    for b in blocks:
+        if b.kind is not BlockKind.EQ:
+            continue
+        res = np.einsum("kmn,kn->km", b.Gx, X[b.steps]) - b.h
+        if b.Gu is not None:
+            res += np.einsum("kmu,ku->km", b.Gu, U[b.steps])
+        total += b.weight * float(np.sum(np.linalg.norm(res, axis=1)))
+    return total

@@ -1,0 +1,321 @@
+"""The convex SCP subproblem, assembled directly as sparse conic data and updated in place between iterations.
+
+    min  ½ zᵀPz + qᵀz   s.t.  A z + s = b,  s ∈ {0}ⁿᶻ × ℝ₊ⁿⁿ × Q^{d₁} × … × Q^{dₖ}      (Clarabel's standard form)
+
+z stacks the window states X (H+1, n), controls U (H, m), the cost epigraph variables and the slacks. The matrix
+*structure* (sparsity, cone sizes) depends only on a key — window length, cost norm, formulation, trust-region norm,
+terminal mode and the shapes/steps of the scenario's constraint blocks — so it is built once per key and cached;
+each SCP iteration only rewrites the numeric values (dynamics A_k/B_k/c_k, linearised rows, trust-region centre
+and radius, targets) through precomputed index maps. No modelling layer runs inside the loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel
+
+
+@dataclass
+class SubproblemData:
+    """Everything one SCP iteration feeds to the convex subproblem (values only; shapes are in the key)."""
+
+    x_start: np.ndarray  # (n,) fixed initial state of the window
+    model: ConvexModel
+    blocks: list[ConstraintBlock]
+    X_ref: np.ndarray  # (H+1, n) trust-region centre
+    delta: float  # trust-region radius (inf: no trust region)
+    goal: np.ndarray  # (n,) terminal state for a hard terminal condition
+    terminal_target: np.ndarray | None  # (n,) x̄ for the soft terminal term
+    terminal_weights: np.ndarray | None  # (n,) diagonal of P
+
+
+@dataclass(frozen=True)
+class SubproblemSpec:
+    """The structural key: two iterations with equal specs share one matrix structure."""
+
+    H: int
+    n: int
+    m: int
+    cost_norm: str
+    fuel_weight: float
+    penalized: bool
+    virtual_control: bool
+    trust: str  # "l2", "linf" or "none"
+    terminal: str  # "hard" or "soft"
+    soft_equalities: bool
+    penalty: float
+    blocks: tuple[tuple[Any, ...], ...]
+
+    @staticmethod
+    def block_signature(block: ConstraintBlock) -> tuple[Any, ...]:
+        return (block.name, block.kind.value, tuple(int(s) for s in block.steps), block.rows_per_step,
+                block.Gu is not None, bool(block.soft), float(block.weight))
+
+
+@dataclass
+class _Group:
+    """Rows of one cone type with their COO entries; values either constant or gathered from update data."""
+
+    n_rows: int = 0
+    rows: list[np.ndarray] = field(default_factory=list)
+    cols: list[np.ndarray] = field(default_factory=list)
+    vals: list[tuple[str, Any]] = field(default_factory=list)  # ("const", array) or ("data", (key, index array, sign))
+    b: list[tuple[np.ndarray, str, Any]] = field(default_factory=list)  # (rows, "const"/"data", payload)
+
+    def add_rows(self, count: int) -> np.ndarray:
+        idx = np.arange(self.n_rows, self.n_rows + count)
+        self.n_rows += count
+        return idx
+
+
+class AssembledSubproblem:
+    """Sparse conic data of one structure plus the index maps that refresh its values from ``SubproblemData``."""
+
+    def __init__(self, spec: SubproblemSpec) -> None:
+        self.spec = spec
+        H, n, m = spec.H, spec.n, spec.m
+        self.n_var = 0
+        self.ix = self._var((H + 1) * n).reshape(H + 1, n)
+        self.iu = self._var(H * m).reshape(H, m)
+        q_parts: list[tuple[np.ndarray, float]] = []
+        zero, nonneg = _Group(), _Group()
+        self.soc_groups: list[_Group] = []
+
+        # x_0 = x_start
+        r = zero.add_rows(n)
+        self._entries(zero, r, self.ix[0], ("const", np.ones(n)))
+        zero.b.append((r, "data", ("x_start", np.arange(n), 1.0)))
+
+        # dynamics: x_{j+1} − A_j x_j − B_j u_j − (ν⁺_j − ν⁻_j) = c_j
+        rdyn = zero.add_rows(H * n).reshape(H, n)
+        self._entries(zero, rdyn, self.ix[1:], ("const", np.ones((H, n))))
+        rr = np.repeat(rdyn[:, :, None], n, axis=2)
+        self._entries(zero, rr, np.broadcast_to(self.ix[:-1][:, None, :], (H, n, n)), ("data", ("A", None, -1.0)))
+        rr = np.repeat(rdyn[:, :, None], m, axis=2)
+        self._entries(zero, rr, np.broadcast_to(self.iu[:, None, :], (H, n, m)), ("data", ("B", None, -1.0)))
+        zero.b.append((rdyn.ravel(), "data", ("c", None, 1.0)))
+        if spec.virtual_control:
+            nu_p, nu_m = self._var(H * n), self._var(H * n)
+            self._entries(zero, rdyn.ravel(), nu_p, ("const", -np.ones(H * n)))
+            self._entries(zero, rdyn.ravel(), nu_m, ("const", np.ones(H * n)))
+            self._nonneg_vars(nonneg, np.concatenate([nu_p, nu_m]))
+            q_parts.append((np.concatenate([nu_p, nu_m]), spec.penalty))
+
+        # terminal condition
+        if spec.terminal == "hard":
+            r = zero.add_rows(n)
+            self._entries(zero, r, self.ix[H], ("const", np.ones(n)))
+            zero.b.append((r, "data", ("goal", np.arange(n), 1.0)))
+            if spec.penalized:
+                sp_, sm_ = self._var(n), self._var(n)
+                self._entries(zero, r, sp_, ("const", -np.ones(n)))
+                self._entries(zero, r, sm_, ("const", np.ones(n)))
+                self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
+                q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
+        else:  # τ ≥ ‖W (x_H − x̄)‖₂
+            tau = self._var(1)
+            g = self._soc(1 + n)
+            self._entries(g, np.array([0]), tau, ("const", -np.ones(1)))
+            self._entries(g, np.arange(1, n + 1), self.ix[H], ("data", ("terminal_weights", np.arange(n), -1.0)))
+            g.b.append((np.arange(1, n + 1), "data", ("weighted_target", np.arange(n), -1.0)))
+            q_parts.append((tau, 1.0))
+
+        # stage cost
+        if spec.cost_norm == "l1":  # t ≥ |u| elementwise
+            t = self._var(H * m).reshape(H, m)
+            for sign in (1.0, -1.0):
+                r = nonneg.add_rows(H * m).reshape(H, m)
+                self._entries(nonneg, r, self.iu, ("const", np.full((H, m), sign)))
+                self._entries(nonneg, r, t, ("const", -np.ones((H, m))))
+            q_parts.append((t.ravel(), spec.fuel_weight))
+        elif spec.cost_norm == "l2":  # t_j ≥ ‖u_j‖₂
+            t = self._var(H)
+            for j in range(H):
+                g = self._soc(1 + m)
+                self._entries(g, np.array([0]), t[j : j + 1], ("const", -np.ones(1)))
+                self._entries(g, np.arange(1, m + 1), self.iu[j], ("const", -np.ones(m)))
+            q_parts.append((t, spec.fuel_weight))
+        elif spec.cost_norm != "quad":
+            raise ValueError(f"unknown cost norm {spec.cost_norm!r}")
+
+        # scenario constraint blocks
+        for bi, sig in enumerate(spec.blocks):
+            _, kind, steps, M, has_u, soft, weight = sig
+            steps = np.asarray(steps, dtype=int)
+            K = len(steps)
+            if has_u and K and steps.max() >= H:
+                raise ValueError(f"block {sig[0]!r} puts control rows on step {steps.max()} >= window length {H}")
+            kind = BlockKind(kind)
+            if kind is BlockKind.SOC:
+                for kk in range(K):
+                    g = self._soc(M)
+                    rows = np.arange(M)
+                    self._block_entries(g, rows, bi, kk, steps[kk], has_u, sign=-1.0)
+                    g.b.append((rows, "data", (f"h{bi}", kk * M + rows, -1.0)))
+                continue
+            if kind is BlockKind.EQ and spec.soft_equalities:  # weight·τ, τ ≥ ‖G z − h‖₂ (MPC soft mode)
+                tau = self._var(K)
+                for kk in range(K):
+                    g = self._soc(1 + M)
+                    self._entries(g, np.array([0]), tau[kk : kk + 1], ("const", -np.ones(1)))
+                    rows = np.arange(1, M + 1)
+                    self._block_entries(g, rows, bi, kk, steps[kk], has_u, sign=-1.0)
+                    g.b.append((rows, "data", (f"h{bi}", kk * M + np.arange(M), -1.0)))
+                q_parts.append((tau, weight))
+                continue
+            group = zero if kind is BlockKind.EQ else nonneg
+            r = group.add_rows(K * M).reshape(K, M)
+            for kk in range(K):
+                self._block_entries(group, r[kk], bi, kk, steps[kk], has_u, sign=1.0)
+            group.b.append((r.ravel(), "data", (f"h{bi}", None, 1.0)))
+            if not spec.penalized:
+                continue
+            if kind is BlockKind.INEQ and soft:
+                s = self._var(K * M)
+                self._entries(group, r.ravel(), s, ("const", -np.ones(K * M)))
+                self._nonneg_vars(nonneg, s)
+                q_parts.append((s, spec.penalty))
+            elif kind is BlockKind.EQ:
+                sp_, sm_ = self._var(K * M), self._var(K * M)
+                self._entries(group, r.ravel(), sp_, ("const", -np.ones(K * M)))
+                self._entries(group, r.ravel(), sm_, ("const", np.ones(K * M)))
+                self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
+                q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
+
+        # trust region on states 1..H-1 (and H when the terminal is soft)
+        tr_states = np.arange(1, H + (0 if spec.terminal == "hard" else 1))
+        self.tr_states = tr_states
+        if spec.trust == "l2":
+            for j in tr_states:
+                g = self._soc(1 + n)
+                g.b.append((np.array([0]), "data", ("delta", np.zeros(1, dtype=int), 1.0)))
+                self._entries(g, np.arange(1, n + 1), self.ix[j], ("const", -np.ones(n)))
+                g.b.append((np.arange(1, n + 1), "data", ("X_ref", j * n + np.arange(n), -1.0)))
+        elif spec.trust == "linf":
+            for sign in (1.0, -1.0):
+                r = nonneg.add_rows(len(tr_states) * n)
+                self._entries(nonneg, r, self.ix[tr_states].ravel(), ("const", np.full(len(r), sign)))
+                idx = (tr_states[:, None] * n + np.arange(n)).ravel()
+                nonneg.b.append((r, "data", ("delta", np.zeros(len(r), dtype=int), 1.0)))
+                nonneg.b.append((r, "data", ("X_ref", idx, sign)))
+        elif spec.trust != "none":
+            raise ValueError(f"unknown trust-region norm {spec.trust!r}")
+
+        self._finalise(zero, nonneg, q_parts)
+
+    # ------------------------------------------------------------------------------------------------- building
+    def _var(self, count: int) -> np.ndarray:
+        idx = np.arange(self.n_var, self.n_var + count)
+        self.n_var += count
+        return idx
+
+    def _soc(self, dim: int) -> _Group:
+        g = _Group()
+        g.add_rows(dim)
+        self.soc_groups.append(g)
+        return g
+
+    def _nonneg_vars(self, group: _Group, idx: np.ndarray) -> None:
+        r = group.add_rows(len(idx))
+        self._entries(group, r, idx, ("const", -np.ones(len(idx))))
+
+    @staticmethod
+    def _entries(group: _Group, rows: np.ndarray, cols: np.ndarray, vals: tuple[str, Any]) -> None:
+        rows, cols = np.broadcast_arrays(np.asarray(rows), np.asarray(cols))
+        group.rows.append(rows.ravel())
+        group.cols.append(cols.ravel())
+        group.vals.append(vals)
+
+    def _block_entries(self, group: _Group, rows: np.ndarray, bi: int, kk: int, step: int, has_u: bool,
+                       sign: float) -> None:
+        n, m = self.spec.n, self.spec.m
+        M = len(rows)
+        # Gx[kk] (M, n) on x_step, gathered from the flattened (K, M, n) array
+        self._entries(group, rows[:, None], self.ix[step][None, :],
+                      ("data", (f"G{bi}x", kk * M * n + np.arange(M * n), sign)))
+        if has_u:
+            self._entries(group, rows[:, None], self.iu[step][None, :],
+                          ("data", (f"G{bi}u", kk * M * m + np.arange(M * m), sign)))
+
+    def _finalise(self, zero: _Group, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]) -> None:
+        groups = [zero, nonneg, *self.soc_groups]
+        offsets = np.cumsum([0] + [g.n_rows for g in groups])
+        self.n_con = int(offsets[-1])
+        rows, cols, self._val_src, self._b_src = [], [], [], []
+        nnz = 0
+        for g, off in zip(groups, offsets[:-1], strict=True):
+            for r, c, v in zip(g.rows, g.cols, g.vals, strict=True):
+                rows.append(r + off)
+                cols.append(c)
+                self._val_src.append((slice(nnz, nnz + len(r)), v))
+                nnz += len(r)
+            for r, kind, payload in g.b:
+                self._b_src.append((r + off, kind, payload))
+        rows_a, cols_a = np.concatenate(rows), np.concatenate(cols)
+        self.nnz = nnz
+        # CSC order: sort by (col, row); keep explicit zeros so the pattern never changes between iterations
+        self._perm = np.lexsort((rows_a, cols_a))
+        self._indices = rows_a[self._perm].astype(np.int64)
+        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(cols_a, minlength=self.n_var))]).astype(np.int64)
+        if len(np.unique(cols_a * self.n_con + rows_a)) != nnz:
+            raise AssertionError("duplicate entries in the assembled constraint matrix")
+        self.cones = [("zero", zero.n_rows), ("nonneg", nonneg.n_rows)] + [("soc", g.n_rows) for g in self.soc_groups]
+        self.q = np.zeros(self.n_var)
+        for idx, w in q_parts:
+            self.q[idx] += w
+        P_diag = np.zeros(self.n_var)
+        if self.spec.cost_norm == "quad":
+            P_diag[self.iu.ravel()] = self.spec.fuel_weight
+        self.P = sp.diags(P_diag, format="csc")
+        self._coo_vals = np.zeros(nnz)
+        for slc, (kind, payload) in self._val_src:
+            if kind == "const":
+                self._coo_vals[slc] = np.ravel(payload)
+
+    # ------------------------------------------------------------------------------------------------- updating
+    def update(self, data: SubproblemData) -> tuple[np.ndarray, np.ndarray]:
+        """Values of A (in CSC data order) and b for one iteration."""
+        src = self._sources(data)
+        vals = self._coo_vals
+        for slc, (kind, payload) in self._val_src:
+            if kind == "data":
+                key, idx, sign = payload
+                flat = src[key]
+                vals[slc] = sign * (flat if idx is None else flat[idx])
+        b = np.zeros(self.n_con)
+        for rows, kind, payload in self._b_src:
+            key, idx, sign = payload
+            flat = src[key]
+            b[rows] += sign * (flat if idx is None else flat[idx])
+        return vals[self._perm], b
+
+    def matrix(self, values: np.ndarray) -> sp.csc_matrix:
+        return sp.csc_matrix((values, self._indices, self._indptr), shape=(self.n_con, self.n_var))
+
+    def _sources(self, data: SubproblemData) -> dict[str, np.ndarray]:
+        src: dict[str, np.ndarray] = {
+            "x_start": data.x_start,
+            "A": np.ascontiguousarray(data.model.A).ravel(),
+            "B": np.ascontiguousarray(data.model.B).ravel(),
+            "c": np.ascontiguousarray(data.model.c).ravel(),
+            "goal": data.goal,
+            "X_ref": np.ascontiguousarray(data.X_ref).ravel(),
+            "delta": np.array([data.delta]),
+        }
+        if data.terminal_weights is not None and data.terminal_target is not None:
+            src["terminal_weights"] = data.terminal_weights
+            src["weighted_target"] = data.terminal_weights * data.terminal_target
+        for bi, block in enumerate(data.blocks):
+            src[f"G{bi}x"] = np.ascontiguousarray(block.Gx).ravel()
+            if block.Gu is not None:
+                src[f"G{bi}u"] = np.ascontiguousarray(block.Gu).ravel()
+            src[f"h{bi}"] = np.ascontiguousarray(block.h).ravel()
+        return src
+
+    def split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return z[self.ix], z[self.iu]
