@@ -1,0 +1,116 @@
+"""The local model cache: content-addressed blobs plus immutable per-model snapshot directories.
+
+Layout under the cache root::
+
+    blobs/sha256/<hex>                      verified file contents, read-only, named by their hash
+    models/<name>/<snapshot>/<filename>     hard links (or copies) of blobs: the bundle dir Planner.load reads
+
+A snapshot id is derived from the card's (filename, sha256) pairs, so re-publishing a model under the same name
+creates a new snapshot instead of rewriting files that a running process may have memory-mapped.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from ttompc.zoo.cards import REQUIRED_FILES, FileEntry, validate_name, validate_sha256
+
+
+class UnsafePathError(ValueError):
+    """A path that would resolve outside the directory it must stay in."""
+
+
+def cache_root(cache_dir: str | Path | None = None) -> Path:
+    """Explicit ``cache_dir``, else ``$TTOMPC_HOME``, else ``$XDG_CACHE_HOME/ttompc``, else ``~/.cache/ttompc``."""
+    if cache_dir is not None:
+        return Path(cache_dir).expanduser()
+    if os.environ.get("TTOMPC_HOME"):
+        return Path(os.environ["TTOMPC_HOME"]).expanduser()
+    if os.environ.get("XDG_CACHE_HOME"):
+        return Path(os.environ["XDG_CACHE_HOME"]).expanduser() / "ttompc"
+    return Path.home() / ".cache" / "ttompc"
+
+
+def inside(root: Path, *parts: str) -> Path:
+    """``root/parts...`` after resolving symlinks, refusing anything that lands outside ``root``."""
+    base = root.resolve()
+    path = base.joinpath(*parts).resolve()
+    if not path.is_relative_to(base):
+        raise UnsafePathError(f"{'/'.join(parts)!r} resolves to {path}, outside {base}")
+    return path
+
+
+def blob_path(root: Path, sha256: str) -> Path:
+    return inside(root, "blobs", "sha256", validate_sha256(sha256))
+
+
+def snapshot_id(files: Iterable[FileEntry]) -> str:
+    pairs = sorted(f"{f.filename}\0{f.sha256}" for f in files)
+    return hashlib.sha256("\n".join(pairs).encode()).hexdigest()[:16]
+
+
+def assemble_bundle(root: Path, name: str, files: list[FileEntry]) -> Path:
+    """The snapshot dir of ``name`` holding ``files`` (whose blobs must already be in the cache).
+
+    Built in a temporary sibling and renamed into place, so a snapshot dir is either complete or absent.
+    """
+    target = inside(root, "models", validate_name(name), snapshot_id(files))
+    if target.is_dir():
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=target.parent))
+    try:
+        for f in files:
+            _link_or_copy(blob_path(root, f.sha256), inside(staging, validate_name(f.filename, "file name")))
+        try:
+            staging.rename(target)
+        except OSError:
+            if not target.is_dir():  # a concurrent process winning the race is fine; anything else is not
+                raise
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
+    return target
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """Hard link (no extra disk space), falling back to a copy on file systems without hard links."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+class BundleError(ValueError):
+    """A directory that is not a loadable model bundle."""
+
+
+def check_bundle(bundle_dir: str | Path) -> dict[str, Any]:
+    """Validate a bundle without executing anything in it; returns its parsed ``config.json``.
+
+    ``model.safetensors`` is opened with safetensors (a header + raw tensors, no code), so a pickle or a torch
+    checkpoint renamed to ``model.safetensors`` fails here with ``SafetensorError`` instead of being unpickled.
+    """
+    from safetensors import safe_open
+
+    bundle = Path(bundle_dir)
+    missing = [f for f in REQUIRED_FILES if not (bundle / f).is_file()]
+    if missing:
+        raise BundleError(f"{bundle} is not a model bundle: missing {missing}")
+    with safe_open(bundle / "model.safetensors", framework="numpy") as weights:
+        if not list(weights.keys()):
+            raise BundleError(f"{bundle / 'model.safetensors'} holds no tensors")
+    try:
+        config = json.loads((bundle / "config.json").read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise BundleError(f"{bundle / 'config.json'} is not valid JSON: {err}") from None
+    if not isinstance(config, dict):
+        raise BundleError(f"{bundle / 'config.json'} must hold a JSON object")
+    return config

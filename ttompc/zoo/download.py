@@ -1,0 +1,180 @@
+"""Fetching published files into the cache: verified by sha256, resumable over HTTP, atomic.
+
+Sources: a path relative to the card's directory (models shipped in the repository), ``file://``, ``http(s)://``
+(``Range`` requests resume a ``.part`` file when the server supports them, otherwise the download restarts), and
+``hf://org/repo[@revision]/path`` through huggingface_hub when it is installed. We use urllib rather than
+``torch.hub.download_url_to_file`` because the latter cannot resume and would import torch for a file copy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import re
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import BinaryIO
+
+from tqdm.auto import tqdm
+
+from ttompc.version import code_version
+from ttompc.zoo.cache import assemble_bundle, blob_path, cache_root, inside
+from ttompc.zoo.cards import FileEntry, ModelCard
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks, so concurrent downloads of one file are not coordinated
+    fcntl = None  # type: ignore[assignment]
+
+CHUNK = 1 << 20
+TIMEOUT_S = 60.0
+_CONTENT_RANGE_RE = re.compile(r"^bytes (\d+)-\d+/(?:\d+|\*)$")
+
+
+class DownloadError(RuntimeError):
+    """A file that could not be fetched."""
+
+
+class ChecksumError(DownloadError):
+    """Fetched bytes that are not the published ones (the file has been deleted)."""
+
+
+def download_bundle(
+    card: ModelCard, base_dir: Path, cache_dir: str | Path | None = None, progress: bool = True
+) -> Path:
+    """Fetch every file of ``card`` (relative URLs resolve against ``base_dir``) and return its bundle dir."""
+    root = cache_root(cache_dir)
+    for entry in card.files:
+        fetch(entry, blob_path(root, entry.sha256), base_dir=base_dir, progress=progress)
+    return assemble_bundle(root, card.name, card.files)
+
+
+def fetch(entry: FileEntry, dest: Path, base_dir: Path | None = None, progress: bool = True) -> Path:
+    """Download ``entry`` to ``dest`` unless it is already there; only verified bytes ever appear at ``dest``."""
+    if dest.is_file():
+        return dest
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    part = dest.with_name(dest.name + ".part")
+    with _locked(dest.with_name(dest.name + ".lock")):
+        if dest.is_file():  # another process finished it while we waited for the lock
+            return dest
+        offset = part.stat().st_size if part.exists() else 0
+        if offset >= entry.size:  # a stale or over-long partial cannot be resumed
+            offset = 0
+        stream, offset = _open(entry.url, offset, base_dir)
+        digest = hashlib.sha256()
+        with stream, open(part, "r+b" if offset else "w+b") as out:
+            for chunk in iter(lambda: out.read(CHUNK), b""):  # re-hash the bytes we already have
+                digest.update(chunk)
+            with tqdm(
+                total=entry.size,
+                initial=offset,
+                unit="B",
+                unit_scale=True,
+                unit_divisor=1024,
+                desc=entry.filename,
+                disable=not progress,
+                leave=False,
+            ) as bar:
+                for chunk in iter(lambda: stream.read(CHUNK), b""):
+                    out.write(chunk)
+                    digest.update(chunk)
+                    bar.update(len(chunk))
+                    if out.tell() > entry.size:  # never let a wrong or hostile source fill the disk
+                        break
+            size = out.tell()
+        actual = digest.hexdigest()
+        if actual != entry.sha256 or size != entry.size:
+            part.unlink()
+            raise ChecksumError(
+                f"{entry.filename} from {entry.url}: sha256 mismatch, expected {entry.sha256} ({entry.size} bytes), "
+                f"got {actual} ({size} bytes); the downloaded file was deleted"
+            )
+        os.chmod(part, 0o444)  # blobs are shared by hard links: make accidental in-place edits fail
+        os.replace(part, dest)
+    return dest
+
+
+@contextlib.contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """Serialise downloads of one blob across processes (e.g. DDP ranks all calling load_pretrained)."""
+    if fcntl is None:
+        yield
+        return
+    with open(path, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _open(url: str, offset: int, base_dir: Path | None) -> tuple[BinaryIO, int]:
+    """A stream of ``url`` starting at ``offset`` if the source can resume, else at 0; returns the start used."""
+    scheme = urllib.parse.urlsplit(url).scheme.lower()
+    if scheme in ("http", "https"):
+        return _open_http(url, offset)
+    path = _hf_path(url) if scheme == "hf" else local_path(url, base_dir)
+    try:
+        fh = open(path, "rb")
+    except OSError as err:
+        raise DownloadError(f"cannot read {url}: {err}") from None
+    fh.seek(offset)
+    return fh, offset
+
+
+def local_path(url: str, base_dir: Path | None) -> Path:
+    """The file behind a ``file://`` URL or a relative path (which must stay inside ``base_dir``)."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme == "file":
+        if parts.netloc not in ("", "localhost"):
+            raise DownloadError(f"{url}: only local file:// URLs are supported")
+        return Path(urllib.request.url2pathname(parts.path))
+    if parts.scheme or Path(url).is_absolute():
+        raise DownloadError(f"unsupported URL {url!r}: use a relative path, file://, http(s):// or hf://")
+    if base_dir is None:
+        raise DownloadError(f"relative URL {url!r} needs a base directory (the zoo dir holding the card)")
+    return inside(base_dir, *Path(url).parts)
+
+
+def _open_http(url: str, offset: int) -> tuple[BinaryIO, int]:
+    headers = {"User-Agent": f"ttompc/{code_version()}"}
+    if offset:
+        headers["Range"] = f"bytes={offset}-"
+    try:
+        resp = urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=TIMEOUT_S)
+    except urllib.error.HTTPError as err:
+        err.close()
+        if err.code == 416 and offset:  # our partial file does not fit the remote one: start over
+            return _open_http(url, 0)
+        raise DownloadError(f"{url}: HTTP {err.code} {err.reason}") from None
+    except (urllib.error.URLError, OSError) as err:
+        raise DownloadError(f"{url}: {getattr(err, 'reason', err)}") from None
+    if not offset or resp.status != 206:
+        return resp, 0  # a 200 answer to a Range request means the server ignored it: restart
+    match = _CONTENT_RANGE_RE.match(resp.headers.get("Content-Range", ""))
+    if match is None or int(match.group(1)) != offset:
+        resp.close()
+        return _open_http(url, 0)
+    return resp, offset
+
+
+def _hf_path(url: str) -> Path:
+    """Resolve ``hf://org/repo[@revision]/path/in/repo`` to a local file via huggingface_hub's own cache."""
+    parts = urllib.parse.urlsplit(url)
+    repo, _, filename = parts.path.lstrip("/").partition("/")
+    repo_name, _, revision = repo.partition("@")
+    if not parts.netloc or not repo_name or not filename:
+        raise DownloadError(f"{url!r}: expected hf://org/repo[@revision]/path/in/repo")
+    try:
+        from huggingface_hub import hf_hub_download
+    except ImportError:
+        raise DownloadError(f"{url}: hf:// URLs need huggingface_hub (pip install huggingface_hub)") from None
+    try:
+        return Path(hf_hub_download(f"{parts.netloc}/{repo_name}", filename, revision=revision or None))
+    except Exception as err:  # huggingface_hub raises many unrelated types (HTTP, offline mode, auth, not found)
+        raise DownloadError(f"{url}: {type(err).__name__}: {err}") from None
