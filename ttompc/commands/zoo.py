@@ -1,0 +1,145 @@
+"""``ttompc zoo list|info|download|publish|index``: the command-line face of ``ttompc.zoo``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from ttompc import zoo
+from ttompc.zoo.cards import KINDS, ModelCard, render_card
+from ttompc.zoo.registry import index_is_current, write_index
+
+_ERRORS = (
+    zoo.BundleError,
+    zoo.CardError,
+    zoo.DownloadError,
+    zoo.PublishError,
+    zoo.UnknownModelError,
+    zoo.UnsafePathError,
+    OSError,
+    json.JSONDecodeError,
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--zoo-dir", help="directory of model cards (default: $TTOMPC_ZOO or the repository's zoo/)")
+    sub = parser.add_subparsers(dest="zoo_command", metavar="ACTION", required=True)
+
+    p = sub.add_parser("list", parents=[common], help="table of the models in the zoo")
+    p.add_argument("--json", action="store_true", help="print the index entries as JSON")
+
+    p = sub.add_parser("info", parents=[common], help="print a model card")
+    p.add_argument("name")
+    p.add_argument("--json", action="store_true", help="print the card's front matter as JSON")
+
+    p = sub.add_parser("download", parents=[common], help="fetch and verify a model into the local cache")
+    p.add_argument("name")
+    p.add_argument("--cache-dir", help="cache root (default: $TTOMPC_HOME, $XDG_CACHE_HOME/ttompc, ~/.cache/ttompc)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("publish", parents=[common], help="copy a bundle to a destination and write its card")
+    p.add_argument("source", help="bundle directory (model.safetensors + config.json) or a Lightning .ckpt")
+    p.add_argument("--name", required=True)
+    p.add_argument("--to", required=True, help="destination directory or file:// URL, e.g. zoo/models/NAME")
+    p.add_argument("--card-metrics", help="JSON file {metric: {value, how}} to put in the card")
+    p.add_argument("--skip-eval", action="store_true", help="publish without metrics")
+    p.add_argument("--base-url", help="card URLs become BASE_URL/<file> (when the files are uploaded there)")
+    p.add_argument("--kind", choices=KINDS, help="override the kind read from config.json")
+    p.add_argument("--license", help="licence of the weights (default: the existing card's, else MIT)")
+    p.add_argument("--recipe", help="path of the training recipe, e.g. recipes/freeflyer/pretrain.yaml")
+    p.add_argument("--data-card", help="path or name of the training data card")
+    p.add_argument("--tag", action="append", dest="tags", help="card tag (repeatable; replaces the default tags)")
+
+    p = sub.add_parser("index", parents=[common], help="regenerate zoo/index.json from the cards")
+    p.add_argument("--check", action="store_true", help="only check that index.json is up to date (exit 1 if not)")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        return _ACTIONS[args.zoo_command](args)
+    except _ERRORS as err:
+        print(f"ttompc zoo {args.zoo_command}: error: {err}", file=sys.stderr)
+        return 1
+
+
+def _list(args: argparse.Namespace) -> int:
+    cards = zoo.list_models(args.zoo_dir)
+    if args.json:
+        print(json.dumps([c.to_dict() for c in cards], indent=2))
+        return 0
+    if not cards:
+        print("no models in the zoo yet")
+        return 0
+    print(format_table(cards))
+    return 0
+
+
+def format_table(cards: list[ModelCard]) -> str:
+    rows = [("NAME", "SCENARIO", "KIND", "SIZE", "METRICS")]
+    for c in cards:
+        metrics = ", ".join(f"{k}={v:.4g}" for k, v in c.headline().items()) or "-"
+        rows.append((c.name, f"{c.scenario} v{c.scenario_version}", c.kind, _human(c.size), metrics))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
+    return "\n".join("  ".join([*(v.ljust(w) for v, w in zip(r, widths, strict=False)), r[-1]]) for r in rows)
+
+
+def _human(n: int) -> str:
+    power = min(max(n.bit_length() - 1, 0) // 10, 3)
+    return f"{n} B" if power == 0 else f"{n / 1024**power:.1f} {('KiB', 'MiB', 'GiB')[power - 1]}"
+
+
+def _info(args: argparse.Namespace) -> int:
+    card = zoo.model_info(args.name, args.zoo_dir)
+    if args.json:
+        print(json.dumps(card.to_dict(), indent=2))
+    else:
+        sys.stdout.write(render_card(card))
+    return 0
+
+
+def _download(args: argparse.Namespace) -> int:
+    print(zoo.download(args.name, args.cache_dir, zoo_dir=args.zoo_dir, progress=not args.no_progress))
+    return 0
+
+
+def _publish(args: argparse.Namespace) -> int:
+    from ttompc.zoo.publish import load_metrics
+
+    given = {
+        "kind": args.kind,
+        "license": args.license,
+        "tags": args.tags,
+        "recipe": args.recipe,
+        "data_card": args.data_card,
+    }
+    fields = {k: v for k, v in given.items() if v is not None}
+    card = zoo.publish(
+        args.source,
+        args.name,
+        args.to,
+        zoo_dir=args.zoo_dir,
+        metrics=load_metrics(args.card_metrics) if args.card_metrics else None,
+        skip_eval=args.skip_eval,
+        base_url=args.base_url,
+        card_fields=fields,
+    )
+    print(
+        f"published {card.name}: "
+        + ", ".join(f"{f.filename} ({f.size} B, sha256 {f.sha256[:12]}…)" for f in card.files)
+    )
+    return 0
+
+
+def _index(args: argparse.Namespace) -> int:
+    if args.check:
+        if index_is_current(args.zoo_dir):
+            return 0
+        print("zoo/index.json is out of date: run `ttompc zoo index`", file=sys.stderr)
+        return 1
+    print(write_index(args.zoo_dir))
+    return 0
+
+
+_ACTIONS = {"list": _list, "info": _info, "download": _download, "publish": _publish, "index": _index}
