@@ -1,0 +1,369 @@
+"""Model zoo: cards and index, publish -> list -> download round trips, hash verification, HTTP resume, path
+safety and "weights are never unpickled". Everything is local (tmp dirs, file://, a loopback HTTP server)."""
+
+from __future__ import annotations
+
+import hashlib
+import http.server
+import json
+import pickle
+import sys
+import threading
+import types
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from safetensors import SafetensorError
+from safetensors.numpy import save_file
+
+from ttompc import zoo
+from ttompc.cli import main
+from ttompc.zoo import cache, cards, registry
+from ttompc.zoo.download import fetch
+
+REPO_ZOO = Path(__file__).resolve().parents[1] / "zoo"
+METRICS = {"success_rate": {"value": 0.9, "how": "unit test, 0 problems"}}
+BAD_NAMES = ["../x", "a/b", "..", ".hidden", "a\\b", "a..b", "", "x" * 101, "/abs", "name with space"]
+
+
+def make_bundle(path: Path, seed: int = 0) -> Path:
+    path.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    weights = {"w": rng.standard_normal((64, 32)).astype(np.float32), "b": np.zeros(32, np.float32)}
+    save_file(weights, str(path / "model.safetensors"))
+    config = {
+        "format": "ttompc-planner",
+        "format_version": 1,
+        "model": {"n_layer": 1, "n_embd": 32},
+        "scenario": {"name": "toy", "version": "0.1"},
+        "recipe": {"lr": 1e-3},
+        "code_version": "0.1.0+gtest",
+    }
+    (path / "config.json").write_text(json.dumps(config))
+    return path
+
+
+def sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def write_card(zoo_dir: Path, name: str, files: list[cards.FileEntry]) -> None:
+    card = cards.ModelCard(
+        name=name,
+        kind="TTO",
+        scenario="toy",
+        scenario_version="0.1",
+        architecture={},
+        recipe="",
+        data_card="",
+        files=files,
+        code_version="test",
+    )
+    (zoo_dir / f"{name}.md").write_text(cards.render_card(card))
+
+
+def entries(url_of: dict[str, str], blobs: dict[str, bytes]) -> list[cards.FileEntry]:
+    return [cards.FileEntry(f, url_of[f], sha256(b), len(b)) for f, b in blobs.items()]
+
+
+def leftovers(root: Path) -> list[Path]:
+    return [p for p in root.rglob("*") if p.is_file() and not p.name.endswith(".lock")]
+
+
+@pytest.fixture
+def env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """An empty zoo and cache under tmp_path, selected through the environment like a user would."""
+    (tmp_path / "zoo").mkdir()
+    monkeypatch.setenv("TTOMPC_ZOO", str(tmp_path / "zoo"))
+    monkeypatch.setenv("TTOMPC_HOME", str(tmp_path / "cache"))
+    return tmp_path
+
+
+class _Handler(http.server.BaseHTTPRequestHandler):
+    """Serves ``server.files``; honours ``Range: bytes=N-`` only when ``server.ranges`` is set; logs requests."""
+
+    server: Any
+
+    def do_GET(self) -> None:
+        data = self.server.files.get(self.path)
+        self.server.requests.append((self.path, self.headers.get("Range")))
+        if data is None:
+            self.send_error(404)
+            return
+        start = 0
+        if self.headers.get("Range") and self.server.ranges:
+            start = int(self.headers["Range"].removeprefix("bytes=").rstrip("-"))
+            self.send_response(206)
+            self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
+        else:
+            self.send_response(200)
+        self.send_header("Content-Length", str(len(data) - start))
+        self.end_headers()
+        self.wfile.write(data[start:])
+        self.server.sent += len(data) - start
+
+    def log_message(self, *args: Any) -> None:
+        pass
+
+
+@pytest.fixture
+def server(monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
+    for var in ("http_proxy", "HTTP_PROXY", "https_proxy", "HTTPS_PROXY", "all_proxy", "ALL_PROXY"):
+        monkeypatch.delenv(var, raising=False)
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
+    srv.files, srv.requests, srv.ranges, srv.sent = {}, [], True, 0  # type: ignore[attr-defined]
+    srv.url = f"http://127.0.0.1:{srv.server_address[1]}"  # type: ignore[attr-defined]
+    thread = threading.Thread(target=srv.serve_forever, daemon=True)
+    thread.start()
+    yield srv
+    srv.shutdown()
+    srv.server_close()
+
+
+# ------------------------------------------------------------------------------------------------ cards, index
+def test_repo_cards_parse_and_index_is_in_sync() -> None:
+    registry.load_cards(REPO_ZOO)  # every committed card is valid
+    assert registry.index_is_current(REPO_ZOO), "zoo/index.json is stale: run `ttompc zoo index`"
+    assert main(["zoo", "index", "--check", "--zoo-dir", str(REPO_ZOO)]) == 0
+
+
+def test_card_round_trip_and_strict_parsing(env: Path) -> None:
+    files = entries({"model.safetensors": "m", "config.json": "c"}, {"model.safetensors": b"1", "config.json": b"2"})
+    write_card(env / "zoo", "m1", files)
+    card = zoo.model_info("m1")
+    assert cards.parse_card(cards.render_card(card)) == card
+    front = card.to_dict()
+    for broken in (
+        {**front, "typo_key": 1},
+        {**front, "kind": "GPT"},
+        {**front, "metrics": {"sr": {"value": 0.5}}},  # a metric without how it was measured
+        {**front, "files": [{**front["files"][0], "sha256": "ab"}, front["files"][1]]},
+        {**front, "files": [{**front["files"][0], "filename": "../model.safetensors"}, front["files"][1]]},
+        {**front, "files": front["files"][:1]},  # config.json missing
+    ):
+        with pytest.raises(cards.CardError):
+            cards.ModelCard.from_dict(broken)
+    (env / "zoo" / "m2.md").write_text(cards.render_card(card))  # name does not match the file name
+    with pytest.raises(cards.CardError, match="must match the file name"):
+        zoo.list_models()
+
+
+def test_stale_index_is_detected(env: Path) -> None:
+    make_bundle(env / "b")
+    zoo.publish(env / "b", "m1", str(env / "zoo" / "models" / "m1"), skip_eval=True)
+    assert registry.index_is_current()
+    (env / "zoo" / "m1.md").write_text((env / "zoo" / "m1.md").read_text().replace("license: MIT", "license: BSD"))
+    assert not registry.index_is_current()
+    assert main(["zoo", "index", "--check"]) == 1
+    assert main(["zoo", "index"]) == 0 and registry.index_is_current()
+
+
+# -------------------------------------------------------------------------------------- publish / list / download
+def test_publish_list_download_round_trip(env: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = make_bundle(env / "bundle")
+    (env / "metrics.json").write_text(json.dumps(METRICS))
+    dest = env / "zoo" / "models" / "ff-tiny"
+    argv = ["zoo", "publish", str(src), "--name", "ff-tiny", "--to", str(dest), "--card-metrics"]
+    assert main([*argv, str(env / "metrics.json"), "--recipe", "recipes/toy.yaml"]) == 0
+    card = zoo.model_info("ff-tiny")
+    assert [f.url for f in card.files] == ["models/ff-tiny/model.safetensors", "models/ff-tiny/config.json"]
+    assert (card.scenario, card.scenario_version, card.recipe, card.metrics) == (
+        "toy",
+        "0.1",
+        "recipes/toy.yaml",
+        METRICS,
+    )
+    assert registry.index_is_current()
+    assert json.loads((env / "zoo" / "index.json").read_text())["models"] == [card.to_dict()]
+
+    capsys.readouterr()
+    assert main(["zoo", "list"]) == 0
+    row = capsys.readouterr().out.splitlines()[1].split()
+    assert row[:4] == ["ff-tiny", "toy", "v0.1", "TTO"] and row[-1] == "success_rate=0.9"
+    assert main(["zoo", "info", "ff-tiny"]) == 0
+    assert capsys.readouterr().out == (env / "zoo" / "ff-tiny.md").read_text()
+
+    assert main(["zoo", "download", "ff-tiny", "--no-progress"]) == 0
+    bundle = Path(capsys.readouterr().out.strip())
+    assert bundle.is_relative_to(env / "cache")
+    for name in ("model.safetensors", "config.json"):
+        assert (bundle / name).read_bytes() == (src / name).read_bytes()
+    assert zoo.download("ff-tiny", progress=False) == bundle  # cached: same snapshot, nothing refetched
+
+
+def test_republish_keeps_hand_edits_and_makes_a_new_snapshot(env: Path) -> None:
+    zoo.publish(make_bundle(env / "b1"), "m", str(env / "zoo" / "models" / "m"), metrics=METRICS)
+    path = env / "zoo" / "m.md"
+    path.write_text(path.read_text().replace("license: MIT", "license: CC-BY-4.0") + "\nHand-written notes.\n")
+    first = zoo.download("m", progress=False)
+    card = zoo.publish(make_bundle(env / "b2", seed=1), "m", str(env / "zoo" / "models" / "m"), skip_eval=True)
+    assert card.license == "CC-BY-4.0" and card.body.endswith("Hand-written notes.\n") and card.metrics == {}
+    second = zoo.download("m", progress=False)
+    assert second != first and (first / "model.safetensors").is_file()  # the old snapshot is not rewritten
+    assert (second / "model.safetensors").read_bytes() == (env / "b2" / "model.safetensors").read_bytes()
+
+
+def test_publish_metrics_hook_and_requirements(env: Path) -> None:
+    src = make_bundle(env / "b")
+    to = str(env / "zoo" / "models" / "m")
+    with pytest.raises(zoo.PublishError, match="--skip-eval"):
+        zoo.publish(src, "m", to)
+    seen: list[Path] = []
+    card = zoo.publish(src, "m", to, evaluate=lambda bundle: seen.append(bundle) or METRICS)
+    assert seen == [src] and card.metrics == METRICS
+    with pytest.raises(zoo.PublishError, match="local directory or file://"):
+        zoo.publish(src, "m", "https://example.org/models", skip_eval=True)
+
+
+def test_download_via_file_url(env: Path) -> None:
+    src = make_bundle(env / "b")
+    card = zoo.publish(src, "m", (env / "elsewhere").as_uri(), skip_eval=True)
+    assert all(f.url.startswith("file://") for f in card.files)
+    bundle = zoo.download("m", progress=False)
+    assert (bundle / "model.safetensors").read_bytes() == (src / "model.safetensors").read_bytes()
+
+
+def test_download_via_http_is_verified(env: Path, server: Any) -> None:
+    blobs = {"model.safetensors": b"w" * 5000, "config.json": b"{}"}
+    server.files = {f"/{f}": b for f, b in blobs.items()}
+    write_card(env / "zoo", "m", entries({f: f"{server.url}/{f}" for f in blobs}, blobs))
+    bundle = zoo.download("m", progress=False)
+    assert {f: (bundle / f).read_bytes() for f in blobs} == blobs
+    assert {p for p, _ in server.requests} == {"/model.safetensors", "/config.json"}
+    assert (cache.blob_path(env / "cache", sha256(blobs["config.json"]))).read_bytes() == b"{}"
+
+
+@pytest.mark.parametrize("via", ["http", "file"])
+def test_hash_mismatch_raises_and_leaves_no_file(env: Path, server: Any, via: str) -> None:
+    published, served = b"the published bytes", b"tampered bytes!!!!!"
+    (env / "served.bin").write_bytes(served)
+    server.files = {"/model.safetensors": served}
+    url = f"{server.url}/model.safetensors" if via == "http" else (env / "served.bin").as_uri()
+    blobs = {"model.safetensors": published, "config.json": b"{}"}
+    write_card(env / "zoo", "m", entries({"model.safetensors": url, "config.json": url}, blobs))
+    with pytest.raises(zoo.ChecksumError) as info:
+        zoo.download("m", progress=False)
+    assert sha256(published) in str(info.value) and sha256(served) in str(info.value)
+    assert leftovers(env / "cache") == []
+
+
+def test_resume_uses_range_and_verifies(env: Path, server: Any) -> None:
+    data = np.random.default_rng(0).bytes(300_000)
+    server.files = {"/w": data}
+    entry = cards.FileEntry("model.safetensors", f"{server.url}/w", sha256(data), len(data))
+    dest = cache.blob_path(env / "cache", entry.sha256)
+    dest.parent.mkdir(parents=True)
+    dest.with_name(dest.name + ".part").write_bytes(data[:123_456])  # an interrupted earlier download
+    fetch(entry, dest, progress=False)
+    assert server.requests == [("/w", "bytes=123456-")] and server.sent == len(data) - 123_456
+    assert sha256(dest.read_bytes()) == entry.sha256 and not dest.with_name(dest.name + ".part").exists()
+
+
+def test_resume_restarts_when_server_ignores_range(env: Path, server: Any) -> None:
+    data = np.random.default_rng(1).bytes(50_000)
+    server.files, server.ranges = {"/w": data}, False
+    entry = cards.FileEntry("model.safetensors", f"{server.url}/w", sha256(data), len(data))
+    dest = cache.blob_path(env / "cache", entry.sha256)
+    dest.parent.mkdir(parents=True)
+    dest.with_name(dest.name + ".part").write_bytes(b"x" * 1000)  # wrong bytes: must not end up in the file
+    fetch(entry, dest, progress=False)
+    assert server.requests == [("/w", "bytes=1000-")] and server.sent == len(data)
+    assert dest.read_bytes() == data
+
+
+def test_corrupt_partial_fails_once_then_recovers(env: Path, server: Any) -> None:
+    data = np.random.default_rng(2).bytes(20_000)
+    server.files = {"/w": data}
+    entry = cards.FileEntry("model.safetensors", f"{server.url}/w", sha256(data), len(data))
+    dest = cache.blob_path(env / "cache", entry.sha256)
+    dest.parent.mkdir(parents=True)
+    dest.with_name(dest.name + ".part").write_bytes(b"x" * 1000)
+    with pytest.raises(zoo.ChecksumError):
+        fetch(entry, dest, progress=False)
+    assert leftovers(env / "cache") == []
+    assert fetch(entry, dest, progress=False).read_bytes() == data
+
+
+# ------------------------------------------------------------------------------------------------------- safety
+@pytest.mark.parametrize("name", BAD_NAMES)
+def test_path_escaping_names_are_rejected(env: Path, name: str) -> None:
+    with pytest.raises(cards.CardError):
+        zoo.download(name)
+    with pytest.raises(cards.CardError):
+        zoo.publish(env, name, str(env / "out"), skip_eval=True)
+    assert not (env / "out").exists()
+
+
+def test_paths_cannot_leave_their_directory(env: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
+    root = env / "cache"
+    (root / "models").mkdir(parents=True)
+    outside = tmp_path_factory.mktemp("outside")
+    (root / "models" / "evil").symlink_to(outside)
+    with pytest.raises(cache.UnsafePathError):
+        cache.inside(root, "models", "evil", "x")
+    with pytest.raises(cache.UnsafePathError):
+        cache.inside(root, "..", "x")
+    (env / "secret").write_bytes(b"s")  # a card whose relative URL climbs out of the zoo dir
+    blobs = {"model.safetensors": b"s", "config.json": b"s"}
+    write_card(env / "zoo", "m", entries(dict.fromkeys(blobs, "../secret"), blobs))
+    with pytest.raises(cache.UnsafePathError):
+        zoo.download("m", progress=False)
+
+
+def test_cache_dir_precedence(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    for var in ("TTOMPC_HOME", "XDG_CACHE_HOME"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert cache.cache_root() == tmp_path / "home" / ".cache" / "ttompc"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache.cache_root() == tmp_path / "xdg" / "ttompc"
+    monkeypatch.setenv("TTOMPC_HOME", str(tmp_path / "th"))
+    assert cache.cache_root() == tmp_path / "th"
+    assert cache.cache_root(tmp_path / "explicit") == tmp_path / "explicit"
+
+
+def _pickle_bomb(marker: Path) -> bytes:
+    """A pickle that creates ``marker`` when unpickled."""
+
+    class Bomb:
+        def __reduce__(self) -> tuple[Any, ...]:
+            return (open, (str(marker), "w"))
+
+    return pickle.dumps(Bomb())
+
+
+def test_loading_never_unpickles(env: Path) -> None:
+    marker = env / "unpickled"
+    bundle = make_bundle(env / "b")
+    (bundle / "model.safetensors").write_bytes(_pickle_bomb(marker))
+    with pytest.raises(SafetensorError):
+        zoo.load_pretrained(bundle)
+    with pytest.raises(SafetensorError):
+        zoo.publish(bundle, "m", str(env / "out"), skip_eval=True)
+    assert not marker.exists()
+
+
+def test_load_pretrained_hands_the_verified_bundle_to_planner(env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    loaded: list[Path] = []
+    fake = types.ModuleType("ttompc.planner")
+    fake.Planner = types.SimpleNamespace(load=lambda d: loaded.append(Path(d)) or "planner")  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "ttompc.planner", fake)
+    src = make_bundle(env / "b")
+    zoo.publish(src, "m", str(env / "zoo" / "models" / "m"), skip_eval=True)
+    assert zoo.load_pretrained("m", progress=False) == "planner"
+    assert loaded[0].is_relative_to(env / "cache")
+    assert zoo.load_pretrained(src) == "planner" and loaded[1] == src  # a local bundle dir wins
+    with pytest.raises(zoo.UnknownModelError, match="no model 'nope'"):
+        zoo.load_pretrained("nope")
+
+
+def test_hf_urls_need_huggingface_hub(env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "huggingface_hub", None)  # as if it were not installed
+    entry = cards.FileEntry("model.safetensors", "hf://org/repo@v1/model.safetensors", "0" * 64, 1)
+    with pytest.raises(zoo.DownloadError, match="need huggingface_hub"):
+        fetch(entry, env / "blob", progress=False)
+    with pytest.raises(zoo.DownloadError, match="expected hf://org/repo"):
+        fetch(cards.FileEntry("x", "hf://org", "0" * 64, 1), env / "blob", progress=False)
