@@ -49,13 +49,9 @@ class Problem:
         x0 = np.asarray(self.x0, dtype=np.float64)
         goal = np.asarray(self.goal, dtype=np.float64)
         if x0.ndim != 1 or goal.shape != x0.shape:
-            raise ValueError(
-                f"Problem: x0 and goal must be 1-D of equal length, got {x0.shape} and {goal.shape}"
-            )
+            raise ValueError(f"Problem: x0 and goal must be 1-D of equal length, got {x0.shape} and {goal.shape}")
         if not (self.dt > 0 and self.n_steps > 0):
-            raise ValueError(
-                f"Problem: dt and n_steps must be positive, got dt={self.dt}, n_steps={self.n_steps}"
-            )
+            raise ValueError(f"Problem: dt and n_steps must be positive, got dt={self.dt}, n_steps={self.n_steps}")
         object.__setattr__(self, "x0", x0)
         object.__setattr__(self, "goal", goal)
 
@@ -128,13 +124,14 @@ class ConstraintBlock:
     obstacle: bool = False
     soft: bool = False
     weight: float = 1.0
+    lower: np.ndarray | None = None  # INEQ only: lower <= Gx x + Gu u <= h, one shared slack per row pair
 
     def __post_init__(self) -> None:
         K = len(self.steps)
         if self.Gx.ndim != 3 or self.Gx.shape[0] != K or self.h.shape != self.Gx.shape[:2]:
-            raise ValueError(
-                f"block {self.name!r}: Gx {self.Gx.shape}, h {self.h.shape} do not match {K} steps"
-            )
+            raise ValueError(f"block {self.name!r}: Gx {self.Gx.shape}, h {self.h.shape} do not match {K} steps")
+        if self.lower is not None and (self.kind is not BlockKind.INEQ or self.lower.shape != self.h.shape):
+            raise ValueError(f"block {self.name!r}: 'lower' needs an INEQ block and the shape of h")
         if self.Gu is not None and self.Gu.shape[:2] != self.Gx.shape[:2]:
             raise ValueError(f"block {self.name!r}: Gu {self.Gu.shape} does not match Gx {self.Gx.shape}")
 
@@ -197,9 +194,7 @@ class Scenario(abc.ABC):
     n_steps: ClassVar[int] = 100
     cost_norm: ClassVar[CostNorm]
     rel_is_convex: ClassVar[bool] = False
-    exact_linear_dynamics: ClassVar[bool] = (
-        False  # affine dynamics independent of the reference: no virtual control
-    )
+    exact_linear_dynamics: ClassVar[bool] = False  # affine dynamics independent of the reference: no virtual control
     scp: ClassVar[SCPSettings]
     mpc: ClassVar[MPCWeights]
     state_labels: ClassVar[tuple[str, ...]]
@@ -225,9 +220,7 @@ class Scenario(abc.ABC):
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Exact dynamics x_{k+1} = f_k(x_k, u_k) (the 'environment'); vectorised over leading axes of x, u."""
 
-    def rollout(
-        self, problem: Problem, U: np.ndarray, start: int = 0, x: np.ndarray | None = None
-    ) -> np.ndarray:
+    def rollout(self, problem: Problem, U: np.ndarray, start: int = 0, x: np.ndarray | None = None) -> np.ndarray:
         """Propagate controls U (H, m) with the exact dynamics from x (default x0) at step ``start``: (H+1, n)."""
         x = problem.x0 if x is None else np.asarray(x, dtype=np.float64)
         out = [x]
@@ -237,9 +230,7 @@ class Scenario(abc.ABC):
         return np.stack(out)
 
     @abc.abstractmethod
-    def convex_model(
-        self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray
-    ) -> ConvexModel:
+    def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
         """Affine model of the dynamics on ``window`` around a reference (H+1, n), (H, m)."""
 
     # ---------------------------------------------------------------------------------------------- constraints
@@ -306,9 +297,7 @@ class Scenario(abc.ABC):
         return {}
 
     @abc.abstractmethod
-    def problem_from_features(
-        self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]
-    ) -> Problem:
+    def problem_from_features(self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]) -> Problem:
         """Inverse of (x0, goal, dt, problem_features)."""
 
     # ----------------------------------------------------------------------------------------------- guesses

@@ -104,9 +104,7 @@ class FreeFlyer(Scenario):
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         return (x + u @ B_IMP.T) @ A_STEP.T
 
-    def convex_model(
-        self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray
-    ) -> ConvexModel:
+    def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
         H = window.length
         A = np.broadcast_to(A_STEP, (H, 6, 6))
         return ConvexModel(A=A, B=np.broadcast_to(A_STEP @ B_IMP, (H, 6, 3)), c=np.zeros((H, 6)))
@@ -127,14 +125,9 @@ class FreeFlyer(Scenario):
         G[0, 0], G[1, 1], G[2, 0], G[3, 1] = 1.0, 1.0, -1.0, -1.0
         h = np.concatenate([TABLE[1], -TABLE[0]])
         K = len(steps)
+        # hard: each reference iterate satisfies the box, so the subproblem stays feasible without slacks
         return ConstraintBlock(
-            "table",
-            BlockKind.INEQ,
-            steps,
-            np.broadcast_to(G, (K, 4, 6)),
-            None,
-            np.broadcast_to(h, (K, 4)),
-            soft=True,
+            "table", BlockKind.INEQ, steps, np.broadcast_to(G, (K, 4, 6)), None, np.broadcast_to(h, (K, 4))
         )
 
     @staticmethod
@@ -149,13 +142,19 @@ class FreeFlyer(Scenario):
         ax, ay = U_ref[:, 0], U_ref[:, 1]
         u1, u2 = -c * ax - s * ay, -s * ax + c * ay
         A_bb = 0.5 * np.stack([u1, u2, u1, u2], axis=1)  # ∂(Λ⁻¹R_BG(ψ)ā)/∂ψ at ψ̄: (H, 4)
-        Gx = np.zeros((H, 8, 6))
-        Gx[:, :4, 2], Gx[:, 4:, 2] = A_bb, -A_bb
-        Gu = np.concatenate([B_bb, -B_bb], axis=1)
+        Gx = np.zeros((H, 4, 6))
+        Gx[:, :, 2] = A_bb
         off = A_bb * psi[:, None]
-        h = np.concatenate([DV_MAX + off, DV_MAX - off], axis=1)
         return ConstraintBlock(
-            "thrusters", BlockKind.INEQ, np.arange(H), Gx, Gu, h, nonconvex=True, soft=True
+            "thrusters",
+            BlockKind.INEQ,
+            np.arange(H),
+            Gx,
+            B_bb,
+            DV_MAX + off,
+            nonconvex=True,
+            soft=True,
+            lower=off - DV_MAX,
         )
 
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
@@ -172,9 +171,7 @@ class FreeFlyer(Scenario):
         thrust = np.max(np.abs(thruster_dv(X[:-1, 2], U)) - DV_MAX, initial=0.0)
         return float(max(depth, box, thrust))
 
-    def problem_from_features(
-        self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]
-    ) -> Problem:
+    def problem_from_features(self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]) -> Problem:
         return Problem(x0=x0, goal=goal, dt=float(dt), n_steps=N_STEPS)
 
     def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _FreeFlyerTorch:

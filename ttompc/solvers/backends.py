@@ -92,8 +92,16 @@ class OSQPBackend:
         if self.solver is None:
             self.solver = self._osqp.OSQP()
             self.solver.setup(
-                P=sp.triu(self.sub.P, format="csc"), q=self.sub.q, A=self.sub.matrix(a_values), l=lower, u=b,
-                eps_abs=self.eps, eps_rel=self.eps, max_iter=self.max_iter, polishing=True, verbose=False,
+                P=sp.triu(self.sub.P, format="csc"),
+                q=self.sub.q,
+                A=self.sub.matrix(a_values),
+                l=lower,
+                u=b,
+                eps_abs=self.eps,
+                eps_rel=self.eps,
+                max_iter=self.max_iter,
+                polishing=True,
+                verbose=False,
                 warm_starting=True,
             )
         else:  # keeps the previous primal/dual iterate as the warm start
@@ -103,8 +111,9 @@ class OSQPBackend:
         status = str(res.info.status)
         ok = status in ("solved", "solved inaccurate")
         infeasible = "primal infeasible" in status
-        return BackendSolution(np.asarray(res.x) if ok else None, float(res.info.obj_val), ok, infeasible, status,
-                               elapsed)
+        return BackendSolution(
+            np.asarray(res.x) if ok else None, float(res.info.obj_val), ok, infeasible, status, elapsed
+        )
 
 
 class PIQPBackend:
@@ -137,7 +146,59 @@ class PIQPBackend:
         return BackendSolution(z, float(solver.result.info.primal_obj), ok, infeasible, name, elapsed)
 
 
-BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "piqp": PIQPBackend}
+class QOCOBackend:
+    """QOCO (optional extra): min ½xᵀPx + cᵀx s.t. Ax = b, Gx ≤_C h with C = ℝ₊ˡ × SOCs; set up once, then
+    matrix/vector data updates. The zero-cone rows of the assembled matrix are QOCO's A, the rest its G."""
+
+    name = "qoco"
+    supports_cones = True
+
+    def __init__(self, sub: AssembledSubproblem) -> None:
+        import qoco
+
+        self._qoco = qoco
+        self.sub = sub
+        cones = dict((k, d) for k, d in sub.cones if k != "soc")
+        self.n_zero, self.n_nonneg = cones["zero"], cones["nonneg"]
+        self.soc_dims = np.array([d for k, d in sub.cones if k == "soc"], dtype=np.int64)
+        A_full = sub.matrix(np.ones(sub.nnz))
+        self._eq_mask = A_full.indices < self.n_zero  # CSC order is preserved when rows are split
+        self.solver = None
+
+    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
+        t0 = time.perf_counter()
+        nz = self.n_zero
+        if self.solver is None:
+            A_full = self.sub.matrix(a_values).tocsr()
+            self.solver = self._qoco.QOCO()
+            self.solver.setup(
+                self.sub.n_var,
+                self.sub.n_con - nz,
+                nz,
+                sp.triu(self.sub.P, format="csc"),
+                self.sub.q,
+                A_full[:nz].tocsc(),
+                b[:nz],
+                A_full[nz:].tocsc(),
+                b[nz:],
+                self.n_nonneg,
+                len(self.soc_dims),
+                self.soc_dims,
+                verbose=False,
+            )
+        else:
+            self.solver.update_matrix_data(A=a_values[self._eq_mask], G=a_values[~self._eq_mask])
+            self.solver.update_vector_data(b=b[:nz], h=b[nz:])
+        res = self.solver.solve()
+        elapsed = time.perf_counter() - t0
+        status = str(res.status)
+        ok = status in ("QOCO_SOLVED", "QOCO_SOLVED_INACCURATE")
+        return BackendSolution(
+            np.asarray(res.x) if ok else None, float(res.obj), ok, "INFEAS" in status, status, elapsed
+        )
+
+
+BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "piqp": PIQPBackend, "qoco": QOCOBackend}
 
 
 def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPBackend | PIQPBackend:

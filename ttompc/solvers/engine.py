@@ -34,6 +34,20 @@ class AssembledSolver:
         return X, U, sol
 
 
+CONIC_BACKENDS = ("clarabel", "qoco", "cvxpy-naive")
+
+
+def resolve_backend(name: str) -> str:
+    """``auto`` = QOCO when installed (the fastest conic solver measured here, same optima), else Clarabel."""
+    if name != "auto":
+        return name
+    try:
+        import qoco  # noqa: F401
+    except ImportError:
+        return "clarabel"
+    return "qoco"
+
+
 _CACHE: OrderedDict[tuple[SubproblemSpec, str], SubproblemSolver] = OrderedDict()
 _CACHE_SIZE = 64
 
@@ -90,8 +104,9 @@ def run_scp(
         scenario.validate(problem)
     penalized = formulation == "penalized"
     use_tr = bool(np.isfinite(settings.tr_start))
+    backend = resolve_backend(backend)
     if trust_norm is None:
-        trust_norm = "l2" if backend in ("clarabel", "cvxpy-naive") else "linf"
+        trust_norm = "l2" if backend in CONIC_BACKENDS else "linf"
     shrink = settings.shrink if use_tr else 1.0
 
     X_ref, U_ref = X_init.copy(), U_init.copy()
@@ -110,14 +125,26 @@ def run_scp(
         if not penalized:  # the reference formulation: every linearised constraint is hard
             blocks = [_hard(b) for b in blocks]
         spec = SubproblemSpec(
-            H=H, n=n, m=m, cost_norm=scenario.cost_norm, fuel_weight=float(fuel_weight), penalized=penalized,
+            H=H,
+            n=n,
+            m=m,
+            cost_norm=scenario.cost_norm,
+            fuel_weight=float(fuel_weight),
+            penalized=penalized,
             virtual_control=penalized and not scenario.exact_linear_dynamics,
-            trust=trust_norm if use_tr else "none", terminal="hard" if terminal is None else "soft",
-            soft_equalities=soft_equalities, penalty=float(settings.penalty),
+            trust=trust_norm if use_tr else "none",
+            terminal="hard" if terminal is None else "soft",
+            soft_equalities=soft_equalities,
+            penalty=float(settings.penalty),
             blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
         )
         data = SubproblemData(
-            x_start=x_start, model=model, blocks=blocks, X_ref=X_ref, delta=float(delta), goal=problem.goal,
+            x_start=x_start,
+            model=model,
+            blocks=blocks,
+            X_ref=X_ref,
+            delta=float(delta),
+            goal=problem.goal,
             terminal_target=None if terminal is None else terminal.target,
             terminal_weights=None if terminal is None else terminal.weights,
         )
@@ -141,8 +168,11 @@ def run_scp(
             best = (merit, X, U, violation, it)
         if least_bad is None or violation < least_bad[0]:
             least_bad = (violation, X, U, it)
-        converged = it >= 1 and step <= settings.tr_end and prev_merit is not None and (
-            abs(merit - prev_merit) <= settings.cost_tol
+        converged = (
+            it >= 1
+            and step <= settings.tr_end
+            and prev_merit is not None
+            and (abs(merit - prev_merit) <= settings.cost_tol)
         )
         X_ref, U_ref, prev_merit = X, U, merit
         delta *= shrink
@@ -162,17 +192,35 @@ def run_scp(
     else:
         X_out, U_out, viol_out, best_it = X_init, U_init, float("inf"), -1
     return SCPResult(
-        status=status, X=X_out, U=U_out, cost=scenario.cost(U_out), violation=float(viol_out),
-        iterations=len(history), solve_time=time.perf_counter() - t_start, solver_time=solver_time, window=window,
-        history=history, best_iteration=best_it,
+        status=status,
+        X=X_out,
+        U=U_out,
+        cost=scenario.cost(U_out),
+        violation=float(viol_out),
+        iterations=len(history),
+        solve_time=time.perf_counter() - t_start,
+        solver_time=solver_time,
+        window=window,
+        history=history,
+        best_iteration=best_it,
     )
 
 
 def _hard(block: ConstraintBlock) -> ConstraintBlock:
     if not block.soft:
         return block
-    return ConstraintBlock(block.name, block.kind, block.steps, block.Gx, block.Gu, block.h, block.nonconvex,
-                           block.obstacle, soft=False, weight=block.weight)
+    return ConstraintBlock(
+        block.name,
+        block.kind,
+        block.steps,
+        block.Gx,
+        block.Gu,
+        block.h,
+        block.nonconvex,
+        block.obstacle,
+        soft=False,
+        weight=block.weight,
+    )
 
 
 def _terminal_term(X: np.ndarray, terminal: TerminalCost | None) -> float:

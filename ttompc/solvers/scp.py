@@ -86,9 +86,7 @@ class TerminalCost:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "target", np.asarray(self.target, dtype=np.float64))
-        object.__setattr__(
-            self, "weights", np.broadcast_to(np.asarray(self.weights, float), self.target.shape)
-        )
+        object.__setattr__(self, "weights", np.broadcast_to(np.asarray(self.weights, float), self.target.shape))
 
 
 def solve_scp(
@@ -103,7 +101,7 @@ def solve_scp(
     fuel_weight: float = 1.0,
     soft_equalities: bool = False,
     settings: SCPSettings | None = None,
-    backend: str = "clarabel",
+    backend: str = "auto",
     formulation: Formulation = "penalized",
     trust_norm: TrustNorm | None = None,
 ) -> SCPResult:
@@ -112,7 +110,9 @@ def solve_scp(
     X_init[0] is the fixed initial state of the window. Without ``terminal`` a window that reaches the end gets
     x_N = goal (hard, or penalised in the penalized formulation); windows that stop early need a ``terminal``.
     ``obstacles=False`` gives the REL relaxation. ``soft_equalities`` turns waypoint-type equalities into weighted
-    2-norm penalties (MPC soft mode). ``trust_norm`` defaults to l2 (SOC) for conic backends, linf for QP ones.
+    2-norm penalties (MPC soft mode). ``backend``: "auto" (QOCO if installed, else Clarabel), "clarabel", "qoco",
+    "osqp", "piqp" or "cvxpy-naive" (the rebuild-every-iteration baseline). ``trust_norm`` defaults to l2 (SOC) for
+    conic backends, linf for QP ones.
     """
     from ttompc.solvers.engine import run_scp
 

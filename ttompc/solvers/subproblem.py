@@ -53,8 +53,16 @@ class SubproblemSpec:
 
     @staticmethod
     def block_signature(block: ConstraintBlock) -> tuple[Any, ...]:
-        return (block.name, block.kind.value, tuple(int(s) for s in block.steps), block.rows_per_step,
-                block.Gu is not None, bool(block.soft), float(block.weight))
+        return (
+            block.name,
+            block.kind.value,
+            tuple(int(s) for s in block.steps),
+            block.rows_per_step,
+            block.Gu is not None,
+            bool(block.soft),
+            float(block.weight),
+            block.lower is not None,
+        )
 
 
 @dataclass
@@ -65,7 +73,7 @@ class _Group:
     rows: list[np.ndarray] = field(default_factory=list)
     cols: list[np.ndarray] = field(default_factory=list)
     vals: list[tuple[str, Any]] = field(default_factory=list)  # ("const", array) or ("data", (key, index array, sign))
-    b: list[tuple[np.ndarray, str, Any]] = field(default_factory=list)  # (rows, "const"/"data", payload)
+    b: list[tuple[np.ndarray, tuple[str, Any, float]]] = field(default_factory=list)  # (rows, (key, index, sign))
 
     def add_rows(self, count: int) -> np.ndarray:
         idx = np.arange(self.n_rows, self.n_rows + count)
@@ -89,7 +97,7 @@ class AssembledSubproblem:
         # x_0 = x_start
         r = zero.add_rows(n)
         self._entries(zero, r, self.ix[0], ("const", np.ones(n)))
-        zero.b.append((r, "data", ("x_start", np.arange(n), 1.0)))
+        zero.b.append((r, ("x_start", np.arange(n), 1.0)))
 
         # dynamics: x_{j+1} − A_j x_j − B_j u_j − (ν⁺_j − ν⁻_j) = c_j
         rdyn = zero.add_rows(H * n).reshape(H, n)
@@ -98,7 +106,7 @@ class AssembledSubproblem:
         self._entries(zero, rr, np.broadcast_to(self.ix[:-1][:, None, :], (H, n, n)), ("data", ("A", None, -1.0)))
         rr = np.repeat(rdyn[:, :, None], m, axis=2)
         self._entries(zero, rr, np.broadcast_to(self.iu[:, None, :], (H, n, m)), ("data", ("B", None, -1.0)))
-        zero.b.append((rdyn.ravel(), "data", ("c", None, 1.0)))
+        zero.b.append((rdyn.ravel(), ("c", None, 1.0)))
         if spec.virtual_control:
             nu_p, nu_m = self._var(H * n), self._var(H * n)
             self._entries(zero, rdyn.ravel(), nu_p, ("const", -np.ones(H * n)))
@@ -110,7 +118,7 @@ class AssembledSubproblem:
         if spec.terminal == "hard":
             r = zero.add_rows(n)
             self._entries(zero, r, self.ix[H], ("const", np.ones(n)))
-            zero.b.append((r, "data", ("goal", np.arange(n), 1.0)))
+            zero.b.append((r, ("goal", np.arange(n), 1.0)))
             if spec.penalized:
                 sp_, sm_ = self._var(n), self._var(n)
                 self._entries(zero, r, sp_, ("const", -np.ones(n)))
@@ -122,7 +130,7 @@ class AssembledSubproblem:
             g = self._soc(1 + n)
             self._entries(g, np.array([0]), tau, ("const", -np.ones(1)))
             self._entries(g, np.arange(1, n + 1), self.ix[H], ("data", ("terminal_weights", np.arange(n), -1.0)))
-            g.b.append((np.arange(1, n + 1), "data", ("weighted_target", np.arange(n), -1.0)))
+            g.b.append((np.arange(1, n + 1), ("weighted_target", np.arange(n), -1.0)))
             q_parts.append((tau, 1.0))
 
         # stage cost
@@ -145,7 +153,7 @@ class AssembledSubproblem:
 
         # scenario constraint blocks
         for bi, sig in enumerate(spec.blocks):
-            _, kind, steps, M, has_u, soft, weight = sig
+            _, kind, steps, M, has_u, soft, weight, two_sided = sig
             steps = np.asarray(steps, dtype=int)
             K = len(steps)
             if has_u and K and steps.max() >= H:
@@ -156,7 +164,7 @@ class AssembledSubproblem:
                     g = self._soc(M)
                     rows = np.arange(M)
                     self._block_entries(g, rows, bi, kk, steps[kk], has_u, sign=-1.0)
-                    g.b.append((rows, "data", (f"h{bi}", kk * M + rows, -1.0)))
+                    g.b.append((rows, (f"h{bi}", kk * M + rows, -1.0)))
                 continue
             if kind is BlockKind.EQ and spec.soft_equalities:  # weight·τ, τ ≥ ‖G z − h‖₂ (MPC soft mode)
                 tau = self._var(K)
@@ -165,19 +173,27 @@ class AssembledSubproblem:
                     self._entries(g, np.array([0]), tau[kk : kk + 1], ("const", -np.ones(1)))
                     rows = np.arange(1, M + 1)
                     self._block_entries(g, rows, bi, kk, steps[kk], has_u, sign=-1.0)
-                    g.b.append((rows, "data", (f"h{bi}", kk * M + np.arange(M), -1.0)))
+                    g.b.append((rows, (f"h{bi}", kk * M + np.arange(M), -1.0)))
                 q_parts.append((tau, weight))
                 continue
             group = zero if kind is BlockKind.EQ else nonneg
             r = group.add_rows(K * M).reshape(K, M)
             for kk in range(K):
                 self._block_entries(group, r[kk], bi, kk, steps[kk], has_u, sign=1.0)
-            group.b.append((r.ravel(), "data", (f"h{bi}", None, 1.0)))
+            group.b.append((r.ravel(), (f"h{bi}", None, 1.0)))
+            row_sets = [r]
+            if two_sided:  # −(G z) ≤ −lower
+                r_low = nonneg.add_rows(K * M).reshape(K, M)
+                for kk in range(K):
+                    self._block_entries(nonneg, r_low[kk], bi, kk, steps[kk], has_u, sign=-1.0)
+                nonneg.b.append((r_low.ravel(), (f"l{bi}", None, -1.0)))
+                row_sets.append(r_low)
             if not spec.penalized:
                 continue
-            if kind is BlockKind.INEQ and soft:
+            if kind is BlockKind.INEQ and soft:  # one slack shared by both sides of a two-sided row
                 s = self._var(K * M)
-                self._entries(group, r.ravel(), s, ("const", -np.ones(K * M)))
+                for rows in row_sets:
+                    self._entries(nonneg, rows.ravel(), s, ("const", -np.ones(K * M)))
                 self._nonneg_vars(nonneg, s)
                 q_parts.append((s, spec.penalty))
             elif kind is BlockKind.EQ:
@@ -193,16 +209,16 @@ class AssembledSubproblem:
         if spec.trust == "l2":
             for j in tr_states:
                 g = self._soc(1 + n)
-                g.b.append((np.array([0]), "data", ("delta", np.zeros(1, dtype=int), 1.0)))
+                g.b.append((np.array([0]), ("delta", np.zeros(1, dtype=int), 1.0)))
                 self._entries(g, np.arange(1, n + 1), self.ix[j], ("const", -np.ones(n)))
-                g.b.append((np.arange(1, n + 1), "data", ("X_ref", j * n + np.arange(n), -1.0)))
+                g.b.append((np.arange(1, n + 1), ("X_ref", j * n + np.arange(n), -1.0)))
         elif spec.trust == "linf":
             for sign in (1.0, -1.0):
                 r = nonneg.add_rows(len(tr_states) * n)
                 self._entries(nonneg, r, self.ix[tr_states].ravel(), ("const", np.full(len(r), sign)))
                 idx = (tr_states[:, None] * n + np.arange(n)).ravel()
-                nonneg.b.append((r, "data", ("delta", np.zeros(len(r), dtype=int), 1.0)))
-                nonneg.b.append((r, "data", ("X_ref", idx, sign)))
+                nonneg.b.append((r, ("delta", np.zeros(len(r), dtype=int), 1.0)))
+                nonneg.b.append((r, ("X_ref", idx, sign)))
         elif spec.trust != "none":
             raise ValueError(f"unknown trust-region norm {spec.trust!r}")
 
@@ -231,16 +247,19 @@ class AssembledSubproblem:
         group.cols.append(cols.ravel())
         group.vals.append(vals)
 
-    def _block_entries(self, group: _Group, rows: np.ndarray, bi: int, kk: int, step: int, has_u: bool,
-                       sign: float) -> None:
+    def _block_entries(
+        self, group: _Group, rows: np.ndarray, bi: int, kk: int, step: int, has_u: bool, sign: float
+    ) -> None:
         n, m = self.spec.n, self.spec.m
         M = len(rows)
         # Gx[kk] (M, n) on x_step, gathered from the flattened (K, M, n) array
-        self._entries(group, rows[:, None], self.ix[step][None, :],
-                      ("data", (f"G{bi}x", kk * M * n + np.arange(M * n), sign)))
+        self._entries(
+            group, rows[:, None], self.ix[step][None, :], ("data", (f"G{bi}x", kk * M * n + np.arange(M * n), sign))
+        )
         if has_u:
-            self._entries(group, rows[:, None], self.iu[step][None, :],
-                          ("data", (f"G{bi}u", kk * M * m + np.arange(M * m), sign)))
+            self._entries(
+                group, rows[:, None], self.iu[step][None, :], ("data", (f"G{bi}u", kk * M * m + np.arange(M * m), sign))
+            )
 
     def _finalise(self, zero: _Group, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]) -> None:
         groups = [zero, nonneg, *self.soc_groups]
@@ -254,8 +273,8 @@ class AssembledSubproblem:
                 cols.append(c)
                 self._val_src.append((slice(nnz, nnz + len(r)), v))
                 nnz += len(r)
-            for r, kind, payload in g.b:
-                self._b_src.append((r + off, kind, payload))
+            for r, payload in g.b:
+                self._b_src.append((r + off, payload))
         rows_a, cols_a = np.concatenate(rows), np.concatenate(cols)
         self.nnz = nnz
         # CSC order: sort by (col, row); keep explicit zeros so the pattern never changes between iterations
@@ -288,8 +307,7 @@ class AssembledSubproblem:
                 flat = src[key]
                 vals[slc] = sign * (flat if idx is None else flat[idx])
         b = np.zeros(self.n_con)
-        for rows, kind, payload in self._b_src:
-            key, idx, sign = payload
+        for rows, (key, idx, sign) in self._b_src:
             flat = src[key]
             b[rows] += sign * (flat if idx is None else flat[idx])
         return vals[self._perm], b
@@ -315,6 +333,8 @@ class AssembledSubproblem:
             if block.Gu is not None:
                 src[f"G{bi}u"] = np.ascontiguousarray(block.Gu).ravel()
             src[f"h{bi}"] = np.ascontiguousarray(block.h).ravel()
+            if block.lower is not None:
+                src[f"l{bi}"] = np.ascontiguousarray(block.lower).ravel()
         return src
 
     def split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
