@@ -1,0 +1,147 @@
+"""SCP engine properties: feasibility of solutions, REL lower bound, determinism, agreement of the assembled
+subproblem with an independent cvxpy formulation, the reference formulation, error handling."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
+from ttompc.solvers import SCPStatus, TerminalCost, solve_problem, solve_rel, solve_scp
+from ttompc.solvers.engine import AssembledSolver
+from ttompc.solvers.naive import NaiveCvxpySolver
+from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+
+
+@pytest.fixture(scope="module")
+def ff():
+    return get_scenario("freeflyer")
+
+
+@pytest.fixture(scope="module")
+def solved(ff):
+    out = []
+    for seed in (0, 2, 7):
+        p = ff.sample(np.random.default_rng(seed))
+        out.append((p, *solve_problem(ff, p)))
+    return out
+
+
+def test_solutions_satisfy_the_nonlinear_problem(ff, solved) -> None:
+    for p, rel, scp in solved:
+        assert rel.success and scp.success
+        X, U = scp.X, scp.U
+        np.testing.assert_allclose(X[0], p.x0, atol=1e-9)
+        np.testing.assert_allclose(X[-1], p.goal, atol=1e-6)
+        np.testing.assert_allclose(ff.rollout(p, U), X, atol=1e-6)  # exact dynamics from x0
+        assert ff.violations(p, X).sum() == 0
+        assert ff.path_violation(p, X, U, Window.full(p)) <= 1e-6  # clearance, table, thruster bound
+        assert scp.violation <= ff.scp.feas_tol
+
+
+def test_rel_is_a_lower_bound(solved) -> None:
+    for _, rel, scp in solved:
+        assert rel.cost <= scp.cost + 1e-7
+
+
+def test_rel_violates_obstacles_on_a_nonconvex_problem(ff, solved) -> None:
+    # seed 0's straight REL path crosses an obstacle: the non-convexity factor (ctg0) is positive
+    p, rel, scp = solved[0]
+    assert ff.violations(p, rel.X[:-1]).sum() > 0
+    assert scp.cost > rel.cost * 1.01
+
+
+def test_history_and_best_iterate(solved) -> None:
+    for _, _, scp in solved:
+        assert len(scp.history) == scp.iterations >= 1
+        feasible = [h for h in scp.history if h.violation <= 1e-4]
+        assert scp.cost == pytest.approx(min(h.cost for h in feasible), abs=1e-12)
+        radii = [h.trust_radius for h in scp.history]
+        assert all(b < a for a, b in itertools.pairwise(radii))  # geometric shrink
+
+
+def test_deterministic(ff) -> None:
+    p1 = ff.sample(np.random.default_rng(11))
+    p2 = ff.sample(np.random.default_rng(11))
+    a = solve_problem(ff, p1)[1]
+    b = solve_problem(ff, p2)[1]
+    np.testing.assert_array_equal(a.U, b.U)
+
+
+@pytest.mark.parametrize("terminal", ["hard", "soft"])
+@pytest.mark.parametrize("trust", ["l2", "linf"])
+def test_assembled_subproblem_matches_cvxpy(ff, terminal, trust) -> None:
+    """The sparse assembly and a per-timestep cvxpy model of the same subproblem have the same optimum."""
+    rng = np.random.default_rng(3)
+    p = ff.sample(rng)
+    w = Window(0, 30, 100) if terminal == "soft" else Window(70, 30, 100)
+    X, U = ff.initial_guess(p, w)
+    X = X + rng.normal(scale=0.05, size=X.shape)
+    blocks = ff.constraints(p, w, X, U, obstacles=True)
+    # an extra equality (waypoint-like) to exercise soft equalities and penalised EQ rows
+    Gx = np.zeros((1, 2, 6))
+    Gx[0, 0, 0] = Gx[0, 1, 1] = 1.0
+    blocks.append(ConstraintBlock("wp", BlockKind.EQ, np.array([15]), Gx, None, X[15:16, :2] + 0.01, weight=0.7))
+    for soft_eq in (False, True):
+        spec = SubproblemSpec(
+            H=w.length, n=6, m=3, cost_norm="l1", fuel_weight=1.0, penalized=True, virtual_control=True,
+            trust=trust, terminal=terminal, soft_equalities=soft_eq, penalty=100.0,
+            blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+        )
+        data = SubproblemData(
+            x_start=X[0], model=ff.convex_model(p, w, X, U), blocks=blocks, X_ref=X, delta=0.2, goal=p.goal,
+            terminal_target=X[-1] + 0.1 if terminal == "soft" else None,
+            terminal_weights=np.array([1, 1, 1, 7, 7, 7.0]) if terminal == "soft" else None,
+        )
+        _, _, ours = AssembledSolver(spec, "clarabel").solve(data)
+        _, _, ref = NaiveCvxpySolver(spec).solve(data)
+        assert ours.ok and ref.ok
+        assert ours.objective == pytest.approx(ref.objective, rel=1e-5, abs=1e-7)
+
+
+def test_backends_agree(ff) -> None:
+    p = ff.sample(np.random.default_rng(4))
+    a = solve_rel(ff, p, backend="clarabel")
+    b = solve_rel(ff, p, backend="qoco")
+    assert a.success and b.success
+    assert a.cost == pytest.approx(b.cost, rel=1e-5)
+
+
+def test_reference_formulation_is_selectable_and_gives_up(ff) -> None:
+    """Seed 16: the reference's hard linearised constraints make a subproblem infeasible (fact sheet §8.9), the
+    penalized formulation solves the same problem."""
+    p = ff.sample(np.random.default_rng(16))
+    rel = solve_rel(ff, p)
+    ref = solve_scp(ff, p, rel.X, rel.U, formulation="reference")
+    ours = solve_scp(ff, p, rel.X, rel.U)
+    assert ref.status is SCPStatus.INFEASIBLE and not ref.success
+    assert ours.success and ours.violation <= ff.scp.feas_tol
+
+
+def test_mpc_window_with_terminal_cost(ff) -> None:
+    p = ff.sample(np.random.default_rng(5))
+    rel = solve_rel(ff, p)
+    w = Window(0, 20, 100)
+    X0, U0 = rel.X[:21], rel.U[:20]
+    res = solve_scp(ff, p, X0, U0, window=w, terminal=TerminalCost(rel.X[20], ff.mpc.terminal))
+    assert res.success and res.X.shape == (21, 6)
+    assert np.linalg.norm(res.X[-1] - rel.X[20]) < 0.05  # pulled to the REL state at t+H
+
+
+def test_bad_inputs_raise_clear_errors(ff) -> None:
+    p = ff.sample(np.random.default_rng(6))
+    X, U = ff.initial_guess(p)
+    with pytest.raises(ValueError, match=r"warm start must have shapes \(101, 6\) and \(100, 3\)"):
+        solve_scp(ff, p, X[:50], U)
+    with pytest.raises(ValueError, match="needs a terminal cost"):
+        solve_scp(ff, p, X[:11], U[:10], window=Window(0, 10, 100))
+    with pytest.raises(ValueError, match="unknown solver backend"):
+        solve_scp(ff, p, X, U, backend="nope")
+    with pytest.raises(ValueError, match="QPs only"):
+        solve_scp(ff, p, X, U, backend="osqp", trust_norm="l2")
+    X_bad = X.copy()
+    X_bad[3, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        solve_scp(ff, p, X_bad, U)
