@@ -208,20 +208,7 @@ def run_scp(
 
 
 def _hard(block: ConstraintBlock) -> ConstraintBlock:
-    if not block.soft:
-        return block
-    return ConstraintBlock(
-        block.name,
-        block.kind,
-        block.steps,
-        block.Gx,
-        block.Gu,
-        block.h,
-        block.nonconvex,
-        block.obstacle,
-        soft=False,
-        weight=block.weight,
-    )
+    return dataclasses.replace(block, soft=False) if block.soft else block
 
 
 def _terminal_term(X: np.ndarray, terminal: TerminalCost | None) -> float:
