@@ -350,3 +350,19 @@ def test_rel_and_scp_dock_safely() -> None:
     _check_docking(sc, problem, scp)
     assert rel.cost <= scp.cost + 1e-6
     assert sc.path_violation(problem, scp.X, scp.U, Window.full(problem)) <= sc.scp.feas_tol
+
+
+@pytest.mark.parametrize("n_axes", [1, 3])
+def test_plot_draws_the_rtn_projections(n_axes: int) -> None:
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sc = get_scenario("rpod")
+    problem = sc.sample(np.random.default_rng(0))
+    X, _ = sc.initial_guess(problem)
+    fig, axes = plt.subplots(1, n_axes)
+    sc.plot(axes, problem, {"guess": X})
+    for ax in np.atleast_1d(axes):
+        assert len(ax.lines) >= 4 and len(ax.patches) == 1  # cone edges, trajectory, markers; KOZ ellipse
+    plt.close(fig)

@@ -104,6 +104,9 @@ def test_batched_model_matches_step(sc: Scenario) -> None:
         )
         got = model.step(torch.as_tensor(S), torch.as_tensor(U), k).numpy()
         np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10 * np.abs(expected).max())
+        got32 = model.step(torch.as_tensor(S, dtype=torch.float32), torch.as_tensor(U, dtype=torch.float32), k)
+        assert got32.dtype == torch.float32
+        np.testing.assert_allclose(got32.numpy(), expected, rtol=1e-4, atol=1e-5 * np.abs(expected).max())
         S_bad = S.copy()
         S_bad[0] = INSIDE_KEEPOUT.get(sc.name, S[0])
         counts = model.violations(torch.as_tensor(S_bad), k).numpy()
@@ -225,3 +228,15 @@ def test_rel_then_scp(sc: Scenario, seed: int) -> None:
     assert sc.constraint_violation(problem, scp.X, scp.U, w) <= tol
     assert sc.path_violation(problem, scp.X, scp.U, w) <= tol
     assert sc.violations(problem, scp.X).sum() == 0
+
+
+def test_plot_smoke(sc: Scenario) -> None:
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    problem = _problems(sc, 1, seed=12)[0]
+    fig, ax = plt.subplots()
+    sc.plot(ax, problem, {"guess": sc.initial_guess(problem)[0]})
+    assert ax.lines
+    plt.close(fig)

@@ -110,9 +110,7 @@ def horizon_dt(horizon_orbits: float, oe0: np.ndarray) -> float:
     return float(horizon_orbits * orbital_period(oe0[0]) / (N_STEPS - 1))
 
 
-def make_problem(
-    x0: np.ndarray, horizon_orbits: float, dock_sign: int, oe0: np.ndarray = ISS_OE, seed: int | None = None
-) -> Problem:
+def make_problem(x0: np.ndarray, horizon_orbits: float, dock_sign: int, oe0: np.ndarray = ISS_OE) -> Problem:
     """Problem from the initial ROE, horizon and port. The goal is the target's ROE at the time of x_N.
 
     Ψ⁻¹ is taken at the terminal time (the goal is a condition on x_N), not at oe_0 as in the reference. For the
@@ -124,7 +122,7 @@ def make_problem(
     params = {"horizon_orbits": float(horizon_orbits), "dock_sign": int(dock_sign), "oe0": oe0}
     mats = _orbit_matrices(dt, tuple(float(v) for v in oe0))
     goal = mats.psi_inv[N_STEPS] @ docking_geometry(dock_sign).target
-    return Problem(x0=x0, goal=goal, dt=dt, n_steps=N_STEPS, params=params, seed=seed)
+    return Problem(x0=x0, goal=goal, dt=dt, n_steps=N_STEPS, params=params)
 
 
 @register
@@ -143,6 +141,7 @@ class Rpod(Scenario):
     # Soft-mode weights of the reference (0.1 fuel, 1 waypoint/docking, 0.1 terminal). DIST uses 0.1 on every ROE
     # component toward the goal (the reference aims at the waypoint's ROE, 30 m further along δλ).
     mpc: ClassVar[MPCWeights] = MPCWeights(fuel=0.1, end=1.0, terminal=0.1, dist=(0.1,) * 6, waypoint=1.0)
+    # Labels of the model representation (RTN), which is what datasets store and the transformer sees.
     state_labels = ("r_R [m]", "r_T [m]", "r_N [m]", "v_R [m/s]", "v_T [m/s]", "v_N [m/s]")
     control_labels = ("Δv_R [m/s]", "Δv_T [m/s]", "Δv_N [m/s]")
 
