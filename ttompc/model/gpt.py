@@ -51,7 +51,9 @@ class KVCache:
         ``length`` is advanced once per forward by ``advance`` (all layers append the same T tokens)."""
         end = self.length + k.shape[2]
         if end > self.capacity:
-            raise ValueError(f"KV cache overflow: {end} tokens > capacity {self.capacity} (max_steps too small)")
+            raise ValueError(
+                f"KV cache overflow: {end} tokens > capacity {self.capacity} (max_steps too small)"
+            )
         self.k[layer, :, :, self.length : end] = k
         self.v[layer, :, :, self.length : end] = v
         return self.k[layer, :, :, :end], self.v[layer, :, :, :end]
@@ -81,7 +83,9 @@ class CausalSelfAttention(nn.Module):
     def forward(self, x: Tensor, layer: int, cache: KVCache | None) -> Tensor:
         B, T, C = x.shape
         q, k, v = self.qkv(x).split(C, dim=2)  # 3 × (B, T, C)
-        q, k, v = (z.view(B, T, self.n_head, C // self.n_head).transpose(1, 2) for z in (q, k, v))  # (B, h, T, d)
+        q, k, v = (
+            z.view(B, T, self.n_head, C // self.n_head).transpose(1, 2) for z in (q, k, v)
+        )  # (B, h, T, d)
         past = 0
         if cache is not None:
             past = cache.length
@@ -155,7 +159,9 @@ class TrajectoryGPT(nn.Module):
         return sum(p.numel() for p in self.parameters())
 
     # ------------------------------------------------------------------------------------------ token embeddings
-    def embed_step(self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, timesteps: Tensor) -> Tensor:
+    def embed_step(
+        self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, timesteps: Tensor
+    ) -> Tensor:
         """The first four tokens of each step: goals/states (B, L, n), rtg/ctg (B, L, 1), timesteps (B, L) int
         -> (B, 4L, d) interleaved as g_0 R_0 C_0 s_0 g_1 ..."""
         t = self.embed_timestep(timesteps)  # (B, L, d)

@@ -1,0 +1,260 @@
+"""``Planner``: a trained trajectory transformer bound to its scenario and normalisation statistics, i.e. everything
+needed to turn problems into warm-start trajectories (paper §IV-B) or MPC guidance.
+
+Bundle format (``Planner.save(dir)`` / ``Planner.load(dir)``; the zoo publishes and caches these directories)::
+
+    <dir>/model.safetensors   TrajectoryGPT state dict (safetensors; nothing is ever unpickled)
+    <dir>/config.json         {
+                                "format": "ttompc-planner", "format_version": 1,
+                                "model": {ModelConfig fields},
+                                "scenario": {"name": str, "version": str},
+                                "norm_stats": NormStats.to_dict(),      # mean/std lists for the 5 modalities
+                                "recipe": {training recipe as a plain dict, may be empty},
+                                "code_version": str,                    # ttompc version + git commit of the trainer
+                                "created": ISO-8601 UTC time,
+                                "extra": {free-form metadata: training steps, val loss, dataset ...}
+                              }
+
+``Planner.from_checkpoint(path.ckpt)`` reads a Lightning checkpoint written by ``TrajectoryTransformerModule``
+without importing Lightning (its hyper-parameters are primitives, so ``weights_only=True`` loading works).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+from collections.abc import Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ttompc.config import from_container
+from ttompc.data.stats import NormStats
+from ttompc.model import ModelConfig, TrajectoryGPT
+from ttompc.rollout import RolloutContext, RolloutResult
+from ttompc.scenarios import Problem, Scenario, get_scenario
+from ttompc.version import code_version
+
+FORMAT = "ttompc-planner"
+FORMAT_VERSION = 1
+WEIGHTS_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+
+
+def _per_problem(value: float | Sequence[float] | np.ndarray, batch: int) -> torch.Tensor:
+    """A scalar or per-problem value as a (B,) float64 tensor."""
+    return torch.as_tensor(np.broadcast_to(np.asarray(value, dtype=np.float64), (batch,)).copy())
+
+
+class Planner:
+    """Model + scenario + normalisation statistics (+ provenance metadata)."""
+
+    def __init__(
+        self,
+        model: TrajectoryGPT,
+        scenario: Scenario,
+        stats: NormStats,
+        *,
+        recipe: dict[str, Any] | None = None,
+        trained_code_version: str | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
+        cfg = model.cfg
+        if (cfg.state_dim, cfg.control_dim) != (scenario.state_dim, scenario.control_dim):
+            raise ValueError(
+                f"model dims ({cfg.state_dim}, {cfg.control_dim}) do not match scenario {scenario.name!r} "
+                f"({scenario.state_dim}, {scenario.control_dim})"
+            )
+        self.model = model.eval()
+        self.scenario = scenario
+        self.stats = stats
+        self.recipe = dict(recipe or {})
+        self.trained_code_version = trained_code_version or code_version()
+        self.extra = dict(extra or {})
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+    # ------------------------------------------------------------------------------------------------- planning
+    def _start_tensors(self, problems: Sequence[Problem]) -> tuple[torch.Tensor, torch.Tensor]:
+        sc = self.scenario
+        s0 = np.stack([sc.to_model_states(p, p.x0[None], start=0)[0] for p in problems])
+        goal = np.stack([sc.model_goal(p) for p in problems])
+        dtype = next(self.model.parameters()).dtype
+        return (
+            torch.as_tensor(s0, dtype=dtype, device=self.device),
+            torch.as_tensor(goal, dtype=dtype, device=self.device),
+        )
+
+    def context(
+        self,
+        problems: Sequence[Problem],
+        rtg0: float | Sequence[float] | np.ndarray,
+        ctg0: float | Sequence[float] | np.ndarray = 0.0,
+        *,
+        use_cache: bool = True,
+    ) -> RolloutContext:
+        """A step-0 rollout context for B problems (MPC keeps it and calls ``advance``/``rollout``).
+        The reference conditions on rtg0 = −J_REL and ctg0 = 0."""
+        if not problems:
+            raise ValueError("no problems given")
+        s0, goal = self._start_tensors(problems)
+        return RolloutContext.start(
+            self.model,
+            self.stats,
+            self.scenario.batched_model(problems, device=self.device),
+            self.scenario.cost_norm,
+            s0,
+            goal,
+            _per_problem(rtg0, len(problems)),
+            _per_problem(ctg0, len(problems)),
+            use_cache=use_cache,
+        )
+
+    def generate(
+        self,
+        problems: Sequence[Problem],
+        rtg0: float | Sequence[float] | np.ndarray,
+        ctg0: float | Sequence[float] | np.ndarray = 0.0,
+        *,
+        horizon: int | None = None,
+        clipped: bool = True,
+        use_cache: bool = True,
+    ) -> RolloutResult:
+        """Open-loop rollout from step 0 in the model representation (default horizon: the problems' N)."""
+        horizon = horizon or problems[0].n_steps
+        return self.context(problems, rtg0, ctg0, use_cache=use_cache).rollout(horizon, clipped=clipped)
+
+    def warm_start(
+        self,
+        problems: Sequence[Problem],
+        rtg0: float | Sequence[float] | np.ndarray,
+        ctg0: float | Sequence[float] | np.ndarray = 0.0,
+        *,
+        clipped: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Full-horizon warm starts for the SCP engine: states (B, N+1, n) in the *optimisation* representation and
+        controls (B, N, m), float64."""
+        steps = {p.n_steps for p in problems}
+        if len(steps) != 1:
+            raise ValueError(f"problems in one batch must share n_steps, got {sorted(steps)}")
+        res = self.generate(problems, rtg0, ctg0, clipped=clipped)
+        S = res.states.double().cpu().numpy()
+        X = np.stack([self.scenario.from_model_states(p, S[i], start=0) for i, p in enumerate(problems)])
+        return X, res.actions.double().cpu().numpy()
+
+    # ----------------------------------------------------------------------------------------------- persistence
+    def metadata(self) -> dict[str, Any]:
+        """The content of ``config.json``."""
+        return {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "model": asdict(self.model.cfg),
+            "scenario": {"name": self.scenario.name, "version": self.scenario.version},
+            "norm_stats": self.stats.to_dict(),
+            "recipe": self.recipe,
+            "code_version": self.trained_code_version,
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "extra": self.extra,
+        }
+
+    def save(self, directory: str | Path) -> Path:
+        """Write ``model.safetensors`` and ``config.json`` into ``directory`` (created if needed)."""
+        from safetensors.torch import save_file
+
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        state = {k: v.detach().cpu().contiguous() for k, v in self.model.state_dict().items()}
+        save_file(state, str(out / WEIGHTS_FILE), metadata={"format": "pt"})
+        (out / CONFIG_FILE).write_text(json.dumps(self.metadata(), indent=2) + "\n")
+        return out
+
+    @classmethod
+    def load(
+        cls,
+        directory: str | Path,
+        scenario: Scenario | None = None,
+        *,
+        device: str | torch.device = "cpu",
+        check_version: bool = True,
+    ) -> Planner:
+        """Load a bundle. The scenario defaults to the registered one named in ``config.json``; a scenario version
+        different from the training one is an error unless ``check_version=False``."""
+        from safetensors.torch import load_file
+
+        src = Path(directory)
+        meta = json.loads((src / CONFIG_FILE).read_text())
+        if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
+            raise ValueError(f"{src}: not a {FORMAT} v{FORMAT_VERSION} bundle")
+        state = load_file(str(src / WEIGHTS_FILE), device=str(device))
+        return cls._build(
+            meta["model"],
+            meta["scenario"]["name"],
+            meta["scenario"]["version"],
+            meta["norm_stats"],
+            state,
+            scenario=scenario,
+            device=device,
+            check_version=check_version,
+            recipe=meta.get("recipe"),
+            trained_code_version=meta.get("code_version"),
+            extra=meta.get("extra"),
+        )
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: str | Path,
+        scenario: Scenario | None = None,
+        *,
+        device: str | torch.device = "cpu",
+        check_version: bool = True,
+    ) -> Planner:
+        """Build from a ``TrajectoryTransformerModule`` Lightning checkpoint (weights_only-safe)."""
+        ckpt = torch.load(path, map_location=device, weights_only=True)
+        hp = ckpt["hyper_parameters"]
+        state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+        extra = {"global_step": int(ckpt.get("global_step", 0)), "epoch": int(ckpt.get("epoch", 0))}
+        return cls._build(
+            hp["model_config"],
+            hp["scenario"],
+            hp["scenario_version"],
+            hp["norm_stats"],
+            state,
+            scenario=scenario,
+            device=device,
+            check_version=check_version,
+            recipe=hp.get("recipe"),
+            trained_code_version=hp.get("code_version"),
+            extra=extra,
+        )
+
+    @classmethod
+    def _build(
+        cls,
+        model_cfg: dict[str, Any],
+        scenario_name: str,
+        scenario_version: str,
+        stats: dict[str, Any],
+        state: dict[str, torch.Tensor],
+        *,
+        scenario: Scenario | None,
+        device: str | torch.device,
+        check_version: bool,
+        **meta: Any,
+    ) -> Planner:
+        scenario = scenario or get_scenario(scenario_name)
+        if scenario.name != scenario_name:
+            raise ValueError(f"model was trained on scenario {scenario_name!r}, not {scenario.name!r}")
+        if check_version and scenario.version != scenario_version:
+            raise ValueError(
+                f"model was trained on {scenario_name} v{scenario_version} but the installed scenario is "
+                f"v{scenario.version}; pass check_version=False to use it anyway"
+            )
+        model = TrajectoryGPT(from_container(ModelConfig, model_cfg))
+        model.load_state_dict(state)
+        return cls(model.to(device), scenario, NormStats.from_dict(stats), **meta)

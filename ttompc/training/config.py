@@ -1,0 +1,116 @@
+"""Typed training recipe: ``TrainConfig`` = model + data + optimiser + trainer + logger + callbacks sections.
+
+Recipes live in ``recipes/<scenario>/<name>.yaml`` and are loaded with ``load_train_config`` (schema defaults <- YAML
+<- ``key=value`` overrides); unknown keys and wrong types raise ``ConfigError`` naming the key. This module does not
+import Lightning.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from ttompc.config import ConfigError, load_config
+from ttompc.data.config import DataConfig
+from ttompc.model.config import ModelConfig
+
+
+@dataclass
+class OptimConfig:
+    """AdamW with linear warm-up, then a constant or cosine learning rate (per optimiser step)."""
+
+    lr: float = 3e-4
+    weight_decay: float = 0.01  # applied to matrices and embeddings only, not to biases and norms
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    warmup_steps: int = 100
+    schedule: Literal["constant", "cosine"] = "constant"
+    min_lr_ratio: float = 0.1  # cosine floor as a fraction of lr
+    grad_clip: float = 1.0  # global-norm clipping (0 = off)
+    accumulate: int = 1  # micro-batches per optimiser step
+
+    def __post_init__(self) -> None:
+        if len(self.betas) != 2:
+            raise ValueError(f"optim.betas needs two values, got {self.betas}")
+        if self.lr <= 0 or self.warmup_steps < 0 or self.accumulate < 1:
+            raise ValueError("optim.lr must be > 0, optim.warmup_steps >= 0 and optim.accumulate >= 1")
+
+
+@dataclass
+class TrainerConfig:
+    max_steps: int = 100_000  # optimiser steps (-1: until max_epochs)
+    max_epochs: int | None = None
+    val_check_interval: float = 1.0  # <= 1: fraction of an epoch; > 1: every that many training batches
+    limit_val_batches: float = 1.0  # <= 1: fraction; > 1: number of batches
+    checkpoint_every_n_steps: int = 1000  # refreshes last.ckpt and writes step<N>.ckpt
+    keep_checkpoints: int = 3  # most recent step<N>.ckpt files kept (-1: all)
+    log_every_n_steps: int = 50
+    devices: int = 1
+    num_nodes: int = 1
+    accelerator: str = "auto"
+    strategy: str = "auto"  # e.g. ddp, ddp_spawn, fsdp
+    precision: str = "32-true"  # e.g. bf16-mixed on GPUs
+    num_sanity_val_steps: int = 0
+    seed: int = 0
+    out_dir: str = "runs/freeflyer-pretrain"
+    resume: bool = True  # continue from <out_dir>/checkpoints/last.ckpt when it exists
+    export_planner: bool = True  # write <out_dir>/planner/ after training
+
+
+@dataclass
+class LoggerConfig:
+    kind: Literal["wandb", "csv", "tensorboard", "none"] = "wandb"
+    project: str = "ttompc"
+    name: str | None = None
+    mode: Literal["online", "offline", "disabled"] | None = None  # None: see ``wandb_mode``
+    plot_trajectories: bool = True  # a predicted-vs-target trajectory figure at every validation end
+
+    def wandb_mode(self) -> str:
+        """Offline unless asked otherwise: explicit ``mode``, then ``WANDB_MODE``, then online only when the user
+        has credentials (``WANDB_API_KEY`` or a wandb entry in ~/.netrc)."""
+        if self.mode is not None:
+            return self.mode
+        if os.environ.get("WANDB_MODE"):
+            return os.environ["WANDB_MODE"]
+        netrc = Path.home() / ".netrc"
+        logged_in = bool(os.environ.get("WANDB_API_KEY")) or (
+            netrc.is_file() and "api.wandb.ai" in netrc.read_text(errors="ignore")
+        )
+        return "online" if logged_in else "offline"
+
+
+@dataclass
+class EvalMPCConfig:
+    """Closed-loop MPC evaluation during training (the callback is provided by the evaluation code)."""
+
+    enabled: bool = False
+    every_n_epochs: int = 1
+    problems: int = 8
+    horizon: int = 10
+
+
+@dataclass
+class CallbacksConfig:
+    eval_mpc: EvalMPCConfig = field(default_factory=EvalMPCConfig)
+
+
+@dataclass
+class TrainConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    callbacks: CallbacksConfig = field(default_factory=CallbacksConfig)
+
+
+def load_train_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> TrainConfig:
+    """Load and validate a training recipe; value errors from the sections' checks become ``ConfigError`` too."""
+    try:
+        return load_config(TrainConfig, path, overrides)
+    except ConfigError:
+        raise
+    except ValueError as err:
+        raise ConfigError(f"invalid config ({path or 'defaults'}): {err}") from None

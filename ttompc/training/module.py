@@ -1,0 +1,144 @@
+"""``TrajectoryTransformerModule``: teacher-forced training of ``TrajectoryGPT`` (fact sheet §2.5, §4).
+
+Batch contract (from ``ttompc.data.datamodule.TrajectoryDataModule``; float32, already normalised)::
+
+    states (B, L, n)   actions (B, L, m)   goals (B, L, n)   rtg (B, L, 1)   ctg (B, L, 1)   timesteps (B, L) int64
+    target_actions (B, L, m)   target_next_states (B, L, n)   mask (B, L) float, 1 = valid step
+    state_mask (B, L) float, optional: validity of target_next_states (default: mask)
+
+loss = masked MSE(â, target_actions) + masked MSE(ŝ, target_next_states), equal weights like the reference.
+Hyper-parameters are primitives only (dicts of numbers/strings), so the checkpoint loads with ``weights_only=True``
+and is enough to build a ``Planner`` (``Planner.from_checkpoint``).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from ttompc.config import from_container
+from ttompc.data.stats import NormStats
+from ttompc.model import ModelConfig, TrajectoryGPT
+from ttompc.training.config import OptimConfig
+from ttompc.training.loggers import log_figure, trajectory_figure
+
+
+def masked_mse(pred: Tensor, target: Tensor, mask: Tensor | None) -> Tensor:
+    """Mean squared error over valid steps (mask (B, L)) and all feature dims."""
+    sq = (pred - target) ** 2  # (B, L, k)
+    if mask is None:
+        return sq.mean()
+    w = mask.to(sq.dtype).unsqueeze(-1)
+    return (sq * w).sum() / (w.sum() * sq.shape[-1]).clamp_min(1.0)
+
+
+class TrajectoryTransformerModule(L.LightningModule):
+    def __init__(
+        self,
+        model_config: dict[str, Any],
+        optim: dict[str, Any],
+        scenario: str,
+        scenario_version: str,
+        norm_stats: dict[str, Any],
+        recipe: dict[str, Any] | None = None,
+        code_version: str | None = None,
+        plot_trajectories: bool = True,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.model = TrajectoryGPT(from_container(ModelConfig, model_config))
+        self.optim_cfg = from_container(OptimConfig, optim)
+        self.stats = NormStats.from_dict(norm_stats)
+        self._plot_batch: dict[str, Tensor] | None = None
+
+    def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        return self.model(
+            batch["goals"], batch["rtg"], batch["ctg"], batch["states"], batch["actions"], batch["timesteps"]
+        )
+
+    def _losses(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor]]:
+        a_pred, s_pred = self(batch)
+        mask = batch.get("mask")
+        loss_a = masked_mse(a_pred, batch["target_actions"], mask)
+        loss_s = masked_mse(s_pred, batch["target_next_states"], batch.get("state_mask", mask))
+        return loss_a + loss_s, loss_a, loss_s, (a_pred, s_pred)
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        loss, loss_a, loss_s, _ = self._losses(batch)
+        B = batch["states"].shape[0]
+        self.log("train/loss", loss, prog_bar=True, batch_size=B)
+        self.log_dict({"train/loss_action": loss_a, "train/loss_state": loss_s}, batch_size=B)
+        return loss
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        loss, loss_a, loss_s, (_, s_pred) = self._losses(batch)
+        B = batch["states"].shape[0]
+        self.log("val/loss", loss, prog_bar=True, sync_dist=True, batch_size=B)
+        self.log_dict({"val/loss_action": loss_a, "val/loss_state": loss_s}, sync_dist=True, batch_size=B)
+        if batch_idx == 0 and self.hparams.plot_trajectories:
+            k = min(4, B)
+            self._plot_batch = {
+                "states": batch["states"][:k].detach().cpu(),
+                "target": batch["target_next_states"][:k].detach().cpu(),
+                "pred": s_pred[:k].detach().float().cpu(),
+                "mask": batch.get("mask", torch.ones_like(batch["timesteps"], dtype=torch.float32))[:k].cpu(),
+            }
+
+    def on_validation_epoch_end(self) -> None:
+        """A figure of teacher-forced next-state predictions vs targets (first validation batch, rank 0)."""
+        if self._plot_batch is None or self.trainer.sanity_checking or not self.trainer.is_global_zero:
+            return
+        b, self._plot_batch = self._plot_batch, None
+        denorm = lambda x: self.stats.denormalize("states", x.double()).numpy()  # noqa: E731
+        fig = trajectory_figure(
+            denorm(b["target"]), denorm(b["pred"]), b["mask"].numpy(), title=f"step {self.global_step}"
+        )
+        log_figure(self.trainer, "val/trajectories", fig, self.global_step)
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        cfg = self.optim_cfg
+        decay = [p for p in self.parameters() if p.requires_grad and p.dim() >= 2]
+        no_decay = [p for p in self.parameters() if p.requires_grad and p.dim() < 2]
+        opt = torch.optim.AdamW(
+            [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
+            lr=cfg.lr,
+            betas=(cfg.betas[0], cfg.betas[1]),
+        )
+        total = max(int(self.trainer.estimated_stepping_batches), 1) if cfg.schedule == "cosine" else 0
+
+        def factor(step: int) -> float:
+            if step < cfg.warmup_steps:
+                return (step + 1) / cfg.warmup_steps
+            if cfg.schedule == "constant":
+                return 1.0
+            progress = min((step - cfg.warmup_steps) / max(total - cfg.warmup_steps, 1), 1.0)
+            return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+
+class SaveLastCheckpoint(L.Callback):
+    """Keep ``last.ckpt`` current: every ``every_n_steps`` optimiser steps and when fitting ends (in the training
+    processes, so also under spawn-based strategies). Resuming therefore never loses more than that many steps."""
+
+    def __init__(self, path: Path, every_n_steps: int) -> None:
+        self.path, self.every_n_steps = path, every_n_steps
+        self._saved_at = -1
+
+    def _save(self, trainer: L.Trainer) -> None:
+        if trainer.global_step != self._saved_at:
+            trainer.save_checkpoint(self.path)
+            self._saved_at = trainer.global_step
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        if self.every_n_steps > 0 and trainer.global_step % self.every_n_steps == 0:
+            self._save(trainer)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._save(trainer)

@@ -1,0 +1,155 @@
+"""``train(cfg)``: one pre-training (or fine-tuning) run from a ``TrainConfig``.
+
+Resumable by construction: checkpoints go to ``<out_dir>/checkpoints/`` with ``last.ckpt`` refreshed every
+``checkpoint_every_n_steps`` and at the end (``on_exception.ckpt`` when fit raises, e.g. Ctrl-C), and a run whose
+``out_dir`` already holds one continues from the newest (optimiser, scheduler, loop counters) instead of restarting
+from step 0.
+Multi-device runs go through Lightning strategies (``trainer.devices=2 trainer.strategy=ddp``). After training,
+rank 0 exports a ``Planner`` bundle to ``<out_dir>/planner/``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from ttompc.config import to_container
+from ttompc.training.config import TrainConfig
+from ttompc.version import code_version
+
+
+@dataclass
+class TrainResult:
+    out_dir: Path
+    last_checkpoint: Path
+    planner_dir: Path | None
+    start_step: int  # global step the run started from (> 0 when resumed)
+    global_step: int
+    metrics: dict[str, float]
+
+
+EXCEPTION_CKPT = (
+    "on_exception"  # written by Lightning when fit raises (Ctrl-C included); removed after success
+)
+
+
+def last_checkpoint(out_dir: str | Path) -> Path:
+    return Path(out_dir) / "checkpoints" / "last.ckpt"
+
+
+def resume_checkpoint(out_dir: str | Path) -> Path | None:
+    """The newest of ``last.ckpt`` and the exception checkpoint of an interrupted run, if any."""
+    found = [
+        p
+        for p in (last_checkpoint(out_dir), last_checkpoint(out_dir).with_name(f"{EXCEPTION_CKPT}.ckpt"))
+        if p.is_file()
+    ]
+    return max(found, key=lambda p: p.stat().st_mtime) if found else None
+
+
+def train(cfg: TrainConfig, datamodule: Any = None) -> TrainResult:
+    """Train according to ``cfg``. ``datamodule`` defaults to ``TrajectoryDataModule(cfg.data)``; any
+    LightningDataModule that follows the batch contract of ``ttompc.training.module`` and exposes ``stats``
+    (NormStats) and ``scenario_name`` after ``setup("fit")`` works."""
+    import lightning as L
+    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint, OnExceptionCheckpoint
+
+    from ttompc.planner import Planner
+    from ttompc.scenarios import get_scenario
+    from ttompc.training.loggers import build_logger
+    from ttompc.training.module import SaveLastCheckpoint, TrajectoryTransformerModule
+
+    L.seed_everything(cfg.trainer.seed, workers=True)
+    out = Path(cfg.trainer.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if datamodule is None:
+        from ttompc.data.datamodule import TrajectoryDataModule
+
+        datamodule = TrajectoryDataModule(cfg.data)
+    datamodule.setup("fit")  # stats and scenario are needed to build the model (setup must be idempotent)
+    scenario = get_scenario(datamodule.scenario_name)
+    # The data fixes the token dimensions; the recipe fixes everything else.
+    model_cfg = replace(cfg.model, state_dim=scenario.state_dim, control_dim=scenario.control_dim)
+    cfg = replace(cfg, model=model_cfg)
+    recipe = to_container(cfg)
+    module = TrajectoryTransformerModule(
+        model_config=to_container(model_cfg),
+        optim=to_container(cfg.optim),
+        scenario=scenario.name,
+        scenario_version=scenario.version,
+        norm_stats=datamodule.stats.to_dict(),
+        recipe=recipe,
+        code_version=code_version(),
+        plot_trajectories=cfg.logger.plot_trajectories,
+    )
+    logger = build_logger(cfg.logger, out, recipe)
+    ckpt_dir = out / "checkpoints"
+    callbacks: list[Any] = [
+        ModelCheckpoint(
+            dirpath=ckpt_dir,
+            filename="step{step:08d}",
+            auto_insert_metric_name=False,
+            monitor="step",
+            mode="max",
+            save_top_k=cfg.trainer.keep_checkpoints,
+            every_n_train_steps=cfg.trainer.checkpoint_every_n_steps,
+        ),
+        OnExceptionCheckpoint(dirpath=ckpt_dir, filename=EXCEPTION_CKPT),
+        SaveLastCheckpoint(last_checkpoint(out), cfg.trainer.checkpoint_every_n_steps),
+    ]
+    if logger is not None:
+        callbacks.append(LearningRateMonitor(logging_interval="step"))
+    t = cfg.trainer
+    vci = t.val_check_interval
+    trainer = L.Trainer(
+        max_steps=t.max_steps,
+        max_epochs=t.max_epochs,
+        val_check_interval=int(vci) if vci > 1 else vci,
+        limit_val_batches=int(t.limit_val_batches) if t.limit_val_batches > 1 else t.limit_val_batches,
+        check_val_every_n_epoch=None if vci > 1 else 1,
+        accelerator=t.accelerator,
+        devices=t.devices,
+        num_nodes=t.num_nodes,
+        strategy=t.strategy,
+        precision=t.precision,
+        gradient_clip_val=cfg.optim.grad_clip or None,
+        accumulate_grad_batches=cfg.optim.accumulate,
+        log_every_n_steps=t.log_every_n_steps,
+        num_sanity_val_steps=t.num_sanity_val_steps,
+        default_root_dir=str(out),
+        logger=logger if logger is not None else False,
+        callbacks=callbacks,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        deterministic=False,
+    )
+    resume_from = resume_checkpoint(out) if t.resume else None
+    start_step = _checkpoint_step(resume_from) if resume_from else 0
+    trainer.fit(module, datamodule=datamodule, ckpt_path=str(resume_from) if resume_from else None)
+    _finish_wandb(logger)
+    # Read the outcome from the checkpoint: with spawn-based strategies the workers, not this process, trained.
+    global_step = _checkpoint_step(last_checkpoint(out))
+    planner_dir = None
+    if trainer.is_global_zero and t.export_planner:
+        planner = Planner.from_checkpoint(last_checkpoint(out), scenario)
+        planner.extra["source"] = "ttompc train"
+        planner_dir = planner.save(out / "planner")
+    metrics = {
+        k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1
+    }
+    return TrainResult(out, last_checkpoint(out), planner_dir, start_step, global_step, metrics)
+
+
+def _finish_wandb(logger: Any) -> None:
+    """Close the wandb run so that a later ``train`` in the same process starts (or resumes) its own."""
+    from lightning.pytorch.loggers import WandbLogger
+
+    if isinstance(logger, WandbLogger) and logger._experiment is not None:
+        logger.experiment.finish()
+
+
+def _checkpoint_step(path: Path) -> int:
+    import torch
+
+    return int(torch.load(path, map_location="cpu", weights_only=True).get("global_step", 0))
