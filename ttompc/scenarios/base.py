@@ -197,6 +197,12 @@ class Scenario(abc.ABC):
     exact_linear_dynamics: ClassVar[bool] = False  # affine dynamics independent of the reference: no virtual control
     scp: ClassVar[SCPSettings]
     mpc: ClassVar[MPCWeights]
+    # characteristic magnitudes of states and controls: the engine solves for x/scale, u/scale (non-dimensionalised
+    # variables keep the conic solvers well conditioned; the RPOD ROE in metres vs Δv in m/s differ by 1e4)
+    state_scale: ClassVar[tuple[float, ...]] = ()
+    control_scale: ClassVar[tuple[float, ...]] = ()
+    # what backend="auto" means for this scenario (see ttompc.solvers.engine.backend_chain)
+    auto_backends: ClassVar[tuple[str, ...]] = ("qoco", "clarabel")
     state_labels: ClassVar[tuple[str, ...]]
     control_labels: ClassVar[tuple[str, ...]]
 

@@ -77,6 +77,8 @@ class FreeFlyer(Scenario):
         tr_start=10.0, tr_end=0.005, max_iters=20, cost_tol=1e-6, penalty=1e2, feas_tol=1e-4
     )
     mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=9.9, terminal=1.0, dist=(1, 1, 1, 7, 7, 7))
+    state_scale: ClassVar[tuple[float, ...]] = (1.0, 1.0, 1.0, 0.1, 0.1, 0.1)
+    control_scale: ClassVar[tuple[float, ...]] = (0.01, 0.01, 0.01)  # Δv [m/s]
     state_labels = ("x [m]", "y [m]", "ψ [rad]", "vx [m/s]", "vy [m/s]", "ω [rad/s]")
     control_labels = ("Δvx [m/s]", "Δvy [m/s]", "aψ [m/s]")
 

@@ -69,6 +69,8 @@ class Quadrotor(Scenario):
         tr_start=10.0, tr_end=0.005, max_iters=20, cost_tol=1e-6, penalty=1e2, feas_tol=1e-6
     )
     mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, terminal=1.0, dist=(0.08,) * 6)
+    state_scale: ClassVar[tuple[float, ...]] = (1.0, 1.0, 1.0, 0.1, 0.1, 0.1)
+    control_scale: ClassVar[tuple[float, ...]] = (0.1, 0.1, 0.1)  # N
     state_labels = ("x [m]", "y [m]", "z [m]", "vx [m/s]", "vy [m/s]", "vz [m/s]")
     control_labels = ("Fx [N]", "Fy [N]", "Fz [N]")
 

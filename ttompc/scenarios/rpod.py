@@ -141,6 +141,10 @@ class Rpod(Scenario):
     # Soft-mode weights of the reference (0.1 fuel, 1 waypoint/docking, 0.1 terminal). DIST uses 0.1 on every ROE
     # component toward the goal (the reference aims at the waypoint's ROE, 30 m further along δλ).
     mpc: ClassVar[MPCWeights] = MPCWeights(fuel=0.1, end=1.0, terminal=0.1, dist=(0.1,) * 6, waypoint=1.0)
+    state_scale: ClassVar[tuple[float, ...]] = (10.0, 100.0, 100.0, 100.0, 100.0, 100.0)  # ROE [m]
+    control_scale: ClassVar[tuple[float, ...]] = (0.01, 0.01, 0.01)  # Δv [m/s]
+    # QOCO solved only 7/10 RPOD problems (numerical errors on the cone/waypoint rows); Clarabel 10/10 and as fast
+    auto_backends: ClassVar[tuple[str, ...]] = ("clarabel",)
     # Labels of the model representation (RTN), which is what datasets store and the transformer sees.
     state_labels = ("r_R [m]", "r_T [m]", "r_N [m]", "v_R [m/s]", "v_T [m/s]", "v_N [m/s]")
     control_labels = ("Δv_R [m/s]", "Δv_T [m/s]", "Δv_N [m/s]")

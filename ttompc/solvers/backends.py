@@ -147,8 +147,12 @@ class PIQPBackend:
 
 
 class QOCOBackend:
-    """QOCO (optional extra): min ½xᵀPx + cᵀx s.t. Ax = b, Gx ≤_C h with C = ℝ₊ˡ × SOCs; set up once, then
-    matrix/vector data updates. The zero-cone rows of the assembled matrix are QOCO's A, the rest its G."""
+    """QOCO (optional extra): min ½xᵀPx + cᵀx s.t. Ax = b, Gx ≤_C h with C = ℝ₊ˡ × SOCs. The zero-cone rows of
+    the assembled matrix are QOCO's A, the rest its G.
+
+    QOCO is set up afresh for every solve: its in-place updates keep the equilibration of the first data set and
+    silently misalign values when that data had explicit zeros (measured: wrong optima on later problems), while a
+    setup costs only a few percent of a solve here."""
 
     name = "qoco"
     supports_cones = True
@@ -161,41 +165,23 @@ class QOCOBackend:
         cones = dict((k, d) for k, d in sub.cones if k != "soc")
         self.n_zero, self.n_nonneg = cones["zero"], cones["nonneg"]
         self.soc_dims = np.array([d for k, d in sub.cones if k == "soc"], dtype=np.int64)
-        A_full = sub.matrix(np.ones(sub.nnz))
-        self._eq_mask = A_full.indices < self.n_zero  # CSC order is preserved when rows are split
-        self.solver = None
+        self.P = sp.triu(sub.P, format="csc")
 
     def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
         t0 = time.perf_counter()
-        nz = self.n_zero
-        if self.solver is None:
-            A_full = self.sub.matrix(a_values).tocsr()
-            self.solver = self._qoco.QOCO()
-            self.solver.setup(
-                self.sub.n_var,
-                self.sub.n_con - nz,
-                nz,
-                sp.triu(self.sub.P, format="csc"),
-                self.sub.q,
-                A_full[:nz].tocsc(),
-                b[:nz],
-                A_full[nz:].tocsc(),
-                b[nz:],
-                self.n_nonneg,
-                len(self.soc_dims),
-                self.soc_dims,
-                verbose=False,
-            )
-        else:
-            self.solver.update_matrix_data(A=a_values[self._eq_mask], G=a_values[~self._eq_mask])
-            self.solver.update_vector_data(b=b[:nz], h=b[nz:])
-        res = self.solver.solve()
+        nz, sub = self.n_zero, self.sub
+        A_full = sub.matrix(a_values).tocsr()
+        solver = self._qoco.QOCO()
+        solver.setup(
+            sub.n_var, sub.n_con - nz, nz, self.P, sub.q, A_full[:nz].tocsc(), b[:nz], A_full[nz:].tocsc(),
+            b[nz:], self.n_nonneg, len(self.soc_dims), self.soc_dims, verbose=False,
+        )
+        res = solver.solve()
         elapsed = time.perf_counter() - t0
         status = str(res.status)
         ok = status in ("QOCO_SOLVED", "QOCO_SOLVED_INACCURATE")
-        return BackendSolution(
-            np.asarray(res.x) if ok else None, float(res.obj), ok, "INFEAS" in status, status, elapsed
-        )
+        return BackendSolution(np.asarray(res.x) if ok else None, float(res.obj), ok, "INFEAS" in status, status,
+                               elapsed)
 
 
 BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "piqp": PIQPBackend, "qoco": QOCOBackend}

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import time
 from collections import OrderedDict
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -20,50 +22,58 @@ class SubproblemSolver(Protocol):
 
 
 class AssembledSolver:
-    """Assembled structure + a persistent backend: only values change between calls."""
+    """Assembled structure + persistent backends: only values change between calls. With several backends the
+    later ones are fallbacks for a numerical failure of the first (``auto``: QOCO, then Clarabel)."""
 
-    def __init__(self, spec: SubproblemSpec, backend: str) -> None:
+    def __init__(self, spec: SubproblemSpec, backends: Sequence[str]) -> None:
         self.sub = AssembledSubproblem(spec)
-        self.backend = make_backend(backend, self.sub)
+        self.backends = [make_backend(name, self.sub) for name in backends]
 
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         a_values, b = self.sub.update(data)
-        sol = self.backend.solve(a_values, b)
+        spent = 0.0
+        for backend in self.backends:
+            sol = backend.solve(a_values, b)
+            spent += sol.solve_time
+            if sol.ok:
+                break
+        sol.solve_time = spent
         if sol.z is None:
             return None, None, sol
         X, U = self.sub.split(sol.z)
         return X, U, sol
 
 
-CONIC_BACKENDS = ("clarabel", "qoco", "cvxpy-naive")
+CONIC_BACKENDS = ("auto", "clarabel", "qoco", "cvxpy-naive")
 
 
-def resolve_backend(name: str) -> str:
-    """``auto`` = QOCO when installed (the fastest conic solver measured here, same optima), else Clarabel."""
+def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
+    """``auto`` = the scenario's ``auto_backends`` (default: QOCO, the fastest conic solver measured here, with
+    Clarabel as the fallback on a numerical failure), restricted to installed solvers; other names alone."""
     if name != "auto":
-        return name
-    try:
-        import qoco  # noqa: F401
-    except ImportError:
-        return "clarabel"
-    return "qoco"
+        return [name]
+    chain = list(scenario.auto_backends) if scenario is not None else ["qoco", "clarabel"]
+    if "qoco" in chain and importlib.util.find_spec("qoco") is None:
+        chain.remove("qoco")
+    return chain or ["clarabel"]
 
 
-_CACHE: OrderedDict[tuple[SubproblemSpec, str], SubproblemSolver] = OrderedDict()
+_CACHE: OrderedDict[tuple[SubproblemSpec, tuple[str, ...]], SubproblemSolver] = OrderedDict()
 _CACHE_SIZE = 64
 
 
-def get_solver(spec: SubproblemSpec, backend: str) -> SubproblemSolver:
-    """One solver per (structure, backend), least-recently-used cache (MPC windows produce a handful of keys)."""
-    key = (spec, backend)
+def get_solver(spec: SubproblemSpec, backend: str, scenario: Scenario | None = None) -> SubproblemSolver:
+    """One solver per (structure, backends), least-recently-used cache (MPC windows produce a handful of keys)."""
+    chain = tuple(backend_chain(backend, scenario))
+    key = (spec, chain)
     solver = _CACHE.get(key)
     if solver is None:
-        if backend == "cvxpy-naive":
+        if chain == ("cvxpy-naive",):
             from ttompc.solvers.naive import NaiveCvxpySolver
 
             solver = NaiveCvxpySolver(spec)
         else:
-            solver = AssembledSolver(spec, backend)
+            solver = AssembledSolver(spec, chain)
         _CACHE[key] = solver
         if len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)
@@ -105,7 +115,8 @@ def run_scp(
         scenario.validate(problem)
     penalized = formulation == "penalized"
     use_tr = bool(np.isfinite(settings.tr_start))
-    backend = resolve_backend(backend)
+    if not penalized and backend == "auto":
+        backend = "clarabel"  # certified infeasibility matters for the reference formulation; QOCO reports errors
     if trust_norm is None:
         trust_norm = "l2" if backend in CONIC_BACKENDS else "linf"
     shrink = settings.shrink if use_tr else 1.0
@@ -138,6 +149,7 @@ def run_scp(
             soft_equalities=soft_equalities,
             penalty=float(settings.penalty),
             blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+            state_scale=tuple(scenario.state_scale), control_scale=tuple(scenario.control_scale),
         )
         data = SubproblemData(
             x_start=x_start,
@@ -149,7 +161,7 @@ def run_scp(
             terminal_target=None if terminal is None else terminal.target,
             terminal_weights=None if terminal is None else terminal.weights,
         )
-        X, U, sol = get_solver(spec, backend).solve(data)
+        X, U, sol = get_solver(spec, backend, scenario).solve(data)
         solver_time += sol.solve_time
         if X is None or U is None:
             history.append(IterateRecord(it, np.nan, np.nan, np.nan, np.nan, float(delta), sol.solve_time, sol.status))

@@ -50,6 +50,8 @@ class SubproblemSpec:
     soft_equalities: bool
     penalty: float
     blocks: tuple[tuple[Any, ...], ...]
+    state_scale: tuple[float, ...] = ()  # characteristic magnitudes (non-dimensionalisation); empty = 1
+    control_scale: tuple[float, ...] = ()
 
     @staticmethod
     def block_signature(block: ConstraintBlock) -> tuple[Any, ...]:
@@ -88,8 +90,11 @@ class AssembledSubproblem:
         self.spec = spec
         H, n, m = spec.H, spec.n, spec.m
         self.n_var = 0
-        self.ix = self._var((H + 1) * n).reshape(H + 1, n)
-        self.iu = self._var(H * m).reshape(H, m)
+        self._scales: list[np.ndarray] = []
+        sx = np.asarray(spec.state_scale or np.ones(n), dtype=np.float64)
+        su = np.asarray(spec.control_scale or np.ones(m), dtype=np.float64)
+        self.ix = self._var((H + 1) * n, np.tile(sx, H + 1)).reshape(H + 1, n)
+        self.iu = self._var(H * m, np.tile(su, H)).reshape(H, m)
         q_parts: list[tuple[np.ndarray, float]] = []
         zero, nonneg = _Group(), _Group()
         self.soc_groups: list[_Group] = []
@@ -108,7 +113,7 @@ class AssembledSubproblem:
         self._entries(zero, rr, np.broadcast_to(self.iu[:, None, :], (H, n, m)), ("data", ("B", None, -1.0)))
         zero.b.append((rdyn.ravel(), ("c", None, 1.0)))
         if spec.virtual_control:
-            nu_p, nu_m = self._var(H * n), self._var(H * n)
+            nu_p, nu_m = self._var(H * n, np.tile(sx, H)), self._var(H * n, np.tile(sx, H))
             self._entries(zero, rdyn.ravel(), nu_p, ("const", -np.ones(H * n)))
             self._entries(zero, rdyn.ravel(), nu_m, ("const", np.ones(H * n)))
             self._nonneg_vars(nonneg, np.concatenate([nu_p, nu_m]))
@@ -135,14 +140,14 @@ class AssembledSubproblem:
 
         # stage cost
         if spec.cost_norm == "l1":  # t ≥ |u| elementwise
-            t = self._var(H * m).reshape(H, m)
+            t = self._var(H * m, np.tile(su, H)).reshape(H, m)
             for sign in (1.0, -1.0):
                 r = nonneg.add_rows(H * m).reshape(H, m)
                 self._entries(nonneg, r, self.iu, ("const", np.full((H, m), sign)))
                 self._entries(nonneg, r, t, ("const", -np.ones((H, m))))
             q_parts.append((t.ravel(), spec.fuel_weight))
         elif spec.cost_norm == "l2":  # t_j ≥ ‖u_j‖₂
-            t = self._var(H)
+            t = self._var(H, np.full(H, float(np.max(su))))
             for j in range(H):
                 g = self._soc(1 + m)
                 self._entries(g, np.array([0]), t[j : j + 1], ("const", -np.ones(1)))
@@ -225,9 +230,10 @@ class AssembledSubproblem:
         self._finalise(zero, nonneg, q_parts)
 
     # ------------------------------------------------------------------------------------------------- building
-    def _var(self, count: int) -> np.ndarray:
+    def _var(self, count: int, scale: np.ndarray | None = None) -> np.ndarray:
         idx = np.arange(self.n_var, self.n_var + count)
         self.n_var += count
+        self._scales.append(np.ones(count) if scale is None else np.asarray(scale, dtype=np.float64))
         return idx
 
     def _soc(self, dim: int) -> _Group:
@@ -284,13 +290,17 @@ class AssembledSubproblem:
         if len(np.unique(cols_a * self.n_con + rows_a)) != nnz:
             raise AssertionError("duplicate entries in the assembled constraint matrix")
         self.cones = [("zero", zero.n_rows), ("nonneg", nonneg.n_rows)] + [("soc", g.n_rows) for g in self.soc_groups]
+        # the solver sees z = S z̃ with S the characteristic magnitudes: columns of A, q and P are scaled once
+        self.scale = np.concatenate(self._scales)
+        self._entry_scale = self.scale[cols_a[self._perm]]
         self.q = np.zeros(self.n_var)
         for idx, w in q_parts:
             self.q[idx] += w
+        self.q *= self.scale
         P_diag = np.zeros(self.n_var)
         if self.spec.cost_norm == "quad":
             P_diag[self.iu.ravel()] = self.spec.fuel_weight
-        self.P = sp.diags(P_diag, format="csc")
+        self.P = sp.diags(P_diag * self.scale**2, format="csc")
         self._coo_vals = np.zeros(nnz)
         for slc, (kind, payload) in self._val_src:
             if kind == "const":
@@ -298,7 +308,7 @@ class AssembledSubproblem:
 
     # ------------------------------------------------------------------------------------------------- updating
     def update(self, data: SubproblemData) -> tuple[np.ndarray, np.ndarray]:
-        """Values of A (in CSC data order) and b for one iteration."""
+        """Values of the column-scaled A (in CSC data order) and b for one iteration."""
         src = self._sources(data)
         vals = self._coo_vals
         for slc, (kind, payload) in self._val_src:
@@ -310,7 +320,7 @@ class AssembledSubproblem:
         for rows, (key, idx, sign) in self._b_src:
             flat = src[key]
             b[rows] += sign * (flat if idx is None else flat[idx])
-        return vals[self._perm], b
+        return vals[self._perm] * self._entry_scale, b
 
     def matrix(self, values: np.ndarray) -> sp.csc_matrix:
         return sp.csc_matrix((values, self._indices, self._indptr), shape=(self.n_con, self.n_var))
@@ -337,5 +347,7 @@ class AssembledSubproblem:
                 src[f"l{bi}"] = np.ascontiguousarray(block.lower).ravel()
         return src
 
-    def split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def split(self, z_scaled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """States and controls from the solver's (scaled) solution vector."""
+        z = z_scaled * self.scale
         return z[self.ix], z[self.iu]

@@ -1,0 +1,30 @@
+# Two commands do all the set-up on a fresh machine:  `make demo` (the main job) and `make test` (the tests).
+# Both create .venv on first use: CPU torch 2.13.0 first (a bare `torch` would pull a multi-GB CUDA build),
+# then the package with its dev and fast-solver extras. Everything runs offline.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+export WANDB_MODE ?= offline
+export HF_HUB_OFFLINE := 1
+export HF_DATASETS_OFFLINE := 1
+export PIP_DISABLE_PIP_VERSION_CHECK := 1
+
+.PHONY: demo test lint bench
+
+$(VENV)/.installed: pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -e ".[dev,fast]"
+	touch $@
+
+demo: $(VENV)/.installed
+	$(BIN)/ttompc demo
+
+test: $(VENV)/.installed
+	$(BIN)/python -m pytest -q
+
+lint: $(VENV)/.installed
+	$(BIN)/ruff check ttompc tests bench
+
+bench: $(VENV)/.installed
+	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done
