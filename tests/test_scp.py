@@ -89,6 +89,7 @@ def test_assembled_subproblem_matches_cvxpy(ff, terminal, trust) -> None:
             H=w.length, n=6, m=3, cost_norm="l1", fuel_weight=1.0, penalized=True, virtual_control=True,
             trust=trust, terminal=terminal, soft_equalities=soft_eq, penalty=100.0,
             blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+            tr_states=tuple(range(1, w.length + (0 if terminal == "hard" else 1))),
         )
         data = SubproblemData(
             x_start=X[0], model=ff.convex_model(p, w, X, U), blocks=blocks, X_ref=X, delta=0.2, goal=p.goal,

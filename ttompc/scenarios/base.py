@@ -252,6 +252,10 @@ class Scenario(abc.ABC):
         use steps 0..H-1.
         """
 
+    def trust_region_steps(self, problem: Problem, window: Window, hard_terminal: bool) -> np.ndarray:
+        """Window states under the trust region: all free states (1..H−1, plus H when the terminal is soft)."""
+        return np.arange(1, window.length + (0 if hard_terminal else 1))
+
     @abc.abstractmethod
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
         """Number of violated keep-out constraints at each state of X (T, n) whose first index is ``start``: (T,)
@@ -270,8 +274,9 @@ class Scenario(abc.ABC):
     def path_violation(
         self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window, *, obstacles: bool = True
     ) -> float:
-        """Largest violation of the exact path constraints on window states X (H+1, n) and controls U (H, m):
-        keep-out depth (only if ``obstacles``), bounds, cones, waypoints. Window state 0 is fixed and excluded."""
+        """Largest violation of the exact *inequality* path constraints on window states X (H+1, n) and controls
+        U (H, m): keep-out depth (only if ``obstacles``), bounds, cones. Window state 0 is fixed and excluded.
+        Equality blocks (waypoints) are linear and checked by the engine, which skips them when they are soft."""
 
     # ----------------------------------------------------------------------------------------------------- cost
     def stage_cost(self, U: np.ndarray) -> np.ndarray:

@@ -241,8 +241,8 @@ class Rpod(Scenario):
     def path_violation(
         self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window, *, obstacles: bool = True
     ) -> float:
-        """KOZ depth (scaled shortfall × the smallest semi-axis, a lower bound in metres; only if ``obstacles``),
-        cone violation (m) and waypoint error (m, velocity as v/n in m) on window states 1..H."""
+        """KOZ depth (scaled shortfall × the smallest semi-axis, a lower bound in metres; only if ``obstacles``)
+        and cone violation (m) on window states 1..H (the waypoint is an EQ block, checked by the engine)."""
         mats = orbit_matrices(problem)
         geo = docking_geometry(problem.params["dock_sign"])
         k = window.start + np.arange(1, window.length + 1)
@@ -251,8 +251,12 @@ class Rpod(Scenario):
         depth = (1.0 - np.linalg.norm(S[koz & obstacles, :3] * KOZ_SCALE, axis=-1)) * KOZ_SEMI_AXES.min()
         d = S[~koz, :3] - geo.cone_vertex
         cone = CONE_COS * np.linalg.norm(d, axis=-1) - d @ geo.cone_axis
-        wyp = np.abs((S[k == WAYPOINT_STEP] - geo.waypoint) * waypoint_row_scale(problem)).ravel()
-        return float(max(np.max(depth, initial=0.0), np.max(cone, initial=0.0), np.max(wyp, initial=0.0)))
+        return float(max(np.max(depth, initial=0.0), np.max(cone, initial=0.0)))
+
+    def trust_region_steps(self, problem: Problem, window: Window, hard_terminal: bool) -> np.ndarray:
+        """Only before the waypoint, like the reference: waypoint, cone and docking pin down the final approach."""
+        steps = super().trust_region_steps(problem, window, hard_terminal)
+        return steps[window.start + steps < WAYPOINT_STEP]
 
     # --------------------------------------------------------------------------------------- representations
     def to_model_states(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:

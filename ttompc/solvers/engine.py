@@ -149,6 +149,7 @@ def run_scp(
             soft_equalities=soft_equalities,
             penalty=float(settings.penalty),
             blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+            tr_states=tuple(int(j) for j in scenario.trust_region_steps(problem, window, terminal is None)),
             state_scale=tuple(scenario.state_scale), control_scale=tuple(scenario.control_scale),
         )
         data = SubproblemData(
@@ -175,6 +176,8 @@ def run_scp(
         violation = scenario.constraint_violation(problem, X, U, window, obstacles=obstacles)
         if terminal is None:
             violation = max(violation, float(np.max(np.abs(X[-1] - problem.goal))))
+        if not soft_equalities:
+            violation = max(violation, _eq_residual(blocks, X, U))
         step = float(np.max(np.linalg.norm(X - X_ref, axis=1)))
         history.append(IterateRecord(it, cost, merit, violation, step, float(delta), sol.solve_time, sol.status))
         if violation <= settings.feas_tol and (best is None or merit < best[0]):
@@ -229,15 +232,21 @@ def _terminal_term(X: np.ndarray, terminal: TerminalCost | None) -> float:
     return float(np.linalg.norm(terminal.weights * (X[-1] - terminal.target)))
 
 
+def _eq_rows(block: ConstraintBlock, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """Residuals G x + G u − h of an equality block at the given window trajectory: (K, M)."""
+    res = np.einsum("kmn,kn->km", block.Gx, X[block.steps]) - block.h
+    if block.Gu is not None:
+        res += np.einsum("kmu,ku->km", block.Gu, U[block.steps])
+    return res
+
+
+def _eq_residual(blocks: list[ConstraintBlock], X: np.ndarray, U: np.ndarray) -> float:
+    return max((float(np.max(np.abs(_eq_rows(b, X, U)))) for b in blocks if b.kind is BlockKind.EQ), default=0.0)
+
+
 def _soft_eq_term(blocks: list[ConstraintBlock], X: np.ndarray, U: np.ndarray, soft: bool) -> float:
     if not soft:
         return 0.0
-    total = 0.0
-    for b in blocks:
-        if b.kind is not BlockKind.EQ:
-            continue
-        res = np.einsum("kmn,kn->km", b.Gx, X[b.steps]) - b.h
-        if b.Gu is not None:
-            res += np.einsum("kmu,ku->km", b.Gu, U[b.steps])
-        total += b.weight * float(np.sum(np.linalg.norm(res, axis=1)))
-    return total
+    return sum(
+        b.weight * float(np.sum(np.linalg.norm(_eq_rows(b, X, U), axis=1))) for b in blocks if b.kind is BlockKind.EQ
+    )

@@ -74,8 +74,7 @@ class NaiveCvxpySolver:
                     cons.append(expr - slack <= block.h[kk])
                     if block.lower is not None:
                         cons.append(expr + slack >= block.lower[kk])
-        tr_states = range(1, H + (0 if spec.terminal == "hard" else 1))
-        for j in tr_states:
+        for j in spec.tr_states:
             if spec.trust == "l2":
                 cons.append(cp.norm(x[j] - data.X_ref[j], 2) <= data.delta)
             elif spec.trust == "linf":

@@ -50,6 +50,7 @@ class SubproblemSpec:
     soft_equalities: bool
     penalty: float
     blocks: tuple[tuple[Any, ...], ...]
+    tr_states: tuple[int, ...] = ()  # window states under the trust region
     state_scale: tuple[float, ...] = ()  # characteristic magnitudes (non-dimensionalisation); empty = 1
     control_scale: tuple[float, ...] = ()
 
@@ -208,9 +209,7 @@ class AssembledSubproblem:
                 self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
                 q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
 
-        # trust region on states 1..H-1 (and H when the terminal is soft)
-        tr_states = np.arange(1, H + (0 if spec.terminal == "hard" else 1))
-        self.tr_states = tr_states
+        tr_states = np.asarray(spec.tr_states, dtype=int)
         if spec.trust == "l2":
             for j in tr_states:
                 g = self._soc(1 + n)
