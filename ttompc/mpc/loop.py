@@ -1,0 +1,235 @@
+"""One receding-horizon loop for every scenario and warm-start method (paper §IV-C, fact sheet §5.2).
+
+At each step t: the provider fills the window [t, min(t+H, N)) with a warm start and a terminal target; the
+windowed problem is solved by ``solve_scp`` (the scenario supplies the full problem's constraints inside the
+window); the first control is applied with the *exact* dynamics ``scenario.step``. Soft mode (all paper analyses):
+fuel weight ``mpc.fuel``, soft equalities, the provider's terminal cost when the window stops early and
+‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the end. Hard mode keeps x_N = goal at the end.
+
+A failed SCP step is not an exception: the loop applies the next control of the previous plan shifted by one step
+(or the warm start's first control at t = 0), counts it in ``fallbacks`` and goes on. Programming errors propagate.
+Each step is timed with ``perf_counter`` (warm start + solve; a CUDA model synchronises inside its provider).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from ttompc.mpc.providers import Provider
+from ttompc.scenarios.base import Problem, Scenario, Window
+from ttompc.solvers.scp import SCPResult, TerminalCost, solve_scp
+
+Mode = Literal["soft", "hard"]
+
+
+@dataclass
+class StepPlan:
+    """The outcome of one MPC step: the control to apply and the window plan it came from."""
+
+    u: np.ndarray
+    X: np.ndarray  # (H+1, n) solved (or fallback) window plan
+    U: np.ndarray  # (H, m)
+    warm_time: float
+    solve_time: float
+    iterations: int
+    fallback: bool
+
+
+@dataclass
+class Episode:
+    """A closed-loop run: executed trajectory (T+1 states, T controls; T = N unless ``max_steps``) and metrics."""
+
+    method: str
+    horizon: int
+    X: np.ndarray
+    U: np.ndarray
+    cost: float  # Σ c(u) of the executed controls
+    rel_cost: float  # J_REL of the open-loop REL solution (lower bound of the full problem)
+    step_times: np.ndarray  # (T,) warm start + solve per step (s)
+    warm_times: np.ndarray
+    solve_times: np.ndarray
+    iterations: np.ndarray  # (T,) SCP iterations per step
+    fallbacks: int
+    terminal_error: float  # ‖x_N − goal‖₂ (nan for truncated episodes)
+    keepout_violations: int  # states of the executed trajectory inside a keep-out zone
+    path_violation: float  # largest exact path-constraint violation (keep-out depth, bounds, ...)
+    complete: bool  # ran all N steps
+    feasible: bool  # no keep-out violation, path violation ≤ tol and (if complete) terminal error ≤ tol
+    extra: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, float | int | str | bool]:
+        return {
+            "method": self.method,
+            "horizon": self.horizon,
+            "cost": self.cost,
+            "rel_cost": self.rel_cost,
+            "steps": len(self.U),
+            "mean_step_time": float(np.mean(self.step_times)) if len(self.step_times) else float("nan"),
+            "max_step_time": float(np.max(self.step_times)) if len(self.step_times) else float("nan"),
+            "mean_iterations": float(np.mean(self.iterations)) if len(self.iterations) else float("nan"),
+            "fallbacks": self.fallbacks,
+            "terminal_error": self.terminal_error,
+            "keepout_violations": self.keepout_violations,
+            "path_violation": self.path_violation,
+            "complete": self.complete,
+            "feasible": self.feasible,
+        }
+
+
+class MPCController:
+    """Solves one window per step from a provider's warm start; remembers its last plan for the fallback."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        problem: Problem,
+        provider: Provider,
+        horizon: int,
+        *,
+        mode: Mode = "soft",
+        backend: str = "auto",
+    ) -> None:
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if mode not in ("soft", "hard"):
+            raise ValueError(f"mode must be 'soft' or 'hard', got {mode!r}")
+        self.scenario, self.problem, self.provider = scenario, problem, provider
+        self.horizon, self.mode, self.backend = horizon, mode, backend
+        self._plan: tuple[np.ndarray, np.ndarray] | None = None
+
+    def window(self, t: int) -> Window:
+        N = self.problem.n_steps
+        return Window(t, min(self.horizon, N - t), N)
+
+    def _terminal(self, window: Window, provided: TerminalCost | None) -> TerminalCost | None:
+        if not window.reaches_end:
+            if provided is None:
+                raise ValueError(f"provider {self.provider.name!r} gave no terminal cost for window {window}")
+            return provided
+        if self.mode == "soft":
+            return TerminalCost(self.problem.goal, self.scenario.mpc.end)
+        return None  # hard: x_N = goal
+
+    def solve(self, window: Window, X: np.ndarray, U: np.ndarray, terminal: TerminalCost | None) -> SCPResult:
+        soft = self.mode == "soft"
+        return solve_scp(
+            self.scenario,
+            self.problem,
+            X,
+            U,
+            window=window,
+            terminal=self._terminal(window, terminal),
+            fuel_weight=self.scenario.mpc.fuel if soft else 1.0,
+            soft_equalities=soft,
+            backend=self.backend,
+        )
+
+    def plan(self, t: int, x: np.ndarray) -> StepPlan:
+        """Warm start + SCP for the window at step t from the measured state x."""
+        window = self.window(t)
+        t0 = time.perf_counter()
+        ws = self.provider.warm_start(window, x)
+        t1 = time.perf_counter()
+        if ws.X.shape != (window.length + 1, len(x)) or ws.U.shape[0] != window.length:
+            raise ValueError(
+                f"{self.provider.name}: warm start shapes {ws.X.shape}, {ws.U.shape} do not fit window {window}"
+            )
+        res = self.solve(window, ws.X, ws.U, ws.terminal)
+        t2 = time.perf_counter()
+        if res.success:
+            X, U, fallback = res.X, res.U, False
+        elif self._plan is not None and len(self._plan[1]) > 1:
+            X, U, fallback = self._plan[0][1:], self._plan[1][1:], True
+        else:
+            X, U, fallback = ws.X, ws.U, True
+        X = np.array(X, dtype=np.float64)
+        X[0] = x
+        return StepPlan(U[0].copy(), X, np.array(U, dtype=np.float64), t1 - t0, t2 - t1, res.iterations, fallback)
+
+    def observe(self, plan: StepPlan, u: np.ndarray, x_next: np.ndarray) -> None:
+        """Record the executed control (which may differ from the plan's, e.g. in DAgger) and the next state."""
+        self._plan = (plan.X, plan.U)
+        self.provider.observe(u, x_next, plan.X, plan.U)
+
+
+def episode_metrics(
+    scenario: Scenario,
+    problem: Problem,
+    X: np.ndarray,
+    U: np.ndarray,
+    *,
+    terminal_tol: float = 1e-2,
+    path_tol: float = 1e-3,
+) -> dict[str, float | int | bool]:
+    """Feasibility of an executed trajectory: terminal error, keep-out violations, exact path violation."""
+    T = len(U)
+    complete = T == problem.n_steps
+    err = float(np.linalg.norm(X[-1] - problem.goal)) if complete else float("nan")
+    koz = int(np.sum(scenario.violations(problem, X)))
+    path = scenario.path_violation(problem, X, U, Window(0, T, problem.n_steps)) if T else 0.0
+    feasible = koz == 0 and path <= path_tol and (not complete or err <= terminal_tol)
+    return {
+        "terminal_error": err,
+        "keepout_violations": koz,
+        "path_violation": float(path),
+        "complete": complete,
+        "feasible": bool(feasible),
+    }
+
+
+def run_mpc(
+    scenario: Scenario,
+    problem: Problem,
+    provider: Provider,
+    horizon: int,
+    *,
+    rel_cost: float,
+    mode: Mode = "soft",
+    max_steps: int | None = None,
+    backend: str = "auto",
+    terminal_tol: float = 1e-2,
+) -> Episode:
+    """Run receding-horizon control from x0 for N steps (or ``max_steps``) with the exact dynamics.
+
+    ``rel_cost`` is J_REL of the open-loop REL solution: the lower bound of the metrics and the TTO conditioning
+    (rtg_0 = −J_REL)."""
+    N = problem.n_steps
+    T = N if max_steps is None else min(max_steps, N)
+    provider.reset(scenario, problem, rel_cost)
+    ctrl = MPCController(scenario, problem, provider, horizon, mode=mode, backend=backend)
+    x = problem.x0.copy()
+    X, U = [x], []
+    warm, solve, iters = np.zeros(T), np.zeros(T), np.zeros(T, dtype=int)
+    fallbacks = 0
+    for t in range(T):
+        plan = ctrl.plan(t, x)
+        x = scenario.step(problem, t, x, plan.u)
+        ctrl.observe(plan, plan.u, x)
+        X.append(x)
+        U.append(plan.u)
+        warm[t], solve[t], iters[t] = plan.warm_time, plan.solve_time, plan.iterations
+        fallbacks += plan.fallback
+    Xa, Ua = np.stack(X), np.stack(U) if U else np.zeros((0, scenario.control_dim))
+    m = episode_metrics(scenario, problem, Xa, Ua, terminal_tol=terminal_tol)
+    return Episode(
+        method=provider.name,
+        horizon=horizon,
+        X=Xa,
+        U=Ua,
+        cost=scenario.cost(Ua),
+        rel_cost=float(rel_cost),
+        step_times=warm + solve,
+        warm_times=warm,
+        solve_times=solve,
+        iterations=iters,
+        fallbacks=fallbacks,
+        terminal_error=float(m["terminal_error"]),
+        keepout_violations=int(m["keepout_violations"]),
+        path_violation=float(m["path_violation"]),
+        complete=bool(m["complete"]),
+        feasible=bool(m["feasible"]),
+    )
