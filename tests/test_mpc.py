@@ -38,7 +38,7 @@ def test_full_horizon_mpc_reproduces_open_loop_scp(setup: tuple) -> None:
 
 
 def test_windows_shrink_near_the_end(setup: tuple) -> None:
-    sc, problem, rel, _ = setup
+    sc, problem, _, _ = setup
     N = problem.n_steps
     ctrl = MPCController(sc, problem, RELProvider(), 10)
     assert [ctrl.window(t).length for t in (0, N - 10, N - 9, N - 1)] == [10, 10, 9, 1]
