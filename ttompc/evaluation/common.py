@@ -1,0 +1,138 @@
+"""Shared pieces of the evaluations: seeded held-out problems, model loading and a spawn process pool.
+
+Evaluation problem i draws from ``SeedSequence(root, spawn_key=(EVAL_STREAM, i, attempt))``: a stream disjoint from
+dataset generation (``spawn_key=(i,)``), so evaluation problems are held out whatever seed the dataset used, and
+each problem is the same whatever the number of workers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import multiprocessing as mp
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ttompc.scenarios import get_scenario
+from ttompc.scenarios.base import InfeasibleProblemError, Problem, Scenario
+from ttompc.solvers.scp import SCPResult, solve_rel
+
+if TYPE_CHECKING:
+    from ttompc.planner import Planner
+
+EVAL_STREAM = 0x6576616C  # "eval"
+
+
+def eval_seed(root: int, index: int, attempt: int = 0) -> int:
+    state = np.random.SeedSequence(root, spawn_key=(EVAL_STREAM, index, attempt)).generate_state(1, dtype=np.uint64)
+    return int(state[0] >> np.uint64(1))
+
+
+@dataclass
+class EvalProblem:
+    """A held-out problem with its open-loop REL solution (the lower bound J_REL and the TTO conditioning)."""
+
+    index: int
+    seed: int
+    problem: Problem
+    rel: SCPResult
+    rel_time: float
+    ctg0: int  # keep-out violations of the REL solution (non-convexity factor before normalisation)
+
+
+def eval_problem(
+    scenario: Scenario,
+    root: int,
+    index: int,
+    *,
+    nonconvex_only: bool = False,
+    max_attempts: int = 100,
+    backend: str = "auto",
+) -> EvalProblem:
+    """Problem ``index`` of the evaluation stream: the first attempt that is valid, whose REL solves and (with
+    ``nonconvex_only``, like the paper's MPC study) whose REL solution violates a keep-out zone (ctg0 > 0)."""
+    for attempt in range(max_attempts):
+        seed = eval_seed(root, index, attempt)
+        problem = scenario.sample(np.random.default_rng(seed))
+        try:
+            scenario.validate(problem)
+        except InfeasibleProblemError:
+            continue
+        t0 = time.perf_counter()
+        rel = solve_rel(scenario, problem, backend=backend)
+        rel_time = time.perf_counter() - t0
+        if not rel.success:
+            continue
+        ctg0 = int(np.sum(scenario.violations(problem, rel.X[: problem.n_steps])))
+        if nonconvex_only and ctg0 == 0:
+            continue
+        return EvalProblem(index, seed, problem, rel, rel_time, ctg0)
+    raise RuntimeError(f"{scenario.name}: no suitable evaluation problem {index} in {max_attempts} attempts")
+
+
+def load_planner(spec: str | Path, *, device: str = "cpu", scenario: Scenario | None = None) -> Planner:
+    """A Planner from a Lightning checkpoint (``*.ckpt``), a bundle directory or a zoo model name."""
+    from ttompc.planner import Planner
+
+    path = Path(spec)
+    if path.is_file():
+        return Planner.from_checkpoint(path, scenario, device=device)
+    if path.is_dir():
+        return Planner.load(path, scenario, device=device)
+    from ttompc.zoo import load_pretrained
+
+    planner = load_pretrained(str(spec))
+    planner.model.to(device)
+    return planner
+
+
+def scenario_module(name: str) -> str:
+    """The module that registers scenario ``name`` (imported by spawned workers, also for test scenarios)."""
+    return type(get_scenario(name)).__module__
+
+
+@contextlib.contextmanager
+def _single_threaded() -> Iterator[None]:
+    """Spawned workers inherit the environment: one BLAS/OpenMP thread each, so workers do not oversubscribe."""
+    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    old = {k: os.environ.get(k) for k in keys}
+    for k in keys:
+        os.environ.setdefault(k, "1")
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+
+
+def worker_setup(module: str) -> None:
+    """Import the scenario's module and use one torch thread (called once per worker process)."""
+    importlib.import_module(module)
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def pool_map(
+    fn: Callable[[Any], Any],
+    tasks: Iterable[Any],
+    workers: int,
+    initializer: Callable[..., None],
+    initargs: tuple[Any, ...],
+) -> Iterator[Any]:
+    """Results in task order: inline for ``workers <= 1``, else a spawn pool (fresh interpreters: no inherited RNG
+    or torch state); ``initializer`` runs once per worker (e.g. loads the model once)."""
+    tasks = list(tasks)
+    if workers <= 1:
+        initializer(*initargs)
+        yield from map(fn, tasks)
+        return
+    with _single_threaded(), mp.get_context("spawn").Pool(min(workers, len(tasks)), initializer, initargs) as pool:
+        yield from pool.imap(fn, tasks, chunksize=1)
