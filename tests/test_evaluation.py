@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 from pathlib import Path
+from typing import Any
 
 import mpc_fakes
 import numpy as np
@@ -104,3 +105,62 @@ def test_warmstart_cli_report(tmp_path: Path, bundle: Path) -> None:
         assert p["REL_success"] and p["REL_suboptimality"] >= -1e-6
     assert [r["threshold"] for r in report["thresholds"]] == [0.0, 0.5]
     assert (out / "warmstart_improvement.png").is_file() and (out / "warmstart_problems.csv").is_file()
+
+
+def _random_batches(n_batches: int, B: int = 2, L: int = 8) -> Any:
+    import torch
+    from torch.utils.data import DataLoader
+
+    g = torch.Generator().manual_seed(0)
+    out = []
+    for _ in range(n_batches):
+        r = lambda *s: torch.randn(*s, generator=g)  # noqa: E731
+        out.append(
+            {
+                "states": r(B, L, 6), "actions": r(B, L, 3), "goals": r(B, L, 6), "rtg": r(B, L, 1),
+                "ctg": r(B, L, 1), "timesteps": torch.arange(L).expand(B, L).clone(),
+                "target_actions": r(B, L, 3), "target_next_states": r(B, L, 6), "mask": torch.ones(B, L),
+            }
+        )  # fmt: skip
+    return DataLoader(out, batch_size=None)
+
+
+def test_closed_loop_callback_logs_metrics(tmp_path: Path) -> None:
+    import lightning as L
+    from lightning.pytorch.loggers import CSVLogger
+
+    from ttompc.config import to_container
+    from ttompc.training.callbacks import ClosedLoopEvalCallback
+    from ttompc.training.config import OptimConfig
+    from ttompc.training.module import TrajectoryTransformerModule
+
+    planner = mpc_fakes.tiny_planner()
+    module = TrajectoryTransformerModule(
+        model_config=to_container(planner.model.cfg),
+        optim=to_container(OptimConfig(warmup_steps=0)),
+        scenario=SHORT,
+        scenario_version=planner.scenario.version,
+        norm_stats=planner.stats.to_dict(),
+        plot_trajectories=False,
+    )
+    cb = ClosedLoopEvalCallback(problems=1, horizon=5, max_steps=3, every_n_val=2, seed=1)
+    trainer = L.Trainer(
+        max_epochs=4,
+        logger=CSVLogger(str(tmp_path), name="logs", version=""),
+        callbacks=[cb],
+        default_root_dir=str(tmp_path),
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        enable_checkpointing=False,
+        num_sanity_val_steps=0,
+        log_every_n_steps=1,
+    )
+    trainer.fit(module, train_dataloaders=_random_batches(2), val_dataloaders=_random_batches(1))
+    assert cb._runs == 4 and module.model.training  # evaluated after validation runs 2 and 4, mode restored
+    with open(tmp_path / "logs" / "metrics.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("mpc/cost")]
+    assert len(rows) == 2
+    for key in ("mpc/cost", "mpc/cost_increment", "mpc/feasible_rate", "mpc/step_time_mean", "mpc/step_time_max"):
+        assert np.isfinite(float(rows[-1][key]))
+    assert float(rows[-1]["mpc/step_time_max"]) >= float(rows[-1]["mpc/step_time_mean"]) > 0
+    assert len(list((tmp_path / "plots").glob("mpc_trajectory_*.png"))) == 2

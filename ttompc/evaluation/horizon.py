@@ -16,9 +16,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ttompc.evaluation.common import eval_problem, load_planner, pool_map, scenario_module, worker_setup
+import numpy as np
+
+from ttompc.evaluation.common import EvalProblem, eval_problem, load_planner, pool_map, scenario_module, worker_setup
 from ttompc.evaluation.metrics import aggregate, normalized_cost_increment, write_csv, write_json
-from ttompc.mpc.loop import Mode, run_mpc
+from ttompc.mpc.loop import Episode, Mode, run_mpc
 from ttompc.mpc.providers import DISTProvider, Provider, RELProvider, TTOProvider
 from ttompc.scenarios import get_scenario
 
@@ -120,3 +122,33 @@ def run_horizon_study(cfg: HorizonStudyConfig) -> dict[str, Any]:
     write_csv(out / "horizon_summary.csv", summary)
     report["plots"] = [str(p) for p in plot_horizon(summary, out)]
     return report
+
+
+def closed_loop_metrics(
+    planner: Any,
+    problems: list[EvalProblem],
+    horizon: int,
+    *,
+    name: str = "TTO-MPC",
+    mode: Mode = "soft",
+    max_steps: int | None = None,
+    backend: str = "auto",
+) -> tuple[dict[str, float], list[Episode]]:
+    """TTO-MPC with ``planner`` on fixed problems: mean cost, mean relative cost increment over the REL lower bound
+    (J − J_REL)/J_REL, feasibility rate, mean/max step time and fallback count (training callback, DAgger)."""
+    sc = planner.scenario
+    episodes = [
+        run_mpc(sc, ep.problem, TTOProvider(planner, name), horizon, rel_cost=ep.rel.cost, mode=mode,
+                max_steps=max_steps, backend=backend)
+        for ep in problems
+    ]  # fmt: skip
+    times = np.concatenate([e.step_times for e in episodes])
+    metrics = {
+        "cost": float(np.mean([e.cost for e in episodes])),
+        "cost_increment": float(np.mean([(e.cost - e.rel_cost) / abs(e.rel_cost) for e in episodes])),
+        "feasible_rate": float(np.mean([e.feasible for e in episodes])),
+        "step_time_mean": float(np.mean(times)),
+        "step_time_max": float(np.max(times)),
+        "fallbacks": float(sum(e.fallbacks for e in episodes)),
+    }
+    return metrics, episodes

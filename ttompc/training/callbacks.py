@@ -1,0 +1,112 @@
+"""``ClosedLoopEvalCallback``: closed-loop TTO-MPC of the model being trained, logged while it trains.
+
+Teacher-forced validation loss says little about closed-loop behaviour (covariate shift, paper §IV-C), so every
+``every_n_val`` validation runs the callback runs TTO-MPC with the current weights on a fixed, seeded set of held-out
+problems (REL solved once and cached) and logs ``<prefix>/cost``, ``<prefix>/cost_increment`` ((J − J_REL)/J_REL),
+``<prefix>/feasible_rate``, ``<prefix>/step_time_mean``, ``<prefix>/step_time_max``, ``<prefix>/fallbacks`` through
+``pl_module.log`` (any logger), plus a trajectory figure (PNG under ``<root>/plots/``, and an image on wandb or
+TensorBoard). Runs on global rank 0 only. Counting validation runs rather than epochs makes it work with the
+step-based validation of endless streaming epochs.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+
+from ttompc.evaluation.common import EvalProblem, eval_problem
+from ttompc.mpc.loop import Mode
+
+
+class ClosedLoopEvalCallback(L.Callback):
+    def __init__(
+        self,
+        scenario: str | None = None,
+        *,
+        problems: int = 4,
+        horizon: int = 10,
+        max_steps: int | None = None,
+        every_n_val: int = 1,
+        seed: int = 0,
+        mode: Mode = "soft",
+        plot: bool = True,
+        backend: str = "auto",
+        prefix: str = "mpc",
+    ) -> None:
+        if problems < 1 or horizon < 1 or every_n_val < 1:
+            raise ValueError("eval_mpc: problems, horizon and every_n_val must be >= 1")
+        self.scenario_name, self.n_problems, self.horizon = scenario, problems, horizon
+        self.max_steps, self.every_n_val, self.seed, self.mode = max_steps, every_n_val, seed, mode
+        self.plot, self.backend, self.prefix = plot, backend, prefix
+        self._problems: list[EvalProblem] | None = None
+        self._runs = 0
+        self.last_metrics: dict[str, float] = {}
+
+    @classmethod
+    def from_config(cls, cfg: Any, scenario: str | None = None) -> ClosedLoopEvalCallback:
+        """From the recipe section ``callbacks.eval_mpc`` (``every_n_epochs`` counts validation runs)."""
+        return cls(
+            scenario,
+            problems=cfg.problems,
+            horizon=cfg.horizon,
+            max_steps=getattr(cfg, "max_steps", None),
+            every_n_val=cfg.every_n_epochs,
+            seed=getattr(cfg, "seed", 0),
+            plot=getattr(cfg, "plot", True),
+        )
+
+    def problems(self, scenario_name: str) -> list[EvalProblem]:
+        """The fixed evaluation problems (REL-violating, seeded), solved once."""
+        if self._problems is None:
+            from ttompc.scenarios import get_scenario
+
+            sc = get_scenario(scenario_name)
+            self._problems = [
+                eval_problem(sc, self.seed, i, nonconvex_only=True, backend=self.backend)
+                for i in range(self.n_problems)
+            ]
+        return self._problems
+
+    def evaluate(self, pl_module: L.LightningModule) -> tuple[dict[str, float], list[Any], list[EvalProblem]]:
+        """Closed-loop metrics of the module's current weights (model mode restored afterwards)."""
+        from ttompc.evaluation.horizon import closed_loop_metrics
+        from ttompc.planner import Planner
+        from ttompc.scenarios import get_scenario
+
+        name = self.scenario_name or pl_module.hparams["scenario"]
+        problems = self.problems(name)
+        model = pl_module.model
+        was_training = model.training
+        try:
+            planner = Planner(model, get_scenario(name), pl_module.stats)
+            metrics, episodes = closed_loop_metrics(
+                planner, problems, self.horizon, mode=self.mode, max_steps=self.max_steps, backend=self.backend
+            )
+        finally:
+            model.train(was_training)
+        return metrics, episodes, problems
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.sanity_checking:
+            return
+        self._runs += 1
+        if self._runs % self.every_n_val or not trainer.is_global_zero:
+            return
+        metrics, episodes, problems = self.evaluate(pl_module)
+        self.last_metrics = metrics
+        for k, v in metrics.items():
+            pl_module.log(f"{self.prefix}/{k}", v, rank_zero_only=True)
+        if self.plot:
+            from ttompc.evaluation.plots import trajectory_figure
+            from ttompc.scenarios import get_scenario
+            from ttompc.training.loggers import log_figure
+
+            ep, e = problems[0], episodes[0]
+            fig = trajectory_figure(
+                get_scenario(self.scenario_name or pl_module.hparams["scenario"]),
+                ep.problem,
+                {"REL (open loop)": ep.rel.X, f"TTO-MPC H={self.horizon}": e.X},
+                title=f"step {trainer.global_step}: cost {e.cost:.4g} (REL {ep.rel.cost:.4g})",
+            )
+            log_figure(trainer, f"{self.prefix}/trajectory", fig, trainer.global_step)
