@@ -1,0 +1,415 @@
+"""Dataset generation: sample problems, solve REL then SCP warm-started from REL, store both solutions.
+
+Reproducibility by construction (fact sheet §11 lists the reference's duplicate-sample bugs):
+
+* problem i draws from ``default_rng(problem_seed(root, i))`` with ``SeedSequence(root, spawn_key=(i,))`` — the
+  same problem whatever the number of workers or ranks, never a shared RNG state;
+* shard k always covers problem ids [k·K, (k+1)·K) and is written atomically, followed by its metadata
+  ``meta/shard-<k>.json``; a shard counts as done only when its metadata and checksummed files exist, so an
+  interrupted run resumes by skipping done shards and yields exactly the rows of an uninterrupted run;
+* splits are a hash of the problem id, so REL and SCP rows of a problem share a split.
+
+Under torchrun/SLURM each rank generates every world_size-th shard; rank 0 (or ``ttompc generate --finalize``)
+writes ``manifest.json`` and the dataset card once every shard exists.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib
+import json
+import multiprocessing as mp
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ttompc.config import to_container
+from ttompc.data.config import GenerateConfig, SplitConfig
+from ttompc.data.distributed import RankInfo, rank_info, strided
+from ttompc.data.schema import SCHEMA_VERSION, make_row, trajectory_features
+from ttompc.data.shards import SPLITS, ShardError, ShardWriter, atomic_write_json, verify_shard
+from ttompc.data.stats import KEYS, NormStats
+from ttompc.scenarios import get_scenario
+from ttompc.scenarios.base import InfeasibleProblemError, Scenario
+from ttompc.version import code_version
+
+MANIFEST = "manifest.json"
+META_DIR = "meta"
+STAGES = ("validate", "rel", "scp")
+
+
+class GenerationError(RuntimeError):
+    """An output folder that does not match the requested generation (other seed, scenario, shard size...)."""
+
+
+# ------------------------------------------------------------------------------------------------ determinism
+def problem_seed(root: int, problem_id: int) -> int:
+    """Seed of problem ``problem_id``: ``SeedSequence(root).spawn``'s child ``problem_id``, as a 63-bit int."""
+    state = np.random.SeedSequence(root, spawn_key=(problem_id,)).generate_state(1, dtype=np.uint64)[0]
+    return int(state >> np.uint64(1))
+
+
+def split_of(problem_id: int, splits: SplitConfig) -> str:
+    """Deterministic split of a problem: u = sha256(salt:problem_id) ∈ [0, 1) against cumulative fractions."""
+    digest = hashlib.sha256(f"{splits.salt}:{problem_id}".encode()).digest()
+    u = int.from_bytes(digest[:8], "big") / 2.0**64
+    acc = 0.0
+    for name, frac in splits.fractions().items():
+        acc += frac
+        if u < acc:
+            return name
+    return "train" if splits.train > 0 else next(k for k, v in splits.fractions().items() if v > 0)
+
+
+def shard_range(index: int, cfg: GenerateConfig) -> tuple[int, int]:
+    return index * cfg.shard_size, min((index + 1) * cfg.shard_size, cfg.problems)
+
+
+def n_shards(cfg: GenerateConfig) -> int:
+    return -(-cfg.problems // cfg.shard_size)
+
+
+def fingerprint(cfg: GenerateConfig, scenario: Scenario) -> dict[str, Any]:
+    """Everything that determines the rows of a shard (not the problem count, workers or ranks)."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "scenario": scenario.name,
+        "scenario_version": scenario.version,
+        "seed": cfg.seed,
+        "shard_size": cfg.shard_size,
+        "splits": to_container(cfg.splits),
+        "solver": cfg.solver,
+        "backend": cfg.backend,
+    }
+
+
+# ------------------------------------------------------------------------------------------------ per problem
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(scenario_module: str, scenario_name: str, solver: str, backend: str | None) -> None:
+    """Runs once per process: the scenario module registers the scenario (also for test-defined ones)."""
+    importlib.import_module(scenario_module)
+    module, _, func = solver.partition(":")
+    _WORKER.update(
+        scenario=get_scenario(scenario_name),
+        solve=getattr(importlib.import_module(module), func),
+        kwargs={} if backend is None else {"backend": backend},
+    )
+
+
+def _solve_one(task: tuple[int, int]) -> dict[str, Any]:
+    """Sample and solve problem ``task = (problem_id, seed)``: its rows and, if any stage failed, a failure."""
+    pid, seed = task
+    scenario: Scenario = _WORKER["scenario"]
+    problem = scenario.sample(np.random.default_rng(seed))
+    out: dict[str, Any] = {"problem_id": pid, "rows": [], "failure": None}
+    try:
+        scenario.validate(problem)
+    except InfeasibleProblemError as err:
+        out["failure"] = {"problem_id": pid, "seed": seed, "stage": "validate", "status": str(err)}
+        return out
+    rel, scp = _WORKER["solve"](scenario, problem, **_WORKER["kwargs"])
+    for source, res in (("rel", rel), ("scp", scp)):
+        if res is None or not res.success:
+            status = "skipped (REL failed)" if res is None else res.status.value
+            out["failure"] = out["failure"] or {"problem_id": pid, "seed": seed, "stage": source, "status": status}
+            continue
+        out["rows"].append(
+            make_row(
+                scenario,
+                problem,
+                problem_id=pid,
+                seed=seed,
+                source=source,
+                states=scenario.to_model_states(problem, res.X),
+                states_opt=res.X,
+                actions=res.U,
+                cost=res.cost,
+                iterations=res.iterations,
+                status=res.status.value,
+                solve_time=res.solve_time,
+                solver_time=res.solver_time,
+                violation=res.violation,
+            )
+        )
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ statistics
+def _moments(rows: list[dict[str, Any]], n_steps: int) -> dict[str, dict[str, Any]]:
+    """(count, mean, M2) per NormStats key over train rows; merged exactly across shards (Chan et al.)."""
+    arrays = {
+        "states": np.stack([r["states"][:n_steps] for r in rows]),
+        "actions": np.stack([r["actions"] for r in rows]),
+        "goals": np.stack([r["goal"] for r in rows]),
+        "rtg": np.stack([r["rtg"] for r in rows])[..., None],
+        "ctg": np.stack([r["ctg"] for r in rows])[..., None],
+    }
+    out = {}
+    for k in KEYS:
+        a = np.asarray(arrays[k], dtype=np.float32).astype(np.float64)  # the stored precision
+        a = a.reshape(-1, a.shape[-1])
+        mean = a.mean(axis=0)
+        out[k] = {"count": len(a), "mean": mean.tolist(), "m2": ((a - mean) ** 2).sum(axis=0).tolist()}
+    return out
+
+
+def _merge_moments(parts: list[dict[str, dict[str, Any]]]) -> NormStats:
+    mean, std = {}, {}
+    for k in KEYS:
+        n, mu, m2 = 0, None, None
+        for p in parts:
+            nb, mb, m2b = p[k]["count"], np.asarray(p[k]["mean"]), np.asarray(p[k]["m2"])
+            if mu is None:
+                n, mu, m2 = nb, mb, m2b
+                continue
+            delta, tot = mb - mu, n + nb
+            mu = mu + delta * nb / tot
+            m2 = m2 + m2b + delta**2 * n * nb / tot
+            n = tot
+        if not n:
+            raise GenerationError("no training rows: cannot compute normalisation statistics")
+        mean[k], std[k] = mu, np.sqrt(m2 / n)
+    return NormStats(mean, std)
+
+
+# ------------------------------------------------------------------------------------------------ shards
+def _meta_path(out: Path, index: int) -> Path:
+    return out / META_DIR / f"shard-{index:05d}.json"
+
+
+def shard_done(out: Path, index: int, cfg: GenerateConfig) -> bool:
+    """Done = metadata for the same id range exists and every file it lists matches its checksum."""
+    path = _meta_path(out, index)
+    if not path.is_file():
+        return False
+    meta = json.loads(path.read_text())
+    if (meta["start"], meta["stop"]) != shard_range(index, cfg):
+        return False
+    try:
+        for f in meta["files"]:
+            verify_shard(out / f["path"], f["sha256"])
+    except ShardError:
+        return False
+    return True
+
+
+def _write_shard(
+    out: Path,
+    index: int,
+    cfg: GenerateConfig,
+    scenario: Scenario,
+    writer: ShardWriter,
+    outcomes: list[dict[str, Any]],
+    seconds: float,
+) -> dict[str, Any]:
+    by_split: dict[str, list[dict[str, Any]]] = {s: [] for s in SPLITS}
+    failures = []
+    for o in sorted(outcomes, key=lambda o: o["problem_id"]):
+        by_split[split_of(o["problem_id"], cfg.splits)].extend(o["rows"])
+        if o["failure"] is not None:
+            failures.append(o["failure"])
+    _meta_path(out, index).unlink(missing_ok=True)  # not done until the new metadata lands
+    files = []
+    for split, rows in by_split.items():
+        path = writer.path(split, index)
+        if rows:
+            files.append({"split": split, **writer.write(rows, index, split).to_dict()})
+        else:
+            path.unlink(missing_ok=True)  # a stale file from a run with another problem count
+    all_rows = [r for rows in by_split.values() for r in rows]
+    solver: dict[str, dict[str, float]] = {}
+    for source in ("rel", "scp"):
+        rs = [r for r in all_rows if r["source"] == source]
+        solver[source] = {
+            "rows": len(rs),
+            **{f"{k}_sum": float(sum(r[k] for r in rs)) for k in ("solve_time", "solver_time", "iterations", "cost")},
+        }
+    start, stop = shard_range(index, cfg)
+    meta = {
+        "index": index,
+        "start": start,
+        "stop": stop,
+        "files": files,
+        "failures": failures,
+        "rows": {s: len(r) for s, r in by_split.items()},
+        "problems": {s: len({r["problem_id"] for r in rows}) for s, rows in by_split.items()},
+        "solver": solver,
+        "seconds": seconds,
+        "train_moments": _moments(by_split["train"], scenario.n_steps) if by_split["train"] else None,
+    }
+    atomic_write_json(_meta_path(out, index), meta)
+    return meta
+
+
+@contextlib.contextmanager
+def _single_threaded_blas() -> Iterator[None]:
+    """Spawned workers inherit the environment: one BLAS thread each so workers do not oversubscribe cores."""
+    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    old = {k: os.environ.get(k) for k in keys}
+    for k in keys:
+        os.environ.setdefault(k, "1")
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+
+
+def _outcomes(tasks: list[tuple[int, int]], workers: int, init_args: tuple) -> Iterator[dict[str, Any]]:
+    """Results in task order: inline for one worker, else a spawn-context pool (no inherited RNG state)."""
+    if workers <= 1:
+        _init_worker(*init_args)
+        yield from map(_solve_one, tasks)
+        return
+    with _single_threaded_blas(), mp.get_context("spawn").Pool(workers, _init_worker, init_args) as pool:
+        yield from pool.imap(_solve_one, tasks, chunksize=1)
+
+
+def generate(
+    cfg: GenerateConfig,
+    ranks: RankInfo | None = None,
+    progress: bool = True,
+    on_shard: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any] | None:
+    """Generate (or resume) the dataset of ``cfg``; returns the manifest, or None if other ranks' shards are
+    still missing. ``on_shard`` is called with each new shard's metadata."""
+    from tqdm.auto import tqdm
+
+    if cfg.problems <= 0 or cfg.shard_size <= 0:
+        raise ValueError(f"problems and shard_size must be positive, got {cfg.problems}, {cfg.shard_size}")
+    cfg.splits.fractions()
+    ranks = ranks or rank_info()
+    scenario = get_scenario(cfg.scenario)
+    out = Path(cfg.out)
+    _check_folder(out, cfg, scenario)
+    mine = strided(list(range(n_shards(cfg))), ranks.rank, ranks.world_size)
+    pending = [k for k in mine if not shard_done(out, k, cfg)]
+    if cfg.max_shards is not None:
+        pending = pending[: cfg.max_shards]
+    tasks = [(i, problem_seed(cfg.seed, i)) for k in pending for i in range(*shard_range(k, cfg))]
+    workers = min(cfg.workers or os.cpu_count() or 1, max(len(tasks), 1))
+    writer = ShardWriter(out, trajectory_features(scenario))
+    init_args = (type(scenario).__module__, scenario.name, cfg.solver, cfg.backend)
+    bar = tqdm(total=len(tasks), unit="problem", disable=not progress, desc=f"{scenario.name} rank {ranks.rank}")
+    bar.set_postfix(failures=0, skipped_shards=len(mine) - len(pending))
+    failures, shard_iter, t0 = 0, iter(pending), time.perf_counter()
+    current, buffer = next(shard_iter, None), []
+    for outcome in _outcomes(tasks, workers, init_args):
+        buffer.append(outcome)
+        failures += outcome["failure"] is not None
+        bar.update(1)
+        bar.set_postfix(failures=failures, skipped_shards=len(mine) - len(pending))
+        start, stop = shard_range(current, cfg)
+        if len(buffer) == stop - start:
+            meta = _write_shard(out, current, cfg, scenario, writer, buffer, time.perf_counter() - t0)
+            if on_shard is not None:
+                on_shard(meta)
+            current, buffer, t0 = next(shard_iter, None), [], time.perf_counter()
+    bar.close()
+    if not ranks.is_main:
+        return None
+    deadline = time.monotonic() + cfg.finalize_wait_s
+    while not all(shard_done(out, k, cfg) for k in range(n_shards(cfg))):
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(min(5.0, cfg.finalize_wait_s))
+    return finalize(cfg)
+
+
+def _check_folder(out: Path, cfg: GenerateConfig, scenario: Scenario) -> None:
+    """Refuse to mix generations: the folder's recorded fingerprint must match, and no shard may lie beyond
+    the requested problem count."""
+    fp = fingerprint(cfg, scenario)
+    path = out / META_DIR / "generation.json"
+    if path.is_file():
+        stored = json.loads(path.read_text())
+        if stored != fp:
+            diff = {k: (stored.get(k), fp[k]) for k in fp if stored.get(k) != fp[k]}
+            raise GenerationError(f"{out} holds another generation (stored vs requested: {diff}); use a new folder")
+    else:
+        atomic_write_json(path, fp)
+    beyond = [p.name for p in (out / META_DIR).glob("shard-*.json") if int(p.stem.split("-")[1]) >= n_shards(cfg)]
+    if beyond:
+        raise GenerationError(f"{out} has shards beyond --problems {cfg.problems} ({sorted(beyond)[:3]}...)")
+
+
+def finalize(cfg: GenerateConfig) -> dict[str, Any]:
+    """Write ``manifest.json`` and the dataset card from the shard metadata (every shard must be done)."""
+    from ttompc.data.cards import write_card
+
+    scenario = get_scenario(cfg.scenario)
+    out = Path(cfg.out)
+    _check_folder(out, cfg, scenario)
+    missing = [k for k in range(n_shards(cfg)) if not shard_done(out, k, cfg)]
+    if missing:
+        raise GenerationError(
+            f"{out}: {len(missing)} shard(s) missing or corrupt (first: {missing[:5]}); "
+            "run `ttompc generate` with the same arguments to complete them"
+        )
+    metas = [json.loads(_meta_path(out, k).read_text()) for k in range(n_shards(cfg))]
+    failures = [f for m in metas for f in m["failures"]]
+    rows_by_split = {s: sum(m["rows"][s] for m in metas) for s in SPLITS}
+    solver = {}
+    for source in ("rel", "scp"):
+        n = sum(m["solver"][source]["rows"] for m in metas)
+        solver[source] = {
+            "rows": n,
+            **{
+                f"mean_{k}": (sum(m["solver"][source][f"{k}_sum"] for m in metas) / n if n else None)
+                for k in ("solve_time", "solver_time", "iterations", "cost")
+            },
+        }
+    stats = _merge_moments([m["train_moments"] for m in metas if m["train_moments"] is not None])
+    manifest = {
+        "schema_version": SCHEMA_VERSION,
+        "name": cfg.name or out.resolve().name,
+        "scenario": {
+            "name": scenario.name,
+            "version": scenario.version,
+            "n_steps": scenario.n_steps,
+            "state_dim": scenario.state_dim,
+            "control_dim": scenario.control_dim,
+            "cost_norm": scenario.cost_norm,
+            "state_labels": list(scenario.state_labels),
+            "control_labels": list(scenario.control_labels),
+        },
+        "generation": {k: v for k, v in to_container(cfg).items() if k not in ("out", "max_shards", "workers")},
+        "root_seed": cfg.seed,
+        "code_version": code_version(),
+        "counts": {
+            "problems": cfg.problems,
+            "rows": {"total": sum(rows_by_split.values()), **{s: solver[s]["rows"] for s in ("rel", "scp")}},
+            "failures": {stage: sum(f["stage"] == stage for f in failures) for stage in STAGES},
+        },
+        "splits": {
+            "method": "sha256(f'{salt}:{problem_id}') mapped to [0, 1) against cumulative fractions",
+            "fractions": cfg.splits.fractions(),
+            "salt": cfg.splits.salt,
+            "problems": {s: sum(m["problems"][s] for m in metas) for s in SPLITS},
+            "rows": rows_by_split,
+        },
+        "norm_stats": stats.to_dict(),
+        "norm_stats_split": "train",
+        "solver": solver,
+        "features": trajectory_features(scenario).to_dict(),
+        "shards": [{"index": m["index"], "start": m["start"], "stop": m["stop"], "files": m["files"]} for m in metas],
+        "failures": failures,
+    }
+    atomic_write_json(out / MANIFEST, manifest)
+    write_card(out, manifest, copy_dir=cfg.card_dir)
+    return manifest
+
+
+def load_manifest(root: str | Path) -> dict[str, Any]:
+    path = Path(root) / MANIFEST
+    if not path.is_file():
+        raise ShardError(f"{path} not found: not a finalised dataset (run `ttompc generate ... --finalize`)")
+    return json.loads(path.read_text())
