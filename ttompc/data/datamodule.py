@@ -180,9 +180,24 @@ class TrainStream(IterableDataset):
     def _endless(
         self, files: list[str], allowed: frozenset[str], c: int, n: int, rng: np.random.Generator
     ) -> Iterator[Chunk]:
+        """Passes over this consumer's files, shard order permuted each pass. A source no larger than the
+        shuffle pool (early DAgger iterations) is kept in memory after the first pass instead of re-read."""
         mine, residue = _assign(files, c, n)
+        cache: list[Chunk] | None = []
+        rows = 0
+        for chunk in _stream(mine, self.cfg.read_batch_size, allowed, residue, n, rng):
+            rows += len(chunk["problem_id"])
+            cache = cache if cache is not None and rows <= self.cfg.shuffle_pool else None
+            if cache is not None:
+                cache.append(chunk)
+            yield chunk
+        if not rows:
+            return  # nothing for this consumer: the shuffle pool reports it
         while True:
-            yield from _stream(mine, self.cfg.read_batch_size, allowed, residue, n, rng)
+            if cache is not None:
+                yield from (cache[i] for i in rng.permutation(len(cache)))
+            else:
+                yield from _stream(mine, self.cfg.read_batch_size, allowed, residue, n, rng)
 
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
         cfg = self.cfg

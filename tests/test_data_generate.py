@@ -1,0 +1,237 @@
+"""Generation: seeds, failures, splits, rtg/ctg, resume, ranks, manifest, card, CLI (fake scenario and solver)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import test_data_fakes as fakes
+
+from ttompc.cli import main as cli_main
+from ttompc.data.cards import parse_front_matter
+from ttompc.data.config import GenerateConfig, SplitConfig
+from ttompc.data.distributed import RankInfo, rank_info
+from ttompc.data.generate import GenerationError, generate, problem_seed, split_of
+from ttompc.data.schema import constraints_to_go, problem_from_row, returns_to_go
+from ttompc.data.shards import read_shard
+from ttompc.scenarios import get_scenario
+
+PROBLEMS, SHARD = 60, 16
+
+
+def _cfg(out: Path, **kw) -> GenerateConfig:
+    base = dict(
+        scenario="fake",
+        problems=PROBLEMS,
+        out=str(out),
+        shard_size=SHARD,
+        workers=1,
+        seed=7,
+        solver=fakes.SOLVER,
+        card_dir=None,
+        splits=SplitConfig(0.6, 0.2, 0.2),
+    )
+    return GenerateConfig(**{**base, **kw})
+
+
+def _parquet_bytes(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.glob("*/*.parquet"))}
+
+
+def _rows(root: Path, split: str | None = None) -> list[dict]:
+    files = sorted(root.glob(f"{split or '*'}/*.parquet"))
+    return [r for f in files for r in read_shard(f).with_format("numpy")]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("gen") / "fake-v1"
+    manifest = generate(_cfg(out), progress=False)
+    assert manifest is not None
+    return out, manifest
+
+
+def test_problem_seeds_are_distinct_and_independent_of_workers() -> None:
+    seeds = [problem_seed(0, i) for i in range(5000)]
+    assert len(set(seeds)) == len(seeds)
+    assert problem_seed(0, 123) == problem_seed(0, 123) != problem_seed(1, 123)
+    assert int(np.random.SeedSequence(0).spawn(4)[3].generate_state(1, np.uint64)[0] >> np.uint64(1)) == seeds[3]
+
+
+def test_rows_failures_and_counts(dataset: tuple[Path, dict]) -> None:
+    out, manifest = dataset
+    sc = get_scenario("fake")
+    rows = _rows(out)
+    failures = {f["problem_id"]: f for f in manifest["failures"]}
+    for pid in range(PROBLEMS):  # the fake's failure rules, recomputed from the seed
+        p = sc.sample(np.random.default_rng(problem_seed(7, pid)))
+        stage = "validate" if p.x0[2] > 0.97 else "rel" if p.x0[0] > 0.93 else "scp" if p.goal[1] < 0.08 else None
+        got = sorted(r["source"] for r in rows if r["problem_id"] == pid)
+        expected = {"validate": [], "rel": [], "scp": ["rel"], None: ["rel", "scp"]}[stage]
+        assert got == expected, pid
+        assert (failures[pid]["stage"] if pid in failures else None) == stage
+    assert failures, "the fixture should contain failures"
+    counts = manifest["counts"]
+    assert counts["rows"]["total"] == len(rows) == sum(manifest["splits"]["rows"].values())
+    assert sum(counts["failures"].values()) == len(failures)
+    assert all(r["seed"] == problem_seed(7, int(r["problem_id"])) for r in rows)
+
+
+def test_rtg_ctg_and_representations_match_recomputation(dataset: tuple[Path, dict]) -> None:
+    out, _ = dataset
+    sc = get_scenario("fake")
+    rows = _rows(out)
+    assert any(r["ctg"][0] > 0 for r in rows), "some trajectories should cross the keep-out zone"
+    for r in rows:
+        problem = problem_from_row(sc, r)
+        np.testing.assert_allclose(r["rtg"], returns_to_go(sc, r["actions"]), rtol=1e-5, atol=1e-6)
+        np.testing.assert_array_equal(r["ctg"], constraints_to_go(sc, problem, r["states_opt"]))
+        np.testing.assert_allclose(r["states"], sc.to_model_states(problem, r["states_opt"]), rtol=1e-6)
+        np.testing.assert_allclose(r["goal"], sc.model_goal(problem), rtol=1e-6)
+        np.testing.assert_array_equal(r["target_actions"], r["actions"])
+        np.testing.assert_array_equal(r["target_next_states"], r["states"][1:])
+        np.testing.assert_allclose(sc.rollout(problem, r["actions"].astype(float)), r["states_opt"], atol=1e-5)
+        assert r["iteration"] == -1 and r["cost"] == pytest.approx(sc.cost(r["actions"]), rel=1e-5)
+
+
+def test_splits_by_problem_are_disjoint_and_follow_fractions(dataset: tuple[Path, dict]) -> None:
+    out, manifest = dataset
+    ids = {s: {int(r["problem_id"]) for r in _rows(out, s)} for s in ("train", "val", "test")}
+    assert not (ids["train"] & ids["val"]) and not (ids["train"] & ids["test"]) and not (ids["val"] & ids["test"])
+    assert {s: len(v) for s, v in ids.items()} == manifest["splits"]["problems"]
+    splits = SplitConfig(0.9, 0.05, 0.05)
+    names = [split_of(i, splits) for i in range(20_000)]
+    for name, frac in splits.fractions().items():
+        share = names.count(name) / len(names)
+        assert abs(share - frac) < 4 * np.sqrt(frac * (1 - frac) / len(names))
+    assert [split_of(i, dataclasses.replace(splits, salt=1)) for i in range(50)] != names[:50]
+
+
+def test_norm_stats_are_the_train_split_moments(dataset: tuple[Path, dict]) -> None:
+    out, manifest = dataset
+    train = _rows(out, "train")
+    states = np.concatenate([r["states"][:-1] for r in train]).astype(np.float64)
+    rtg = np.concatenate([r["rtg"] for r in train]).astype(np.float64)
+    stats = manifest["norm_stats"]
+    np.testing.assert_allclose(stats["mean"]["states"], states.mean(0), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(stats["std"]["states"], states.std(0), rtol=1e-9)
+    np.testing.assert_allclose(stats["mean"]["rtg"], [rtg.mean()], rtol=1e-9)
+
+
+def test_resume_after_interruption_is_byte_identical(dataset: tuple[Path, dict], tmp_path: Path) -> None:
+    ref, _ = dataset
+    out = tmp_path / "fake-v1"
+    written = []
+    assert generate(_cfg(out, max_shards=2), progress=False, on_shard=written.append) is None
+    assert [m["index"] for m in written] == [0, 1] and not (out / "manifest.json").exists()
+    generate(_cfg(out, workers=2), progress=False, on_shard=written.append)
+    assert [m["index"] for m in written] == [0, 1, 2, 3]  # done shards were skipped, none repeated
+    assert _parquet_bytes(out) == _parquet_bytes(ref)
+    # a lost and a truncated shard are regenerated, identically
+    (out / "train" / "shard-00001.parquet").unlink()
+    victim = out / "train" / "shard-00002.parquet"
+    victim.write_bytes(victim.read_bytes()[:100])
+    generate(_cfg(out), progress=False, on_shard=written.append)
+    assert [m["index"] for m in written[4:]] == [1, 2]
+    assert _parquet_bytes(out) == _parquet_bytes(ref)
+    manifest = json.loads((out / "manifest.json").read_text())
+    ref_manifest = json.loads((ref / "manifest.json").read_text())
+    assert manifest["shards"] == ref_manifest["shards"] and manifest["norm_stats"] == ref_manifest["norm_stats"]
+
+
+def test_two_ranks_generate_disjoint_complete_shards(dataset: tuple[Path, dict], tmp_path: Path) -> None:
+    ref, _ = dataset
+    out = tmp_path / "fake-v1"
+    by_rank: dict[int, list[int]] = {0: [], 1: []}
+    for rank in (1, 0):  # rank 0 last: it writes the manifest once all shards exist
+        result = generate(
+            _cfg(out), RankInfo(rank, 2), progress=False, on_shard=lambda m, r=rank: by_rank[r].append(m["index"])
+        )
+        assert (result is None) == (rank == 1)
+    assert by_rank == {0: [0, 2], 1: [1, 3]}
+    assert _parquet_bytes(out) == _parquet_bytes(ref)
+
+
+def test_rank_info_from_torchrun_and_slurm() -> None:
+    assert rank_info({}) == RankInfo(0, 1, 0)
+    assert rank_info({"RANK": "3", "WORLD_SIZE": "4", "LOCAL_RANK": "1"}) == RankInfo(3, 4, 1)
+    assert rank_info({"SLURM_PROCID": "2", "SLURM_NTASKS": "3"}) == RankInfo(2, 3, 0)
+    with pytest.raises(ValueError, match="RANK=4"):
+        rank_info({"RANK": "4", "WORLD_SIZE": "4"})
+
+
+def test_mismatched_generation_is_refused(dataset: tuple[Path, dict], tmp_path: Path) -> None:
+    out = tmp_path / "x"
+    generate(_cfg(out, problems=20), progress=False)
+    with pytest.raises(GenerationError, match="seed"):
+        generate(_cfg(out, problems=20, seed=8), progress=False)
+    with pytest.raises(GenerationError, match="beyond"):
+        generate(_cfg(out, problems=10), progress=False)
+
+
+def test_card_header_is_valid_and_folder_loads_by_name(dataset: tuple[Path, dict], tmp_path: Path) -> None:
+    import datasets
+
+    out, manifest = dataset
+    text = (out / "README.md").read_text()
+    meta = parse_front_matter(text)
+    assert {"license", "task_categories", "tags", "size_categories", "configs", "dataset_info"} <= set(meta)
+    assert meta["size_categories"] == ["n<1K"]
+    files = meta["configs"][0]["data_files"]
+    hf = {"train": "train", "validation": "val", "test": "test"}
+    for entry in files:
+        assert sorted(out.glob(entry["path"])), entry
+    names = [f["name"] for f in meta["dataset_info"]["features"]]
+    assert names == list(manifest["features"])
+    for section in (
+        "## Summary",
+        "## Structure",
+        "## Generation procedure",
+        "## Splits",
+        "## Normalisation",
+        "## Known limitations",
+        "x [m]",
+        "Δvx [m/s]",
+    ):
+        assert section in text
+    loaded = datasets.load_dataset(str(out), streaming=True)
+    for entry in files:
+        split = entry["split"]
+        assert sum(1 for _ in loaded[split]) == manifest["splits"]["rows"][hf[split]]
+
+
+def test_cli_generate_writes_dataset_and_card_copy(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    cards = tmp_path / "cards"
+    cards.mkdir()
+    out = tmp_path / "cli-set"
+    argv = [
+        "generate",
+        "--scenario",
+        "fake",
+        "--problems",
+        "12",
+        "--out",
+        str(out),
+        "--shard-size",
+        "5",
+        "--workers",
+        "1",
+        "--seed",
+        "3",
+        "--solver",
+        fakes.SOLVER,
+        "--splits",
+        "0.5,0.25,0.25",
+        "--no-progress",
+        f"card_dir={cards}",
+    ]
+    assert cli_main(argv) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert summary["rows"] == manifest["counts"]["rows"]
+    assert manifest["generation"]["splits"] == {"train": 0.5, "val": 0.25, "test": 0.25, "salt": 0}
+    assert (cards / "cli-set.md").read_text() == (out / "README.md").read_text()
+    assert cli_main([*argv, "--finalize"]) == 0

@@ -1,0 +1,115 @@
+"""Shard writer/reader: round trip through the shared schema, atomic writes, clear errors on bad shards."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import test_data_fakes  # noqa: F401  (registers the fake scenario)
+
+from ttompc.data.schema import make_row, trajectory_features
+from ttompc.data.shards import ShardError, ShardWriter, read_shard, sha256_file, write_shard
+from ttompc.scenarios import get_scenario
+
+
+def _rows(n: int, source: str = "scp") -> list[dict]:
+    sc = get_scenario("fake")
+    rng = np.random.default_rng(0)
+    rows = []
+    for i in range(n):
+        p = sc.sample(rng)
+        U = rng.normal(size=(sc.n_steps, 3))
+        X = sc.rollout(p, U)
+        extra = {"iteration": 2, "target_actions": U + 1} if source == "dagger" else {}
+        rows.append(
+            make_row(
+                sc,
+                p,
+                problem_id=i,
+                seed=100 + i,
+                source=source,
+                states=sc.to_model_states(p, X),
+                actions=U,
+                states_opt=X,
+                cost=sc.cost(U),
+                iterations=4,
+                status="optimal",
+                solve_time=0.5,
+                solver_time=0.25,
+                violation=1e-7,
+                **extra,
+            )
+        )
+    return rows
+
+
+def test_round_trip_equals_written_rows(tmp_path: Path) -> None:
+    sc = get_scenario("fake")
+    rows = _rows(5) + _rows(3, "dagger")
+    feats = trajectory_features(sc)
+    write_shard(rows, tmp_path / "s.parquet", feats)
+    back = list(read_shard(tmp_path / "s.parquet").with_format("numpy"))
+    assert read_shard(tmp_path / "s.parquet").features == feats
+    assert len(back) == len(rows)
+    for r, b in zip(rows, back, strict=True):
+        for k, v in r.items():
+            if isinstance(v, str):
+                assert b[k] == v
+            else:
+                dtype = np.float32 if np.asarray(b[k]).dtype == np.float32 else np.asarray(v).dtype
+                np.testing.assert_array_equal(np.asarray(b[k]), np.asarray(v).astype(dtype), err_msg=k)
+    assert back[-1]["iteration"] == 2 and back[-1]["source"] == "dagger"
+    np.testing.assert_allclose(back[-1]["target_actions"], back[-1]["actions"] + 1, rtol=1e-6)
+    assert not list(tmp_path.glob(".*.tmp")), "temporary files must not survive"
+
+
+def test_shard_writer_layout_and_checksum(tmp_path: Path) -> None:
+    writer = ShardWriter(tmp_path / "dagger-it0", trajectory_features(get_scenario("fake")))
+    info = writer.write(_rows(4, "dagger"), index=3, split="val")
+    assert info.path == "val/shard-00003.parquet" and info.rows == 4
+    assert info.sha256 == sha256_file(tmp_path / "dagger-it0" / info.path)
+    with pytest.raises(ValueError, match="split"):
+        writer.path("holdout", 0)
+
+
+def test_rows_not_matching_schema_are_rejected(tmp_path: Path) -> None:
+    rows = _rows(2)
+    del rows[1]["ctg"]
+    with pytest.raises(ValueError, match=r"row 1 .*missing \['ctg'\]"):
+        write_shard(rows, tmp_path / "s.parquet", trajectory_features(get_scenario("fake")))
+    with pytest.raises(ValueError, match="expected states"):
+        sc = get_scenario("fake")
+        make_row(
+            sc,
+            sc.sample(np.random.default_rng(0)),
+            problem_id=0,
+            seed=0,
+            source="rel",
+            states=np.zeros((3, 6)),
+            actions=np.zeros((2, 3)),
+        )
+
+
+def test_corrupt_and_truncated_shards_name_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "train" / "shard-00000.parquet"
+    write_shard(_rows(3), path, trajectory_features(get_scenario("fake")))
+    sha = sha256_file(path)
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(ShardError, match=rf"{path}.*corrupt.*sha256"):
+        read_shard(path, sha)
+    path.write_bytes(bytes(data[: len(data) // 3]))
+    with pytest.raises(ShardError, match=rf"{path}.*truncated or corrupt"):
+        read_shard(path)
+    with pytest.raises(ShardError, match=rf"{tmp_path / 'nope.parquet'}.*missing"):
+        read_shard(tmp_path / "nope.parquet")
+
+
+def test_import_ttompc_data_does_not_import_lightning_or_datasets() -> None:
+    code = "import sys, ttompc.data; print(any(m in sys.modules for m in ('lightning', 'datasets')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
