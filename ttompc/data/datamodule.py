@@ -43,20 +43,56 @@ from ttompc.data.stats import NormStats
 
 COLUMNS = ("problem_id", "source", "states", "actions", "goal", "rtg", "ctg", "target_actions", "target_next_states")
 Chunk = dict[str, np.ndarray]
+_OPENED: dict[tuple[str, bool], Any] = {}  # streaming datasets per (shard path, open-loop columns)
 
 
 def _read_file(path: str, read_batch: int, allowed: frozenset[str]) -> Iterator[Chunk]:
-    """Column batches of one shard through ``datasets``' fast path, keeping rows whose source is allowed."""
+    """Column batches of one shard through ``datasets``' fast path, keeping rows whose source is allowed.
+
+    Open-loop rows have targets = (actions, states[1:]) by construction, so for them the two target columns are
+    derived instead of read (~40% less decoding)."""
     import datasets
 
+    open_loop = "dagger" not in allowed
+    columns = [c for c in COLUMNS if not (open_loop and c.startswith("target_"))]
     try:
-        ds = datasets.load_dataset("parquet", data_files=[path], split="train", streaming=True)
-        for chunk in ds.select_columns(list(COLUMNS)).with_format("numpy").iter(read_batch):
-            keep = np.isin(chunk["source"], list(allowed))
-            if keep.any():
-                yield {k: v[keep] for k, v in chunk.items()}
+        ds = _OPENED.get((path, open_loop))
+        if ds is None:  # the parquet reader decodes only ``columns``; opened once per process and reused
+            ds = datasets.load_dataset("parquet", data_files=[path], split="train", streaming=True, columns=columns)
+            ds = _OPENED[(path, open_loop)] = ds.with_format("arrow")
+        chunks = map(_to_numpy, ds.iter(read_batch))
     except (pa.ArrowException, OSError) as err:
         raise ShardError(f"shard file {path} is unreadable (truncated or corrupt): {err}") from None
+    while True:
+        try:  # only next() inside the try: a generator closed at its yield must not reach the handler
+            chunk = next(chunks)
+        except StopIteration:
+            return
+        except (pa.ArrowException, OSError) as err:
+            raise ShardError(f"shard file {path} is unreadable (truncated or corrupt): {err}") from None
+        keep = np.isin(chunk["source"], list(allowed))
+        if keep.any():
+            chunk = {k: v[keep] for k, v in chunk.items()}
+            if open_loop:
+                chunk["target_actions"], chunk["target_next_states"] = chunk["actions"], chunk["states"][:, 1:]
+            yield chunk
+
+
+def _to_numpy(table: pa.Table) -> Chunk:
+    """Arrow batch -> numpy without per-row Python work: fixed-shape nested lists are flattened to their value
+    buffer and reshaped (~2x faster than ``with_format("numpy")`` for our 2-D arrays)."""
+    out = {}
+    for name in table.column_names:
+        arr = table.column(name).combine_chunks()
+        if isinstance(arr.type, pa.ExtensionType):  # datasets' Array2D wraps list<list<float>>
+            arr = arr.storage
+        shape = []
+        while pa.types.is_list(arr.type) or pa.types.is_fixed_size_list(arr.type):
+            lengths = arr.value_lengths().to_numpy(zero_copy_only=False)
+            shape.append(int(lengths[0]) if len(lengths) else 0)
+            arr = arr.flatten()
+        out[name] = arr.to_numpy(zero_copy_only=False).reshape(len(table), *shape)
+    return out
 
 
 def _assign(files: list[str], consumer: int, n_consumers: int) -> tuple[list[str], int | None]:
@@ -132,6 +168,8 @@ class _Batcher:
 
         def win(a: np.ndarray) -> np.ndarray:
             a = a[:, :N]
+            if Lc == N:  # full trajectories: no gather needed
+                return a
             return np.take_along_axis(a, t.reshape(B, Lc, *([1] * (a.ndim - 2))), axis=1)
 
         f32 = np.float32
