@@ -115,9 +115,9 @@ def collect_rollout(
     H = min(int(rng.choice(exploration.horizons)), N)
     expert_steps = expert_schedule(rng, N, exploration)
     learner_provider = TTOProvider(planner)
-    learner = MPCController(scenario, problem, learner_provider, H, mode=mode, backend=backend)  # type: ignore[arg-type]
+    learner = MPCController(scenario, problem, learner_provider, H, mode=mode, backend=backend)
     shift = ShiftProvider()
-    expert = MPCController(scenario, problem, shift, N, mode=mode, backend=backend)  # type: ignore[arg-type]
+    expert = MPCController(scenario, problem, shift, N, mode=mode, backend=backend)
     learner_provider.reset(scenario, problem, rel.cost)
     shift.reset(scenario, problem, rel.cost)
     shift.reset_plan(rel.X, rel.U)

@@ -1,0 +1,126 @@
+"""Per-step MPC time of REL-MPC, DIST-MPC and TTO-MPC at H = 10 and H = 30, measured in the same run (paper Fig. 5
+and the "~7x" claim: REL-MPC needs H = 30 for the cost FT-TTO-MPC reaches at H = 10).
+
+Step time = warm start + windowed SCP (perf_counter; CUDA synchronised inside the TTO provider). Per episode we take
+the mean and the max over its steps (the paper plots the average over problems of the per-episode max); the ratio
+REL-MPC@30 / FT-TTO-MPC@10 is reported for both. Without ``--checkpoint`` the transformer is a *randomly
+initialised* model of the chosen size: its step times are right for that architecture, but its warm starts are
+poor, so the SCP part of TTO-MPC (iterations) is not representative — pass a fine-tuned model for the real claim.
+
+Ends with one JSON line, also written to bench/results/mpc_speed.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ttompc.evaluation.common import eval_problem, load_planner
+from ttompc.model import ModelConfig, TrajectoryGPT
+from ttompc.mpc import DISTProvider, RELProvider, TTOProvider, run_mpc
+from ttompc.planner import Planner
+from ttompc.scenarios import get_scenario
+
+SIZES = {
+    "paper": {},
+    "small": {"n_embd": 128, "n_layer": 3, "n_head": 4},
+    "tiny": {"n_embd": 64, "n_layer": 2, "n_head": 4},
+}
+
+
+def random_planner(scenario_name: str, size: str, device: str) -> Planner:
+    """A randomly initialised model (timing only) with identity-like normalisation."""
+    from ttompc.data.stats import NormStats
+
+    sc = get_scenario(scenario_name)
+    torch.manual_seed(0)
+    model = TrajectoryGPT(ModelConfig(state_dim=sc.state_dim, control_dim=sc.control_dim, max_steps=sc.n_steps,
+                                      **SIZES[size]))  # fmt: skip
+    n, m = sc.state_dim, sc.control_dim
+    stats = NormStats(
+        mean={"states": np.zeros(n), "actions": np.zeros(m), "goals": np.zeros(n), "rtg": [0.0], "ctg": [0.0]},
+        std={"states": np.ones(n), "actions": np.full(m, 1e-3), "goals": np.ones(n), "rtg": [1.0], "ctg": [1.0]},
+    )
+    return Planner(model.to(device), sc, stats)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="freeflyer")
+    ap.add_argument("--checkpoint", help="FT-TTO model (checkpoint, bundle or zoo name); default: random model")
+    ap.add_argument("--size", choices=sorted(SIZES), default="paper", help="random model size (without --checkpoint)")
+    ap.add_argument("--problems", type=int, default=2)
+    ap.add_argument("--horizons", default="10,30")
+    ap.add_argument("--max-steps", type=int, default=None, help="MPC steps per episode (default: all N)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "mpc_speed.json"))
+    args = ap.parse_args()
+
+    sc = get_scenario(args.scenario)
+    if args.checkpoint:
+        planner, model_desc, name = load_planner(args.checkpoint, device=args.device), args.checkpoint, "FT-TTO-MPC"
+    else:
+        planner, model_desc = random_planner(args.scenario, args.size, args.device), f"random {args.size} (timing only)"
+        name = "TTO-MPC"
+    n_params = sum(p.numel() for p in planner.model.parameters())
+    horizons = [int(h) for h in args.horizons.split(",")]
+    problems = [eval_problem(sc, args.seed, i, nonconvex_only=True) for i in range(args.problems)]
+    providers = {"REL-MPC": lambda: RELProvider(), "DIST-MPC": lambda: DISTProvider(),
+                 name: lambda: TTOProvider(planner, name)}  # fmt: skip
+    # warm-up (imports, solver structure caches, torch kernels) outside the timing
+    for make in providers.values():
+        run_mpc(sc, problems[0].problem, make(), horizons[0], rel_cost=problems[0].rel.cost, max_steps=2)
+    results: dict[str, dict[str, float]] = {}
+    print(f"{sc.name}: {len(problems)} problems, model {model_desc} ({n_params / 1e6:.2f}M params, {args.device})")
+    print(f"{'method':>11} {'H':>4} {'mean step [ms]':>15} {'max step [ms]':>14} {'warm [ms]':>10} {'cost':>9}")
+    t0 = time.perf_counter()
+    for H in horizons:
+        for method, make in providers.items():
+            eps = [
+                run_mpc(sc, ep.problem, make(), H, rel_cost=ep.rel.cost, max_steps=args.max_steps) for ep in problems
+            ]
+            r = {
+                "mean_step_s": float(np.mean([e.step_times.mean() for e in eps])),
+                "max_step_s": float(np.mean([e.step_times.max() for e in eps])),
+                "mean_warm_s": float(np.mean([e.warm_times.mean() for e in eps])),
+                "cost": float(np.mean([e.cost for e in eps])),
+                "feasible_rate": float(np.mean([e.feasible for e in eps])),
+            }
+            results[f"{method}@{H}"] = r
+            print(f"{method:>11} {H:>4} {r['mean_step_s'] * 1e3:>15.1f} {r['max_step_s'] * 1e3:>14.1f} "
+                  f"{r['mean_warm_s'] * 1e3:>10.1f} {r['cost']:>9.4f}")  # fmt: skip
+    ratio = {}
+    if "REL-MPC@30" in results and f"{name}@10" in results:
+        ratio = {
+            "mean": results["REL-MPC@30"]["mean_step_s"] / results[f"{name}@10"]["mean_step_s"],
+            "max": results["REL-MPC@30"]["max_step_s"] / results[f"{name}@10"]["max_step_s"],
+        }
+        print(f"REL-MPC@30 / {name}@10 step time: mean {ratio['mean']:.2f}x, max {ratio['max']:.2f}x (paper: ~7x)")
+    summary = {
+        "bench": "mpc_speed",
+        "scenario": sc.name,
+        "model": model_desc,
+        "params": n_params,
+        "device": args.device,
+        "problems": len(problems),
+        "max_steps": args.max_steps,
+        "results": results,
+        f"ratio_rel30_over_{name.lower().replace('-', '_')}10": ratio,
+        "wall_s": time.perf_counter() - t0,
+        "host": platform.node(),
+        "torch_threads": torch.get_num_threads(),
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(summary, indent=2) + "\n")
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
