@@ -98,8 +98,12 @@ class Planner:
         *,
         use_cache: bool = True,
     ) -> RolloutContext:
-        """A step-0 rollout context for B problems (MPC keeps it and calls ``advance``/``rollout``).
-        The reference conditions on rtg0 = −J_REL and ctg0 = 0."""
+        """A step-0 rollout context for B problems, conditioned like the reference on rtg0 = −J_REL, ctg0 = 0.
+
+        MPC keeps it for the whole episode: at step t, ``ctx.rollout(H)`` plans [t, t+H) from the cached history;
+        after executing a_t, ``ctx.advance(a_t, s_{t+1})`` with the measured state in the *model* representation
+        (``scenario.to_model_states(problem, X, start=t+1)``); plans come back in the model representation too
+        (``scenario.from_model_states(problem, S, start=t)``)."""
         if not problems:
             raise ValueError("no problems given")
         s0, goal = self._start_tensors(problems)

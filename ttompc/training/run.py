@@ -10,6 +10,7 @@ rank 0 exports a ``Planner`` bundle to ``<out_dir>/planner/``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -48,10 +49,11 @@ def resume_checkpoint(out_dir: str | Path) -> Path | None:
     return max(found, key=lambda p: p.stat().st_mtime) if found else None
 
 
-def train(cfg: TrainConfig, datamodule: Any = None) -> TrainResult:
+def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = ()) -> TrainResult:
     """Train according to ``cfg``. ``datamodule`` defaults to ``TrajectoryDataModule(cfg.data)``; any
     LightningDataModule that follows the batch contract of ``ttompc.training.module`` and exposes ``stats``
-    (NormStats) and ``scenario_name`` after ``setup("fit")`` works."""
+    (NormStats) and ``scenario_name`` after ``setup("fit")`` works. ``callbacks`` are added to the Trainer's (e.g.
+    the closed-loop evaluation configured by ``cfg.callbacks.eval_mpc``)."""
     import lightning as L
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint, OnExceptionCheckpoint
 
@@ -85,7 +87,8 @@ def train(cfg: TrainConfig, datamodule: Any = None) -> TrainResult:
     )
     logger = build_logger(cfg.logger, out, recipe)
     ckpt_dir = out / "checkpoints"
-    callbacks: list[Any] = [
+    all_callbacks: list[Any] = [
+        *callbacks,
         ModelCheckpoint(
             dirpath=ckpt_dir,
             filename="step{step:08d}",
@@ -99,7 +102,7 @@ def train(cfg: TrainConfig, datamodule: Any = None) -> TrainResult:
         SaveLastCheckpoint(last_checkpoint(out), cfg.trainer.checkpoint_every_n_steps),
     ]
     if logger is not None:
-        callbacks.append(LearningRateMonitor(logging_interval="step"))
+        all_callbacks.append(LearningRateMonitor(logging_interval="step"))
     t = cfg.trainer
     vci = t.val_check_interval
     trainer = L.Trainer(
@@ -119,7 +122,7 @@ def train(cfg: TrainConfig, datamodule: Any = None) -> TrainResult:
         num_sanity_val_steps=t.num_sanity_val_steps,
         default_root_dir=str(out),
         logger=logger if logger is not None else False,
-        callbacks=callbacks,
+        callbacks=all_callbacks,
         enable_progress_bar=False,
         enable_model_summary=False,
         deterministic=False,

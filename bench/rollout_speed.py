@@ -1,0 +1,198 @@
+"""Rollout speed: KV-cached vs full-recompute 100-step autoregressive rollouts on CPU (2 threads), one run.
+
+    .venv/bin/python bench/rollout_speed.py [--quick]
+
+Paper-size model (384/6/6, 11M parameters, random weights) at batch 1 and batch 64, a smaller zoo-size model, and
+optional fast paths (inference_mode, bf16 weights, dynamic int8 quantisation). Full recompute at batch 64 would take
+many minutes, so it is *estimated* from timed forward passes at sampled prefix lengths (the estimator is checked
+against the measured batch-1 full recompute and both numbers are reported). Dynamics: the free-flyer scenario's
+batched model when registered, else an equivalent stand-in double integrator. Prints one JSON line of headline
+figures and writes it to bench/results/rollout_speed.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ttompc.data.stats import KEYS, NormStats
+from ttompc.model import ModelConfig, TrajectoryGPT
+from ttompc.rollout import rollout
+
+STEPS = 100
+RESULTS = Path(__file__).resolve().parent / "results" / "rollout_speed.json"
+
+
+class StandInDoubleIntegrator:
+    """x_{k+1} = A (x_k + B a_k): the free-flyer's impulsive double integrator, for when it is not available."""
+
+    def __init__(self) -> None:
+        dt = 0.4
+        self.A = torch.eye(6, dtype=torch.float64)
+        self.A[:3, 3:] = dt * torch.eye(3)
+        self.B = torch.zeros(6, 3, dtype=torch.float64)
+        self.B[3:, :] = torch.diag(torch.tensor([1.0, 1.0, 16.0 / 0.18]))
+
+    def step(self, S: torch.Tensor, A: torch.Tensor, k: int) -> torch.Tensor:
+        return (S + A @ self.B.to(S.dtype).T) @ self.A.to(S.dtype).T
+
+    def violations(self, S: torch.Tensor, k: int) -> torch.Tensor:
+        return torch.zeros(S.shape[0], dtype=S.dtype)
+
+
+def dynamics() -> tuple[Any, str]:
+    try:
+        from ttompc.scenarios import get_scenario
+
+        return get_scenario("freeflyer").batched_model([]), "freeflyer"
+    except (KeyError, ImportError):
+        return StandInDoubleIntegrator(), "stand-in double integrator"
+
+
+def stats() -> NormStats:
+    dims = {"states": 6, "actions": 3, "goals": 6, "rtg": 1, "ctg": 1}
+    return NormStats({k: np.zeros(dims[k]) for k in KEYS}, {k: np.ones(dims[k]) for k in KEYS})
+
+
+def starts(batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    s0 = torch.zeros(batch, 6)
+    s0[:, :2] = torch.rand(batch, 2, generator=g) * torch.tensor([0.2, 2.2]) + 0.15
+    goal = torch.zeros(batch, 6)
+    goal[:, :2] = torch.tensor([3.25, 1.25])
+    return s0, goal
+
+
+def time_rollout(
+    model: torch.nn.Module, batch: int, use_cache: bool, reps: int, inference: bool = False
+) -> float:
+    dyn, _ = dynamics()
+    s0, goal = starts(batch)
+    times = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        with torch.inference_mode(inference):
+            rollout(model, stats(), dyn, "l1", s0, goal, -1.0, 0.0, STEPS, use_cache=use_cache)
+        times.append(time.perf_counter() - t)
+    return min(times)  # the least-disturbed repetition: the CPUs are shared with other jobs
+
+
+def estimate_full_recompute(model: TrajectoryGPT, batch: int, points: tuple[int, ...], reps: int) -> float:
+    """Σ_t forward(prefix of t+1 steps), interpolated from timed forwards at the given prefix lengths."""
+    cfg = model.cfg
+    g = torch.Generator().manual_seed(1)
+    measured = []
+    for L in points:
+        x = [
+            torch.randn(batch, L, d, generator=g)
+            for d in (cfg.state_dim, 1, 1, cfg.state_dim, cfg.control_dim)
+        ]
+        ts = torch.arange(L).expand(batch, -1)
+        with torch.no_grad():
+            model(x[0], x[1], x[2], x[3], x[4], ts)  # warm-up
+            best = float("inf")
+            for _ in range(reps):
+                t = time.perf_counter()
+                model(x[0], x[1], x[2], x[3], x[4], ts)
+                best = min(best, time.perf_counter() - t)
+            measured.append(best)
+    return float(np.interp(np.arange(1, STEPS + 1), points, measured).sum())
+
+
+def action_deviation(fast: torch.nn.Module, ref: TrajectoryGPT) -> float:
+    dyn, _ = dynamics()
+    s0, goal = starts(4)
+    a = rollout(ref, stats(), dyn, "l1", s0, goal, -1.0, 0.0, STEPS).actions
+    b = rollout(
+        fast, stats(), dyn, "l1", s0.to(_dtype(fast)), goal.to(_dtype(fast)), -1.0, 0.0, STEPS
+    ).actions
+    return float((a - b.float()).abs().max() / a.abs().max())
+
+
+def _dtype(model: torch.nn.Module) -> torch.dtype:
+    return next(model.parameters()).dtype
+
+
+def bench_model(name: str, cfg: ModelConfig, quick: bool, fast_paths: bool) -> dict[str, Any]:
+    torch.manual_seed(0)
+    model = TrajectoryGPT(cfg).eval()
+    weight_bytes = sum(p.numel() * p.element_size() for p in model.blocks.parameters())
+    reps = 1 if quick else 3
+    out: dict[str, Any] = {"params_M": round(model.num_parameters() / 1e6, 2)}
+    out["b1_cached_s"] = time_rollout(model, 1, True, reps)
+    out["b1_full_s"] = time_rollout(model, 1, False, 2 if not quick else 1)
+    out["b1_speedup"] = out["b1_full_s"] / out["b1_cached_s"]
+    out["b1_weight_stream_GBps"] = weight_bytes * STEPS / out["b1_cached_s"] / 1e9  # one trunk pass per step
+    points = (1, 25, 50, 75, 100) if not quick else (1, 50, 100)
+    out["b1_full_estimate_s"] = estimate_full_recompute(model, 1, points, reps)
+    batch = 16 if quick else 64
+    out["batch"] = batch
+    out["bN_cached_s"] = time_rollout(model, batch, True, 2 if not quick else 1)
+    out["bN_cached_per_traj_s"] = out["bN_cached_s"] / batch
+    out["bN_full_estimate_s"] = estimate_full_recompute(model, batch, points, 2 if not quick else 1)
+    out["bN_speedup_per_traj"] = out["bN_full_estimate_s"] / out["bN_cached_s"]
+    if fast_paths:
+        out["b1_cached_inference_mode_s"] = time_rollout(model, 1, True, reps, inference=True)
+        bf16 = TrajectoryGPT(cfg).eval()
+        bf16.load_state_dict(model.state_dict())
+        bf16 = bf16.to(torch.bfloat16)
+        out["b1_cached_bf16_s"] = time_rollout(bf16, 1, True, reps, inference=True)
+        out["bf16_rel_action_dev"] = action_deviation(bf16, model)
+        try:
+            from torch.ao.quantization import quantize_dynamic
+
+            int8 = quantize_dynamic(model, {torch.nn.Linear}, dtype=torch.qint8)
+            out["b1_cached_int8_s"] = time_rollout(int8, 1, True, reps, inference=True)
+            out["int8_rel_action_dev"] = action_deviation(int8, model)
+        except (ImportError, RuntimeError, AssertionError) as err:  # backend-dependent availability
+            out["int8_error"] = f"{type(err).__name__}: {err}"
+    print(f"# {name}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in out.items()}))
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer repetitions and batch 16 (smoke run)")
+    args = parser.parse_args()
+    torch.set_num_threads(2)
+    load_before = os.getloadavg()[0]
+    _, dyn_name = dynamics()
+    paper = bench_model("paper 384/6/6", ModelConfig(), args.quick, fast_paths=True)
+    zoo = bench_model("zoo-small 192/4/6", ModelConfig(n_embd=192, n_layer=4, n_head=6), args.quick, False)
+    headline = {
+        "bench": "rollout_speed",
+        "steps": STEPS,
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "dynamics": dyn_name,
+        "timing": "min over repetitions",
+        "load_avg_1min": [
+            round(load_before, 2),
+            round(os.getloadavg()[0], 2),
+        ],  # before, after: >2 means shared
+        "paper": {k: round(v, 4) if isinstance(v, float) else v for k, v in paper.items()},
+        "zoo_small": {k: round(v, 4) if isinstance(v, float) else v for k, v in zoo.items()},
+        "targets": {
+            "b1_speedup>=10": paper["b1_speedup"] >= 10,
+            "bN_speedup_per_traj>=30": paper["bN_speedup_per_traj"] >= 30,
+            "b1_cached<0.4s(fp32)": paper["b1_cached_s"] < 0.4,
+        },
+    }
+    line = json.dumps(headline)
+    if not args.quick:
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        RESULTS.write_text(line + "\n")
+    print(line)
+
+
+if __name__ == "__main__":
+    main()
