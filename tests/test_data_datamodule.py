@@ -210,3 +210,43 @@ def test_corrupt_shard_is_reported_with_its_path(data: dict[str, Path], tmp_path
     dm = _dm({"ol": copy}, verify_checksums=False, train_batches_per_epoch=50)
     with pytest.raises(ShardError, match=str(victim)):
         list(dm.train_dataloader())
+
+
+def test_lightning_fit_streams_new_batches_each_epoch(data: dict[str, Path], tmp_path: Path) -> None:
+    import lightning as L
+
+    class Probe(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.layer = torch.nn.Linear(n, m)
+            self.seen: list[tuple[int, list[int]]] = []
+            self.val_rows = 0
+
+        def training_step(self, batch: dict, idx: int) -> torch.Tensor:
+            self.seen.append((self.current_epoch, batch["problem_id"].tolist()))
+            return torch.nn.functional.mse_loss(self.layer(batch["states"]), batch["target_actions"])
+
+        def validation_step(self, batch: dict, idx: int) -> None:
+            self.val_rows += len(batch["problem_id"])
+
+        def configure_optimizers(self) -> torch.optim.Optimizer:
+            return torch.optim.SGD(self.parameters(), lr=0.01)
+
+    dm = TrajectoryDataModule(
+        DataConfig(paths=[str(data["ol"])], batch_size=8, shuffle_pool=32, context_length=N, train_batches_per_epoch=3)
+    )
+    probe = Probe()
+    trainer = L.Trainer(
+        max_epochs=2,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+        num_sanity_val_steps=0,
+    )
+    trainer.fit(probe, datamodule=dm)
+    assert [e for e, _ in probe.seen] == [0, 0, 0, 1, 1, 1]
+    assert [ids for e, ids in probe.seen if e == 0] != [ids for e, ids in probe.seen if e == 1]
+    assert probe.val_rows == 2 * len(_stored(data["ol"], "val"))
+    assert dm.stats is not None and dm.scenario_name == "fake"

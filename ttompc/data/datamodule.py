@@ -348,7 +348,7 @@ class TrajectoryDataModule(L.LightningDataModule):
 
     @property
     def _ranks(self) -> tuple[int, int]:
-        trainer = getattr(self, "_trainer", None)
+        trainer = self.trainer  # set by Lightning under fit/validate/test: authoritative for DDP ranks
         if trainer is not None:
             return trainer.global_rank, trainer.world_size
         info = rank_info()
