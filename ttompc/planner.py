@@ -68,7 +68,7 @@ class Planner:
                 f"model dims ({cfg.state_dim}, {cfg.control_dim}) do not match scenario {scenario.name!r} "
                 f"({scenario.state_dim}, {scenario.control_dim})"
             )
-        self.model = model.eval()
+        self.model = model  # its train/eval mode is left alone: rollouts switch dropout off themselves
         self.scenario = scenario
         self.stats = stats
         self.recipe = dict(recipe or {})
@@ -261,4 +261,4 @@ class Planner:
             )
         model = TrajectoryGPT(from_container(ModelConfig, model_cfg))
         model.load_state_dict(state)
-        return cls(model.to(device), scenario, NormStats.from_dict(stats), **meta)
+        return cls(model.to(device).eval(), scenario, NormStats.from_dict(stats), **meta)
