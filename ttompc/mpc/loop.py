@@ -14,7 +14,7 @@ Each step is timed with ``perf_counter`` (warm start + solve; a CUDA model synch
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -59,7 +59,6 @@ class Episode:
     path_violation: float  # largest exact path-constraint violation (keep-out depth, bounds, ...)
     complete: bool  # ran all N steps
     feasible: bool  # no keep-out violation, path violation ≤ tol and (if complete) terminal error ≤ tol
-    extra: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict[str, float | int | str | bool]:
         return {
