@@ -9,7 +9,10 @@ Each iteration i:
 2. **Label** every visited state x_t with the expert's control u*_t and the state *that control* leads to with the
    exact dynamics, x*_{t+1} = f(x_t, u*_t). The reference paired the expert's planned next state with the
    *executed* action token; our (target_action, target_next_state) pair is always consistent. The row's states,
-   actions, rtg and ctg are the visited states, executed actions and the learner's running conditioning.
+   actions, rtg and ctg are the visited states, executed actions and the learner's running conditioning; its
+   solver columns hold the applied cost, the learner's/expert's compute time (solve_time/solver_time), the keep-out
+   violations of the executed trajectory (violation) and "H=..;expert_steps=..;fallbacks=.." (status). Rollouts
+   are kept whether or not they end feasible: their visited states are where the learner needs corrections.
 3. **Write** the rows as DAgger shards (``source="dagger"``, ``iteration=i``) through the dataset writer into
    ``<run>/dagger/iter-<i>/``; the DataModule mixes all DAgger folders so far with the open-loop data at
    ``data.open_loop_fraction`` ("fixed", the default; "grow" reproduces the reference's schedule).
