@@ -24,6 +24,8 @@ sys.path.insert(0, str(ROOT))
 
 from ttompc.data.config import DataConfig, GenerateConfig  # noqa: E402
 from ttompc.data.generate import generate  # noqa: E402
+from ttompc.data.schema import trajectory_features  # noqa: E402
+from ttompc.data.shards import ShardWriter, read_shard  # noqa: E402
 from ttompc.scenarios import get_scenario, list_scenarios  # noqa: E402
 from ttompc.scenarios.base import Problem, Scenario, Window  # noqa: E402
 from ttompc.solvers.scp import SCPResult, SCPStatus  # noqa: E402
@@ -71,13 +73,13 @@ def bench_generation(problems: int, workers: int, tmp: Path) -> dict[str, Any]:
     return out
 
 
-def bench_datamodule(rows: int, tmp: Path, batches: int = 60) -> dict[str, Any]:
+def bench_datamodule(rows_total: int, tmp: Path, batches: int = 60) -> dict[str, Any]:
     from ttompc.data.datamodule import TrajectoryDataModule
 
     root = tmp / "synthetic"
     cfg = GenerateConfig(
         scenario="freeflyer",
-        problems=rows // 2,
+        problems=rows_total // 2,
         out=str(root),
         shard_size=500,
         workers=1,
@@ -85,15 +87,21 @@ def bench_datamodule(rows: int, tmp: Path, batches: int = 60) -> dict[str, Any]:
         card_dir=None,
     )
     generate(cfg, progress=False)
-    result: dict[str, Any] = {"rows": rows, "batch_size": 256, "context_length": 100}
-    for workers in (0, 2):
+    dagger = tmp / "dagger"  # the same rows relabelled as DAgger rows, written through the shared writer
+    writer = ShardWriter(dagger, trajectory_features(get_scenario("freeflyer")))
+    for k, f in enumerate(sorted((root / "train").glob("*.parquet"))):
+        rows = [dict(r, source="dagger", iteration=0) for r in read_shard(f).with_format("numpy")]
+        writer.write(rows, k)
+    result: dict[str, Any] = {"rows": rows_total, "batch_size": 256, "context_length": 100}
+    for label, workers, dirs in (("workers0", 0, []), ("workers2", 2, []), ("mix0.7_workers0", 0, [str(dagger)])):
         dm = TrajectoryDataModule(
             DataConfig(
                 paths=[str(root)],
+                dagger_dirs=dirs,
+                open_loop_fraction=0.7,
                 batch_size=256,
                 num_workers=workers,
                 train_batches_per_epoch=batches + 5,
-                shuffle_pool=4096,
             )
         )
         dm.setup("fit")
@@ -102,7 +110,7 @@ def bench_datamodule(rows: int, tmp: Path, batches: int = 60) -> dict[str, Any]:
             next(it)
         t0 = time.perf_counter()
         n = sum(len(next(it)["problem_id"]) for _ in range(batches))
-        result[f"samples_per_s_workers{workers}"] = round(n / (time.perf_counter() - t0))
+        result[f"samples_per_s_{label}"] = round(n / (time.perf_counter() - t0))
     return result
 
 
