@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from ttompc.data.stats import EPS, NormStats
+from ttompc.model.config import TOKENS_PER_STEP
 from ttompc.model.gpt import KVCache, TrajectoryGPT
 from ttompc.scenarios.base import BatchedModel, CostNorm
 
@@ -197,7 +198,7 @@ class RolloutContext:
         try:
             S, A, R, C = [self.states[:, -1]], [], [self.rtg[:, -1]], [self.ctg[:, -1]]
             goal = self.goals[:, -1]  # the target is held over the generated window
-            cache = self._history_cache().fork() if self.use_cache else None
+            cache = self._history_cache().fork(TOKENS_PER_STEP * horizon) if self.use_cache else None
             for j in range(horizon):
                 k = t0 + j
                 if cache is not None:

@@ -29,15 +29,24 @@ _ACTIVATIONS = {"relu": nn.ReLU, "gelu": nn.GELU, "silu": nn.SiLU}
 
 
 class KVCache:
-    """Preallocated keys/values per layer, (B, heads, 5·max_steps, head_dim), and the number of tokens filled.
+    """Preallocated keys/values per layer, (B, heads, capacity, head_dim) with capacity 5·max_steps unless given,
+    and the number of tokens filled.
 
     ``fork()`` copies the filled prefix so a speculative rollout can extend the copy while the original (e.g. the
     executed MPC history) stays untouched.
     """
 
-    def __init__(self, cfg: ModelConfig, batch: int, dtype: torch.dtype, device: torch.device | str) -> None:
+    def __init__(
+        self,
+        cfg: ModelConfig,
+        batch: int,
+        dtype: torch.dtype,
+        device: torch.device | str,
+        capacity: int | None = None,
+    ) -> None:
         head_dim = cfg.n_embd // cfg.n_head
-        shape = (cfg.n_layer, batch, cfg.n_head, cfg.max_tokens, head_dim)
+        self.cfg = cfg
+        shape = (cfg.n_layer, batch, cfg.n_head, capacity or cfg.max_tokens, head_dim)
         self.k = torch.zeros(shape, dtype=dtype, device=device)
         self.v = torch.zeros(shape, dtype=dtype, device=device)
         self.length = 0
@@ -61,10 +70,13 @@ class KVCache:
     def advance(self, n_tokens: int) -> None:
         self.length += n_tokens
 
-    def fork(self) -> KVCache:
-        new = KVCache.__new__(KVCache)
-        new.k = torch.zeros_like(self.k)
-        new.v = torch.zeros_like(self.v)
+    def fork(self, extra_tokens: int | None = None) -> KVCache:
+        """A copy of the filled prefix with room for ``extra_tokens`` more (default: the parent's capacity), so
+        short MPC rollouts do not allocate a full-length cache."""
+        capacity = (
+            self.capacity if extra_tokens is None else min(self.length + extra_tokens, self.cfg.max_tokens)
+        )
+        new = KVCache(self.cfg, self.k.shape[1], self.k.dtype, self.k.device, capacity=capacity)
         new.k[:, :, :, : self.length] = self.k[:, :, :, : self.length]
         new.v[:, :, :, : self.length] = self.v[:, :, :, : self.length]
         new.length = self.length
@@ -193,9 +205,9 @@ class TrajectoryGPT(nn.Module):
             cache.advance(tokens.shape[1])
         return self.ln_f(x)
 
-    def new_cache(self, batch: int) -> KVCache:
+    def new_cache(self, batch: int, capacity: int | None = None) -> KVCache:
         p = next(self.parameters())
-        return KVCache(self.cfg, batch, dtype=p.dtype, device=p.device)
+        return KVCache(self.cfg, batch, dtype=p.dtype, device=p.device, capacity=capacity)
 
     # ------------------------------------------------------------------------------------------ training path
     def forward(
