@@ -26,7 +26,7 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     ol = root / "fake-ol"
     generate(
         GenerateConfig(
-            scenario="fake",
+            scenario="data-fake",
             problems=120,
             out=str(ol),
             shard_size=20,
@@ -38,7 +38,7 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         ),
         progress=False,
     )
-    sc = get_scenario("fake")
+    sc = get_scenario("data-fake")
     dirs = {}
     for it, count in ((0, 40), (1, 20)):  # two DAgger iterations written through the shared writer API
         writer = ShardWriter(root / f"dagger-{it}", trajectory_features(sc))
@@ -87,7 +87,7 @@ def _stored(root: Path, split: str) -> dict[tuple[int, int], dict]:
 
 def test_batch_contract_windows_and_values(data: dict[str, Path]) -> None:
     dm = _dm(data, context_length=5)
-    assert dm.scenario_name == "fake" and dm.n_steps == N
+    assert dm.scenario_name == "data-fake" and dm.n_steps == N
     batch = next(iter(dm.train_dataloader()))
     B, L = 32, 5
     shapes = {
@@ -249,4 +249,4 @@ def test_lightning_fit_streams_new_batches_each_epoch(data: dict[str, Path], tmp
     assert [e for e, _ in probe.seen] == [0, 0, 0, 1, 1, 1]
     assert [ids for e, ids in probe.seen if e == 0] != [ids for e, ids in probe.seen if e == 1]
     assert probe.val_rows == 2 * len(_stored(data["ol"], "val"))
-    assert dm.stats is not None and dm.scenario_name == "fake"
+    assert dm.stats is not None and dm.scenario_name == "data-fake"

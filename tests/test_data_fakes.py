@@ -32,7 +32,7 @@ OBSTACLE, RADIUS = np.array([0.5, 0.5]), 0.2
 
 @register
 class FakeScenario(Scenario):
-    name: ClassVar[str] = "fake"
+    name: ClassVar[str] = "data-fake"
     version: ClassVar[str] = "0.1"
     n_steps: ClassVar[int] = 12
     cost_norm = "l1"

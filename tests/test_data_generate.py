@@ -24,7 +24,7 @@ PROBLEMS, SHARD = 60, 16
 
 def _cfg(out: Path, **kw) -> GenerateConfig:
     base = dict(
-        scenario="fake",
+        scenario="data-fake",
         problems=PROBLEMS,
         out=str(out),
         shard_size=SHARD,
@@ -63,7 +63,7 @@ def test_problem_seeds_are_distinct_and_independent_of_workers() -> None:
 
 def test_rows_failures_and_counts(dataset: tuple[Path, dict]) -> None:
     out, manifest = dataset
-    sc = get_scenario("fake")
+    sc = get_scenario("data-fake")
     rows = _rows(out)
     failures = {f["problem_id"]: f for f in manifest["failures"]}
     for pid in range(PROBLEMS):  # the fake's failure rules, recomputed from the seed
@@ -82,7 +82,7 @@ def test_rows_failures_and_counts(dataset: tuple[Path, dict]) -> None:
 
 def test_rtg_ctg_and_representations_match_recomputation(dataset: tuple[Path, dict]) -> None:
     out, _ = dataset
-    sc = get_scenario("fake")
+    sc = get_scenario("data-fake")
     rows = _rows(out)
     assert any(r["ctg"][0] > 0 for r in rows), "some trajectories should cross the keep-out zone"
     for r in rows:
@@ -210,7 +210,7 @@ def test_cli_generate_writes_dataset_and_card_copy(tmp_path: Path, capsys: pytes
     argv = [
         "generate",
         "--scenario",
-        "fake",
+        "data-fake",
         "--problems",
         "12",
         "--out",

@@ -16,7 +16,7 @@ from ttompc.scenarios import get_scenario
 
 
 def _rows(n: int, source: str = "scp") -> list[dict]:
-    sc = get_scenario("fake")
+    sc = get_scenario("data-fake")
     rng = np.random.default_rng(0)
     rows = []
     for i in range(n):
@@ -47,7 +47,7 @@ def _rows(n: int, source: str = "scp") -> list[dict]:
 
 
 def test_round_trip_equals_written_rows(tmp_path: Path) -> None:
-    sc = get_scenario("fake")
+    sc = get_scenario("data-fake")
     rows = _rows(5) + _rows(3, "dagger")
     feats = trajectory_features(sc)
     write_shard(rows, tmp_path / "s.parquet", feats)
@@ -67,7 +67,7 @@ def test_round_trip_equals_written_rows(tmp_path: Path) -> None:
 
 
 def test_shard_writer_layout_and_checksum(tmp_path: Path) -> None:
-    writer = ShardWriter(tmp_path / "dagger-it0", trajectory_features(get_scenario("fake")))
+    writer = ShardWriter(tmp_path / "dagger-it0", trajectory_features(get_scenario("data-fake")))
     info = writer.write(_rows(4, "dagger"), index=3, split="val")
     assert info.path == "val/shard-00003.parquet" and info.rows == 4
     assert info.sha256 == sha256_file(tmp_path / "dagger-it0" / info.path)
@@ -79,9 +79,9 @@ def test_rows_not_matching_schema_are_rejected(tmp_path: Path) -> None:
     rows = _rows(2)
     del rows[1]["ctg"]
     with pytest.raises(ValueError, match=r"row 1 .*missing \['ctg'\]"):
-        write_shard(rows, tmp_path / "s.parquet", trajectory_features(get_scenario("fake")))
+        write_shard(rows, tmp_path / "s.parquet", trajectory_features(get_scenario("data-fake")))
     with pytest.raises(ValueError, match="expected states"):
-        sc = get_scenario("fake")
+        sc = get_scenario("data-fake")
         make_row(
             sc,
             sc.sample(np.random.default_rng(0)),
@@ -95,7 +95,7 @@ def test_rows_not_matching_schema_are_rejected(tmp_path: Path) -> None:
 
 def test_corrupt_and_truncated_shards_name_the_file(tmp_path: Path) -> None:
     path = tmp_path / "train" / "shard-00000.parquet"
-    write_shard(_rows(3), path, trajectory_features(get_scenario("fake")))
+    write_shard(_rows(3), path, trajectory_features(get_scenario("data-fake")))
     sha = sha256_file(path)
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF
