@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Iterator
 
 import mpc_fakes
 import numpy as np
@@ -14,6 +15,15 @@ from ttompc.mpc import DISTProvider, MPCController, RELProvider, ShiftProvider, 
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import Window
 from ttompc.solvers.scp import SCPResult, SCPStatus, solve_problem, solve_rel
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread() -> Iterator[None]:
+    """Batch-1 rollouts: extra threads only spin on a shared machine."""
+    from ttompc.evaluation.common import single_torch_thread
+
+    with single_torch_thread():
+        yield
 
 
 @pytest.fixture(scope="module")

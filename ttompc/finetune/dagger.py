@@ -289,10 +289,12 @@ def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[Any]:
 
 
 def _closed_loop(cfg: FinetuneConfig, planner: Any, problems: list[Any]) -> dict[str, float]:
+    from ttompc.evaluation.common import single_torch_thread
     from ttompc.evaluation.horizon import closed_loop_metrics
 
     e = cfg.dagger.eval
-    metrics, _ = closed_loop_metrics(planner, problems, e.horizon, max_steps=e.max_steps)
+    with single_torch_thread():
+        metrics, _ = closed_loop_metrics(planner, problems, e.horizon, max_steps=e.max_steps)
     return metrics
 
 

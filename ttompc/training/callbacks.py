@@ -15,7 +15,7 @@ from typing import Any
 
 import lightning as L
 
-from ttompc.evaluation.common import EvalProblem, eval_problem
+from ttompc.evaluation.common import EvalProblem, eval_problem, single_torch_thread
 from ttompc.mpc.loop import Mode
 
 
@@ -79,10 +79,11 @@ class ClosedLoopEvalCallback(L.Callback):
         model = pl_module.model
         was_training = model.training
         try:
-            planner = Planner(model, get_scenario(name), pl_module.stats)
-            metrics, episodes = closed_loop_metrics(
-                planner, problems, self.horizon, mode=self.mode, max_steps=self.max_steps, backend=self.backend
-            )
+            with single_torch_thread():
+                planner = Planner(model, get_scenario(name), pl_module.stats)
+                metrics, episodes = closed_loop_metrics(
+                    planner, problems, self.horizon, mode=self.mode, max_steps=self.max_steps, backend=self.backend
+                )
         finally:
             model.train(was_training)
         return metrics, episodes, problems
