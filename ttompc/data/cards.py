@@ -90,6 +90,13 @@ def render_card(manifest: dict[str, Any]) -> str:
     header = yaml.safe_dump(front_matter(manifest), sort_keys=False, allow_unicode=True)
     fails = ", ".join(f"{k}: {v}" for k, v in counts["failures"].items())
 
+    fr = gen["splits"]
+    reproduce = (
+        f"ttompc generate --scenario {sc['name']} --problems {gen['problems']} --seed {manifest['root_seed']} "
+        f"--shard-size {gen['shard_size']} --splits {fr['train']},{fr['val']},{fr['test']} --split-salt {fr['salt']} "
+        f"--out data/{manifest['name']}" + (f" --backend {gen['backend']}" if gen["backend"] else "")
+    )
+
     def fmt(x: float | None, spec: str) -> str:
         return "n/a" if x is None else format(x, spec)
 
@@ -123,7 +130,8 @@ N = {sc["n_steps"]} steps, all arrays with fixed shapes (float32 unless stated; 
 ## Generation procedure
 Problem i is sampled with `numpy.random.default_rng(seed_i)`, seed_i from `SeedSequence({manifest["root_seed"]},
 spawn_key=(i,))`, so the dataset does not depend on the number of workers or ranks. Solver: `{gen["solver"]}`
-(backend: {gen["backend"] or "default"}). A REL or SCP solve that is not optimal/feasible is not stored; it is
+(backend: {gen["backend"] or "default"}). Reproduce (any number of workers or ranks, resumable):
+`{reproduce}`. A REL or SCP solve that is not optimal/feasible is not stored; it is
 recorded in the manifest's `failures` list (problem_id, seed, stage, status). Failures by stage: {fails}.
 
 {solver_lines}
