@@ -98,6 +98,13 @@ def test_one_dagger_iteration_end_to_end_and_resume(tmp_path: Path, dataset: Pat
                                          shuffle_pool=6, context_length=40, open_loop_fraction=0.0))  # fmt: skip
     dm.setup("fit")
     assert len(dm._dagger["train"]) == 2
+    # aggregation ratio: fixed open-loop fraction, or the reference's schedule (9:1 at the first iteration)
+    for share, expected in (("fixed", 0.9), ("grow", 0.9)):
+        mix = DataConfig(paths=[str(dataset)], dagger_dirs=[str(folder)], context_length=40,
+                         open_loop_fraction=0.9, closed_loop_share=share)  # fmt: skip
+        mixed = TrajectoryDataModule(mix)
+        mixed.setup("fit")
+        assert mixed.open_loop_fraction() == pytest.approx(expected)
     batch = next(iter(dm.train_dataloader()))
     assert set(batch["source"].tolist()) == {2}
     assert {int(p) // 10_000_000 for p in batch["problem_id"]} == {0}
