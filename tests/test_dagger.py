@@ -26,6 +26,16 @@ def test_recipes_load() -> None:
         assert cfg.dagger.iterations >= 1 and 0 < cfg.data.open_loop_fraction <= 1
 
 
+def test_cli_takes_overrides_before_and_after_from(capsys: pytest.CaptureFixture[str]) -> None:
+    from ttompc.cli import main
+
+    recipe = str(RECIPES / "freeflyer" / "finetune-tiny.yaml")
+    for argv in (["--from", "m", "dagger.iterations=7"], ["dagger.iterations=7", "--from", "m"]):
+        assert main(["finetune", recipe, *argv, "--print-config"]) == 0
+        assert json.loads(capsys.readouterr().out)["dagger"]["iterations"] == 7
+    assert main(["finetune", recipe, "dagger.nope=1"]) == 2
+
+
 def test_expert_schedule_and_seeds() -> None:
     for s in range(20):
         mask = expert_schedule(np.random.default_rng(s), 100, ExplorationConfig())

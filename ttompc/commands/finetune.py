@@ -16,7 +16,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "overrides", nargs="*", metavar="key=value", help="dot-list overrides, e.g. dagger.iterations=3"
     )
-    parser.add_argument("--from", dest="source", required=False, help="pretrained model: .ckpt, bundle or zoo name")
+    # nargs="+": overrides may also follow the model (`--from MODEL key=value ...`), which a plain positional list
+    # cannot take after an option
+    parser.add_argument(
+        "--from",
+        dest="source",
+        nargs="+",
+        metavar="MODEL",
+        help="pretrained model (.ckpt, bundle directory or zoo name), optionally followed by key=value overrides",
+    )
     parser.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
 
 
@@ -24,20 +32,21 @@ def run(args: argparse.Namespace) -> int:
     from ttompc.config import ConfigError, to_container
     from ttompc.finetune.config import load_finetune_config
 
+    source, *more = args.source or [None]
     try:
-        cfg = load_finetune_config(args.recipe, args.overrides)
+        cfg = load_finetune_config(args.recipe, [*args.overrides, *more])
     except ConfigError as err:
         print(f"ttompc finetune: {err}", file=sys.stderr)
         return 2
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
-    if not args.source:
+    if source is None:
         print("ttompc finetune: --from MODEL is required", file=sys.stderr)
         return 2
     from ttompc.finetune.dagger import finetune
 
-    result = finetune(cfg, args.source)
+    result = finetune(cfg, source)
     print(
         json.dumps(
             {
