@@ -325,7 +325,8 @@ class Scenario(abc.ABC):
 
     # ------------------------------------------------------------------------------------------------ plotting
     def plot(self, ax: Any, problem: Problem, trajectories: dict[str, np.ndarray]) -> None:
-        """Draw keep-out zones and trajectories (dict label -> states (T, n)) on a matplotlib axis."""
+        """Draw keep-out zones and trajectories (dict label -> optimisation-representation states (T, n) from step
+        0) on a matplotlib axis (RPOD accepts an array of axes for several projections)."""
         for label, X in trajectories.items():
             ax.plot(X[:, 0], X[:, 1], label=label)
         ax.legend()
