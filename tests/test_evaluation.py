@@ -164,3 +164,36 @@ def test_closed_loop_callback_logs_metrics(tmp_path: Path) -> None:
         assert np.isfinite(float(rows[-1][key]))
     assert float(rows[-1]["mpc/step_time_max"]) >= float(rows[-1]["mpc/step_time_mean"]) > 0
     assert len(list((tmp_path / "plots").glob("mpc_trajectory_*.png"))) == 2
+
+
+def test_recipe_section_wires_the_callback_into_training(tmp_path: Path) -> None:
+    """``callbacks.eval_mpc`` in a training recipe adds the callback to ``train()``."""
+    import lightning as L
+
+    from ttompc.training.config import load_train_config
+    from ttompc.training.run import train
+
+    planner = mpc_fakes.tiny_planner()
+
+    class RandomData(L.LightningDataModule):
+        def setup(self, stage: str | None = None) -> None:
+            self.stats, self.scenario_name = planner.stats, SHORT
+
+        def train_dataloader(self) -> Any:
+            return _random_batches(2)
+
+        def val_dataloader(self) -> Any:
+            return _random_batches(1)
+
+    m = planner.model.cfg
+    cfg = load_train_config(
+        overrides=[
+            f"model.n_embd={m.n_embd}", f"model.n_layer={m.n_layer}", f"model.n_head={m.n_head}",
+            f"model.max_steps={m.max_steps}", "trainer.max_steps=2", "trainer.max_epochs=1", "trainer.accelerator=cpu",
+            f"trainer.out_dir={tmp_path}", "trainer.export_planner=false", "trainer.log_every_n_steps=1",
+            "logger.kind=csv", "logger.plot_trajectories=false", "callbacks.eval_mpc.enabled=true",
+            "callbacks.eval_mpc.problems=1", "callbacks.eval_mpc.horizon=5", "callbacks.eval_mpc.max_steps=2",
+        ]
+    )  # fmt: skip
+    train(cfg, RandomData())
+    assert "mpc/cost" in (tmp_path / "logs" / "metrics.csv").read_text()

@@ -50,10 +50,9 @@ class ClosedLoopEvalCallback(L.Callback):
             scenario,
             problems=cfg.problems,
             horizon=cfg.horizon,
-            max_steps=getattr(cfg, "max_steps", None),
+            max_steps=cfg.max_steps,
             every_n_val=cfg.every_n_epochs,
-            seed=getattr(cfg, "seed", 0),
-            plot=getattr(cfg, "plot", True),
+            seed=cfg.seed,
         )
 
     def problems(self, scenario_name: str) -> list[EvalProblem]:

@@ -83,12 +83,15 @@ class LoggerConfig:
 
 @dataclass
 class EvalMPCConfig:
-    """Closed-loop MPC evaluation during training (the callback is provided by the evaluation code)."""
+    """Closed-loop TTO-MPC evaluation during training (``ttompc.training.callbacks.ClosedLoopEvalCallback``), every
+    ``every_n_epochs`` validation runs (counted, so step-based validation of endless epochs works too)."""
 
     enabled: bool = False
     every_n_epochs: int = 1
     problems: int = 8
     horizon: int = 10
+    max_steps: int | None = None  # MPC steps per episode (None: whole episodes)
+    seed: int = 0  # root seed of the held-out evaluation problems
 
 
 @dataclass

@@ -103,6 +103,10 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     ]
     if logger is not None:
         all_callbacks.append(LearningRateMonitor(logging_interval="step"))
+    if cfg.callbacks.eval_mpc.enabled:
+        from ttompc.training.callbacks import ClosedLoopEvalCallback
+
+        all_callbacks.append(ClosedLoopEvalCallback.from_config(cfg.callbacks.eval_mpc, scenario.name))
     t = cfg.trainer
     vci = t.val_check_interval
     trainer = L.Trainer(
