@@ -161,8 +161,9 @@ def bench_model(name: str, cfg: ModelConfig, quick: bool, fast_paths: bool) -> d
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions and batch 16 (smoke run)")
+    parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     args = parser.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     load_before = os.getloadavg()[0]
     _, dyn_name = dynamics()
     paper = bench_model("paper 384/6/6", ModelConfig(), args.quick, fast_paths=True)
