@@ -173,6 +173,26 @@ def test_tiny_run_logs_resumes_and_exports(tmp_path: Path, wandb_offline: Path) 
     np.testing.assert_allclose(Xa[:, 0], np.stack([p.x0 for p in problems]))  # back in the optimisation frame
 
 
+class _CrashAt(L.Callback):
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: object) -> None:
+        if trainer.global_step == self.step:
+            raise RuntimeError("simulated crash")
+
+
+def test_crashed_run_resumes_from_exception_checkpoint(tmp_path: Path) -> None:
+    """A run that dies between periodic checkpoints resumes where it died, not at the last periodic save."""
+    out = tmp_path / "crash"
+    cfg = tiny_config(out, "trainer.max_steps=8", "logger.kind=none", "trainer.checkpoint_every_n_steps=100")
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(cfg, ToyDataModule(n=32), callbacks=[_CrashAt(5)])
+    assert not (out / "checkpoints" / "last.ckpt").exists()
+    res = train(cfg, ToyDataModule(n=32))
+    assert res.start_step == 5 and res.global_step == 8
+
+
 def test_csv_logger_and_cosine_schedule(tmp_path: Path) -> None:
     out = tmp_path / "csv"
     res = train(
