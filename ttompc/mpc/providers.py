@@ -57,9 +57,8 @@ class Provider(Protocol):
         """The executed control, the measured next state and the solved window plan (for shifting)."""
 
 
-def _terminal(
-    scenario: Scenario, window: Window, target: np.ndarray, weights: np.ndarray | float
-) -> TerminalCost | None:
+def _terminal(window: Window, target: np.ndarray, weights: np.ndarray | float) -> TerminalCost | None:
+    """The soft terminal term of a window that stops early; None when it reaches the end (the loop decides)."""
     return None if window.reaches_end else TerminalCost(target=target, weights=np.asarray(weights, dtype=np.float64))
 
 
@@ -83,7 +82,7 @@ class RELProvider:
         else:  # an unconverged REL is still a usable guess; the straight line is the last resort
             X, U = sc.initial_guess(p, window, x)
         X[0] = x
-        return WarmStart(X, U, _terminal(sc, window, X[-1], sc.mpc.terminal))
+        return WarmStart(X, U, _terminal(window, X[-1], sc.mpc.terminal))
 
     def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
         return None
@@ -102,7 +101,7 @@ class DISTProvider:
 
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
         sc, p = self.scenario, self.problem
-        terminal = _terminal(sc, window, p.goal, np.asarray(sc.mpc.dist, dtype=np.float64))
+        terminal = _terminal(window, p.goal, np.asarray(sc.mpc.dist, dtype=np.float64))
         if terminal is None:  # the window reaches the end: the REL carries the end condition itself
             terminal_rel = TerminalCost(p.goal, sc.mpc.end)
         else:
@@ -155,7 +154,7 @@ class TTOProvider:
         X = self.scenario.from_model_states(self.problem, S, start=window.start)
         X[0] = x  # the measured state, exactly (the context holds it in the model dtype)
         U = res.actions[0].double().cpu().numpy()
-        return WarmStart(X, U, _terminal(self.scenario, window, X[-1], self.scenario.mpc.terminal))
+        return WarmStart(X, U, _terminal(window, X[-1], self.scenario.mpc.terminal))
 
     def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
         assert self.context is not None
@@ -188,7 +187,7 @@ class ShiftProvider:
         else:
             X, U = self.X[: window.length + 1].copy(), self.U[: window.length].copy()
         X[0] = x
-        return WarmStart(X, U, _terminal(self.scenario, window, X[-1], self.scenario.mpc.terminal))
+        return WarmStart(X, U, _terminal(window, X[-1], self.scenario.mpc.terminal))
 
     def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
         self.X, self.U = plan_X[1:], plan_U[1:]
