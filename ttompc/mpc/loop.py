@@ -24,9 +24,8 @@ from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import SCPResult, TerminalCost, solve_scp
 
 Mode = Literal["soft", "hard"]
-# ‖x_N − goal‖₂ accepted as "reached" in soft mode: the end penalty cannot cancel a residual velocity below one
-# step's thrust (free-flyer: 0.01 m/s per step, we measured terminal errors of ~0.0105 for REL-MPC at H = 10).
-TERMINAL_TOL = 5e-2
+# Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol: the soft end penalty cannot cancel
+# a residual velocity below one step's thrust (free-flyer: 0.01 m/s per step; REL-MPC at H = 10 ends ~0.0105 away).
 
 
 @dataclass
@@ -164,7 +163,7 @@ def episode_metrics(
     X: np.ndarray,
     U: np.ndarray,
     *,
-    terminal_tol: float = TERMINAL_TOL,
+    terminal_tol: float | None = None,
     path_tol: float = 1e-3,
 ) -> dict[str, float | int | bool]:
     """Feasibility of an executed trajectory: terminal error, keep-out violations, exact path violation."""
@@ -173,7 +172,8 @@ def episode_metrics(
     err = float(np.linalg.norm(X[-1] - problem.goal)) if complete else float("nan")
     koz = int(np.sum(scenario.violations(problem, X)))
     path = scenario.path_violation(problem, X, U, Window(0, T, problem.n_steps)) if T else 0.0
-    feasible = koz == 0 and path <= path_tol and (not complete or err <= terminal_tol)
+    tol = scenario.terminal_tol if terminal_tol is None else terminal_tol
+    feasible = koz == 0 and path <= path_tol and (not complete or err <= tol)
     return {
         "terminal_error": err,
         "keepout_violations": koz,
@@ -193,7 +193,7 @@ def run_mpc(
     mode: Mode = "soft",
     max_steps: int | None = None,
     backend: str = "auto",
-    terminal_tol: float = TERMINAL_TOL,
+    terminal_tol: float | None = None,
 ) -> Episode:
     """Run receding-horizon control from x0 for N steps (or ``max_steps``) with the exact dynamics.
 

@@ -201,6 +201,9 @@ class Scenario(abc.ABC):
     # variables keep the conic solvers well conditioned; the RPOD ROE in metres vs Δv in m/s differ by 1e4)
     state_scale: ClassVar[tuple[float, ...]] = ()
     control_scale: ClassVar[tuple[float, ...]] = ()
+    # largest ‖x_N − goal‖ (optimisation representation) of a closed-loop episode counted as reaching the goal; soft
+    # MPC end penalties leave a small residual
+    terminal_tol: ClassVar[float] = 5e-2
     # what backend="auto" means for this scenario (see ttompc.solvers.engine.backend_chain)
     auto_backends: ClassVar[tuple[str, ...]] = ("qoco", "clarabel")
     state_labels: ClassVar[tuple[str, ...]]

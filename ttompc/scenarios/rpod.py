@@ -145,6 +145,7 @@ class Rpod(Scenario):
     control_scale: ClassVar[tuple[float, ...]] = (0.01, 0.01, 0.01)  # Δv [m/s]
     # QOCO solved only 7/10 RPOD problems (numerical errors on the cone/waypoint rows); Clarabel 10/10 and as fast
     auto_backends: ClassVar[tuple[str, ...]] = ("clarabel",)
+    terminal_tol: ClassVar[float] = 1.0  # m of ROE at the docking port (the KOZ semi-axes are 60-123 m)
     # Labels of the model representation (RTN), which is what datasets store and the transformer sees.
     state_labels = ("r_R [m]", "r_T [m]", "r_N [m]", "v_R [m/s]", "v_T [m/s]", "v_N [m/s]")
     control_labels = ("Δv_R [m/s]", "Δv_T [m/s]", "Δv_N [m/s]")

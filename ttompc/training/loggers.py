@@ -11,6 +11,12 @@ import numpy as np
 from ttompc.training.config import LoggerConfig
 
 
+def _next_version(root: Path) -> str:
+    """``session-N``: one more than the sessions already logged under ``root``."""
+    existing = [p for p in root.glob("session-*") if p.is_dir()] if root.is_dir() else []
+    return f"session-{len(existing)}"
+
+
 def build_logger(cfg: LoggerConfig, out_dir: Path, config: dict[str, Any]) -> Any:
     """The Lightning logger for ``cfg.kind`` writing under ``out_dir``, with the full config logged; None for
     ``kind: none``."""
@@ -19,8 +25,8 @@ def build_logger(cfg: LoggerConfig, out_dir: Path, config: dict[str, Any]) -> An
 
     if cfg.kind == "none":
         return None
-    if cfg.kind == "csv":
-        logger = loggers.CSVLogger(save_dir=str(out_dir), name="logs", version="")
+    if cfg.kind == "csv":  # a new version folder per (resumed) session: Lightning would overwrite metrics.csv
+        logger = loggers.CSVLogger(save_dir=str(out_dir), name="logs", version=_next_version(out_dir / "logs"))
     elif cfg.kind == "tensorboard":
         logger = loggers.TensorBoardLogger(save_dir=str(out_dir), name="tb", version="")
     else:
