@@ -75,7 +75,7 @@ class OSQPBackend:
     name = "osqp"
     supports_cones = False
 
-    def __init__(self, sub: AssembledSubproblem, eps: float = 1e-7, max_iter: int = 20000) -> None:
+    def __init__(self, sub: AssembledSubproblem, eps: float = 1e-4, max_iter: int = 20000) -> None:
         import osqp
 
         _reject_cones(sub, self.name)
