@@ -100,7 +100,7 @@ def test_one_dagger_iteration_end_to_end_and_resume(tmp_path: Path, dataset: Pat
     assert Planner.load(it0["planner"]).extra["dagger_iteration"] == 0
     for m in (state["baseline_metrics"], it0["metrics"]):
         assert {"cost", "cost_increment", "feasible_rate", "step_time_max"} <= set(m)
-    assert "dagger/cost" in (run / "logs" / "metrics.csv").read_text()
+    assert "dagger/cost" in (run / "logs" / "session-0" / "metrics.csv").read_text()
 
     # the DataModule reads the DAgger shards back: source, iteration, consistent expert labels
     folder = run / "dagger" / "iter-000"

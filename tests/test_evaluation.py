@@ -196,4 +196,4 @@ def test_recipe_section_wires_the_callback_into_training(tmp_path: Path) -> None
         ]
     )  # fmt: skip
     train(cfg, RandomData())
-    assert "mpc/cost" in (tmp_path / "logs" / "metrics.csv").read_text()
+    assert "mpc/cost" in (tmp_path / "logs" / "session-0" / "metrics.csv").read_text()

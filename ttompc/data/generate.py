@@ -15,7 +15,6 @@ writes ``manifest.json`` and the dataset card once every shard exists.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import importlib
 import json
@@ -34,6 +33,7 @@ from ttompc.data.distributed import RankInfo, rank_info, strided
 from ttompc.data.schema import SCHEMA_VERSION, make_row, trajectory_features
 from ttompc.data.shards import SPLITS, ShardError, ShardWriter, atomic_write_json, verify_shard
 from ttompc.data.stats import KEYS, NormStats
+from ttompc.parallel import single_threaded_env
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import InfeasibleProblemError, Scenario
 from ttompc.version import code_version
@@ -248,28 +248,13 @@ def _write_shard(
     return meta
 
 
-@contextlib.contextmanager
-def _single_threaded_blas() -> Iterator[None]:
-    """Spawned workers inherit the environment: one BLAS thread each so workers do not oversubscribe cores."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    old = {k: os.environ.get(k) for k in keys}
-    for k in keys:
-        os.environ.setdefault(k, "1")
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-
-
 def _outcomes(tasks: list[tuple[int, int]], workers: int, init_args: tuple) -> Iterator[dict[str, Any]]:
     """Results in task order: inline for one worker, else a spawn-context pool (no inherited RNG state)."""
     if workers <= 1:
         _init_worker(*init_args)
         yield from map(_solve_one, tasks)
         return
-    with _single_threaded_blas(), mp.get_context("spawn").Pool(workers, _init_worker, init_args) as pool:
+    with single_threaded_env(), mp.get_context("spawn").Pool(workers, _init_worker, init_args) as pool:
         yield from pool.imap(_solve_one, tasks, chunksize=1)
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import importlib
 import multiprocessing as mp
-import os
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -19,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ttompc.parallel import single_threaded_env
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import InfeasibleProblemError, Problem, Scenario
 from ttompc.solvers.scp import SCPResult, solve_rel
@@ -98,21 +98,6 @@ def scenario_module(name: str) -> str:
 
 
 @contextlib.contextmanager
-def _single_threaded() -> Iterator[None]:
-    """Spawned workers inherit the environment: one BLAS/OpenMP thread each, so workers do not oversubscribe."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    old = {k: os.environ.get(k) for k in keys}
-    for k in keys:
-        os.environ.setdefault(k, "1")
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-
-
-@contextlib.contextmanager
 def single_torch_thread() -> Iterator[None]:
     """Batch-1 rollouts are chains of tiny kernels: extra OpenMP threads only add spin-waiting (we measured a 10-step
     rollout 100x slower with 2 threads than with 1 on a shared 2-core machine). Restores the previous count."""
@@ -149,5 +134,5 @@ def pool_map(
             initializer(*initargs)
             yield from map(fn, tasks)
         return
-    with _single_threaded(), mp.get_context("spawn").Pool(min(workers, len(tasks)), initializer, initargs) as pool:
+    with single_threaded_env(), mp.get_context("spawn").Pool(min(workers, len(tasks)), initializer, initargs) as pool:
         yield from pool.imap(fn, tasks, chunksize=1)
