@@ -229,7 +229,9 @@ def test_planner_bundle_roundtrip(tmp_path: Path, toy, toy_stats: NormStats) -> 
     planner.save(tmp_path / "p")
     loaded = Planner.load(tmp_path / "p")
     problems = [toy.sample(np.random.default_rng(1))]
-    np.testing.assert_array_equal(planner.warm_start(problems, -2.0)[1], loaded.warm_start(problems, -2.0)[1])
+    X, U = planner.warm_start(problems, -2.0)
+    np.testing.assert_array_equal(U, loaded.warm_start(problems, -2.0)[1])
+    assert X.dtype == np.float64 and np.array_equal(X[0, 0], problems[0].x0)  # the SCP's fixed state, exactly
     meta = json.loads((tmp_path / "p" / "config.json").read_text())
     assert meta["scenario"] == {"name": "toy", "version": "0.1"} and meta["recipe"] == {"note": "test"}
     meta["scenario"]["version"] = "9.9"

@@ -149,6 +149,7 @@ class Planner:
         res = self.generate(problems, rtg0, ctg0, clipped=clipped)
         S = res.states.double().cpu().numpy()
         X = np.stack([self.scenario.from_model_states(p, S[i], start=0) for i, p in enumerate(problems)])
+        X[:, 0] = [p.x0 for p in problems]  # exact, not the model dtype's rounding: the SCP fixes this state
         return X, res.actions.double().cpu().numpy()
 
     # ----------------------------------------------------------------------------------------------- persistence

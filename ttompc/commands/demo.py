@@ -43,8 +43,7 @@ def run(args: argparse.Namespace) -> int:
             t0 = time.perf_counter()
             X, U = planner.warm_start([p], rtg0=-rel.cost, ctg0=0.0)
             t_tto = time.perf_counter() - t0
-            X_tto, U_tto = X[0].copy(), U[0]
-            X_tto[0] = p.x0
+            X_tto, U_tto = X[0], U[0]
             scp_tto = solve_scp(scenario, p, X_tto, U_tto)
             for name, res, ws in (("SCP(REL)", scp_rel, ep.rel_time), ("SCP(TTO)", scp_tto, t_tto)):
                 row[name] = {"cost": res.cost if res.success else float("nan"), "iterations": res.iterations,

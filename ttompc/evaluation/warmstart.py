@@ -77,9 +77,7 @@ def _run_problem(index: int) -> dict[str, Any]:
         t0 = time.perf_counter()
         X, U = planner.warm_start([p], rtg0=-rel.cost, ctg0=0.0)
         ws_time = time.perf_counter() - t0
-        X0 = X[0].copy()
-        X0[0] = p.x0
-        _record(row, name, solve_scp(sc, p, X0, U[0], backend=cfg.backend), ws_time, rel.cost)
+        _record(row, name, solve_scp(sc, p, X[0], U[0], backend=cfg.backend), ws_time, rel.cost)
     return row
 
 
