@@ -308,10 +308,9 @@ def _train_iteration(
     ckpt: Path,
 ) -> int:
     """Continue training for ``steps_per_iteration`` steps on open-loop + DAgger data; returns the global step."""
-    import lightning as L
-
     from ttompc.data.datamodule import TrajectoryDataModule
     from ttompc.training.module import TrajectoryTransformerModule
+    from ttompc.training.run import build_trainer
     from ttompc.version import code_version
 
     dm = TrajectoryDataModule(replace(cfg.data, dagger_dirs=dagger_dirs, seed=cfg.data.seed + iteration))
@@ -338,27 +337,9 @@ def _train_iteration(
     )
     if resume_from is None:
         module.model.load_state_dict(planner.model.state_dict())
-    t = cfg.trainer
-    vci = t.val_check_interval
-    trainer = L.Trainer(
-        max_steps=(iteration + 1) * cfg.dagger.steps_per_iteration,
-        val_check_interval=int(vci) if vci > 1 else vci,
-        check_val_every_n_epoch=None if vci > 1 else 1,
-        limit_val_batches=int(t.limit_val_batches) if t.limit_val_batches > 1 else t.limit_val_batches,
-        accelerator=t.accelerator,
-        devices=t.devices,
-        num_nodes=t.num_nodes,
-        strategy=t.strategy,
-        precision=t.precision,
-        gradient_clip_val=cfg.optim.grad_clip or None,
-        accumulate_grad_batches=cfg.optim.accumulate,
-        log_every_n_steps=t.log_every_n_steps,
-        num_sanity_val_steps=0,
-        default_root_dir=str(Path(t.out_dir)),
-        logger=logger if logger is not None else False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
+    trainer = build_trainer(
+        cfg.trainer, cfg.optim, Path(cfg.trainer.out_dir), logger,
+        max_steps=(iteration + 1) * cfg.dagger.steps_per_iteration, enable_checkpointing=False,
     )
     trainer.fit(module, datamodule=dm, ckpt_path=str(resume_from) if resume_from else None)
     trainer.save_checkpoint(ckpt)

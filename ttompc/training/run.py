@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ttompc.config import to_container
-from ttompc.training.config import TrainConfig
+from ttompc.training.config import OptimConfig, TrainConfig, TrainerConfig
 from ttompc.version import code_version
 
 
@@ -47,6 +47,46 @@ def resume_checkpoint(out_dir: str | Path) -> Path | None:
         if p.is_file()
     ]
     return max(found, key=lambda p: p.stat().st_mtime) if found else None
+
+
+def build_trainer(
+    t: TrainerConfig,
+    optim: OptimConfig,
+    out: Path,
+    logger: Any,
+    *,
+    max_steps: int,
+    max_epochs: int | None = None,
+    callbacks: list[Any] | None = None,
+    num_sanity_val_steps: int = 0,
+    enable_checkpointing: bool = True,
+) -> Any:
+    """The Lightning Trainer of a recipe's ``trainer``/``optim`` sections (pre-training and DAgger share it)."""
+    import lightning as L
+
+    vci = t.val_check_interval
+    return L.Trainer(
+        max_steps=max_steps,
+        max_epochs=max_epochs,
+        val_check_interval=int(vci) if vci > 1 else vci,
+        limit_val_batches=int(t.limit_val_batches) if t.limit_val_batches > 1 else t.limit_val_batches,
+        check_val_every_n_epoch=None if vci > 1 else 1,
+        accelerator=t.accelerator,
+        devices=t.devices,
+        num_nodes=t.num_nodes,
+        strategy=t.strategy,
+        precision=t.precision,
+        gradient_clip_val=optim.grad_clip or None,
+        accumulate_grad_batches=optim.accumulate,
+        log_every_n_steps=t.log_every_n_steps,
+        num_sanity_val_steps=num_sanity_val_steps,
+        default_root_dir=str(out),
+        logger=logger if logger is not None else False,
+        callbacks=callbacks or [],
+        enable_checkpointing=enable_checkpointing,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
 
 
 def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = ()) -> TrainResult:
@@ -108,28 +148,9 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
 
         all_callbacks.append(ClosedLoopEvalCallback.from_config(cfg.callbacks.eval_mpc, scenario.name))
     t = cfg.trainer
-    vci = t.val_check_interval
-    trainer = L.Trainer(
-        max_steps=t.max_steps,
-        max_epochs=t.max_epochs,
-        val_check_interval=int(vci) if vci > 1 else vci,
-        limit_val_batches=int(t.limit_val_batches) if t.limit_val_batches > 1 else t.limit_val_batches,
-        check_val_every_n_epoch=None if vci > 1 else 1,
-        accelerator=t.accelerator,
-        devices=t.devices,
-        num_nodes=t.num_nodes,
-        strategy=t.strategy,
-        precision=t.precision,
-        gradient_clip_val=cfg.optim.grad_clip or None,
-        accumulate_grad_batches=cfg.optim.accumulate,
-        log_every_n_steps=t.log_every_n_steps,
+    trainer = build_trainer(
+        t, cfg.optim, out, logger, max_steps=t.max_steps, max_epochs=t.max_epochs, callbacks=all_callbacks,
         num_sanity_val_steps=t.num_sanity_val_steps,
-        default_root_dir=str(out),
-        logger=logger if logger is not None else False,
-        callbacks=all_callbacks,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        deterministic=False,
     )
     resume_from = resume_checkpoint(out) if t.resume else None
     start_step = _checkpoint_step(resume_from) if resume_from else 0
