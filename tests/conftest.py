@@ -71,7 +71,9 @@ class ToyScenario(Scenario):
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
         return (np.linalg.norm(X[:, :3], axis=-1) < 1.0).astype(int)
 
-    def path_violation(self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window) -> float:
+    def path_violation(
+        self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window, *, obstacles: bool = True
+    ) -> float:
         return 0.0
 
     def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _ToyTorch:

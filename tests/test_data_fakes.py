@@ -69,7 +69,9 @@ class FakeScenario(Scenario):
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
         return (np.linalg.norm(np.asarray(X)[:, :2] - OBSTACLE, axis=1) < RADIUS).astype(int)
 
-    def path_violation(self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window) -> float:
+    def path_violation(
+        self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window, *, obstacles: bool = True
+    ) -> float:
         return float(np.max(RADIUS - np.linalg.norm(X[:, :2] - OBSTACLE, axis=1), initial=0.0))
 
     def to_model_states(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
