@@ -72,6 +72,8 @@ class FakeScenario(Scenario):
     def path_violation(
         self, problem: Problem, X: np.ndarray, U: np.ndarray, window: Window, *, obstacles: bool = True
     ) -> float:
+        if not obstacles:
+            return 0.0
         return float(np.max(RADIUS - np.linalg.norm(X[:, :2] - OBSTACLE, axis=1), initial=0.0))
 
     def to_model_states(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
