@@ -103,6 +103,7 @@ def test_assembled_subproblem_matches_cvxpy(ff, terminal, trust) -> None:
 
 
 def test_backends_agree(ff) -> None:
+    pytest.importorskip("qoco")  # the optional fast extra
     p = ff.sample(np.random.default_rng(4))
     a = solve_rel(ff, p, backend="clarabel")
     b = solve_rel(ff, p, backend="qoco")
