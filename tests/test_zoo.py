@@ -102,8 +102,9 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.send_response(200)
         self.send_header("Content-Length", str(len(data) - start))
         self.end_headers()
-        self.wfile.write(data[start:])
+        # count before writing: the client can finish reading before this thread runs again
         self.server.sent += len(data) - start
+        self.wfile.write(data[start:])
 
     def log_message(self, *args: Any) -> None:
         pass
