@@ -71,9 +71,7 @@ def starts(batch: int) -> tuple[torch.Tensor, torch.Tensor]:
     return s0, goal
 
 
-def time_rollout(
-    model: torch.nn.Module, batch: int, use_cache: bool, reps: int, inference: bool = False
-) -> float:
+def time_rollout(model: torch.nn.Module, batch: int, use_cache: bool, reps: int, inference: bool = False) -> float:
     dyn, _ = dynamics()
     s0, goal = starts(batch)
     times = []
@@ -91,10 +89,7 @@ def estimate_full_recompute(model: TrajectoryGPT, batch: int, points: tuple[int,
     g = torch.Generator().manual_seed(1)
     measured = []
     for L in points:
-        x = [
-            torch.randn(batch, L, d, generator=g)
-            for d in (cfg.state_dim, 1, 1, cfg.state_dim, cfg.control_dim)
-        ]
+        x = [torch.randn(batch, L, d, generator=g) for d in (cfg.state_dim, 1, 1, cfg.state_dim, cfg.control_dim)]
         ts = torch.arange(L).expand(batch, -1)
         with torch.no_grad():
             model(x[0], x[1], x[2], x[3], x[4], ts)  # warm-up
@@ -111,9 +106,7 @@ def action_deviation(fast: torch.nn.Module, ref: TrajectoryGPT) -> float:
     dyn, _ = dynamics()
     s0, goal = starts(4)
     a = rollout(ref, stats(), dyn, "l1", s0, goal, -1.0, 0.0, STEPS).actions
-    b = rollout(
-        fast, stats(), dyn, "l1", s0.to(_dtype(fast)), goal.to(_dtype(fast)), -1.0, 0.0, STEPS
-    ).actions
+    b = rollout(fast, stats(), dyn, "l1", s0.to(_dtype(fast)), goal.to(_dtype(fast)), -1.0, 0.0, STEPS).actions
     return float((a - b.float()).abs().max() / a.abs().max())
 
 

@@ -67,10 +67,13 @@ def speed(name: str, n_problems: int, n_naive: int) -> dict:
         "overhead_vs_raw_solver": ours["per_iter_s"] / ours["raw_solver_per_iter_s"],
         "max_rel_cost_diff": rel_diff,
     }
-    print(f"[{name}] ours {ours['per_iter_s'] * 1e3:.1f} ms/iter (raw solver {ours['raw_solver_per_iter_s'] * 1e3:.1f}"
-          f" ms, x{row['overhead_vs_raw_solver']:.2f}), solve median {ours['solve_median_s']:.3f} s | naive "
-          f"{naive['per_iter_s'] * 1e3:.0f} ms/iter, solve {naive['solve_mean_s']:.2f} s | speed-up "
-          f"x{row['speedup_per_iter']:.1f} | max rel cost diff {rel_diff}", flush=True)
+    print(
+        f"[{name}] ours {ours['per_iter_s'] * 1e3:.1f} ms/iter (raw solver {ours['raw_solver_per_iter_s'] * 1e3:.1f}"
+        f" ms, x{row['overhead_vs_raw_solver']:.2f}), solve median {ours['solve_median_s']:.3f} s | naive "
+        f"{naive['per_iter_s'] * 1e3:.0f} ms/iter, solve {naive['solve_mean_s']:.2f} s | speed-up "
+        f"x{row['speedup_per_iter']:.1f} | max rel cost diff {rel_diff}",
+        flush=True,
+    )
     return row
 
 
@@ -86,15 +89,22 @@ def robustness(n: int) -> dict:
             costs.append(scp.cost if good else np.nan)
             if not good:
                 fails.append(seed)
-        out[form] = {"failures": len(fails), "failure_rate": len(fails) / n, "failed_seeds": fails,
-                     "costs": np.array(costs)}
+        out[form] = {
+            "failures": len(fails),
+            "failure_rate": len(fails) / n,
+            "failed_seeds": fails,
+            "costs": np.array(costs),
+        }
     a, b = out["penalized"].pop("costs"), out["reference"].pop("costs")
     both = np.isfinite(a) & np.isfinite(b)
     out["both_succeed"] = int(both.sum())
     out["max_rel_cost_excess_vs_reference"] = float(np.max((a[both] - b[both]) / b[both])) if both.any() else None
-    print(f"[robustness, freeflyer, {n} problems] failures: penalized {out['penalized']['failures']}, reference "
-          f"{out['reference']['failures']}; where both succeed ({out['both_succeed']}) max relative cost excess of "
-          f"penalized over reference {out['max_rel_cost_excess_vs_reference']}", flush=True)
+    print(
+        f"[robustness, freeflyer, {n} problems] failures: penalized {out['penalized']['failures']}, reference "
+        f"{out['reference']['failures']}; where both succeed ({out['both_succeed']}) max relative cost excess of "
+        f"penalized over reference {out['max_rel_cost_excess_vs_reference']}",
+        flush=True,
+    )
     return out
 
 
@@ -102,16 +112,22 @@ def quadrotor_paths(n: int) -> dict:
     scenario = get_scenario("quadrotor")
     seeds = list(range(n))
     rows = {}
-    for label, kw in {"osqp-linf": {"backend": "osqp"}, "piqp-linf": {"backend": "piqp"},
-                      "conic-l2": {"backend": "auto"}, "conic-linf": {"backend": "auto", "trust_norm": "linf"}}.items():
+    for label, kw in {
+        "osqp-linf": {"backend": "osqp"},
+        "piqp-linf": {"backend": "piqp"},
+        "conic-l2": {"backend": "auto"},
+        "conic-linf": {"backend": "auto", "trust_norm": "linf"},
+    }.items():
         run_set(scenario, seeds[:1], **kw)
         r = run_set(scenario, seeds, **kw)
         costs = np.array(r.pop("costs"))
         r["mean_cost"] = float(np.nanmean(costs)) if np.isfinite(costs).any() else None
         rows[label] = r
-        print(f"[quadrotor {label}] {r['per_iter_s'] * 1e3:.1f} ms/iter, solve median {r['solve_median_s']:.3f} s, "
-              f"iters {r['mean_iterations']:.1f}, mean cost {r['mean_cost']}, success {r['success_rate']:.2f}",
-              flush=True)
+        print(
+            f"[quadrotor {label}] {r['per_iter_s'] * 1e3:.1f} ms/iter, solve median {r['solve_median_s']:.3f} s, "
+            f"iters {r['mean_iterations']:.1f}, mean cost {r['mean_cost']}, success {r['success_rate']:.2f}",
+            flush=True,
+        )
     return rows
 
 
@@ -133,8 +149,9 @@ def main() -> None:
     if args.only in (None, "speed"):
         for name in scenarios:
             n_naive = args.naive_problems if name == "freeflyer" else min(args.naive_problems, 5)
-            result["speed"][name] = speed(name, args.problems if name == "freeflyer" else min(args.problems, 10),
-                                          n_naive)
+            result["speed"][name] = speed(
+                name, args.problems if name == "freeflyer" else min(args.problems, 10), n_naive
+            )
     if args.only in (None, "robustness") and args.robustness:
         result["robustness"] = robustness(args.robustness)
     if args.only in (None, "quadrotor") and "quadrotor" in scenarios:

@@ -63,9 +63,7 @@ class ToyScenario(Scenario):
     def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> Any:
         raise NotImplementedError
 
-    def constraints(
-        self, problem: Problem, window: Window, X_ref: Any, U_ref: Any, *, obstacles: bool
-    ) -> list:
+    def constraints(self, problem: Problem, window: Window, X_ref: Any, U_ref: Any, *, obstacles: bool) -> list:
         return []
 
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:

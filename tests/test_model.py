@@ -78,9 +78,7 @@ def test_kv_cache_matches_full_forward(dtype: torch.dtype, atol: float) -> None:
     extra = torch.randn(B, 1, model.cfg.n_embd, dtype=dtype)
     model.encode(extra, fork)
     assert fork.length == cache.length + 1
-    torch.testing.assert_close(
-        fork.k[:, :, :, : cache.length], cache.k[:, :, :, : cache.length], rtol=0, atol=0
-    )
+    torch.testing.assert_close(fork.k[:, :, :, : cache.length], cache.k[:, :, :, : cache.length], rtol=0, atol=0)
 
 
 def test_cache_overflow_is_an_error() -> None:

@@ -90,9 +90,7 @@ def test_mpc_context_reuses_cache_correctly(toy, toy_stats: NormStats) -> None:
     for t in range(4):
         plan = ctx.rollout(min(4, STEPS - t))
         executed = plan.actions[:, 0] + 0.01 * torch.randn(B, 3, generator=g, dtype=torch.float64)
-        measured = dyn.step(ctx.states[:, -1], executed, t) + 0.01 * torch.randn(
-            B, 6, generator=g, dtype=torch.float64
-        )
+        measured = dyn.step(ctx.states[:, -1], executed, t) + 0.01 * torch.randn(B, 6, generator=g, dtype=torch.float64)
         ctx.advance(executed, measured)
         assert ctx.t == t + 1 and ctx._cache is not None and ctx._cache.length == 5 * (t + 1)
     fresh = RolloutContext(

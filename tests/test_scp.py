@@ -86,13 +86,27 @@ def test_assembled_subproblem_matches_cvxpy(ff, terminal, trust) -> None:
     blocks.append(ConstraintBlock("wp", BlockKind.EQ, np.array([15]), Gx, None, X[15:16, :2] + 0.01, weight=0.7))
     for soft_eq in (False, True):
         spec = SubproblemSpec(
-            H=w.length, n=6, m=3, cost_norm="l1", fuel_weight=1.0, penalized=True, virtual_control=True,
-            trust=trust, terminal=terminal, soft_equalities=soft_eq, penalty=100.0,
+            H=w.length,
+            n=6,
+            m=3,
+            cost_norm="l1",
+            fuel_weight=1.0,
+            penalized=True,
+            virtual_control=True,
+            trust=trust,
+            terminal=terminal,
+            soft_equalities=soft_eq,
+            penalty=100.0,
             blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
             tr_states=tuple(range(1, w.length + (0 if terminal == "hard" else 1))),
         )
         data = SubproblemData(
-            x_start=X[0], model=ff.convex_model(p, w, X, U), blocks=blocks, X_ref=X, delta=0.2, goal=p.goal,
+            x_start=X[0],
+            model=ff.convex_model(p, w, X, U),
+            blocks=blocks,
+            X_ref=X,
+            delta=0.2,
+            goal=p.goal,
             terminal_target=X[-1] + 0.1 if terminal == "soft" else None,
             terminal_weights=np.array([1, 1, 1, 7, 7, 7.0]) if terminal == "soft" else None,
         )

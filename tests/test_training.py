@@ -209,8 +209,9 @@ def test_csv_logger_and_cosine_schedule(tmp_path: Path) -> None:
     metrics = (out / "logs" / "session-0" / "metrics.csv").read_text()
     assert "train/loss" in metrics and "val/loss" in metrics
     # a resumed session logs next to the first one instead of overwriting its metrics.csv
-    cfg = tiny_config(out, "trainer.max_steps=5", "logger.kind=csv", "optim.schedule=cosine",
-                      "trainer.export_planner=false")
+    cfg = tiny_config(
+        out, "trainer.max_steps=5", "logger.kind=csv", "optim.schedule=cosine", "trainer.export_planner=false"
+    )
     assert train(cfg, ToyDataModule(n=32)).global_step == 5
     assert (out / "logs" / "session-0" / "metrics.csv").read_text() == metrics
     assert "train/loss" in (out / "logs" / "session-1" / "metrics.csv").read_text()

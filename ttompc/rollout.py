@@ -90,14 +90,11 @@ class RolloutContext:
                 f"rtg {tuple(self.rtg.shape)}, ctg {tuple(self.ctg.shape)}"
             )
         if self.actions.shape != (B, T - 1, m):
-            raise ValueError(
-                f"actions must be (B, {T - 1}, {m}) for {T} states, got {tuple(self.actions.shape)}"
-            )
+            raise ValueError(f"actions must be (B, {T - 1}, {m}) for {T} states, got {tuple(self.actions.shape)}")
         self._cache: KVCache | None = None  # tokens of the completed steps 0..t-1, built on first use
         # (μ, σ + ε) per modality as tensors once, instead of converting NormStats' arrays at every step.
         self._mu_sd = {
-            k: (as_t(stats.mean[k]), as_t(stats.std[k]) + EPS)
-            for k in ("states", "actions", "goals", "rtg", "ctg")
+            k: (as_t(stats.mean[k]), as_t(stats.std[k]) + EPS) for k in ("states", "actions", "goals", "rtg", "ctg")
         }
 
     @classmethod
@@ -177,9 +174,7 @@ class RolloutContext:
             t = self.t
             if t > 0:
                 ts = self._timesteps(0, t)
-                g, r, c, s = self._norm_step(
-                    self.goals[:, :t], self.rtg[:, :t], self.ctg[:, :t], self.states[:, :t]
-                )
+                g, r, c, s = self._norm_step(self.goals[:, :t], self.rtg[:, :t], self.ctg[:, :t], self.states[:, :t])
                 a = self._normalize("actions", self.actions)
                 self.model.encode(self.model.embed_sequence(g, r, c, s, a, ts), self._cache)
         return self._cache
@@ -190,9 +185,7 @@ class RolloutContext:
         """Generate ``horizon`` steps from the current step t on a fork of the history (the context is unchanged)."""
         t0, model = self.t, self.model
         if horizon < 1 or t0 + horizon > model.cfg.max_steps:
-            raise ValueError(
-                f"rollout [{t0}, {t0 + horizon}) outside the model's {model.cfg.max_steps} steps"
-            )
+            raise ValueError(f"rollout [{t0}, {t0 + horizon}) outside the model's {model.cfg.max_steps} steps")
         was_training = model.training
         model.eval()
         try:
@@ -203,9 +196,7 @@ class RolloutContext:
                 k = t0 + j
                 if cache is not None:
                     tok = self._embed_steps(goal[:, None], R[-1][:, None], C[-1][:, None], S[-1][:, None], k)
-                    if (
-                        j > 0
-                    ):  # the previous generated action joins the cache together with this step's tokens
+                    if j > 0:  # the previous generated action joins the cache together with this step's tokens
                         tok = torch.cat([self._embed_actions(A[-1][:, None], k - 1), tok], dim=1)
                     a_norm = model.action_head(model.encode(tok, cache)[:, -1])  # (B, m)
                 else:
@@ -234,18 +225,14 @@ class RolloutContext:
         states, rtg, ctg = cat(self.states, S), cat(self.rtg, R), cat(self.ctg, C)
         L = states.shape[1]
         goals = torch.cat([self.goals[:, :-1], goal[:, None].expand(-1, len(S), -1)], dim=1)
-        dummy = states.new_zeros(
-            self.batch, 1, self.model.cfg.control_dim
-        )  # a_k: not visible to the state token
+        dummy = states.new_zeros(self.batch, 1, self.model.cfg.control_dim)  # a_k: not visible to the state token
         actions = torch.cat([self.actions, *(a[:, None] for a in A), dummy], dim=1)
         g, r, c, s = self._norm_step(goals, rtg, ctg, states)
         a_pred, _ = self.model(g, r, c, s, self._normalize("actions", actions), self._timesteps(0, L))
         return a_pred[:, -1]
 
     @torch.no_grad()
-    def advance(
-        self, action: Tensor, next_state: Tensor, goal: Tensor | None = None, *, clipped: bool = False
-    ) -> None:
+    def advance(self, action: Tensor, next_state: Tensor, goal: Tensor | None = None, *, clipped: bool = False) -> None:
         """Record the executed action a_t (B, m) and the measured state s_{t+1} (B, n) (optionally a new goal).
 
         Like the reference MPC context, rtg_{t+1} = rtg_t + c(a_t) and ctg_{t+1} = ctg_t − violations(s_{t+1})
@@ -259,9 +246,7 @@ class RolloutContext:
         if self._cache is not None:
             tok = torch.cat(
                 [
-                    self._embed_steps(
-                        self.goals[:, -1:], self.rtg[:, -1:], self.ctg[:, -1:], self.states[:, -1:], t
-                    ),
+                    self._embed_steps(self.goals[:, -1:], self.rtg[:, -1:], self.ctg[:, -1:], self.states[:, -1:], t),
                     self._embed_actions(action[:, None], t),
                 ],
                 dim=1,
@@ -298,7 +283,5 @@ def rollout(
     clipped: bool = True,
 ) -> RolloutResult:
     """One-shot open-loop rollout from step 0 over ``horizon`` steps (default: the model's ``max_steps``)."""
-    ctx = RolloutContext.start(
-        model, stats, dynamics, cost_norm, state0, goal, rtg0, ctg0, use_cache=use_cache
-    )
+    ctx = RolloutContext.start(model, stats, dynamics, cost_norm, state0, goal, rtg0, ctg0, use_cache=use_cache)
     return ctx.rollout(horizon or model.cfg.max_steps, clipped=clipped)

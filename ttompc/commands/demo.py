@@ -30,8 +30,10 @@ def run(args: argparse.Namespace) -> int:
 
     planner = load_planner(args.model)
     scenario = planner.scenario
-    print(f"model {args.model}: {scenario.name} v{scenario.version}, "
-          f"{sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M parameters")
+    print(
+        f"model {args.model}: {scenario.name} v{scenario.version}, "
+        f"{sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M parameters"
+    )
     rows: list[dict[str, Any]] = []
     plots = []
     with single_torch_thread():
@@ -46,15 +48,25 @@ def run(args: argparse.Namespace) -> int:
             X_tto, U_tto = X[0], U[0]
             scp_tto = solve_scp(scenario, p, X_tto, U_tto)
             for name, res, ws in (("SCP(REL)", scp_rel, ep.rel_time), ("SCP(TTO)", scp_tto, t_tto)):
-                row[name] = {"cost": res.cost if res.success else float("nan"), "iterations": res.iterations,
-                             "time": ws + res.solve_time, "status": res.status.value}
-            trajs = {"REL (lower bound)": rel.X, "TTO rollout": X_tto, "SCP from REL": scp_rel.X,
-                     "SCP from TTO": scp_tto.X}
+                row[name] = {
+                    "cost": res.cost if res.success else float("nan"),
+                    "iterations": res.iterations,
+                    "time": ws + res.solve_time,
+                    "status": res.status.value,
+                }
+            trajs = {
+                "REL (lower bound)": rel.X,
+                "TTO rollout": X_tto,
+                "SCP from REL": scp_rel.X,
+                "SCP from TTO": scp_tto.X,
+            }
             if not args.no_mpc:
                 for provider in (RELProvider(), DISTProvider(), TTOProvider(planner)):
                     epi = run_mpc(scenario, p, provider, args.horizon, rel_cost=rel.cost)
                     row[f"{provider.name}@{args.horizon}"] = {
-                        "cost": epi.cost, "feasible": epi.feasible, "mean_step": float(np.mean(epi.step_times)),
+                        "cost": epi.cost,
+                        "feasible": epi.feasible,
+                        "mean_step": float(np.mean(epi.step_times)),
                         "max_step": float(np.max(epi.step_times)),
                     }
                     if provider.name == "TTO-MPC":
@@ -64,8 +76,9 @@ def run(args: argparse.Namespace) -> int:
     _print_table(rows)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "demo.json").write_text(json.dumps({"model": args.model, "scenario": scenario.name, "rows": rows},
-                                              indent=2, default=float))
+    (out / "demo.json").write_text(
+        json.dumps({"model": args.model, "scenario": scenario.name, "rows": rows}, indent=2, default=float)
+    )
     _plot(scenario, plots, out / "demo.png")
     print(f"saved {out / 'demo.png'} and {out / 'demo.json'}")
     return 0
@@ -83,8 +96,10 @@ def _print_table(rows: list[dict[str, Any]]) -> None:
             t = c.get("time", c.get("mean_step"))
             cells.append(f"{c['cost']:>9.4f} /{mid!s:>4} /{t:>6.3f}")
         print(f"{r['problem']:>7} {r['ctg0']:>5} {r['J_REL']:>11.4f} " + " ".join(f"{c:>22}" for c in cells))
-    print("SCP columns: cost / SCP iterations / warm start + SCP seconds;"
-          " MPC columns: applied cost / feasible / mean step seconds")
+    print(
+        "SCP columns: cost / SCP iterations / warm start + SCP seconds;"
+        " MPC columns: applied cost / feasible / mean step seconds"
+    )
 
 
 def _plot(scenario: Any, plots: list[tuple[Any, dict[str, np.ndarray]]], path: Path) -> None:

@@ -50,8 +50,10 @@ def run(args: argparse.Namespace) -> int:
             if "cost" not in r:
                 print(f"{name:4} {r['status']}")
                 continue
-            print(f"{name:4} {r['status']:>10} {r['cost']:>12.6g} {r['iterations']:>6d} {r['solve_time']:>9.3f} "
-                  f"{r['violation']:>10.2e} {r['ctg0']:>5d}")
+            print(
+                f"{name:4} {r['status']:>10} {r['cost']:>12.6g} {r['iterations']:>6d} {r['solve_time']:>9.3f} "
+                f"{r['violation']:>10.2e} {r['ctg0']:>5d}"
+            )
     if args.plot:
         import matplotlib
 

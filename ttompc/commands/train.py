@@ -10,9 +10,7 @@ import json
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recipe", help="YAML recipe, e.g. recipes/freeflyer/pretrain.yaml")
-    parser.add_argument(
-        "overrides", nargs="*", metavar="key=value", help="dot-list overrides, e.g. optim.lr=1e-4"
-    )
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="dot-list overrides, e.g. optim.lr=1e-4")
     parser.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
 
 

@@ -338,8 +338,12 @@ def _train_iteration(
     if resume_from is None:
         module.model.load_state_dict(planner.model.state_dict())
     trainer = build_trainer(
-        cfg.trainer, cfg.optim, Path(cfg.trainer.out_dir), logger,
-        max_steps=(iteration + 1) * cfg.dagger.steps_per_iteration, enable_checkpointing=False,
+        cfg.trainer,
+        cfg.optim,
+        Path(cfg.trainer.out_dir),
+        logger,
+        max_steps=(iteration + 1) * cfg.dagger.steps_per_iteration,
+        enable_checkpointing=False,
     )
     trainer.fit(module, datamodule=dm, ckpt_path=str(resume_from) if resume_from else None)
     trainer.save_checkpoint(ckpt)

@@ -60,9 +60,7 @@ class KVCache:
         ``length`` is advanced once per forward by ``advance`` (all layers append the same T tokens)."""
         end = self.length + k.shape[2]
         if end > self.capacity:
-            raise ValueError(
-                f"KV cache overflow: {end} tokens > capacity {self.capacity} (max_steps too small)"
-            )
+            raise ValueError(f"KV cache overflow: {end} tokens > capacity {self.capacity} (max_steps too small)")
         self.k[layer, :, :, self.length : end] = k
         self.v[layer, :, :, self.length : end] = v
         return self.k[layer, :, :, :end], self.v[layer, :, :, :end]
@@ -73,9 +71,7 @@ class KVCache:
     def fork(self, extra_tokens: int | None = None) -> KVCache:
         """A copy of the filled prefix with room for ``extra_tokens`` more (default: the parent's capacity), so
         short MPC rollouts do not allocate a full-length cache."""
-        capacity = (
-            self.capacity if extra_tokens is None else min(self.length + extra_tokens, self.cfg.max_tokens)
-        )
+        capacity = self.capacity if extra_tokens is None else min(self.length + extra_tokens, self.cfg.max_tokens)
         new = KVCache(self.cfg, self.k.shape[1], self.k.dtype, self.k.device, capacity=capacity)
         new.k[:, :, :, : self.length] = self.k[:, :, :, : self.length]
         new.v[:, :, :, : self.length] = self.v[:, :, :, : self.length]
@@ -95,9 +91,7 @@ class CausalSelfAttention(nn.Module):
     def forward(self, x: Tensor, layer: int, cache: KVCache | None) -> Tensor:
         B, T, C = x.shape
         q, k, v = self.qkv(x).split(C, dim=2)  # 3 × (B, T, C)
-        q, k, v = (
-            z.view(B, T, self.n_head, C // self.n_head).transpose(1, 2) for z in (q, k, v)
-        )  # (B, h, T, d)
+        q, k, v = (z.view(B, T, self.n_head, C // self.n_head).transpose(1, 2) for z in (q, k, v))  # (B, h, T, d)
         past = 0
         if cache is not None:
             past = cache.length
@@ -171,9 +165,7 @@ class TrajectoryGPT(nn.Module):
         return sum(p.numel() for p in self.parameters())
 
     # ------------------------------------------------------------------------------------------ token embeddings
-    def embed_step(
-        self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, timesteps: Tensor
-    ) -> Tensor:
+    def embed_step(self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, timesteps: Tensor) -> Tensor:
         """The first four tokens of each step: goals/states (B, L, n), rtg/ctg (B, L, 1), timesteps (B, L) int
         -> (B, 4L, d) interleaved as g_0 R_0 C_0 s_0 g_1 ..."""
         t = self.embed_timestep(timesteps)  # (B, L, d)

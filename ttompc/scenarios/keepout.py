@@ -41,6 +41,4 @@ def keepout_block(
     Gx = np.zeros((K, n_obs, n))
     Gx[:, :, :d] = -row
     h = -radius[None, :] - np.einsum("kod,od->ko", row, centres)
-    return ConstraintBlock(
-        "obstacles", BlockKind.INEQ, steps, Gx, None, h, nonconvex=True, obstacle=True, soft=True
-    )
+    return ConstraintBlock("obstacles", BlockKind.INEQ, steps, Gx, None, h, nonconvex=True, obstacle=True, soft=True)

@@ -173,15 +173,27 @@ class QOCOBackend:
         A_full = sub.matrix(a_values).tocsr()
         solver = self._qoco.QOCO()
         solver.setup(
-            sub.n_var, sub.n_con - nz, nz, self.P, sub.q, A_full[:nz].tocsc(), b[:nz], A_full[nz:].tocsc(),
-            b[nz:], self.n_nonneg, len(self.soc_dims), self.soc_dims, verbose=False,
+            sub.n_var,
+            sub.n_con - nz,
+            nz,
+            self.P,
+            sub.q,
+            A_full[:nz].tocsc(),
+            b[:nz],
+            A_full[nz:].tocsc(),
+            b[nz:],
+            self.n_nonneg,
+            len(self.soc_dims),
+            self.soc_dims,
+            verbose=False,
         )
         res = solver.solve()
         elapsed = time.perf_counter() - t0
         status = str(res.status)
         ok = status in ("QOCO_SOLVED", "QOCO_SOLVED_INACCURATE")
-        return BackendSolution(np.asarray(res.x) if ok else None, float(res.obj), ok, "INFEAS" in status, status,
-                               elapsed)
+        return BackendSolution(
+            np.asarray(res.x) if ok else None, float(res.obj), ok, "INFEAS" in status, status, elapsed
+        )
 
 
 BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "piqp": PIQPBackend, "qoco": QOCOBackend}

@@ -150,7 +150,8 @@ def run_scp(
             penalty=float(settings.penalty),
             blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
             tr_states=tuple(int(j) for j in scenario.trust_region_steps(problem, window, terminal is None)),
-            state_scale=tuple(scenario.state_scale), control_scale=tuple(scenario.control_scale),
+            state_scale=tuple(scenario.state_scale),
+            control_scale=tuple(scenario.control_scale),
         )
         data = SubproblemData(
             x_start=x_start,

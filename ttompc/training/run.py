@@ -30,9 +30,7 @@ class TrainResult:
     metrics: dict[str, float]
 
 
-EXCEPTION_CKPT = (
-    "on_exception"  # written by Lightning when fit raises (Ctrl-C included); removed after success
-)
+EXCEPTION_CKPT = "on_exception"  # written by Lightning when fit raises (Ctrl-C included); removed after success
 
 
 def last_checkpoint(out_dir: str | Path) -> Path:
@@ -149,7 +147,13 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         all_callbacks.append(ClosedLoopEvalCallback.from_config(cfg.callbacks.eval_mpc, scenario.name))
     t = cfg.trainer
     trainer = build_trainer(
-        t, cfg.optim, out, logger, max_steps=t.max_steps, max_epochs=t.max_epochs, callbacks=all_callbacks,
+        t,
+        cfg.optim,
+        out,
+        logger,
+        max_steps=t.max_steps,
+        max_epochs=t.max_epochs,
+        callbacks=all_callbacks,
         num_sanity_val_steps=t.num_sanity_val_steps,
     )
     resume_from = resume_checkpoint(out) if t.resume else None
@@ -163,9 +167,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         planner = Planner.from_checkpoint(last_checkpoint(out), scenario)
         planner.extra["source"] = "ttompc train"
         planner_dir = planner.save(out / "planner")
-    metrics = {
-        k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1
-    }
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     return TrainResult(out, last_checkpoint(out), planner_dir, start_step, global_step, metrics)
 
 
