@@ -177,4 +177,4 @@ def _hf_path(url: str) -> Path:
     try:
         return Path(hf_hub_download(f"{parts.netloc}/{repo_name}", filename, revision=revision or None))
     except Exception as err:  # huggingface_hub raises many unrelated types (HTTP, offline mode, auth, not found)
-        raise DownloadError(f"{url}: {type(err).__name__}: {err}") from None
+        raise DownloadError(f"{url}: {type(err).__name__}: {err}") from err
