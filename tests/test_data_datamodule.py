@@ -250,3 +250,16 @@ def test_lightning_fit_streams_new_batches_each_epoch(data: dict[str, Path], tmp
     assert [ids for e, ids in probe.seen if e == 0] != [ids for e, ids in probe.seen if e == 1]
     assert probe.val_rows == 2 * len(_stored(data["ol"], "val"))
     assert dm.stats is not None and dm.scenario_name == "data-fake"
+
+
+def test_setup_twice_hashes_each_shard_once(data: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Training calls setup("fit") before Lightning does: the second call must not re-read every shard."""
+    import ttompc.data.datamodule as dm_module
+
+    calls: list[str] = []
+    real = dm_module.verify_shard
+    monkeypatch.setattr(dm_module, "verify_shard", lambda path, sha: calls.append(str(path)) or real(path, sha))
+    dm = _dm(data)
+    first = list(calls)
+    dm.setup("fit")
+    assert first and calls == first and len(set(first)) == len(first)

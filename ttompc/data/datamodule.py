@@ -322,6 +322,10 @@ class TrajectoryDataModule(L.LightningDataModule):
         self._dagger: dict[str, list[str]] = {}
 
     def setup(self, stage: str | None = None) -> None:
+        if self.manifest is not None:
+            # training calls setup("fit") to build the model from the stats, then Lightning calls it again: the
+            # config is fixed per instance, so reading manifests and hashing every shard once is enough
+            return
         cfg = self.cfg
         if not cfg.paths:
             raise ValueError("DataConfig.paths must name at least one open-loop dataset folder")
