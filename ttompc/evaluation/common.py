@@ -46,20 +46,12 @@ class EvalProblem:
     ctg0: int  # keep-out violations of the REL solution (non-convexity factor before normalisation)
 
 
-def eval_problem(
-    scenario: Scenario,
-    root: int,
-    index: int,
-    *,
-    nonconvex_only: bool = False,
-    max_attempts: int = 100,
-    backend: str = "auto",
-) -> EvalProblem:
-    """Problem ``index`` of the evaluation stream: the first attempt that is valid, whose REL solves and (with
-    ``nonconvex_only``, like the paper's MPC study) whose REL solution violates a keep-out zone (ctg0 > 0)."""
-    for attempt in range(max_attempts):
-        seed = eval_seed(root, index, attempt)
-        problem = scenario.sample(np.random.default_rng(seed))
+def first_solvable(
+    scenario: Scenario, problems: Iterable[Problem], *, nonconvex_only: bool = False, backend: str = "auto"
+) -> tuple[int, Problem, SCPResult, float, int] | None:
+    """The first of ``problems`` that is valid, whose REL solves and (with ``nonconvex_only``) whose REL solution
+    violates a keep-out zone: (attempt index, problem, REL result, REL solve time, ctg0); None if none qualifies."""
+    for attempt, problem in enumerate(problems):
         try:
             scenario.validate(problem)
         except InfeasibleProblemError:
@@ -72,8 +64,27 @@ def eval_problem(
         ctg0 = int(np.sum(scenario.violations(problem, rel.X[: problem.n_steps])))
         if nonconvex_only and ctg0 == 0:
             continue
-        return EvalProblem(index, seed, problem, rel, rel_time, ctg0)
-    raise RuntimeError(f"{scenario.name}: no suitable evaluation problem {index} in {max_attempts} attempts")
+        return attempt, problem, rel, rel_time, ctg0
+    return None
+
+
+def eval_problem(
+    scenario: Scenario,
+    root: int,
+    index: int,
+    *,
+    nonconvex_only: bool = False,
+    max_attempts: int = 100,
+    backend: str = "auto",
+) -> EvalProblem:
+    """Problem ``index`` of the evaluation stream: the first attempt that is valid, whose REL solves and (with
+    ``nonconvex_only``, like the paper's MPC study) whose REL solution violates a keep-out zone (ctg0 > 0)."""
+    draws = (scenario.sample(np.random.default_rng(eval_seed(root, index, a))) for a in range(max_attempts))
+    found = first_solvable(scenario, draws, nonconvex_only=nonconvex_only, backend=backend)
+    if found is None:
+        raise RuntimeError(f"{scenario.name}: no suitable evaluation problem {index} in {max_attempts} attempts")
+    attempt, problem, rel, rel_time, ctg0 = found
+    return EvalProblem(index, eval_seed(root, index, attempt), problem, rel, rel_time, ctg0)
 
 
 def load_planner(spec: str | Path, *, device: str = "cpu", scenario: Scenario | None = None) -> Planner:

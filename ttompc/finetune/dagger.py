@@ -49,8 +49,7 @@ from ttompc.finetune.config import ExplorationConfig, FinetuneConfig
 from ttompc.mpc.loop import MPCController
 from ttompc.mpc.providers import ShiftProvider, TTOProvider
 from ttompc.scenarios import get_scenario
-from ttompc.scenarios.base import InfeasibleProblemError, Problem, Scenario
-from ttompc.solvers.scp import solve_rel
+from ttompc.scenarios.base import Problem, Scenario
 
 DAGGER_STREAM = 0x64616767  # "dagg": rollout seeds are disjoint from dataset and evaluation streams
 STATE_FILE = "dagger_state.json"
@@ -87,16 +86,12 @@ def expert_schedule(rng: np.random.Generator, n_steps: int, cfg: ExplorationConf
 
 def _sample_problem(scenario: Scenario, rng: np.random.Generator, attempts: int = 100) -> tuple[Problem, Any]:
     """A valid problem whose REL solves (its cost conditions the learner: rtg_0 = −J_REL)."""
-    for _ in range(attempts):
-        problem = scenario.sample(rng)
-        try:
-            scenario.validate(problem)
-        except InfeasibleProblemError:
-            continue
-        rel = solve_rel(scenario, problem)
-        if rel.success:
-            return problem, rel
-    raise RuntimeError(f"{scenario.name}: no valid problem with a REL solution in {attempts} draws")
+    from ttompc.evaluation.common import first_solvable
+
+    found = first_solvable(scenario, (scenario.sample(rng) for _ in range(attempts)))
+    if found is None:
+        raise RuntimeError(f"{scenario.name}: no valid problem with a REL solution in {attempts} draws")
+    return found[1], found[2]
 
 
 def collect_rollout(
