@@ -13,7 +13,7 @@ import numpy as np
 
 from ttompc.scenarios.base import BlockKind, ConstraintBlock, Problem, Scenario, SCPSettings, Window
 from ttompc.solvers.backends import BackendSolution, make_backend
-from ttompc.solvers.scp import IterateRecord, SCPResult, SCPStatus, TerminalCost
+from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
 from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
 
 

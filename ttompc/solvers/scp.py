@@ -17,76 +17,18 @@ nonlinear violation is within tolerance), not merely the last one (fact sheet §
 
 from __future__ import annotations
 
-import enum
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
+from ttompc.solvers.engine import run_scp
+from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
+
+__all__ = ["IterateRecord", "SCPResult", "SCPStatus", "TerminalCost", "solve_problem", "solve_rel", "solve_scp"]
 
 Formulation = Literal["penalized", "reference"]
 TrustNorm = Literal["l2", "linf"]
-
-
-class SCPStatus(str, enum.Enum):
-    OPTIMAL = "optimal"  # stopping rule met by a feasible iterate
-    FEASIBLE = "feasible"  # iteration cap reached; best iterate satisfies the nonlinear constraints
-    INFEASIBLE = "infeasible"  # no iterate satisfies the nonlinear constraints within tolerance
-    SOLVER_ERROR = "solver_error"  # the convex solver failed numerically on the first subproblem
-
-
-@dataclass
-class IterateRecord:
-    iteration: int
-    cost: float  # Σ c(u_k) of the iterate (unweighted stage cost)
-    objective: float  # subproblem objective value (incl. terminal terms and penalties)
-    violation: float  # max violation of the nonlinear constraints at the iterate
-    step: float  # max_k ‖x_k − x̄_k‖₂ (distance from the previous reference)
-    trust_radius: float
-    solver_time: float  # raw convex solve time (s)
-    solver_status: str
-
-
-@dataclass
-class SCPResult:
-    status: SCPStatus
-    X: np.ndarray  # (H+1, n) states of the returned (best feasible, else least-violating) iterate
-    U: np.ndarray  # (H, m)
-    cost: float
-    violation: float
-    iterations: int  # number of convex subproblems solved
-    solve_time: float  # wall time of the whole solve (s)
-    solver_time: float  # sum of raw convex solve times (s)
-    window: Window
-    history: list[IterateRecord] = field(default_factory=list)
-    best_iteration: int = -1
-
-    @property
-    def success(self) -> bool:
-        return self.status in (SCPStatus.OPTIMAL, SCPStatus.FEASIBLE)
-
-    def summary(self) -> dict[str, float | int | str]:
-        return {
-            "status": self.status.value,
-            "cost": self.cost,
-            "iterations": self.iterations,
-            "solve_time": self.solve_time,
-            "solver_time": self.solver_time,
-            "violation": self.violation,
-        }
-
-
-@dataclass(frozen=True)
-class TerminalCost:
-    """Soft terminal term ‖diag(weights) (x_{t+H} − target)‖₂ replacing the terminal equality (MPC)."""
-
-    target: np.ndarray
-    weights: np.ndarray
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "target", np.asarray(self.target, dtype=np.float64))
-        object.__setattr__(self, "weights", np.broadcast_to(np.asarray(self.weights, float), self.target.shape))
 
 
 def solve_scp(
@@ -114,8 +56,6 @@ def solve_scp(
     "osqp", "piqp" or "cvxpy-naive" (the rebuild-every-iteration baseline). ``trust_norm`` defaults to l2 (SOC) for
     conic backends, linf for QP ones.
     """
-    from ttompc.solvers.engine import run_scp
-
     window = window or Window.full(problem)
     return run_scp(
         scenario,
