@@ -1,12 +1,27 @@
-"""The ``ttompc`` console entry point. A thin dispatcher: each subcommand lives in ``ttompc.commands.<name>`` with
-``add_arguments(parser)`` and ``run(args) -> int``, imported only when used so ``ttompc solve`` stays fast."""
+"""ttompc: plan spacecraft and robot trajectories with a transformer that warm-starts SCP and MPC.
+
+The ``ttompc`` console entry point is a thin dispatcher: each subcommand lives in ``ttompc.commands.<name>`` with
+``add_arguments(parser)``, ``run(args) -> int`` and optionally ``resume_hint(args) -> str`` (said after Ctrl-C or a
+full disk), imported only when used so ``ttompc solve`` stays fast (no Lightning).
+
+One error path for every command: a ``UserError`` (bad settings, unknown names, missing or damaged files) prints
+one line naming the problem and what to do and exits with 2; Ctrl-C says how to resume and exits with 130; a full
+disk says which path is full and that completed work is kept. ``--debug`` (anywhere on the command line) or
+``TTOMPC_DEBUG=1`` re-raises instead, with the traceback.
+"""
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import os
+import signal
 import sys
 from collections.abc import Sequence
+from types import ModuleType
+
+from ttompc.errors import UserError
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "solve": ("ttompc.commands.solve", "sample a problem, solve REL then SCP, print a table (and plot)"),
@@ -17,14 +32,21 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "zoo": ("ttompc.commands.zoo", "list, inspect, download and publish pretrained models"),
     "demo": ("ttompc.commands.demo", "the quickstart: plan seeded problems with a shipped zoo model"),
 }
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+_EPILOG = (
+    "Every command takes `ttompc COMMAND [RECIPE.yaml] key=value ...`; flags are shortcuts for keys. "
+    "`ttompc COMMAND --help` lists them. --debug (or TTOMPC_DEBUG=1) shows tracebacks."
+)
 
 
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ttompc", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ttompc", description=__doc__.splitlines()[0], epilog=_EPILOG)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     wanted = next((a for a in argv if not a.startswith("-")), None)
     for name, (module, help_text) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text)
+        p = sub.add_parser(name, help=help_text, description=help_text)
         if name == wanted:  # only import the module of the command being run
             importlib.import_module(module).add_arguments(p)
     return parser
@@ -32,9 +54,74 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv or os.environ.get("TTOMPC_DEBUG", "") not in ("", "0")
+    argv = [a for a in argv if a != "--debug"]
     args = build_parser(argv).parse_args(argv)
     module = importlib.import_module(COMMANDS[args.command][0])
-    return int(module.run(args) or 0)
+    prog = f"ttompc {args.command}"
+    try:
+        return int(module.run(args) or 0)
+    except UserError as err:
+        if debug:
+            raise
+        _say(f"{prog}: error: {err}")
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        _say(f"\n{prog}: interrupted. {_resume_hint(module, args)}")
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # e.g. `ttompc zoo list | head`: the reader left, nothing to report
+        _silence_stdout()
+        return 128 + signal.SIGPIPE if hasattr(signal, "SIGPIPE") else 1
+    except OSError as err:
+        if debug or not is_disk_full(err):
+            raise
+        where = f" while writing {err.filename}" if err.filename else ""
+        _say(
+            f"{prog}: error: no space left on device{where}. Completed work is kept; free some space, then "
+            f"{_resume_hint(module, args, lower=True)}"
+        )
+        return 1
+    except Exception as err:
+        if debug or type(err).__name__ != "SafetensorError":
+            raise
+        _say(
+            f"{prog}: error: a model file is damaged or not a safetensors file ({err}); "
+            "re-download it (`ttompc zoo download NAME`) or re-export the bundle"
+        )
+        return EXIT_USER_ERROR
+
+
+def is_disk_full(err: BaseException) -> bool:
+    """True for an ENOSPC/EDQUOT ``OSError`` (pyarrow's IO errors carry the text but not always the errno)."""
+    return isinstance(err, OSError) and (
+        err.errno in (errno.ENOSPC, errno.EDQUOT) or "No space left on device" in str(err)
+    )
+
+
+def _resume_hint(module: ModuleType, args: argparse.Namespace, lower: bool = False) -> str:
+    hint_of = getattr(module, "resume_hint", None)
+    hint = hint_of(args) if hint_of is not None else "Nothing was kept: run the command again."
+    return hint[0].lower() + hint[1:] if lower else hint
+
+
+def _say(line: str) -> None:
+    try:
+        sys.stdout.flush()
+    except (BrokenPipeError, ValueError):
+        _silence_stdout()
+    print(line, file=sys.stderr)
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush does not report the broken pipe again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":

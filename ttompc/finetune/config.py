@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ttompc.config import ConfigError, load_config
+from ttompc.config import ConfigError, load_command_config
 from ttompc.data.config import DataConfig
 from ttompc.training.config import LoggerConfig, OptimConfig, TrainerConfig
 
@@ -87,7 +87,7 @@ class FinetuneConfig:
 def load_finetune_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> FinetuneConfig:
     """Load and validate a fine-tuning recipe (schema <- YAML <- ``key=value`` overrides)."""
     try:
-        return load_config(FinetuneConfig, path, overrides)
+        return load_command_config(FinetuneConfig, path, overrides)
     except ConfigError:
         raise
     except ValueError as err:

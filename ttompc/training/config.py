@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from ttompc.config import ConfigError, load_config
+from ttompc.config import ConfigError, load_command_config
 from ttompc.data.config import DataConfig
 from ttompc.model.config import ModelConfig
 
@@ -112,7 +112,7 @@ class TrainConfig:
 def load_train_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> TrainConfig:
     """Load and validate a training recipe; value errors from the sections' checks become ``ConfigError`` too."""
     try:
-        return load_config(TrainConfig, path, overrides)
+        return load_command_config(TrainConfig, path, overrides)
     except ConfigError:
         raise
     except ValueError as err:
