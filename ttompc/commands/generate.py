@@ -1,8 +1,10 @@
-"""``ttompc generate``: sample and solve problems into parquet shards (resumable, multi-process, multi-rank).
+"""``ttompc generate [RECIPE.yaml] key=value ...``: sample and solve problems into parquet shards (resumable,
+multi-process, multi-rank). Settings are ``GenerateConfig`` keys; the flags are shortcuts for them.
 
 Examples:
-    ttompc generate --scenario freeflyer --problems 20000 --out data/freeflyer-v1 --workers 8
-    torchrun --nproc-per-node 4 -m ttompc.cli generate ... --finalize-wait 3600   # ranks split the shards
+    ttompc generate scenario=freeflyer problems=20000 out=data/freeflyer-v1 workers=8
+    ttompc generate --scenario freeflyer --problems 20000 --out data/freeflyer-v1 --workers 8   # the same
+    torchrun --nproc-per-node 4 -m ttompc.cli generate ... finalize_wait_s=3600   # ranks split the shards
     ttompc generate ... --finalize      # write manifest + card once all ranks' shards exist
 """
 
@@ -11,10 +13,12 @@ from __future__ import annotations
 import argparse
 import json
 
-from ttompc.config import load_config
+from ttompc.commands import checks
+from ttompc.config import add_config_arguments, load_command_config, shortcut_overrides, split_recipe, to_container
 from ttompc.data.config import GenerateConfig
+from ttompc.errors import UserError
 
-# flag -> GenerateConfig key
+# flag dest -> GenerateConfig key
 _FLAGS = {
     "scenario": "scenario",
     "problems": "problems",
@@ -32,7 +36,7 @@ _FLAGS = {
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", help="YAML file with GenerateConfig fields (flags override it)")
+    add_config_arguments(parser, "scenario=quadrotor problems=2000 out=data/quadrotor-v1")
     parser.add_argument("--scenario", help="registered scenario name (default freeflyer)")
     parser.add_argument("--problems", type=int, help="number of problems (default 20000)")
     parser.add_argument("--out", help="output folder (default data/freeflyer-v1)")
@@ -48,27 +52,59 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--finalize-wait", type=float, help="rank 0 waits this many s for other ranks' shards")
     parser.add_argument("--finalize", action="store_true", help="only write manifest.json and README.md")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("overrides", nargs="*", help="extra key=value GenerateConfig overrides")
 
 
 def config_from_args(args: argparse.Namespace) -> GenerateConfig:
-    overrides = [f"{key}={getattr(args, flag)}" for flag, key in _FLAGS.items() if getattr(args, flag) is not None]
-    if args.splits:
-        parts = args.splits.split(",")
-        if len(parts) != 3:
-            raise SystemExit(f"--splits needs three comma-separated fractions, got {args.splits!r}")
-        overrides += [f"splits.{s}={p}" for s, p in zip(("train", "val", "test"), parts, strict=True)]
-    return load_config(GenerateConfig, args.config, [*overrides, *args.overrides])
+    """Recipe <- shortcut flags <- ``key=value`` settings, checked before any folder is created."""
+    recipe, overrides = split_recipe(args.settings)
+    flags = [*shortcut_overrides(args, _FLAGS), *_split_fractions(args.splits)]
+    cfg = load_command_config(GenerateConfig, recipe, [*flags, *overrides])
+    checks.scenario(cfg.scenario)
+    checks.seed(cfg.seed)
+    checks.backend(cfg.backend)
+    return cfg
+
+
+def _split_fractions(text: str | None) -> list[str]:
+    if not text:
+        return []
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise UserError(f"--splits needs three comma-separated fractions, got {text!r}", "e.g. --splits 0.8,0.1,0.1")
+    return [f"splits.{s}={p}" for s, p in zip(("train", "val", "test"), parts, strict=True)]
+
+
+def resume_hint(args: argparse.Namespace) -> str:
+    out = _out_of(args)
+    return (
+        f"Finished shards in {out} are kept: re-run the same command to generate only the missing ones."
+        if out
+        else "Finished shards are kept: re-run the same command to generate only the missing ones."
+    )
+
+
+def _out_of(args: argparse.Namespace) -> str | None:
+    try:
+        return config_from_args(args).out
+    except UserError:
+        return None
 
 
 def run(args: argparse.Namespace) -> int:
-    from ttompc.data.generate import finalize, generate
+    from ttompc.data.generate import GenerationError, finalize, generate
+    from ttompc.data.shards import ShardError
 
     cfg = config_from_args(args)
-    manifest = finalize(cfg) if args.finalize else generate(cfg, progress=not args.no_progress)
+    if args.print_config:
+        print(json.dumps(to_container(cfg), indent=2))
+        return 0
+    try:
+        manifest = finalize(cfg) if args.finalize else generate(cfg, progress=not args.no_progress)
+    except (GenerationError, ShardError) as err:
+        raise UserError(str(err)) from err
     if manifest is None:
         print(
-            f"shards written to {cfg.out}; manifest not written yet (other ranks' shards missing or --max-shards "
+            f"shards written to {cfg.out}; manifest not written yet (other ranks' shards missing or max_shards "
             "reached): re-run with the same arguments, or add --finalize once all shards exist"
         )
         return 0

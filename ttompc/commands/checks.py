@@ -1,0 +1,35 @@
+"""Checks of command settings that the library would only reject deep inside a run (in a worker process, after
+creating output folders): each raises a ``UserError`` naming the setting and the valid choices, before any work."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from ttompc.errors import UserError
+
+if TYPE_CHECKING:
+    from ttompc.scenarios import Scenario
+
+
+def scenario(name: str) -> Scenario:
+    """The registered scenario ``name``, or a ``UserError`` listing the registered ones."""
+    from ttompc.scenarios import get_scenario, list_scenarios
+
+    if name not in list_scenarios():
+        raise UserError(f"unknown scenario {name!r}", f"choose one of: {', '.join(list_scenarios())}")
+    return get_scenario(name)
+
+
+def backend(name: str | None) -> None:
+    """``name`` must be ``auto``, a convex backend of ``ttompc.solvers.backends`` or the naive cvxpy baseline."""
+    from ttompc.solvers.backends import BACKENDS
+
+    valid = ["auto", *sorted(BACKENDS), "cvxpy-naive"]
+    if name is not None and name not in valid:
+        raise UserError(f"unknown solver backend {name!r}", f"choose one of: {', '.join(valid)}")
+
+
+def seed(value: int, key: str = "seed") -> None:
+    """Seeds feed ``numpy.random.SeedSequence``, which takes non-negative integers only."""
+    if value < 0:
+        raise UserError(f"{key} must be a non-negative integer, got {value}")
