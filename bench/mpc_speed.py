@@ -26,9 +26,8 @@ import numpy as np
 import torch
 
 from ttompc.evaluation.common import eval_problem, load_planner
-from ttompc.model import ModelConfig, TrajectoryGPT
 from ttompc.mpc import DISTProvider, RELProvider, TTOProvider, run_mpc
-from ttompc.planner import Planner
+from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import get_scenario
 
 SIZES = {
@@ -40,7 +39,7 @@ SIZES = {
 
 def random_planner(scenario_name: str, size: str, device: str) -> Planner:
     """A randomly initialised model (timing only) with identity-like normalisation."""
-    from ttompc.data.stats import NormStats
+    from ttompc.policy.stats import NormStats
 
     sc = get_scenario(scenario_name)
     torch.manual_seed(0)

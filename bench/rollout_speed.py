@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from ttompc.data.stats import KEYS, NormStats
-from ttompc.model import ModelConfig, TrajectoryGPT
-from ttompc.rollout import rollout
+from ttompc.policy import ModelConfig, TrajectoryGPT
+from ttompc.policy.rollout import rollout
+from ttompc.policy.stats import KEYS, NormStats
 
 STEPS = 100
 RESULTS = Path(__file__).resolve().parent / "results" / "rollout_speed.json"

@@ -6,10 +6,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
+import helpers
 import numpy as np
 import pytest
 
-from ttompc.data.stats import NormStats
+from ttompc.policy.stats import NormStats
 from ttompc.scenarios import register
 from ttompc.scenarios.base import MPCWeights, Problem, Scenario, SCPSettings, Window
 
@@ -95,23 +96,7 @@ def toy() -> ToyScenario:
 
 @pytest.fixture
 def toy_stats() -> NormStats:
-    """Non-trivial statistics so that a missing (de)normalisation changes results."""
-    rng = np.random.default_rng(0)
-    mean = {
-        "states": rng.normal(size=6),
-        "actions": rng.normal(size=3) * 0.1,
-        "goals": rng.normal(size=6),
-        "rtg": np.array([-3.0]),
-        "ctg": np.array([0.5]),
-    }
-    std = {
-        "states": rng.uniform(0.5, 2.0, 6),
-        "actions": rng.uniform(0.1, 0.5, 3),
-        "goals": rng.uniform(0.5, 2, 6),
-        "rtg": np.array([2.0]),
-        "ctg": np.array([1.0]),
-    }
-    return NormStats(mean, std)
+    return helpers.toy_stats()
 
 
 @pytest.fixture

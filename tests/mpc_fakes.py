@@ -39,9 +39,8 @@ def tiny_planner(scenario_name: str = "freeflyer-short", seed: int = 0) -> Any:
     """A randomly initialised 1-layer Planner with plausible normalisation statistics (for plumbing tests)."""
     import torch
 
-    from ttompc.data.stats import NormStats
-    from ttompc.model import ModelConfig, TrajectoryGPT
-    from ttompc.planner import Planner
+    from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
+    from ttompc.policy.stats import NormStats
     from ttompc.scenarios import get_scenario
 
     scenario = get_scenario(scenario_name)

@@ -11,9 +11,9 @@ import pytest
 
 from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
 from ttompc.data.distributed import RankInfo
-from ttompc.data.stats import NormStats
 from ttompc.finetune.config import ExplorationConfig, FinetuneConfig, load_finetune_config
 from ttompc.finetune.dagger import collect_iteration, expert_schedule, finetune, rollout_seed, shard_done
+from ttompc.policy.stats import NormStats
 from ttompc.scenarios import get_scenario
 
 SHORT = mpc_fakes.FreeFlyerShort.name
@@ -83,7 +83,7 @@ def _config(dataset: Path, run: Path) -> FinetuneConfig:
 def test_one_dagger_iteration_end_to_end_and_resume(tmp_path: Path, dataset: Path) -> None:
     from ttompc.data.datamodule import TrajectoryDataModule
     from ttompc.data.generate import load_manifest
-    from ttompc.planner import Planner
+    from ttompc.policy import Planner
 
     planner = mpc_fakes.tiny_planner()
     planner = Planner(planner.model, planner.scenario, NormStats.from_dict(load_manifest(dataset)["norm_stats"]))
@@ -97,7 +97,7 @@ def test_one_dagger_iteration_end_to_end_and_resume(tmp_path: Path, dataset: Pat
     assert [it["iteration"] for it in state["completed"]] == [0] and result.iterations == state["completed"]
     it0 = state["completed"][0]
     assert Path(it0["checkpoint"]).is_file() and it0["global_step"] == 2
-    assert Planner.load(it0["planner"]).extra["dagger_iteration"] == 0
+    assert Planner.from_pretrained(it0["planner"]).extra["dagger_iteration"] == 0
     for m in (state["baseline_metrics"], it0["metrics"]):
         assert {"cost", "cost_increment", "feasible_rate", "step_time_max"} <= set(m)
     assert "dagger/cost" in (run / "logs" / "session-0" / "metrics.csv").read_text()

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from ttompc.cli import main
-from ttompc.evaluation.common import eval_problem, load_planner
+from ttompc.evaluation.common import eval_problem
 from ttompc.evaluation.horizon import HorizonStudyConfig, run_horizon_study
 from ttompc.evaluation.metrics import improvement_by_threshold, normalized_cost_increment
 from ttompc.scenarios import get_scenario
@@ -58,10 +58,6 @@ def test_eval_problems_are_seeded_and_nonconvex() -> None:
     assert a.ctg0 > 0 and a.seed == b.seed
     np.testing.assert_array_equal(a.problem.x0, b.problem.x0)
     assert eval_problem(sc, 8, 0).seed != a.seed
-
-
-def test_load_planner_accepts_bundles(bundle: Path) -> None:
-    assert load_planner(bundle).scenario.name == SHORT
 
 
 def test_horizon_study_report(tmp_path: Path, bundle: Path) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ttompc.model import ModelConfig, TrajectoryGPT
+from ttompc.policy import ModelConfig, TrajectoryGPT
 
 N, M, L, B = 6, 3, 7, 2
 

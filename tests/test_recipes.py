@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from ttompc.config import ConfigError
-from ttompc.model import TrajectoryGPT
+from ttompc.policy import TrajectoryGPT
 from ttompc.training.config import load_train_config
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"

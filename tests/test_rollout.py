@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ttompc.data.stats import NormStats
-from ttompc.model import ModelConfig, TrajectoryGPT
-from ttompc.rollout import RolloutContext, rollout
+from ttompc.policy import ModelConfig, TrajectoryGPT
+from ttompc.policy.rollout import RolloutContext, rollout
+from ttompc.policy.stats import NormStats
 
 B, STEPS = 3, 12
 

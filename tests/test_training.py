@@ -16,8 +16,8 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from ttompc.config import to_container
-from ttompc.data.stats import NormStats
-from ttompc.planner import Planner
+from ttompc.policy import Planner
+from ttompc.policy.stats import NormStats
 from ttompc.scenarios import get_scenario
 from ttompc.training.config import TrainConfig, load_train_config
 from ttompc.training.module import TrajectoryTransformerModule
@@ -162,8 +162,8 @@ def test_tiny_run_logs_resumes_and_exports(tmp_path: Path, wandb_offline: Path) 
     # The checkpoint alone and the exported bundle give the same planner, bit for bit.
     sc = get_scenario("toy")
     problems = [sc.sample(np.random.default_rng(s)) for s in range(3)]
-    a = Planner.from_checkpoint(second.last_checkpoint)
-    b = Planner.load(out / "planner")
+    a = Planner.from_pretrained(second.last_checkpoint)
+    b = Planner.from_pretrained(out / "planner")
     assert json.loads((out / "planner" / "config.json").read_text())["extra"]["global_step"] == 7
     Xa, Ua = a.warm_start(problems, rtg0=[-2.0, -3.0, -4.0])
     Xb, Ub = b.warm_start(problems, rtg0=[-2.0, -3.0, -4.0])
@@ -218,7 +218,7 @@ def test_csv_logger_and_cosine_schedule(tmp_path: Path) -> None:
 
 
 def test_planner_bundle_roundtrip(tmp_path: Path, toy, toy_stats: NormStats) -> None:
-    from ttompc.model import ModelConfig, TrajectoryGPT
+    from ttompc.policy import ModelConfig, TrajectoryGPT
 
     torch.manual_seed(0)
     planner = Planner(
@@ -228,7 +228,7 @@ def test_planner_bundle_roundtrip(tmp_path: Path, toy, toy_stats: NormStats) -> 
         recipe={"note": "test"},
     )
     planner.save(tmp_path / "p")
-    loaded = Planner.load(tmp_path / "p")
+    loaded = Planner.from_pretrained(tmp_path / "p")
     problems = [toy.sample(np.random.default_rng(1))]
     X, U = planner.warm_start(problems, -2.0)
     np.testing.assert_array_equal(U, loaded.warm_start(problems, -2.0)[1])
@@ -238,8 +238,8 @@ def test_planner_bundle_roundtrip(tmp_path: Path, toy, toy_stats: NormStats) -> 
     meta["scenario"]["version"] = "9.9"
     (tmp_path / "p" / "config.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match=r"v9\.9"):
-        Planner.load(tmp_path / "p")
-    assert Planner.load(tmp_path / "p", check_version=False).scenario.name == "toy"
+        Planner.from_pretrained(tmp_path / "p")
+    assert Planner.from_pretrained(tmp_path / "p", check_version=False).scenario.name == "toy"
 
 
 def test_train_cli_reports_config_errors(capsys: pytest.CaptureFixture[str]) -> None:

@@ -9,11 +9,11 @@ import json
 import pickle
 import sys
 import threading
-import types
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import helpers
 import numpy as np
 import pytest
 from safetensors import SafetensorError
@@ -21,6 +21,7 @@ from safetensors.numpy import save_file
 
 from ttompc import zoo
 from ttompc.cli import main
+from ttompc.policy import Planner
 from ttompc.zoo import cache, cards, registry
 from ttompc.zoo.download import fetch
 
@@ -341,24 +342,26 @@ def test_loading_never_unpickles(env: Path) -> None:
     bundle = make_bundle(env / "b")
     (bundle / "model.safetensors").write_bytes(_pickle_bomb(marker))
     with pytest.raises(SafetensorError):
-        zoo.load_pretrained(bundle)
+        Planner.from_pretrained(bundle)
     with pytest.raises(SafetensorError):
         zoo.publish(bundle, "m", str(env / "out"), skip_eval=True)
     assert not marker.exists()
 
 
-def test_load_pretrained_hands_the_verified_bundle_to_planner(env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    loaded: list[Path] = []
-    fake = types.ModuleType("ttompc.planner")
-    fake.Planner = types.SimpleNamespace(load=lambda d: loaded.append(Path(d)) or "planner")  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "ttompc.planner", fake)
-    src = make_bundle(env / "b")
+def test_from_pretrained_loads_a_zoo_name_through_the_verified_cache(env: Path) -> None:
+    """The real planner, published and fetched by name: same weights, read from the cache, not the source."""
+    import torch
+
+    src = helpers.tiny_toy_planner().save(env / "b")
     zoo.publish(src, "m", str(env / "zoo" / "models" / "m"), skip_eval=True)
-    assert zoo.load_pretrained("m", progress=False) == "planner"
-    assert loaded[0].is_relative_to(env / "cache")
-    assert zoo.load_pretrained(src) == "planner" and loaded[1] == src  # a local bundle dir wins
+    by_name = Planner.from_pretrained("m", progress=False)
+    by_dir = Planner.from_pretrained(src)  # a local bundle dir wins over the zoo
+    for key, value in by_dir.model.state_dict().items():
+        torch.testing.assert_close(by_name.model.state_dict()[key], value, rtol=0, atol=0)
+    assert by_name.scenario.name == "toy" and by_name.stats.to_dict() == by_dir.stats.to_dict()
+    assert any(p.is_relative_to(env / "cache") for p in (env / "cache").rglob("model.safetensors"))
     with pytest.raises(zoo.UnknownModelError, match="no model 'nope'"):
-        zoo.load_pretrained("nope")
+        Planner.from_pretrained("nope")
 
 
 def test_hf_urls_need_huggingface_hub(env: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -23,12 +23,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ttompc.evaluation.common import eval_problem, load_planner, single_torch_thread
+    from ttompc.evaluation.common import eval_problem, single_torch_thread
     from ttompc.mpc.loop import run_mpc
     from ttompc.mpc.providers import DISTProvider, RELProvider, TTOProvider
+    from ttompc.policy import Planner
     from ttompc.solvers import solve_scp
 
-    planner = load_planner(args.model)
+    planner = Planner.from_pretrained(args.model)
     scenario = planner.scenario
     print(
         f"model {args.model}: {scenario.name} v{scenario.version}, "

@@ -47,9 +47,9 @@ def _scenario(args: argparse.Namespace) -> str:
         return args.scenario
     if not args.checkpoint:
         raise SystemExit("ttompc evaluate: --scenario is required without --checkpoint")
-    from ttompc.evaluation.common import load_planner
+    from ttompc.policy import Planner
 
-    return load_planner(args.checkpoint).scenario.name
+    return Planner.from_pretrained(args.checkpoint).scenario.name
 
 
 def run(args: argparse.Namespace) -> int:

@@ -10,7 +10,7 @@ import importlib
 from typing import Any
 
 from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
-from ttompc.data.stats import NormStats
+from ttompc.policy.stats import NormStats
 
 _LAZY = {
     "TrajectoryDataModule": "ttompc.data.datamodule",

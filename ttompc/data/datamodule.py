@@ -39,7 +39,7 @@ from ttompc.data.distributed import rank_info
 from ttompc.data.generate import load_manifest
 from ttompc.data.schema import SOURCE_CODES
 from ttompc.data.shards import SPLITS, ShardError, verify_shard
-from ttompc.data.stats import NormStats
+from ttompc.policy.stats import NormStats
 
 COLUMNS = ("problem_id", "source", "states", "actions", "goal", "rtg", "ctg", "target_actions", "target_next_states")
 Chunk = dict[str, np.ndarray]

@@ -32,8 +32,8 @@ from ttompc.data.config import GenerateConfig, SplitConfig
 from ttompc.data.distributed import RankInfo, rank_info, strided
 from ttompc.data.schema import SCHEMA_VERSION, make_row, trajectory_features
 from ttompc.data.shards import SPLITS, ShardError, ShardWriter, atomic_write_json, verify_shard
-from ttompc.data.stats import KEYS, NormStats
 from ttompc.parallel import single_threaded_env
+from ttompc.policy.stats import KEYS, NormStats
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import InfeasibleProblemError, Scenario
 from ttompc.version import code_version

@@ -1,4 +1,4 @@
-"""Shared pieces of the evaluations: seeded held-out problems, model loading and a spawn process pool.
+"""Shared pieces of the evaluations: seeded held-out problems and a spawn process pool.
 
 Evaluation problem i draws from ``SeedSequence(root, spawn_key=(EVAL_STREAM, i, attempt))``: a stream disjoint from
 dataset generation (``spawn_key=(i,)``), so evaluation problems are held out whatever seed the dataset used, and
@@ -13,8 +13,7 @@ import multiprocessing as mp
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -22,9 +21,6 @@ from ttompc.parallel import single_threaded_env
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import InfeasibleProblemError, Problem, Scenario
 from ttompc.solvers.scp import SCPResult, solve_rel
-
-if TYPE_CHECKING:
-    from ttompc.planner import Planner
 
 EVAL_STREAM = 0x6576616C  # "eval"
 
@@ -85,22 +81,6 @@ def eval_problem(
         raise RuntimeError(f"{scenario.name}: no suitable evaluation problem {index} in {max_attempts} attempts")
     attempt, problem, rel, rel_time, ctg0 = found
     return EvalProblem(index, eval_seed(root, index, attempt), problem, rel, rel_time, ctg0)
-
-
-def load_planner(spec: str | Path, *, device: str = "cpu", scenario: Scenario | None = None) -> Planner:
-    """A Planner from a Lightning checkpoint (``*.ckpt``), a bundle directory or a zoo model name."""
-    from ttompc.planner import Planner
-
-    path = Path(spec)
-    if path.is_file():
-        return Planner.from_checkpoint(path, scenario, device=device)
-    if path.is_dir():
-        return Planner.load(path, scenario, device=device)
-    from ttompc.zoo import load_pretrained
-
-    planner = load_pretrained(str(spec))
-    planner.model.to(device)
-    return planner
 
 
 def scenario_module(name: str) -> str:

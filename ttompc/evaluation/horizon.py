@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ttompc.evaluation.common import EvalProblem, eval_problem, load_planner, pool_map, scenario_module, worker_setup
+from ttompc.evaluation.common import EvalProblem, eval_problem, pool_map, scenario_module, worker_setup
 from ttompc.evaluation.metrics import aggregate, normalized_cost_increment, write_csv, write_json
 from ttompc.mpc.loop import Episode, Mode, run_mpc
 from ttompc.mpc.providers import DISTProvider, Provider, RELProvider, TTOProvider
@@ -56,11 +56,13 @@ _W: dict[str, Any] = {}
 
 
 def _init(module: str, cfg: dict[str, Any]) -> None:
+    from ttompc.policy import Planner
+
     worker_setup(module)
     _W["cfg"] = HorizonStudyConfig(**cfg)
     _W["scenario"] = scenario = get_scenario(cfg["scenario"])
     for key in ("checkpoint", "ft_checkpoint"):
-        _W[key] = load_planner(cfg[key], device=cfg["device"], scenario=scenario) if cfg[key] else None
+        _W[key] = Planner.from_pretrained(cfg[key], scenario, device=cfg["device"]) if cfg[key] else None
 
 
 def _providers() -> list[Provider]:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ttompc.evaluation.common import eval_problem, load_planner, pool_map, scenario_module, worker_setup
+from ttompc.evaluation.common import eval_problem, pool_map, scenario_module, worker_setup
 from ttompc.evaluation.metrics import aggregate, improvement_by_threshold, write_csv, write_json
 from ttompc.scenarios import get_scenario
 from ttompc.solvers.scp import solve_scp
@@ -46,11 +46,13 @@ _W: dict[str, Any] = {}
 
 
 def _init(module: str, cfg: dict[str, Any]) -> None:
+    from ttompc.policy import Planner
+
     worker_setup(module)
     _W["cfg"] = WarmStartConfig(**cfg)
     _W["scenario"] = scenario = get_scenario(cfg["scenario"])
     _W["models"] = {
-        name: load_planner(cfg[key], device=cfg["device"], scenario=scenario)
+        name: Planner.from_pretrained(cfg[key], scenario, device=cfg["device"])
         for name, key in (("TTO", "checkpoint"), ("FT-TTO", "ft_checkpoint"))
         if cfg[key]
     }

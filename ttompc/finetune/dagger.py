@@ -44,7 +44,7 @@ from ttompc.data.distributed import RankInfo, rank_info
 from ttompc.data.generate import split_of
 from ttompc.data.schema import make_row, trajectory_features
 from ttompc.data.shards import ShardError, ShardWriter, atomic_write_json, verify_shard
-from ttompc.evaluation.common import load_planner, pool_map, scenario_module, worker_setup
+from ttompc.evaluation.common import pool_map, scenario_module, worker_setup
 from ttompc.finetune.config import ExplorationConfig, FinetuneConfig
 from ttompc.mpc.loop import MPCController
 from ttompc.mpc.providers import ShiftProvider, TTOProvider
@@ -174,9 +174,11 @@ _W: dict[str, Any] = {}
 
 
 def _init_collector(module: str, scenario_name: str, planner_dir: str, cfg: dict[str, Any]) -> None:
+    from ttompc.policy import Planner
+
     worker_setup(module)
     _W["scenario"] = scenario = get_scenario(scenario_name)
-    _W["planner"] = load_planner(planner_dir, scenario=scenario)
+    _W["planner"] = Planner.from_pretrained(planner_dir, scenario)
     _W["cfg"] = cfg
 
 
@@ -349,7 +351,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     """Run (or resume) DAgger fine-tuning of the model ``source`` (checkpoint, bundle dir or zoo name)."""
     import lightning as L
 
-    from ttompc.planner import Planner
+    from ttompc.policy import Planner
     from ttompc.training.loggers import build_logger
 
     ranks = ranks or rank_info()
@@ -361,9 +363,9 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
         raise ValueError(f"{run} fine-tunes {state['source']!r}, not {source!r}; use another trainer.out_dir")
     src_dir = run / SOURCE_PLANNER
     if ranks.is_main and not (src_dir / "config.json").is_file():
-        load_planner(source).save(src_dir)
+        Planner.from_pretrained(source).save(src_dir)
     _wait(lambda: (src_dir / "config.json").is_file(), cfg.dagger.collect.wait_s, "the source planner")
-    source_planner = Planner.load(src_dir)
+    source_planner = Planner.from_pretrained(src_dir)
     scenario = source_planner.scenario
     if state is None:
         state = {"source": str(source), "seed": cfg.dagger.seed, "completed": [], "baseline_metrics": None}
@@ -385,7 +387,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
         ckpt = run / "checkpoints" / f"iter-{i:03d}.ckpt"
         step = _train_iteration(cfg, i, source_planner, dirs, Path(prev["checkpoint"]) if prev else None, logger, ckpt)
         if ranks.is_main:
-            planner = Planner.from_checkpoint(ckpt, scenario)
+            planner = Planner.from_pretrained(ckpt, scenario)
             planner.extra.update(source="ttompc finetune", dagger_iteration=i, finetuned_from=str(source))
             out = planner.save(run / f"iter-{i:03d}" / "planner")
             metrics = _closed_loop(cfg, planner, eval_problems)

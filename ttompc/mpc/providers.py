@@ -28,8 +28,7 @@ from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import TerminalCost, solve_rel
 
 if TYPE_CHECKING:
-    from ttompc.planner import Planner
-    from ttompc.rollout import RolloutContext
+    from ttompc.policy import Planner, RolloutContext
 
 
 @dataclass

@@ -70,7 +70,7 @@ class ClosedLoopEvalCallback(L.Callback):
     def evaluate(self, pl_module: L.LightningModule) -> tuple[dict[str, float], list[Any], list[EvalProblem]]:
         """Closed-loop metrics of the module's current weights (model mode restored afterwards)."""
         from ttompc.evaluation.horizon import closed_loop_metrics
-        from ttompc.planner import Planner
+        from ttompc.policy import Planner
         from ttompc.scenarios import get_scenario
 
         name = self.scenario_name or pl_module.hparams["scenario"]

@@ -15,7 +15,7 @@ from typing import Literal
 
 from ttompc.config import ConfigError, load_command_config
 from ttompc.data.config import DataConfig
-from ttompc.model.config import ModelConfig
+from ttompc.policy.config import ModelConfig
 
 
 @dataclass

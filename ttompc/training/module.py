@@ -8,7 +8,7 @@ Batch contract (from ``ttompc.data.datamodule.TrajectoryDataModule``; float32, a
 
 loss = masked MSE(â, target_actions) + masked MSE(ŝ, target_next_states), equal weights like the reference.
 Hyper-parameters are primitives only (dicts of numbers/strings), so the checkpoint loads with ``weights_only=True``
-and is enough to build a ``Planner`` (``Planner.from_checkpoint``).
+and is enough to build a ``Planner`` (``Planner.from_pretrained``).
 """
 
 from __future__ import annotations
@@ -22,8 +22,9 @@ import torch
 from torch import Tensor
 
 from ttompc.config import from_container
-from ttompc.data.stats import NormStats
-from ttompc.model import ModelConfig, TrajectoryGPT
+from ttompc.policy.config import ModelConfig
+from ttompc.policy.gpt import TrajectoryGPT
+from ttompc.policy.stats import NormStats
 from ttompc.training.config import OptimConfig
 from ttompc.training.loggers import log_figure, trajectory_figure
 

@@ -95,7 +95,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     import lightning as L
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint, OnExceptionCheckpoint
 
-    from ttompc.planner import Planner
+    from ttompc.policy import Planner
     from ttompc.scenarios import get_scenario
     from ttompc.training.loggers import build_logger
     from ttompc.training.module import SaveLastCheckpoint, TrajectoryTransformerModule
@@ -164,7 +164,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     global_step = _checkpoint_step(last_checkpoint(out))
     planner_dir = None
     if trainer.is_global_zero and t.export_planner:
-        planner = Planner.from_checkpoint(last_checkpoint(out), scenario)
+        planner = Planner.from_pretrained(last_checkpoint(out), scenario)
         planner.extra["source"] = "ttompc train"
         planner_dir = planner.save(out / "planner")
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}

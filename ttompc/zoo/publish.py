@@ -126,10 +126,10 @@ def _bundle_from(source: Path) -> Iterator[Path]:
         yield source
     elif source.is_file() and source.suffix == ".ckpt":
         # Lightning checkpoints are pickles: only publish checkpoints you produced yourself.
-        from ttompc.planner import Planner
+        from ttompc.policy import Planner
 
         with tempfile.TemporaryDirectory(prefix="ttompc-publish-") as tmp:
-            Planner.from_checkpoint(source).save(tmp)
+            Planner.from_pretrained(source).save(tmp)
             yield Path(tmp)
     else:
         raise PublishError(f"{source} is neither a bundle directory nor a Lightning .ckpt file")

@@ -4,7 +4,7 @@ as plain lists, so a checkpoint alone is enough to plan."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -17,6 +17,10 @@ EPS = 1e-6  # added to σ like the reference, so constant dimensions (RPOD goal)
 class NormStats:
     mean: dict[str, np.ndarray]
     std: dict[str, np.ndarray]
+    # (key, dtype, device) -> (μ, σ + ε) as tensors: the rollout normalises every step, converting once is cheaper
+    _tensors: dict[tuple[str, Any, Any], tuple[Any, Any]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
         missing = [k for k in KEYS if k not in self.mean or k not in self.std]
@@ -26,19 +30,25 @@ class NormStats:
         self.std = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in self.std.items()}
 
     def normalize(self, key: str, x: Any) -> Any:
-        """(x − μ)/(σ + ε) for numpy arrays or torch tensors (last axis = feature dim)."""
-        return (x - self._like(self.mean[key], x)) / (self._like(self.std[key], x) + EPS)
+        """(x − μ)/(σ + ε) for numpy arrays or torch tensors (last axis = feature dim), in x's dtype."""
+        mu, sd = self._mu_sd(key, x)
+        return (x - mu) / sd
 
     def denormalize(self, key: str, x: Any) -> Any:
-        return x * (self._like(self.std[key], x) + EPS) + self._like(self.mean[key], x)
+        mu, sd = self._mu_sd(key, x)
+        return x * sd + mu
 
-    @staticmethod
-    def _like(v: np.ndarray, x: Any) -> Any:
+    def _mu_sd(self, key: str, x: Any) -> tuple[Any, Any]:
+        """(μ, σ + ε) of ``key`` like ``x``: numpy arrays in x's dtype, torch tensors in x's dtype and device."""
         if isinstance(x, np.ndarray):
-            return v.astype(x.dtype, copy=False)
-        import torch
+            return self.mean[key].astype(x.dtype, copy=False), self.std[key].astype(x.dtype, copy=False) + EPS
+        slot = (key, x.dtype, x.device)
+        if slot not in self._tensors:
+            import torch
 
-        return torch.as_tensor(v, dtype=x.dtype, device=x.device)
+            as_t = lambda v: torch.as_tensor(v, dtype=x.dtype, device=x.device)  # noqa: E731
+            self._tensors[slot] = (as_t(self.mean[key]), as_t(self.std[key]) + EPS)
+        return self._tensors[slot]
 
     def to_dict(self) -> dict[str, dict[str, list[float]]]:
         return {

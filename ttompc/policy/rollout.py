@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ttompc.data.stats import EPS, NormStats
-from ttompc.model.config import TOKENS_PER_STEP
-from ttompc.model.gpt import KVCache, TrajectoryGPT
+from ttompc.policy.config import TOKENS_PER_STEP
+from ttompc.policy.gpt import KVCache, TrajectoryGPT
+from ttompc.policy.stats import NormStats
 from ttompc.scenarios.base import BatchedModel, CostNorm
 
 
@@ -92,10 +92,6 @@ class RolloutContext:
         if self.actions.shape != (B, T - 1, m):
             raise ValueError(f"actions must be (B, {T - 1}, {m}) for {T} states, got {tuple(self.actions.shape)}")
         self._cache: KVCache | None = None  # tokens of the completed steps 0..t-1, built on first use
-        # (μ, σ + ε) per modality as tensors once, instead of converting NormStats' arrays at every step.
-        self._mu_sd = {
-            k: (as_t(stats.mean[k]), as_t(stats.std[k]) + EPS) for k in ("states", "actions", "goals", "rtg", "ctg")
-        }
 
     @classmethod
     def start(
@@ -137,22 +133,14 @@ class RolloutContext:
         return self.states.shape[0]
 
     # -------------------------------------------------------------------------------------------- normalisation
-    def _normalize(self, key: str, x: Tensor) -> Tensor:
-        mu, sd = self._mu_sd[key]
-        return (x - mu) / sd
-
-    def _denormalize(self, key: str, x: Tensor) -> Tensor:
-        mu, sd = self._mu_sd[key]
-        return x * sd + mu
-
     def _norm_step(
         self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         return (
-            self._normalize("goals", goals),
-            self._normalize("rtg", rtg[..., None]),
-            self._normalize("ctg", ctg[..., None]),
-            self._normalize("states", states),
+            self.stats.normalize("goals", goals),
+            self.stats.normalize("rtg", rtg[..., None]),
+            self.stats.normalize("ctg", ctg[..., None]),
+            self.stats.normalize("states", states),
         )
 
     def _timesteps(self, start: int, stop: int) -> Tensor:
@@ -165,7 +153,7 @@ class RolloutContext:
 
     def _embed_actions(self, actions: Tensor, start: int) -> Tensor:
         ts = self._timesteps(start, start + actions.shape[1])
-        return self.model.embed_actions(self._normalize("actions", actions), ts)
+        return self.model.embed_actions(self.stats.normalize("actions", actions), ts)
 
     def _history_cache(self) -> KVCache:
         """The KV cache of all completed steps 0..t-1 (built once, then extended by ``advance``)."""
@@ -175,7 +163,7 @@ class RolloutContext:
             if t > 0:
                 ts = self._timesteps(0, t)
                 g, r, c, s = self._norm_step(self.goals[:, :t], self.rtg[:, :t], self.ctg[:, :t], self.states[:, :t])
-                a = self._normalize("actions", self.actions)
+                a = self.stats.normalize("actions", self.actions)
                 self.model.encode(self.model.embed_sequence(g, r, c, s, a, ts), self._cache)
         return self._cache
 
@@ -201,7 +189,7 @@ class RolloutContext:
                     a_norm = model.action_head(model.encode(tok, cache)[:, -1])  # (B, m)
                 else:
                     a_norm = self._full_recompute(S, A, R, C, goal)
-                a = self._denormalize("actions", a_norm)
+                a = self.stats.denormalize("actions", a_norm)
                 s_next = self.dynamics.step(S[-1], a, k).to(a.dtype)
                 A.append(a)
                 S.append(s_next)
@@ -228,7 +216,7 @@ class RolloutContext:
         dummy = states.new_zeros(self.batch, 1, self.model.cfg.control_dim)  # a_k: not visible to the state token
         actions = torch.cat([self.actions, *(a[:, None] for a in A), dummy], dim=1)
         g, r, c, s = self._norm_step(goals, rtg, ctg, states)
-        a_pred, _ = self.model(g, r, c, s, self._normalize("actions", actions), self._timesteps(0, L))
+        a_pred, _ = self.model(g, r, c, s, self.stats.normalize("actions", actions), self._timesteps(0, L))
         return a_pred[:, -1]
 
     @torch.no_grad()

@@ -1,7 +1,8 @@
 """``Planner``: a trained trajectory transformer bound to its scenario and normalisation statistics, i.e. everything
 needed to turn problems into warm-start trajectories (paper §IV-B) or MPC guidance.
 
-Bundle format (``Planner.save(dir)`` / ``Planner.load(dir)``; the zoo publishes and caches these directories)::
+Bundle format (``Planner.save(dir)`` / ``Planner.from_pretrained(dir)``; the zoo publishes and caches these
+directories)::
 
     <dir>/model.safetensors   TrajectoryGPT state dict (safetensors; nothing is ever unpickled)
     <dir>/config.json         {
@@ -15,8 +16,9 @@ Bundle format (``Planner.save(dir)`` / ``Planner.load(dir)``; the zoo publishes 
                                 "extra": {free-form metadata: training steps, val loss, dataset ...}
                               }
 
-``Planner.from_checkpoint(path.ckpt)`` reads a Lightning checkpoint written by ``TrajectoryTransformerModule``
-without importing Lightning (its hyper-parameters are primitives, so ``weights_only=True`` loading works).
+``Planner.from_pretrained`` is the one loader: a zoo model name (downloaded and verified into the cache), a bundle
+directory, or a Lightning ``.ckpt`` written by ``TrajectoryTransformerModule`` (read without importing Lightning: its
+hyper-parameters are primitives, so ``weights_only=True`` loading works). Weights are never unpickled.
 """
 
 from __future__ import annotations
@@ -32,9 +34,10 @@ import numpy as np
 import torch
 
 from ttompc.config import from_container
-from ttompc.data.stats import NormStats
-from ttompc.model import ModelConfig, TrajectoryGPT
-from ttompc.rollout import RolloutContext, RolloutResult
+from ttompc.policy.config import ModelConfig
+from ttompc.policy.gpt import TrajectoryGPT
+from ttompc.policy.rollout import RolloutContext, RolloutResult
+from ttompc.policy.stats import NormStats
 from ttompc.scenarios import Problem, Scenario, get_scenario
 from ttompc.version import code_version
 
@@ -179,19 +182,47 @@ class Planner:
         return out
 
     @classmethod
-    def load(
+    def from_pretrained(
         cls,
-        directory: str | Path,
+        source: str | Path,
         scenario: Scenario | None = None,
         *,
         device: str | torch.device = "cpu",
         check_version: bool = True,
+        cache_dir: str | Path | None = None,
+        zoo_dir: str | Path | None = None,
+        progress: bool = True,
     ) -> Planner:
-        """Load a bundle. The scenario defaults to the registered one named in ``config.json``; a scenario version
-        different from the training one is an error unless ``check_version=False``."""
+        """A planner from a Lightning checkpoint (``*.ckpt``), a bundle directory or a zoo model name (downloaded
+        into the verified cache if needed), in that order of precedence: a local path wins over a zoo name.
+
+        The scenario defaults to the registered one the model was trained on; a scenario version different from
+        the training one is an error unless ``check_version=False``."""
+        from ttompc.zoo import BundleError, check_bundle, download
+        from ttompc.zoo.cards import CardError, validate_name
+
+        path = Path(source)
+        if path.is_file():
+            if path.suffix != ".ckpt":
+                raise BundleError(f"{path} is a file but not a Lightning checkpoint (*.ckpt)")
+            return cls._from_checkpoint(path, scenario, device=device, check_version=check_version)
+        if not path.is_dir():
+            try:
+                validate_name(str(source))
+            except CardError:
+                raise BundleError(
+                    f"{str(source)!r} is neither a bundle directory, a .ckpt file nor a zoo model name"
+                ) from None
+            path = download(str(source), cache_dir, zoo_dir=zoo_dir, progress=progress)
+        check_bundle(path)  # safetensors header + JSON, before anything reads the weights into torch
+        return cls._from_bundle(path, scenario, device=device, check_version=check_version)
+
+    @classmethod
+    def _from_bundle(
+        cls, src: Path, scenario: Scenario | None, *, device: str | torch.device, check_version: bool
+    ) -> Planner:
         from safetensors.torch import load_file
 
-        src = Path(directory)
         meta = json.loads((src / CONFIG_FILE).read_text())
         if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
             raise ValueError(f"{src}: not a {FORMAT} v{FORMAT_VERSION} bundle")
@@ -211,15 +242,9 @@ class Planner:
         )
 
     @classmethod
-    def from_checkpoint(
-        cls,
-        path: str | Path,
-        scenario: Scenario | None = None,
-        *,
-        device: str | torch.device = "cpu",
-        check_version: bool = True,
+    def _from_checkpoint(
+        cls, path: Path, scenario: Scenario | None, *, device: str | torch.device, check_version: bool
     ) -> Planner:
-        """Build from a ``TrajectoryTransformerModule`` Lightning checkpoint (weights_only-safe)."""
         ckpt = torch.load(path, map_location=device, weights_only=True)
         hp = ckpt["hyper_parameters"]
         state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}

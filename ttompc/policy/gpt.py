@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ttompc.model.config import TOKENS_PER_STEP, ModelConfig
+from ttompc.policy.config import TOKENS_PER_STEP, ModelConfig
 
 _ACTIVATIONS = {"relu": nn.ReLU, "gelu": nn.GELU, "silu": nn.SiLU}
 
