@@ -177,8 +177,8 @@ def _default_body(card: ModelCard) -> str:
     return (
         f"\n# {card.name}\n\n"
         f"{card.kind} model for the `{card.scenario}` scenario (version {card.scenario_version}).\n\n"
-        "```python\nfrom ttompc.zoo import load_pretrained\n\n"
-        f'planner = load_pretrained("{card.name}")\n```\n\n'
+        "```python\nfrom ttompc.policy import Planner\n\n"
+        f'planner = Planner.from_pretrained("{card.name}")\n```\n\n'
         "Card format, metric definitions and download details: [README.md](README.md).\n"
     )
 
