@@ -96,6 +96,10 @@ class ConvexModel:
     A: np.ndarray  # (H, n, n)
     B: np.ndarray  # (H, n, m)
     c: np.ndarray  # (H, n)
+    # structural nonzeros of every A[j] (n, n) and B[j] (n, m), for any reference (None: dense); sparse solvers
+    # store only these entries, so a mask must also cover entries that are zero only at some references
+    A_mask: np.ndarray | None = None
+    B_mask: np.ndarray | None = None
 
 
 class BlockKind(str, enum.Enum):
@@ -125,6 +129,9 @@ class ConstraintBlock:
     soft: bool = False
     weight: float = 1.0
     lower: np.ndarray | None = None  # INEQ only: lower <= Gx x + Gu u <= h, one shared slack per row pair
+    # structural nonzeros of every Gx[k] (M, n) and Gu[k] (M, m), for any reference (None: dense), as in ConvexModel
+    Gx_mask: np.ndarray | None = None
+    Gu_mask: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         K = len(self.steps)
@@ -134,6 +141,10 @@ class ConstraintBlock:
             raise ValueError(f"block {self.name!r}: 'lower' needs an INEQ block and the shape of h")
         if self.Gu is not None and self.Gu.shape[:2] != self.Gx.shape[:2]:
             raise ValueError(f"block {self.name!r}: Gu {self.Gu.shape} does not match Gx {self.Gx.shape}")
+        if self.Gx_mask is not None and self.Gx_mask.shape != self.Gx.shape[1:]:
+            raise ValueError(f"block {self.name!r}: Gx_mask {self.Gx_mask.shape} is not {self.Gx.shape[1:]}")
+        if self.Gu_mask is not None and (self.Gu is None or self.Gu_mask.shape != self.Gu.shape[1:]):
+            raise ValueError(f"block {self.name!r}: Gu_mask needs Gu and the shape of one step of it")
 
     @property
     def rows_per_step(self) -> int:
@@ -195,6 +206,7 @@ class Scenario(abc.ABC):
     cost_norm: ClassVar[CostNorm]
     rel_is_convex: ClassVar[bool] = False
     exact_linear_dynamics: ClassVar[bool] = False  # affine dynamics independent of the reference: no virtual control
+    time_invariant: ClassVar[bool] = False  # ``step`` ignores k (and vectorises over leading axes)
     scp: ClassVar[SCPSettings]
     mpc: ClassVar[MPCWeights]
     # characteristic magnitudes of states and controls: the engine solves for x/scale, u/scale (non-dimensionalised
@@ -205,7 +217,7 @@ class Scenario(abc.ABC):
     # MPC end penalties leave a small residual
     terminal_tol: ClassVar[float] = 5e-2
     # what backend="auto" means for this scenario (see ttompc.solvers.engine.backend_chain)
-    auto_backends: ClassVar[tuple[str, ...]] = ("qoco", "clarabel")
+    auto_backends: ClassVar[tuple[str, ...]] = ("piqp", "qoco", "clarabel")
     state_labels: ClassVar[tuple[str, ...]]
     control_labels: ClassVar[tuple[str, ...]]
 
@@ -228,6 +240,13 @@ class Scenario(abc.ABC):
     @abc.abstractmethod
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Exact dynamics x_{k+1} = f_k(x_k, u_k) (the 'environment'); vectorised over leading axes of x, u."""
+
+    def step_window(self, problem: Problem, start: int, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """One exact step from each of the states X (H, n) with controls U (H, m) at steps start..start+H−1:
+        (H, n). Scenarios whose ``step`` does not depend on k inherit a single vectorised call."""
+        if not self.time_invariant:
+            return np.stack([self.step(problem, start + j, X[j], U[j]) for j in range(len(U))])
+        return self.step(problem, start, X, U)
 
     def rollout(self, problem: Problem, U: np.ndarray, start: int = 0, x: np.ndarray | None = None) -> np.ndarray:
         """Propagate controls U (H, m) with the exact dynamics from x (default x0) at step ``start``: (H+1, n)."""
@@ -269,8 +288,7 @@ class Scenario(abc.ABC):
     ) -> float:
         """Largest violation of the *nonlinear* problem on a window: dynamics defect (one-step, so errors do not
         compound) and the exact path constraints. Used for the feasibility status of SCP iterates."""
-        X_next = np.stack([self.step(problem, window.start + j, X[j], U[j]) for j in range(window.length)])
-        defect = float(np.max(np.abs(X_next - X[1:]), initial=0.0))
+        defect = float(np.max(np.abs(self.step_window(problem, window.start, X[:-1], U) - X[1:]), initial=0.0))
         return max(defect, self.path_violation(problem, X, U, window, obstacles=obstacles))
 
     @abc.abstractmethod

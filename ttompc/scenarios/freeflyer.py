@@ -72,6 +72,7 @@ class FreeFlyer(Scenario):
     n_steps: ClassVar[int] = N_STEPS
     cost_norm = "l1"
     rel_is_convex: ClassVar[bool] = False
+    time_invariant: ClassVar[bool] = True
     exact_linear_dynamics: ClassVar[bool] = True
     scp: ClassVar[SCPSettings] = SCPSettings(
         tr_start=10.0, tr_end=0.005, max_iters=20, cost_tol=1e-6, penalty=1e2, feas_tol=1e-4
@@ -109,7 +110,8 @@ class FreeFlyer(Scenario):
     def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
         H = window.length
         A = np.broadcast_to(A_STEP, (H, 6, 6))
-        return ConvexModel(A=A, B=np.broadcast_to(A_STEP @ B_IMP, (H, 6, 3)), c=np.zeros((H, 6)))
+        B = A_STEP @ B_IMP
+        return ConvexModel(A=A, B=np.broadcast_to(B, (H, 6, 3)), c=np.zeros((H, 6)), A_mask=A_STEP != 0, B_mask=B != 0)
 
     def constraints(
         self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray, *, obstacles: bool
@@ -129,7 +131,13 @@ class FreeFlyer(Scenario):
         K = len(steps)
         # hard: each reference iterate satisfies the box, so the subproblem stays feasible without slacks
         return ConstraintBlock(
-            "table", BlockKind.INEQ, steps, np.broadcast_to(G, (K, 4, 6)), None, np.broadcast_to(h, (K, 4))
+            "table",
+            BlockKind.INEQ,
+            steps,
+            np.broadcast_to(G, (K, 4, 6)),
+            None,
+            np.broadcast_to(h, (K, 4)),
+            Gx_mask=G != 0,
         )
 
     @staticmethod
@@ -157,6 +165,7 @@ class FreeFlyer(Scenario):
             nonconvex=True,
             soft=True,
             lower=off - DV_MAX,
+            Gx_mask=np.arange(6)[None, :].repeat(4, axis=0) == 2,  # only the heading enters
         )
 
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:

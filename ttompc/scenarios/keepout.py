@@ -41,4 +41,8 @@ def keepout_block(
     Gx = np.zeros((K, n_obs, n))
     Gx[:, :, :d] = -row
     h = -radius[None, :] - np.einsum("kod,od->ko", row, centres)
-    return ConstraintBlock("obstacles", BlockKind.INEQ, steps, Gx, None, h, nonconvex=True, obstacle=True, soft=True)
+    mask = np.zeros((n_obs, n), bool)
+    mask[:, :d] = True  # only the position enters
+    return ConstraintBlock(
+        "obstacles", BlockKind.INEQ, steps, Gx, None, h, nonconvex=True, obstacle=True, soft=True, Gx_mask=mask
+    )

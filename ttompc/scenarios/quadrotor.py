@@ -59,6 +59,7 @@ class Quadrotor(Scenario):
     n_steps: ClassVar[int] = N_STEPS
     cost_norm = "quad"
     rel_is_convex: ClassVar[bool] = False
+    time_invariant: ClassVar[bool] = True
     exact_linear_dynamics: ClassVar[bool] = False
     # Penalty 1e2: the multipliers of the dynamics/obstacle rows are O(m·‖u‖) ≲ 10 for forces of a few newtons, so
     # slacks vanish at the solution. feas_tol 1e-6 on the one-step defect: it compounds in the open-loop
@@ -110,7 +111,7 @@ class Quadrotor(Scenario):
         B[:, 3:, :] = dt / MASS * np.eye(3)
         c = np.zeros((H, 6))
         c[:, 3:] = dt * (DRAG / MASS) * np.linalg.norm(v, axis=-1, keepdims=True) * v
-        return ConvexModel(A=A, B=B, c=c)
+        return ConvexModel(A=A, B=B, c=c, A_mask=_A_MASK, B_mask=_B_MASK)
 
     # ---------------------------------------------------------------------------------------------- constraints
     def constraints(
@@ -165,6 +166,13 @@ def _sample_free(rng: np.random.Generator, region: tuple[np.ndarray, np.ndarray]
             return p
 
 
+# structural nonzeros of the linearised Euler step: identity, dt·I (position ← velocity), the drag Jacobian block
+_A_MASK = np.eye(6, dtype=bool) | np.block([[np.zeros((3, 3)), np.eye(3)], [np.zeros((3, 3)), np.ones((3, 3))]]).astype(
+    bool
+)
+_B_MASK = np.vstack([np.zeros((3, 3)), np.eye(3)]).astype(bool)
+
+
 def _control_box(H: int) -> ConstraintBlock:
     """−U_MAX ≤ u_j ≤ U_MAX componentwise as hard two-sided rows on the controls of window steps 0..H−1."""
     return ConstraintBlock(
@@ -175,6 +183,8 @@ def _control_box(H: int) -> ConstraintBlock:
         np.broadcast_to(np.eye(3), (H, 3, 3)).copy(),
         np.full((H, 3), U_MAX),
         lower=np.full((H, 3), -U_MAX),
+        Gx_mask=np.zeros((3, 6), bool),
+        Gu_mask=np.eye(3, dtype=bool),
     )
 
 

@@ -1,10 +1,15 @@
-"""Convex solver backends for assembled subproblems. Each is set up once per structure and then updated in place.
+"""Solver backends for the conic assembly of the subproblem (``subproblem.py``).
 
-* ``clarabel`` (default): interior-point conic solver shipped with cvxpy; handles the SOC trust region, the
-  2-norm costs (RPOD) and the approach cone. Data updates keep the KKT symbolic factorisation.
-* ``osqp``: ADMM QP solver for subproblems without cones (quadrotor with an ∞-norm trust region); warm-started
-  from the previous primal/dual iterate, which matters when many bounds are active (engineering notes).
-* ``piqp`` (optional extra ``ttompc[fast]``): interior-point QP solver, insensitive to active sets.
+What ``backend="auto"`` runs (``engine.backend_chain``): PIQP on the compact QP form (``qp.py``, optional extra
+``ttompc[fast]``) wherever the subproblem has no cone; otherwise QOCO (optional extra) with Clarabel as the fallback
+on a numerical failure, or Clarabel alone where QOCO is not installed or the scenario asks for it (RPOD).
+
+* ``qoco``: interior-point conic solver, the fastest measured here on our SOCPs; set up afresh per solve (below).
+* ``clarabel``: interior-point conic solver shipped with cvxpy; handles the SOC trust region, the 2-norm costs
+  (RPOD) and the approach cone. Data updates keep the KKT symbolic factorisation.
+* ``osqp``: ADMM QP solver for subproblems without cones, on the conic assembly; warm-started from the previous
+  primal/dual iterate, which matters when many bounds are active (engineering notes). Slow here; kept as a
+  comparison in ``bench/solver_speed.py``.
 """
 
 from __future__ import annotations
@@ -116,36 +121,6 @@ class OSQPBackend:
         )
 
 
-class PIQPBackend:
-    """PIQP (sparse interface): min ½xᵀPx + cᵀx s.t. Ax = b, h_l ≤ Gx ≤ h_u."""
-
-    name = "piqp"
-    supports_cones = False
-
-    def __init__(self, sub: AssembledSubproblem) -> None:
-        import piqp
-
-        _reject_cones(sub, self.name)
-        self._piqp = piqp
-        self.sub = sub
-        self.n_zero = dict(sub.cones)["zero"]
-
-    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
-        t0 = time.perf_counter()
-        A = self.sub.matrix(a_values).tocsr()
-        nz = self.n_zero
-        solver = self._piqp.SparseSolver()
-        solver.settings.verbose = False
-        solver.setup(self.sub.P, self.sub.q, A[:nz].tocsc(), b[:nz], A[nz:].tocsc(), None, b[nz:])
-        status = solver.solve()
-        elapsed = time.perf_counter() - t0
-        name = str(status)
-        ok = "PIQP_SOLVED" in name
-        infeasible = "PRIMAL_INFEASIBLE" in name
-        z = np.asarray(solver.result.x) if ok else None
-        return BackendSolution(z, float(solver.result.info.primal_obj), ok, infeasible, name, elapsed)
-
-
 class QOCOBackend:
     """QOCO (optional extra): min ½xᵀPx + cᵀx s.t. Ax = b, Gx ≤_C h with C = ℝ₊ˡ × SOCs. The zero-cone rows of
     the assembled matrix are QOCO's A, the rest its G.
@@ -196,20 +171,26 @@ class QOCOBackend:
         )
 
 
-BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "piqp": PIQPBackend, "qoco": QOCOBackend}
+BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "qoco": QOCOBackend}
+QP_BACKENDS = ("piqp", "osqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
 
 
-def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPBackend | PIQPBackend:
+def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPBackend | QOCOBackend:
     try:
         cls = BACKENDS[name]
     except KeyError:
-        raise ValueError(f"unknown solver backend {name!r}; choose from {sorted(BACKENDS)}") from None
+        known = sorted([*BACKENDS, "piqp", "auto", "cvxpy-naive"])
+        raise ValueError(f"unknown solver backend {name!r}; choose from {known}") from None
     return cls(sub)
 
 
 def _reject_cones(sub: AssembledSubproblem, name: str) -> None:
     if any(kind == "soc" for kind, _ in sub.cones):
-        raise ValueError(
-            f"backend {name!r} solves QPs only, but this subproblem has second-order cones (2-norm cost, 2-norm trust "
-            "region, approach cone or a soft terminal norm); use backend='clarabel' or trust_norm='linf'"
-        )
+        raise ValueError(cone_error(name))
+
+
+def cone_error(name: str) -> str:
+    return (
+        f"backend {name!r} solves QPs only, but this subproblem has second-order cones (2-norm cost, 2-norm trust "
+        "region, approach cone or a soft terminal norm); use backend='auto', 'qoco' or 'clarabel', or trust_norm='linf'"
+    )

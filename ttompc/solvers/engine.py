@@ -3,22 +3,19 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.util
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from typing import Protocol
 
 import numpy as np
 
 from ttompc.scenarios.base import BlockKind, ConstraintBlock, Problem, Scenario, SCPSettings, Window
-from ttompc.solvers.backends import BackendSolution, make_backend
+from ttompc.solvers.backends import QP_BACKENDS, BackendSolution, make_backend
+from ttompc.solvers.qp import PIQPSolver, SubproblemSolver, is_qp
 from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
 from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
-
-
-class SubproblemSolver(Protocol):
-    def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]: ...
 
 
 class AssembledSolver:
@@ -44,18 +41,25 @@ class AssembledSolver:
         return X, U, sol
 
 
-CONIC_BACKENDS = ("auto", "clarabel", "qoco", "cvxpy-naive")
-
-
 def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
-    """``auto`` = the scenario's ``auto_backends`` (default: QOCO, the fastest conic solver measured here, with
-    Clarabel as the fallback on a numerical failure), restricted to installed solvers; other names alone."""
+    """``auto`` = the scenario's ``auto_backends`` (default: PIQP on the compact QP wherever the subproblem has
+    no cone, else QOCO, with Clarabel as the fallback on a numerical failure), restricted to installed solvers;
+    other names alone."""
     if name != "auto":
         return [name]
-    chain = list(scenario.auto_backends) if scenario is not None else ["qoco", "clarabel"]
-    if "qoco" in chain and importlib.util.find_spec("qoco") is None:
-        chain.remove("qoco")
+    chain = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
+    chain = [b for b in chain if b not in ("piqp", "qoco") or _installed(b)]
     return chain or ["clarabel"]
+
+
+@functools.cache
+def _installed(module: str) -> bool:
+    return importlib.util.find_spec(module) is not None
+
+
+def default_trust_norm(backend: str, scenario: Scenario | None = None) -> str:
+    """∞-norm (a QP: bounds on the states) where the first backend of the chain solves QPs, else the 2-norm."""
+    return "linf" if backend_chain(backend, scenario)[0] in QP_BACKENDS else "l2"
 
 
 _CACHE: OrderedDict[tuple[SubproblemSpec, tuple[str, ...]], SubproblemSolver] = OrderedDict()
@@ -68,12 +72,16 @@ def get_solver(spec: SubproblemSpec, backend: str, scenario: Scenario | None = N
     key = (spec, chain)
     solver = _CACHE.get(key)
     if solver is None:
+        conic = tuple(b for b in chain if b != "piqp") or ("clarabel",)
         if chain == ("cvxpy-naive",):
             from ttompc.solvers.naive import NaiveCvxpySolver
 
             solver = NaiveCvxpySolver(spec)
+        elif chain[0] == "piqp" and (is_qp(spec) or len(chain) == 1):  # a lone "piqp" rejects cones itself
+            fallback = (lambda: AssembledSolver(spec, conic)) if len(chain) > 1 else None
+            solver = PIQPSolver(spec, fallback)
         else:
-            solver = AssembledSolver(spec, chain)
+            solver = AssembledSolver(spec, conic)
         _CACHE[key] = solver
         if len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)
@@ -118,7 +126,7 @@ def run_scp(
     if not penalized and backend == "auto":
         backend = "clarabel"  # certified infeasibility matters for the reference formulation; QOCO reports errors
     if trust_norm is None:
-        trust_norm = "l2" if backend in CONIC_BACKENDS else "linf"
+        trust_norm = default_trust_norm(backend, scenario)
     shrink = settings.shrink if use_tr else 1.0
 
     X_ref, U_ref = X_init.copy(), U_init.copy()
@@ -152,6 +160,7 @@ def run_scp(
             tr_states=tuple(int(j) for j in scenario.trust_region_steps(problem, window, terminal is None)),
             state_scale=tuple(scenario.state_scale),
             control_scale=tuple(scenario.control_scale),
+            model_masks=SubproblemSpec.model_signature(model),
         )
         data = SubproblemData(
             x_start=x_start,

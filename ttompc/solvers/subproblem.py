@@ -53,9 +53,20 @@ class SubproblemSpec:
     tr_states: tuple[int, ...] = ()  # window states under the trust region
     state_scale: tuple[float, ...] = ()  # characteristic magnitudes (non-dimensionalisation); empty = 1
     control_scale: tuple[float, ...] = ()
+    model_masks: tuple[tuple[bool, ...], tuple[bool, ...]] | None = None  # flattened A/B masks (None: dense)
+
+    @staticmethod
+    def model_signature(model: ConvexModel) -> tuple[tuple[bool, ...], tuple[bool, ...]] | None:
+        if model.A_mask is None and model.B_mask is None:
+            return None
+        n, m = model.B.shape[1:]
+        A = np.ones((n, n), bool) if model.A_mask is None else np.asarray(model.A_mask, bool)
+        B = np.ones((n, m), bool) if model.B_mask is None else np.asarray(model.B_mask, bool)
+        return tuple(A.ravel().tolist()), tuple(B.ravel().tolist())
 
     @staticmethod
     def block_signature(block: ConstraintBlock) -> tuple[Any, ...]:
+        """name, kind, steps, rows per step, has Gu, soft, weight, two-sided, Gx mask, Gu mask (None: dense)."""
         return (
             block.name,
             block.kind.value,
@@ -65,6 +76,8 @@ class SubproblemSpec:
             bool(block.soft),
             float(block.weight),
             block.lower is not None,
+            None if block.Gx_mask is None else tuple(np.asarray(block.Gx_mask, bool).ravel().tolist()),
+            None if block.Gu_mask is None else tuple(np.asarray(block.Gu_mask, bool).ravel().tolist()),
         )
 
 
@@ -159,7 +172,7 @@ class AssembledSubproblem:
 
         # scenario constraint blocks
         for bi, sig in enumerate(spec.blocks):
-            _, kind, steps, M, has_u, soft, weight, two_sided = sig
+            _, kind, steps, M, has_u, soft, weight, two_sided = sig[:8]
             steps = np.asarray(steps, dtype=int)
             K = len(steps)
             if has_u and K and steps.max() >= H:

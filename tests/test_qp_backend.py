@@ -1,0 +1,159 @@
+"""The compact-QP backend (PIQP) against the conic assembly (Clarabel) and the independent cvxpy model on the same
+subproblems, for every scenario it serves; the structural masks it relies on; and which path ``auto`` takes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ttompc.scenarios import Window, get_scenario
+from ttompc.solvers import TerminalCost, solve_rel, solve_scp
+from ttompc.solvers.engine import AssembledSolver, get_solver
+from ttompc.solvers.naive import NaiveCvxpySolver
+from ttompc.solvers.qp import PIQPSolver, is_qp
+from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+
+pytest.importorskip("piqp")  # the optional fast extra
+
+
+def _subproblem(name: str, seed: int, window: Window, obstacles: bool, penalized: bool, delta: float):
+    """A subproblem linearised about a perturbed REL solution (so that linearisations, slacks and the trust region
+    all matter), with the structure the engine would build."""
+    sc = get_scenario(name)
+    p = sc.sample(np.random.default_rng(seed))
+    rel = solve_rel(sc, p, backend="clarabel")
+    rng = np.random.default_rng(seed + 100)
+    X = rel.X[window.start : window.stop + 1] + rng.normal(scale=0.02, size=(window.length + 1, sc.state_dim))
+    U = rel.U[window.start : window.stop]
+    X[0] = rel.X[window.start]
+    model = sc.convex_model(p, window, X, U)
+    blocks = sc.constraints(p, window, X, U, obstacles=obstacles)
+    spec = SubproblemSpec(
+        H=window.length,
+        n=sc.state_dim,
+        m=sc.control_dim,
+        cost_norm=sc.cost_norm,
+        fuel_weight=1.0,
+        penalized=penalized,
+        virtual_control=penalized and not sc.exact_linear_dynamics,
+        trust="linf",
+        terminal="hard",
+        soft_equalities=False,
+        penalty=sc.scp.penalty,
+        blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+        tr_states=tuple(range(1, window.length)),
+        state_scale=sc.state_scale,
+        control_scale=sc.control_scale,
+        model_masks=SubproblemSpec.model_signature(model),
+    )
+    data = SubproblemData(X[0], model, blocks, X, delta, p.goal, None, None)
+    return sc, spec, data
+
+
+CASES = [
+    ("freeflyer", Window(0, 100, 100), True, True),
+    ("freeflyer", Window(0, 100, 100), False, True),
+    ("freeflyer", Window(60, 40, 100), True, True),
+    ("freeflyer", Window(0, 100, 100), False, False),  # reference formulation: hard rows, no slacks
+    ("quadrotor", Window(0, 100, 100), True, True),
+    ("quadrotor", Window(0, 100, 100), False, True),
+    ("quadrotor", Window(50, 50, 100), True, False),
+]
+
+
+@pytest.mark.parametrize(("name", "window", "obstacles", "penalized"), CASES)
+def test_qp_matches_conic_and_cvxpy(name, window, obstacles, penalized) -> None:
+    sc, spec, data = _subproblem(name, 3, window, obstacles, penalized, delta=0.3)
+    assert is_qp(spec)
+    X, U, qp = PIQPSolver(spec).solve(data)
+    _, Uc, conic = AssembledSolver(spec, ["clarabel"]).solve(data)
+    assert qp.ok and conic.ok, (qp.status, conic.status)
+    assert qp.objective == pytest.approx(conic.objective, rel=1e-6, abs=1e-8)
+    assert sc.cost(U) == pytest.approx(sc.cost(Uc), rel=1e-5, abs=1e-8)
+    # the QP solution is a solution of the subproblem: initial state, model dynamics (exact where nothing is
+    # virtual), trust region
+    np.testing.assert_allclose(X[0], data.x_start, atol=1e-9)
+    if not spec.virtual_control:
+        m = data.model
+        np.testing.assert_allclose(X[1:], np.einsum("hij,hj->hi", m.A, X[:-1]) + np.einsum("hij,hj->hi", m.B, U) + m.c,
+                                   atol=1e-7)  # fmt: skip
+    assert np.max(np.abs(X[1:-1] - data.X_ref[1:-1])) <= data.delta + 1e-7
+    if name == "freeflyer" and window.start == 0 and obstacles:  # and the independent per-timestep model
+        _, _, naive = NaiveCvxpySolver(spec).solve(data)
+        assert qp.objective == pytest.approx(naive.objective, rel=1e-5)
+
+
+def test_in_place_updates_give_the_fresh_optimum() -> None:
+    """One solver reused across different data (as inside SCP) gives the optimum of a freshly built one."""
+    _, spec, d1 = _subproblem("freeflyer", 5, Window(0, 100, 100), True, True, delta=0.5)
+    _, spec2, d2 = _subproblem("freeflyer", 8, Window(0, 100, 100), True, True, delta=0.1)
+    assert spec == spec2
+    reused = PIQPSolver(spec)
+    reused.solve(d1)
+    _, U_reused, a = reused.solve(d2)
+    _, U_fresh, b = PIQPSolver(spec).solve(d2)
+    assert a.objective == pytest.approx(b.objective, rel=1e-7)
+    np.testing.assert_allclose(U_reused, U_fresh, atol=1e-6)
+
+
+def test_fallback_on_numerical_failure() -> None:
+    _, spec, data = _subproblem("quadrotor", 2, Window(0, 100, 100), True, True, delta=0.3)
+    solver = PIQPSolver(spec, fallback=lambda: AssembledSolver(spec, ["clarabel"]))
+    solver.solve(data)
+    solver.solver.settings.max_iter = 1  # PIQP now stops unsolved: the conic solver takes over
+    X, _, sol = solver.solve(data)
+    assert X is not None and sol.ok and "PIQP_MAX_ITER_REACHED -> Solved" in sol.status
+    ref = AssembledSolver(spec, ["clarabel"]).solve(data)[2]
+    assert sol.objective == pytest.approx(ref.objective, rel=1e-6)
+
+
+@pytest.mark.parametrize("name", ["freeflyer", "quadrotor", "rpod"])
+def test_structural_masks_cover_every_nonzero(name) -> None:
+    """Sparse backends store only masked entries: a reference-dependent value outside its mask would be dropped."""
+    sc = get_scenario(name)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        p = sc.sample(rng)
+        w = Window.full(p)
+        X = sc.initial_guess(p)[0] + rng.normal(scale=0.3, size=(101, 6))
+        U = rng.normal(scale=0.01, size=(100, 3))
+        model = sc.convex_model(p, w, X, U)
+        for arr, mask in ((model.A, model.A_mask), (model.B, model.B_mask)):
+            if mask is not None:
+                assert not np.any(np.asarray(arr)[:, ~mask])
+        for block in sc.constraints(p, w, X, U, obstacles=True):
+            if block.Gx_mask is not None:
+                assert not np.any(block.Gx[:, ~block.Gx_mask]), block.name
+            if block.Gu_mask is not None:
+                assert not np.any(block.Gu[:, ~block.Gu_mask]), block.name
+
+
+def test_auto_uses_the_qp_where_there_is_no_cone() -> None:
+    ff = get_scenario("freeflyer")
+    p = ff.sample(np.random.default_rng(1))
+    rel = solve_rel(ff, p)
+    assert rel.success and all("PIQP" in h.solver_status for h in rel.history)
+    # an MPC window's soft terminal term is a 2-norm: the conic chain takes it, with the ∞-norm trust region
+    w = Window(0, 10, 100)
+    res = solve_scp(ff, p, rel.X[:11], rel.U[:10], window=w, terminal=TerminalCost(rel.X[10], 1.0))
+    assert res.success and not any("PIQP" in h.solver_status for h in res.history)
+    # RPOD's 2-norm cost needs cones: its auto chain is conic only
+    rp = get_scenario("rpod")
+    assert get_scenario("rpod").auto_backends == ("clarabel",)
+    assert not isinstance(get_solver(_rpod_spec(rp), "auto", rp), PIQPSolver)
+
+
+def _rpod_spec(rp) -> SubproblemSpec:
+    p = rp.sample(np.random.default_rng(0))
+    X, U = rp.initial_guess(p)
+    blocks = rp.constraints(p, Window.full(p), X, U, obstacles=True)
+    return SubproblemSpec(100, 6, 3, "l2", 1.0, True, False, "l2", "hard", False, 100.0,
+                          tuple(SubproblemSpec.block_signature(b) for b in blocks))  # fmt: skip
+
+
+def test_piqp_alone_rejects_cones() -> None:
+    ff = get_scenario("freeflyer")
+    p = ff.sample(np.random.default_rng(1))
+    X, U = ff.initial_guess(p)
+    with pytest.raises(ValueError, match="QPs only"):
+        solve_scp(ff, p, X, U, backend="piqp", trust_norm="l2")
