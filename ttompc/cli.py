@@ -56,7 +56,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("TTOMPC_DEBUG", "") not in ("", "0")
     argv = [a for a in argv if a != "--debug"]
-    args = build_parser(argv).parse_args(argv)
+    parser = build_parser(argv)
+    args, extra = parser.parse_known_args(argv)
+    # key=value settings may also follow options (`finetune RECIPE --model M key=value`); argparse stops the
+    # positional list at the first option, so collect the rest here
+    stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "settings")]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.settings = [*args.settings, *extra]
     module = importlib.import_module(COMMANDS[args.command][0])
     prog = f"ttompc {args.command}"
     try:

@@ -1,36 +1,62 @@
-"""``ttompc train RECIPE [key=value ...]``: pre-train a trajectory transformer from a YAML recipe.
+"""``ttompc train [RECIPE.yaml] key=value ...``: pre-train a trajectory transformer (settings: ``TrainConfig``).
 
-Re-running the same command with the same ``trainer.out_dir`` resumes from its ``last.ckpt``."""
+Example: ``ttompc train recipes/freeflyer/tiny.yaml data.paths=[data/freeflyer-v1] trainer.max_steps=500``.
+Re-running the same command with the same ``trainer.out_dir`` resumes from the newest checkpoint that loads."""
 
 from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
+
+from ttompc.config import add_config_arguments, split_recipe, to_container
+from ttompc.errors import UserError
+from ttompc.training.config import TrainConfig, load_train_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recipe", help="YAML recipe, e.g. recipes/freeflyer/pretrain.yaml")
-    parser.add_argument("overrides", nargs="*", metavar="key=value", help="dot-list overrides, e.g. optim.lr=1e-4")
-    parser.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
+    add_config_arguments(parser, "recipes/freeflyer/tiny.yaml data.paths=[data/freeflyer-v1] optim.lr=1e-4")
+
+
+def _config(args: argparse.Namespace) -> TrainConfig:
+    recipe, overrides = split_recipe(args.settings)
+    return load_train_config(recipe, overrides)
+
+
+def check_datasets(paths: list[str], dagger_dirs: list[str]) -> None:
+    """Every dataset folder must exist before anything is created or imported (Lightning takes 10 s)."""
+    if not paths and not dagger_dirs:
+        raise UserError("no training data: data.paths is empty", "pass data.paths=[data/freeflyer-v1]")
+    for key, folders in (("data.paths", paths), ("data.dagger_dirs", dagger_dirs)):
+        missing = [p for p in folders if not Path(p).is_dir()]
+        if missing:
+            raise UserError(
+                f"{key}: dataset folder {missing[0]} does not exist",
+                f"make it with `ttompc generate out={missing[0]} ...` or point {key}=[...] at existing folders",
+            )
+
+
+def resume_hint(args: argparse.Namespace) -> str:
+    try:
+        out_dir = _config(args).trainer.out_dir
+    except UserError:
+        out_dir = "trainer.out_dir"
+    return f"Checkpoints in {out_dir}/checkpoints are kept: re-run the same command to resume from the newest."
 
 
 def run(args: argparse.Namespace) -> int:
-    import sys
-
-    from ttompc.config import ConfigError, to_container
-    from ttompc.training.config import load_train_config
-
-    try:
-        cfg = load_train_config(args.recipe, args.overrides)
-    except ConfigError as err:
-        print(f"ttompc train: {err}", file=sys.stderr)
-        return 2
+    cfg = _config(args)
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
+    check_datasets(cfg.data.paths, cfg.data.dagger_dirs)
+    from ttompc.data.shards import ShardError
     from ttompc.training.run import train
 
-    result = train(cfg)
+    try:
+        result = train(cfg)
+    except ShardError as err:
+        raise UserError(str(err), "check the dataset folder (re-run `ttompc generate` with the same settings)") from err
     print(
         json.dumps(
             {

@@ -1,15 +1,17 @@
-"""``train(cfg)``: one pre-training (or fine-tuning) run from a ``TrainConfig``.
+"""``train(cfg)``: one pre-training run from a ``TrainConfig``, and ``build_trainer``, the Lightning Trainer that
+DAgger fine-tuning (``ttompc.finetune``) shares.
 
 Resumable by construction: checkpoints go to ``<out_dir>/checkpoints/`` with ``last.ckpt`` refreshed every
-``checkpoint_every_n_steps`` and at the end (``on_exception.ckpt`` when fit raises, e.g. Ctrl-C), and a run whose
-``out_dir`` already holds one continues from the newest (optimiser, scheduler, loop counters) instead of restarting
-from step 0.
+``checkpoint_every_n_steps`` and at the end (``on_exception.ckpt`` when fit raises, e.g. Ctrl-C); every write is
+atomic (``ttompc.training.checkpoints``), and a run whose ``out_dir`` already holds checkpoints continues from the
+newest one that loads (optimiser, scheduler, loop counters) instead of restarting from step 0.
 Multi-device runs go through Lightning strategies (``trainer.devices=2 trainer.strategy=ddp``). After training,
 rank 0 exports a ``Planner`` bundle to ``<out_dir>/planner/``.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -30,23 +32,6 @@ class TrainResult:
     metrics: dict[str, float]
 
 
-EXCEPTION_CKPT = "on_exception"  # written by Lightning when fit raises (Ctrl-C included); removed after success
-
-
-def last_checkpoint(out_dir: str | Path) -> Path:
-    return Path(out_dir) / "checkpoints" / "last.ckpt"
-
-
-def resume_checkpoint(out_dir: str | Path) -> Path | None:
-    """The newest of ``last.ckpt`` and the exception checkpoint of an interrupted run, if any."""
-    found = [
-        p
-        for p in (last_checkpoint(out_dir), last_checkpoint(out_dir).with_name(f"{EXCEPTION_CKPT}.ckpt"))
-        if p.is_file()
-    ]
-    return max(found, key=lambda p: p.stat().st_mtime) if found else None
-
-
 def build_trainer(
     t: TrainerConfig,
     optim: OptimConfig,
@@ -62,6 +47,11 @@ def build_trainer(
     """The Lightning Trainer of a recipe's ``trainer``/``optim`` sections (pre-training and DAgger share it)."""
     import lightning as L
 
+    from ttompc.training.checkpoints import AtomicCheckpointIO
+    from ttompc.training.progress import StepProgressBar, progress_enabled, quiet_lightning
+
+    quiet_lightning()
+    progress = progress_enabled()
     vci = t.val_check_interval
     return L.Trainer(
         max_steps=max_steps,
@@ -80,9 +70,10 @@ def build_trainer(
         num_sanity_val_steps=num_sanity_val_steps,
         default_root_dir=str(out),
         logger=logger if logger is not None else False,
-        callbacks=callbacks or [],
+        callbacks=[*(callbacks or []), *([StepProgressBar()] if progress else [])],
+        plugins=[AtomicCheckpointIO()],
         enable_checkpointing=enable_checkpointing,
-        enable_progress_bar=False,
+        enable_progress_bar=progress,
         enable_model_summary=False,
     )
 
@@ -93,21 +84,28 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     (NormStats) and ``scenario_name`` after ``setup("fit")`` works. ``callbacks`` are added to the Trainer's (e.g.
     the closed-loop evaluation configured by ``cfg.callbacks.eval_mpc``)."""
     import lightning as L
-    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint, OnExceptionCheckpoint
+    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 
     from ttompc.policy import Planner
     from ttompc.scenarios import get_scenario
+    from ttompc.training.checkpoints import (
+        ExceptionCheckpoint,
+        checkpoint_step,
+        exception_checkpoint,
+        last_checkpoint,
+        resume_checkpoint,
+    )
     from ttompc.training.loggers import build_logger
     from ttompc.training.module import SaveLastCheckpoint, TrajectoryTransformerModule
 
-    L.seed_everything(cfg.trainer.seed, workers=True)
+    L.seed_everything(cfg.trainer.seed, workers=True, verbose=False)
     out = Path(cfg.trainer.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     if datamodule is None:
         from ttompc.data.datamodule import TrajectoryDataModule
 
         datamodule = TrajectoryDataModule(cfg.data)
     datamodule.setup("fit")  # stats and scenario are needed to build the model (setup must be idempotent)
+    out.mkdir(parents=True, exist_ok=True)  # only once the data loads: a typo in data.paths leaves nothing behind
     scenario = get_scenario(datamodule.scenario_name)
     # The data fixes the token dimensions; the recipe fixes everything else.
     model_cfg = replace(cfg.model, state_dim=scenario.state_dim, control_dim=scenario.control_dim)
@@ -136,7 +134,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
             save_top_k=cfg.trainer.keep_checkpoints,
             every_n_train_steps=cfg.trainer.checkpoint_every_n_steps,
         ),
-        OnExceptionCheckpoint(dirpath=ckpt_dir, filename=EXCEPTION_CKPT),
+        ExceptionCheckpoint(exception_checkpoint(out)),
         SaveLastCheckpoint(last_checkpoint(out), cfg.trainer.checkpoint_every_n_steps),
     ]
     if logger is not None:
@@ -156,12 +154,20 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         callbacks=all_callbacks,
         num_sanity_val_steps=t.num_sanity_val_steps,
     )
-    resume_from = resume_checkpoint(out) if t.resume else None
-    start_step = _checkpoint_step(resume_from) if resume_from else 0
-    trainer.fit(module, datamodule=datamodule, ckpt_path=str(resume_from) if resume_from else None)
+    found = resume_checkpoint(out) if t.resume else None
+    resume_from, start_step = found if found else (None, 0)
+    if resume_from is not None and trainer.is_global_zero:
+        print(f"ttompc: resuming from {resume_from} (step {start_step})", file=sys.stderr)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=str(resume_from) if resume_from else None)
+    except SystemExit as err:  # Lightning turns Ctrl-C into sys.exit(1) after writing on_exception.ckpt
+        if trainer.interrupted:
+            raise KeyboardInterrupt from err
+        raise
     _finish_wandb(logger)
+    exception_checkpoint(out).unlink(missing_ok=True)  # last.ckpt is newer; a stale one would only confuse
     # Read the outcome from the checkpoint: with spawn-based strategies the workers, not this process, trained.
-    global_step = _checkpoint_step(last_checkpoint(out))
+    global_step = checkpoint_step(last_checkpoint(out))
     planner_dir = None
     if trainer.is_global_zero and t.export_planner:
         planner = Planner.from_pretrained(last_checkpoint(out), scenario)
@@ -177,9 +183,3 @@ def _finish_wandb(logger: Any) -> None:
 
     if isinstance(logger, WandbLogger) and logger._experiment is not None:
         logger.experiment.finish()
-
-
-def _checkpoint_step(path: Path) -> int:
-    import torch
-
-    return int(torch.load(path, map_location="cpu", weights_only=True).get("global_step", 0))
