@@ -1,18 +1,37 @@
-"""Receding-horizon control: one loop (``run_mpc``) with pluggable warm-start/terminal-target providers
-(REL-MPC, DIST-MPC, TTO-MPC). Importing this package does not import Lightning (nor torch until TTO is used)."""
+"""Receding-horizon control: one loop (``run_mpc``) on an exact or perturbed plant (``plant``), pluggable warm-start
+and terminal-target providers (REL-MPC, DIST-MPC, TTO-MPC, PLAN-ONCE, ORACLE-MPC) and the closed-loop metrics
+(``metrics``). Importing this package does not import Lightning (nor torch until TTO is used)."""
 
 from ttompc.mpc.loop import Episode, MPCController, StepPlan, episode_metrics, run_mpc
-from ttompc.mpc.providers import DISTProvider, Provider, RELProvider, ShiftProvider, TTOProvider, WarmStart
+from ttompc.mpc.plant import Plant, PlantNoise
+from ttompc.mpc.providers import (
+    DISTProvider,
+    OracleProvider,
+    PlanNoise,
+    PlanProvider,
+    Provider,
+    RELProvider,
+    ShiftProvider,
+    TerminalDesign,
+    TTOProvider,
+    WarmStart,
+)
 
 __all__ = [
     "DISTProvider",
     "Episode",
     "MPCController",
+    "OracleProvider",
+    "PlanNoise",
+    "PlanProvider",
+    "Plant",
+    "PlantNoise",
     "Provider",
     "RELProvider",
     "ShiftProvider",
     "StepPlan",
     "TTOProvider",
+    "TerminalDesign",
     "WarmStart",
     "episode_metrics",
     "run_mpc",

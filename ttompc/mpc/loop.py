@@ -9,16 +9,24 @@ fuel weight ``mpc.fuel``, soft equalities, the provider's terminal cost when the
 A failed SCP step is not an exception: the loop applies the next control of the previous plan shifted by one step
 (or the warm start's first control at t = 0), counts it in ``fallbacks`` and goes on. Programming errors propagate.
 Each step is timed with ``perf_counter`` (warm start + solve; a CUDA model synchronises inside its provider).
+
+The plant is ``ttompc.mpc.plant.Plant``: the exact dynamics, optionally with seeded actuation error and process
+noise (``PlantNoise``). Plan consistency is recorded per episode: ``target_change`` is the mean over consecutive
+steps of ‖(x̄_t − x̄_{t−1}) / state_scale‖₂, the change of the terminal target between MPC steps in units of the
+scenario's characteristic magnitudes (a consistent plan moves it by about one step of motion; a jittering one by
+much more).
 """
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
+from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import SCPResult, TerminalCost, solve_scp
@@ -39,6 +47,7 @@ class StepPlan:
     solve_time: float
     iterations: int
     fallback: bool
+    target: np.ndarray | None = None  # the window's terminal target (None when the window reaches the end)
 
 
 @dataclass
@@ -61,6 +70,8 @@ class Episode:
     path_violation: float  # largest exact path-constraint violation (keep-out depth, bounds, ...)
     complete: bool  # ran all N steps
     feasible: bool  # no keep-out violation, path violation ≤ tol and (if complete) terminal error ≤ tol
+    target_change: float = float("nan")  # plan consistency (module doc); nan without two consecutive targets
+    plant: str = "nominal"  # "nominal" or "perturbed"
 
     def summary(self) -> dict[str, float | int | str | bool]:
         return {
@@ -78,6 +89,8 @@ class Episode:
             "path_violation": self.path_violation,
             "complete": self.complete,
             "feasible": self.feasible,
+            "target_change": self.target_change,
+            "plant": self.plant,
         }
 
 
@@ -149,7 +162,10 @@ class MPCController:
             X, U, fallback = ws.X, ws.U, True
         X = np.array(X, dtype=np.float64)
         X[0] = x
-        return StepPlan(U[0].copy(), X, np.array(U, dtype=np.float64), t1 - t0, t2 - t1, res.iterations, fallback)
+        target = None if ws.terminal is None else ws.terminal.target
+        return StepPlan(
+            U[0].copy(), X, np.array(U, dtype=np.float64), t1 - t0, t2 - t1, res.iterations, fallback, target
+        )
 
     def observe(self, plan: StepPlan, u: np.ndarray, x_next: np.ndarray) -> None:
         """Record the executed control (which may differ from the plan's, e.g. in DAgger) and the next state."""
@@ -183,6 +199,14 @@ def episode_metrics(
     }
 
 
+def target_change(scenario: Scenario, targets: list[np.ndarray | None]) -> float:
+    """Mean ‖(x̄_t − x̄_{t−1}) / state_scale‖₂ over consecutive steps that both have a terminal target."""
+    n = scenario.state_dim
+    scale = np.asarray(scenario.state_scale, dtype=np.float64) if len(scenario.state_scale) == n else np.ones(n)
+    d = [np.linalg.norm((b - a) / scale) for a, b in itertools.pairwise(targets) if a is not None and b is not None]
+    return float(np.mean(d)) if d else float("nan")
+
+
 def run_mpc(
     scenario: Scenario,
     problem: Problem,
@@ -194,8 +218,11 @@ def run_mpc(
     max_steps: int | None = None,
     backend: str = "auto",
     terminal_tol: float | None = None,
+    plant: PlantNoise | None = None,
+    plant_seed: int = 0,
 ) -> Episode:
-    """Run receding-horizon control from x0 for N steps (or ``max_steps``) with the exact dynamics.
+    """Run receding-horizon control from x0 for N steps (or ``max_steps``) on the exact dynamics, or on a perturbed
+    plant (``plant``, disturbances seeded by ``plant_seed``: same seed, same disturbances).
 
     ``rel_cost`` is J_REL of the open-loop REL solution: the lower bound of the metrics and the TTO conditioning
     (rtg_0 = −J_REL)."""
@@ -203,17 +230,21 @@ def run_mpc(
     T = N if max_steps is None else min(max_steps, N)
     provider.reset(scenario, problem, rel_cost)
     ctrl = MPCController(scenario, problem, provider, horizon, mode=mode, backend=backend)
+    sim = Plant(scenario, plant)
+    sim.reset(plant_seed)
     x = problem.x0.copy()
     X, U = [x], []
     warm, solve, iters = np.zeros(T), np.zeros(T), np.zeros(T, dtype=int)
+    targets: list[np.ndarray | None] = []
     fallbacks = 0
     for t in range(T):
         plan = ctrl.plan(t, x)
-        x = scenario.step(problem, t, x, plan.u)
+        x = sim.step(problem, t, x, plan.u)
         ctrl.observe(plan, plan.u, x)
         X.append(x)
         U.append(plan.u)
         warm[t], solve[t], iters[t] = plan.warm_time, plan.solve_time, plan.iterations
+        targets.append(plan.target)
         fallbacks += plan.fallback
     Xa, Ua = np.stack(X), np.stack(U) if U else np.zeros((0, scenario.control_dim))
     m = episode_metrics(scenario, problem, Xa, Ua, terminal_tol=terminal_tol)
@@ -234,4 +265,6 @@ def run_mpc(
         path_violation=float(m["path_violation"]),
         complete=bool(m["complete"]),
         feasible=bool(m["feasible"]),
+        target_change=target_change(scenario, targets),
+        plant="nominal" if plant is None or plant.nominal else "perturbed",
     )

@@ -11,6 +11,16 @@ first row is the measured state, controls (H, m)) and, for windows that stop bef
   state, so its KV cache is extended, never recomputed. x̄ = the predicted state at t+H.
 * ``ShiftProvider`` (the DAgger expert): the previous plan shifted by one step (first row replaced by the measured
   state), starting from a given plan; it makes the full-horizon expert cheap.
+* ``PlanProvider`` (PLAN-ONCE): one full-horizon plan (the open-loop SCP optimum, solved at t = 0) as warm start and
+  terminal target of every window: "plan once, then track", no model, no re-planning. With ``PlanNoise`` it is the
+  noisy oracle of ``bench/tto_mpc_robustness.py`` (a stand-in for a model whose plans are off by a known amount).
+* ``OracleProvider`` (ORACLE-MPC, the ceiling): the full remaining-horizon SCP optimum from the measured state,
+  re-solved every step (warm-started from its own previous plan), as warm start and terminal target — what a
+  perfect model could give.
+
+Terminal targets of TTO-MPC and the plan providers go through a ``TerminalDesign``: the paper's target (the plan's
+state at t+H, weight ``mpc.terminal`` on every component) or the robust variant measured in ``docs/evaluation.md``
+(the new target blended with the previous target shifted by one step).
 
 Terminal index: our terminal term penalises x_{t+H}, the state *after* the last window control (the window has
 H+1 states). The reference penalised x_{t+H−1}, the last state *before* the last control, which leaves the last
@@ -20,12 +30,12 @@ control of every window free of the terminal term.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Literal, Protocol
 
 import numpy as np
 
 from ttompc.scenarios.base import Problem, Scenario, Window
-from ttompc.solvers.scp import TerminalCost, solve_rel
+from ttompc.solvers.scp import TerminalCost, solve_problem, solve_rel, solve_scp
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner, RolloutContext
@@ -59,6 +69,53 @@ class Provider(Protocol):
 def _terminal(window: Window, target: np.ndarray, weights: np.ndarray | float) -> TerminalCost | None:
     """The soft terminal term of a window that stops early; None when it reaches the end (the loop decides)."""
     return None if window.reaches_end else TerminalCost(target=target, weights=np.asarray(weights, dtype=np.float64))
+
+
+@dataclass(frozen=True)
+class TerminalDesign:
+    """How a plan (a model rollout, an oracle) becomes the terminal cost of a window that stops early.
+
+    ``blend`` β ∈ [0, 1): the target is (1 − β)·x̂_{t+H} + β·(x̄_{t−1} + x̂_{t+H} − x̂_{t+H−1}), the new plan's state
+    at t+H blended with the previous target moved on by the new plan's last step. β = 0 is the paper's target. A
+    consistent plan gives the same target for every β (the shifted previous target *is* the new one), while
+    step-to-step plan noise is averaged over about (1 + β)/(1 − β) steps. ``weights``: per-component terminal
+    weights; None = ``mpc.terminal`` on every component (the paper)."""
+
+    blend: float = 0.0
+    weights: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.blend < 1.0:
+            raise ValueError(f"TerminalDesign.blend must be in [0, 1), got {self.blend}")
+        if self.weights is not None and any(w < 0 for w in self.weights):
+            raise ValueError(f"TerminalDesign.weights must be >= 0, got {self.weights}")
+
+
+class TargetFilter:
+    """The per-episode state of a ``TerminalDesign``: remembers the previous target."""
+
+    def __init__(self, design: TerminalDesign | None = None) -> None:
+        self.design = design or TerminalDesign()
+        self.reset()
+
+    def reset(self) -> None:
+        self._prev: np.ndarray | None = None
+        self._prev_stop = -1
+
+    def __call__(self, scenario: Scenario, window: Window, X: np.ndarray) -> TerminalCost | None:
+        """The terminal cost of ``window`` from the provider's window plan ``X`` (H+1, n); None at the end."""
+        if window.reaches_end:
+            self.reset()
+            return None
+        target = X[-1].copy()
+        beta = self.design.blend
+        if beta > 0 and self._prev is not None and self._prev_stop == window.stop - 1 and len(X) >= 2:
+            target = (1 - beta) * target + beta * (self._prev + X[-1] - X[-2])
+        self._prev, self._prev_stop = target, window.stop
+        weights = scenario.mpc.terminal if self.design.weights is None else self.design.weights
+        if np.size(weights) not in (1, len(target)):
+            raise ValueError(f"terminal weights {weights} do not fit a state of size {len(target)}")
+        return TerminalCost(target=target, weights=np.asarray(weights, dtype=np.float64))
 
 
 class RELProvider:
@@ -124,19 +181,31 @@ class DISTProvider:
 
 
 class TTOProvider:
-    """TTO-MPC: H-step rollout from a persistent rollout context (one per episode, KV cache reused)."""
+    """TTO-MPC: H-step rollout from a persistent rollout context (one per episode, KV cache reused), conditioned on
+    rtg_0 = −``rtg_scale``·J_REL (the paper: 1) and ctg_0 = 0; the target goes through ``design``."""
 
     def __init__(
-        self, planner: Planner, name: str = "TTO-MPC", *, use_cache: bool = True, clipped: bool = True
+        self,
+        planner: Planner,
+        name: str = "TTO-MPC",
+        *,
+        use_cache: bool = True,
+        clipped: bool = True,
+        rtg_scale: float = 1.0,
+        design: TerminalDesign | None = None,
     ) -> None:
         self.planner, self.name, self.use_cache, self.clipped = planner, name, use_cache, clipped
+        self.rtg_scale = rtg_scale
+        self.target = TargetFilter(design)
         self.context: RolloutContext | None = None
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         if scenario.name != self.planner.scenario.name:
             raise ValueError(f"model was trained on {self.planner.scenario.name!r}, not {scenario.name!r}")
         self.scenario, self.problem = scenario, problem
-        self.context = self.planner.context([problem], rtg0=-rel_cost, ctg0=0.0, use_cache=self.use_cache)
+        self.target.reset()
+        rtg0 = -self.rtg_scale * rel_cost
+        self.context = self.planner.context([problem], rtg0=rtg0, ctg0=0.0, use_cache=self.use_cache)
 
     def _sync(self) -> None:
         if self.planner.device.type == "cuda":
@@ -153,7 +222,7 @@ class TTOProvider:
         X = self.scenario.from_model_states(self.problem, S, start=window.start)
         X[0] = x  # the measured state, exactly (the context holds it in the model dtype)
         U = res.actions[0].double().cpu().numpy()
-        return WarmStart(X, U, _terminal(window, X[-1], self.scenario.mpc.terminal))
+        return WarmStart(X, U, self.target(self.scenario, window, X))
 
     def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
         assert self.context is not None
@@ -190,3 +259,107 @@ class ShiftProvider:
 
     def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
         self.X, self.U = plan_X[1:], plan_U[1:]
+
+
+@dataclass(frozen=True)
+class PlanNoise:
+    """Seeded error added to a plan, per MPC step, as a rigid offset ε_t of the window's states X[1:] along the
+    components ``dims`` (positions): ``independent``: ε_t ~ N(0, std²) drawn afresh every step; ``drift``: an AR(1)
+    process ε_t = ρ·ε_{t−1} + √(1 − ρ²)·N(0, std²) with the same stationary std (a slowly wandering, consistent
+    error; ρ = ``correlation``). ``std`` is per component, in the optimisation representation (metres)."""
+
+    std: float
+    kind: Literal["independent", "drift"] = "independent"
+    dims: tuple[int, ...] = (0, 1)
+    correlation: float = 0.9
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.std < 0 or self.kind not in ("independent", "drift") or not 0 <= self.correlation < 1:
+            raise ValueError(f"invalid PlanNoise {self}")
+
+
+class PlanProvider:
+    """PLAN-ONCE: a fixed full-horizon plan (given, or the open-loop SCP optimum solved at t = 0) as warm start and
+    terminal target of every window; optional ``noise`` on the plan (the noisy oracle)."""
+
+    def __init__(
+        self,
+        plan: tuple[np.ndarray, np.ndarray] | None = None,
+        *,
+        name: str = "PLAN-ONCE",
+        noise: PlanNoise | None = None,
+        design: TerminalDesign | None = None,
+        backend: str = "auto",
+    ) -> None:
+        self.name, self.noise, self.backend = name, noise, backend
+        self._given = plan
+        self.target = TargetFilter(design)
+
+    def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
+        self.scenario, self.problem = scenario, problem
+        self.X, self.U = self._given if self._given is not None else full_horizon_plan(scenario, problem, self.backend)
+        self.target.reset()
+        self._rng = np.random.default_rng(self.noise.seed if self.noise else 0)
+        self._eps = np.zeros(len(self.noise.dims)) if self.noise else None
+
+    def _offset(self) -> np.ndarray:
+        assert self.noise is not None and self._eps is not None
+        draw = self.noise.std * self._rng.standard_normal(len(self.noise.dims))
+        if self.noise.kind == "independent":
+            self._eps = draw
+        else:
+            rho = self.noise.correlation
+            self._eps = rho * self._eps + np.sqrt(1 - rho**2) * draw
+        return self._eps
+
+    def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
+        t, H = window.start, window.length
+        X, U = self.X[t : t + H + 1].copy(), self.U[t : t + H].copy()
+        if self.noise is not None:
+            X[1:, list(self.noise.dims)] += self._offset()
+        X[0] = x
+        return WarmStart(X, U, self.target(self.scenario, window, X))
+
+    def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
+        return None
+
+
+def full_horizon_plan(scenario: Scenario, problem: Problem, backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """The open-loop SCP optimum warm-started by REL (falls back to the REL solution if the SCP fails)."""
+    rel, scp = solve_problem(scenario, problem, backend=backend)
+    best = scp if scp is not None and scp.success else rel
+    return best.X, best.U
+
+
+class OracleProvider:
+    """ORACLE-MPC: the full remaining-horizon SCP optimum from the measured state, re-solved every step from the
+    previous plan shifted by one step (the first plan: given, or REL → SCP), as warm start and terminal target."""
+
+    name = "ORACLE-MPC"
+
+    def __init__(self, plan: tuple[np.ndarray, np.ndarray] | None = None, *, backend: str = "auto") -> None:
+        self._given, self.backend = plan, backend
+        self.target = TargetFilter()
+
+    def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
+        self.scenario, self.problem = scenario, problem
+        X, U = self._given if self._given is not None else full_horizon_plan(scenario, problem, self.backend)
+        self.X, self.U = np.array(X, dtype=np.float64), np.array(U, dtype=np.float64)
+        self.target.reset()
+
+    def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
+        p = self.problem
+        if window.start > 0 or not np.array_equal(x, self.X[0]):
+            X0 = self.X.copy()
+            X0[0] = x
+            rest = Window(window.start, p.n_steps - window.start, p.n_steps)
+            res = solve_scp(self.scenario, p, X0, self.U, window=rest, backend=self.backend)
+            if res.success:
+                self.X, self.U = res.X, res.U
+        X, U = self.X[: window.length + 1].copy(), self.U[: window.length].copy()
+        X[0] = x
+        return WarmStart(X, U, self.target(self.scenario, window, X))
+
+    def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
+        self.X, self.U = self.X[1:], self.U[1:]

@@ -1,0 +1,88 @@
+"""The plant the MPC loop controls: the scenario's exact dynamics, optionally perturbed.
+
+A model-based controller is only tested by a plant that differs from its model. ``PlantNoise`` adds, per episode,
+
+* an actuation gain error: the applied control is u ⊙ (1 + g) with g ~ N(0, ``gain_std``²) per control component,
+  drawn once per episode (a miscalibrated thruster),
+* actuation noise: + N(0, (``actuation_std``·control_scale)²) per step and component,
+* process noise: + N(0, (``process_std``·state_scale)²) on the next state, per step and component,
+
+in units of the scenario's characteristic magnitudes (``state_scale``, ``control_scale``), so one setting means the
+same relative disturbance in every scenario. Defaults (``PlantNoise.perturbed()``): gain 5%, actuation 2% of
+control_scale, process 0.2% of state_scale per step — free-flyer/quadrotor: 2 mm and 0.2 mm/s per step, a gain
+error of a few percent; enough that plans made at t = 0 drift measurably over 100 steps, small enough that every
+method stays feasible on most problems.
+
+Draws come from one generator seeded by the episode's seed, so the same seed gives the same disturbances (and the
+same executed trajectory for a deterministic controller) whatever the method, and another seed gives other ones.
+The cost of an episode is the cost of the *commanded* controls (what the controller decided to spend).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ttompc.scenarios.base import Problem, Scenario
+
+PLANT_STREAM = 0x706C616E  # "plan(t)": seeds of plant disturbances, disjoint from problem seeds
+
+
+@dataclass(frozen=True)
+class PlantNoise:
+    """Magnitudes of the plant disturbances, relative to the scenario's state/control scales (see module doc)."""
+
+    gain_std: float = 0.0
+    actuation_std: float = 0.0
+    process_std: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("gain_std", "actuation_std", "process_std"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"PlantNoise.{name} must be >= 0, got {getattr(self, name)}")
+
+    @property
+    def nominal(self) -> bool:
+        return self.gain_std == self.actuation_std == self.process_std == 0
+
+    @classmethod
+    def perturbed(cls) -> PlantNoise:
+        """The documented default disturbance of the evaluations' perturbed plant."""
+        return cls(gain_std=0.05, actuation_std=0.02, process_std=0.002)
+
+
+def _scale(values: tuple[float, ...], dim: int) -> np.ndarray:
+    return np.asarray(values, dtype=np.float64) if len(values) == dim else np.ones(dim)
+
+
+class Plant:
+    """Steps the scenario's exact dynamics with the disturbances of ``noise``; ``reset(seed)`` starts an episode."""
+
+    def __init__(self, scenario: Scenario, noise: PlantNoise | None = None) -> None:
+        self.scenario = scenario
+        self.noise = noise or PlantNoise()
+        self._x_scale = _scale(scenario.state_scale, scenario.state_dim)
+        self._u_scale = _scale(scenario.control_scale, scenario.control_dim)
+        self._rng = np.random.default_rng(0)
+        self._gain = np.ones(scenario.control_dim)
+
+    def reset(self, seed: int) -> None:
+        """Start an episode: disturbances drawn from ``SeedSequence(seed, spawn_key=(PLANT_STREAM,))``."""
+        from ttompc.seeding import rng
+
+        self._rng = rng(seed, PLANT_STREAM)
+        self._gain = 1.0 + self.noise.gain_std * self._rng.standard_normal(self.scenario.control_dim)
+
+    def applied(self, u: np.ndarray) -> np.ndarray:
+        """The control the actuators deliver for the commanded ``u`` (draws the step's actuation noise)."""
+        if self.noise.nominal:
+            return u
+        return u * self._gain + self.noise.actuation_std * self._u_scale * self._rng.standard_normal(u.shape)
+
+    def step(self, problem: Problem, t: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The next state after commanding ``u`` at step ``t`` from ``x``."""
+        x_next = self.scenario.step(problem, t, x, self.applied(u))
+        if self.noise.process_std > 0:
+            x_next = x_next + self.noise.process_std * self._x_scale * self._rng.standard_normal(x_next.shape)
+        return x_next
