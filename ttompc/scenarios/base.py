@@ -206,6 +206,9 @@ class Scenario(abc.ABC):
     cost_norm: ClassVar[CostNorm]
     rel_is_convex: ClassVar[bool] = False
     exact_linear_dynamics: ClassVar[bool] = False  # affine dynamics independent of the reference: no virtual control
+    # dynamics rows whose convex model is an approximation, where virtual control goes (empty: all rows); rows that
+    # are exactly linear (e.g. position ← velocity) need none
+    approximate_rows: ClassVar[tuple[int, ...]] = ()
     time_invariant: ClassVar[bool] = False  # ``step`` ignores k (and vectorises over leading axes)
     scp: ClassVar[SCPSettings]
     mpc: ClassVar[MPCWeights]

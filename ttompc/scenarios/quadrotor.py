@@ -7,6 +7,7 @@ first-order Taylor expansion of that Euler step about the reference, so REL (obs
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -61,6 +62,7 @@ class Quadrotor(Scenario):
     rel_is_convex: ClassVar[bool] = False
     time_invariant: ClassVar[bool] = True
     exact_linear_dynamics: ClassVar[bool] = False
+    approximate_rows: ClassVar[tuple[int, ...]] = (3, 4, 5)  # only the velocity update carries the drag
     # Penalty 1e2: the multipliers of the dynamics/obstacle rows are O(m·‖u‖) ≲ 10 for forces of a few newtons, so
     # slacks vanish at the solution. feas_tol 1e-6 on the one-step defect: it compounds in the open-loop
     # environment roughly as Σ_k (N−k)·d ≈ 5e3·d in position, so 1e-6 keeps rollouts within ~5 mm of the plan and
@@ -173,16 +175,23 @@ _A_MASK = np.eye(6, dtype=bool) | np.block([[np.zeros((3, 3)), np.eye(3)], [np.z
 _B_MASK = np.vstack([np.zeros((3, 3)), np.eye(3)]).astype(bool)
 
 
+@functools.lru_cache(maxsize=128)
 def _control_box(H: int) -> ConstraintBlock:
-    """−U_MAX ≤ u_j ≤ U_MAX componentwise as hard two-sided rows on the controls of window steps 0..H−1."""
+    """−U_MAX ≤ u_j ≤ U_MAX componentwise as hard two-sided rows on the controls of window steps 0..H−1 (constant:
+    built once per window length, read-only)."""
+    arrays = [np.arange(H), np.zeros((H, 3, 6)), np.broadcast_to(np.eye(3), (H, 3, 3)).copy(),
+              np.full((H, 3), U_MAX), np.full((H, 3), -U_MAX)]  # fmt: skip
+    for a in arrays:
+        a.flags.writeable = False
+    steps, Gx, Gu, h, lower = arrays
     return ConstraintBlock(
         "control_box",
         BlockKind.INEQ,
-        np.arange(H),
-        np.zeros((H, 3, 6)),
-        np.broadcast_to(np.eye(3), (H, 3, 3)).copy(),
-        np.full((H, 3), U_MAX),
-        lower=np.full((H, 3), -U_MAX),
+        steps,
+        Gx,
+        Gu,
+        h,
+        lower=lower,
         Gx_mask=np.zeros((3, 6), bool),
         Gu_mask=np.eye(3, dtype=bool),
     )

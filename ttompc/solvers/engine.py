@@ -138,30 +138,38 @@ def run_scp(
     prev_merit: float | None = None
     status: SCPStatus | None = None
     solver_time = 0.0
+    solver: SubproblemSolver | None = None
+    shapes: tuple = ()
 
     for it in range(settings.max_iters):
         model = scenario.convex_model(problem, window, X_ref, U_ref)
         blocks = scenario.constraints(problem, window, X_ref, U_ref, obstacles=obstacles)
         if not penalized:  # the reference formulation: every linearised constraint is hard
             blocks = [_hard(b) for b in blocks]
-        spec = SubproblemSpec(
-            H=H,
-            n=n,
-            m=m,
-            cost_norm=scenario.cost_norm,
-            fuel_weight=float(fuel_weight),
-            penalized=penalized,
-            virtual_control=penalized and not scenario.exact_linear_dynamics,
-            trust=trust_norm if use_tr else "none",
-            terminal="hard" if terminal is None else "soft",
-            soft_equalities=soft_equalities,
-            penalty=float(settings.penalty),
-            blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
-            tr_states=tuple(int(j) for j in scenario.trust_region_steps(problem, window, terminal is None)),
-            state_scale=tuple(scenario.state_scale),
-            control_scale=tuple(scenario.control_scale),
-            model_masks=SubproblemSpec.model_signature(model),
-        )
+        if solver is None:  # block structure depends only on the window (Scenario.constraints): one spec per solve
+            spec = SubproblemSpec(
+                H=H,
+                n=n,
+                m=m,
+                cost_norm=scenario.cost_norm,
+                fuel_weight=float(fuel_weight),
+                penalized=penalized,
+                virtual_control=penalized and not scenario.exact_linear_dynamics,
+                vc_rows=tuple(scenario.approximate_rows),
+                trust=trust_norm if use_tr else "none",
+                terminal="hard" if terminal is None else "soft",
+                soft_equalities=soft_equalities,
+                penalty=float(settings.penalty),
+                blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+                tr_states=tuple(int(j) for j in scenario.trust_region_steps(problem, window, terminal is None)),
+                state_scale=tuple(scenario.state_scale),
+                control_scale=tuple(scenario.control_scale),
+                model_masks=SubproblemSpec.model_signature(model),
+            )
+            solver = get_solver(spec, backend, scenario)
+            shapes = _shapes(blocks)
+        elif _shapes(blocks) != shapes:
+            raise ValueError(f"{scenario.name}: constraint block shapes changed between SCP iterations")
         data = SubproblemData(
             x_start=x_start,
             model=model,
@@ -172,7 +180,7 @@ def run_scp(
             terminal_target=None if terminal is None else terminal.target,
             terminal_weights=None if terminal is None else terminal.weights,
         )
-        X, U, sol = get_solver(spec, backend, scenario).solve(data)
+        X, U, sol = solver.solve(data)
         solver_time += sol.solve_time
         if X is None or U is None:
             history.append(IterateRecord(it, np.nan, np.nan, np.nan, np.nan, float(delta), sol.solve_time, sol.status))
@@ -230,6 +238,10 @@ def run_scp(
         history=history,
         best_iteration=best_it,
     )
+
+
+def _shapes(blocks: list[ConstraintBlock]) -> tuple:
+    return tuple((b.name, b.Gx.shape, None if b.Gu is None else b.Gu.shape, b.lower is None) for b in blocks)
 
 
 def _hard(block: ConstraintBlock) -> ConstraintBlock:

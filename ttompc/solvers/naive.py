@@ -37,9 +37,10 @@ class NaiveCvxpySolver:
         for j in range(H):
             rhs = data.model.A[j] @ x[j] + data.model.B[j] @ u[j] + data.model.c[j]
             if spec.virtual_control:
-                nu = cp.Variable(n)
+                rows = spec.virtual_rows()
+                nu = cp.Variable(len(rows))
                 cost += spec.penalty * cp.norm1(nu)
-                rhs = rhs + nu
+                rhs = rhs + np.eye(n)[:, rows] @ nu
             cons.append(x[j + 1] == rhs)
         if spec.terminal == "hard":
             if spec.penalized:

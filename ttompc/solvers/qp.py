@@ -81,7 +81,7 @@ class QPSubproblem:
         self._scale: list[np.ndarray] = []
         self._lo: list[np.ndarray] = []  # constant lower bounds per variable group
         self._cost: list[np.ndarray] = []
-        self._boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = []
+        self._boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.n_var = 0
         self.ix = self._var(np.tile(sx, H + 1), -np.inf, 0.0).reshape(H + 1, n)
         if spec.cost_norm == "l1":  # u = u⁺ − u⁻, cost Σ(u⁺ + u⁻)
@@ -118,7 +118,8 @@ class QPSubproblem:
             eq.append((rr, cols, self._key("B").reshape(H, n, m), -sign, _mask(b_mask, (n, m))))
         b_parts.append((rd.ravel(), self._key("c"), np.ones(H * n)))
         if spec.virtual_control:
-            self._penalised_slacks(eq, rd.ravel(), np.tile(sx, H), one)
+            rows = spec.virtual_rows()
+            self._penalised_slacks(eq, rd[:, rows].ravel(), np.tile(sx[rows], H), one)
 
         # terminal x_H = goal (penalised: x_H − e⁺ + e⁻ = goal)
         r = self._rows("eq", n)
@@ -183,22 +184,23 @@ class QPSubproblem:
             gu = self._key(f"G{bi}u").reshape(K, M, m)[:, rows, np.maximum(col - n, 0)]
             gx = np.where(on_u, gu, gx)
             cols = np.where(on_u, self.u_parts[0][0][steps][:, np.maximum(col - n, 0)], cols)
-        lower = self._key(f"l{bi}") if two_sided else None
+        lower = self._key(f"l{bi}") if two_sided else np.full(K * M, self._const_index(-np.inf))
         self._boxes.append((cols.ravel(), gx.ravel(), self._key(f"h{bi}"), lower))
         return True
 
     def bounds(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Variable bounds of one iteration: constants, the ∞-norm trust region and the box rows."""
         z_l, z_u = self.z_l.values(flat), self.z_u.values(flat)
-        for cols, g_idx, h_idx, l_idx in self._boxes:  # lower ≤ g·x ≤ h, row by row
+        if self._box is not None:  # lower ≤ g·x ≤ h row by row, the tightest bound per variable
+            cols, g_idx, h_idx, l_idx, starts, ucols = self._box
             g = flat[g_idx]
-            low = flat[l_idx] if l_idx is not None else np.full(len(g), -np.inf)
             with np.errstate(divide="ignore", invalid="ignore"):
-                a, b = flat[h_idx] / g, low / g
-            upper = np.where(g > 0, a, np.where(g < 0, b, np.inf))
-            lower = np.where(g > 0, b, np.where(g < 0, a, -np.inf))
-            np.minimum.at(z_u, cols, upper / self.scale[cols])
-            np.maximum.at(z_l, cols, lower / self.scale[cols])
+                a, b = flat[h_idx] / g, flat[l_idx] / g
+            inv = 1.0 / self.scale[cols]
+            upper = np.where(g > 0, a, np.where(g < 0, b, np.inf)) * inv
+            lower = np.where(g > 0, b, np.where(g < 0, a, -np.inf)) * inv
+            z_u[ucols] = np.minimum(z_u[ucols], np.minimum.reduceat(upper, starts))
+            z_l[ucols] = np.maximum(z_l[ucols], np.maximum.reduceat(lower, starts))
         return z_l, z_u
 
     def _layout(self, spec: SubproblemSpec) -> None:
@@ -284,6 +286,13 @@ class QPSubproblem:
             lo_tr = [(cols, ref, inv), (cols, delta, -inv)]
             hi_tr = [(cols, ref, inv), (cols, delta, inv)]
         self.z_l, self.z_u = _vector(z_l, lo_tr), _vector(z_u, hi_tr)
+        self._box = None
+        if self._boxes:  # entries sorted by variable, for one reduction per variable
+            cols, g_idx, h_idx, l_idx = (np.concatenate(a) for a in zip(*self._boxes, strict=True))
+            order = np.argsort(cols, kind="stable")
+            cols = cols[order]
+            ucols, starts = np.unique(cols, return_index=True)
+            self._box = (cols, g_idx[order], h_idx[order], l_idx[order], starts, ucols)
 
     # ------------------------------------------------------------------------------------------------- updating
     def flat(self, data: SubproblemData) -> np.ndarray:
@@ -379,11 +388,14 @@ class PIQPSolver:
         b, h_l, h_u = qp.b.values(flat), qp.h_l.values(flat), qp.h_u.values(flat)
         z_l, z_u = qp.bounds(flat)
         if self.solver is None:
+            self._A, self._G = qp.A_map.matrix(A), qp.G_map.matrix(G)
             self.solver = self._piqp.SparseSolver()
             self.solver.settings.verbose = False
-            self.solver.setup(qp.P, qp.c, qp.A_map.matrix(A), b, qp.G_map.matrix(G), h_l, h_u, z_l, z_u)
-        else:
-            self.solver.update(A=qp.A_map.matrix(A), b=b, G=qp.G_map.matrix(G), h_l=h_l, h_u=h_u, x_l=z_l, x_u=z_u)
+            self.solver.setup(qp.P, qp.c, self._A, b, self._G, h_l, h_u, z_l, z_u)
+        else:  # same pattern: overwrite the values of the persistent matrices
+            self._A.data[:] = A
+            self._G.data[:] = G
+            self.solver.update(A=self._A, b=b, G=self._G, h_l=h_l, h_u=h_u, x_l=z_l, x_u=z_u)
         status = str(self.solver.solve())
         elapsed = time.perf_counter() - t0
         ok = "PIQP_SOLVED" in status

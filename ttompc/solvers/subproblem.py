@@ -44,7 +44,7 @@ class SubproblemSpec:
     cost_norm: str
     fuel_weight: float
     penalized: bool
-    virtual_control: bool
+    virtual_control: bool  # ν on the dynamics rows ``vc_rows`` (empty: all rows), with an exact L1 penalty
     trust: str  # "l2", "linf" or "none"
     terminal: str  # "hard" or "soft"
     soft_equalities: bool
@@ -54,6 +54,11 @@ class SubproblemSpec:
     state_scale: tuple[float, ...] = ()  # characteristic magnitudes (non-dimensionalisation); empty = 1
     control_scale: tuple[float, ...] = ()
     model_masks: tuple[tuple[bool, ...], tuple[bool, ...]] | None = None  # flattened A/B masks (None: dense)
+    vc_rows: tuple[int, ...] = ()
+
+    def virtual_rows(self) -> np.ndarray:
+        """Dynamics rows that carry virtual control (those the convex model only approximates)."""
+        return np.asarray(self.vc_rows or range(self.n), dtype=np.int64)
 
     @staticmethod
     def model_signature(model: ConvexModel) -> tuple[tuple[bool, ...], tuple[bool, ...]] | None:
@@ -70,7 +75,7 @@ class SubproblemSpec:
         return (
             block.name,
             block.kind.value,
-            tuple(int(s) for s in block.steps),
+            tuple(np.asarray(block.steps).tolist()),
             block.rows_per_step,
             block.Gu is not None,
             bool(block.soft),
@@ -127,9 +132,11 @@ class AssembledSubproblem:
         self._entries(zero, rr, np.broadcast_to(self.iu[:, None, :], (H, n, m)), ("data", ("B", None, -1.0)))
         zero.b.append((rdyn.ravel(), ("c", None, 1.0)))
         if spec.virtual_control:
-            nu_p, nu_m = self._var(H * n, np.tile(sx, H)), self._var(H * n, np.tile(sx, H))
-            self._entries(zero, rdyn.ravel(), nu_p, ("const", -np.ones(H * n)))
-            self._entries(zero, rdyn.ravel(), nu_m, ("const", np.ones(H * n)))
+            rows = spec.virtual_rows()
+            k = H * len(rows)
+            nu_p, nu_m = self._var(k, np.tile(sx[rows], H)), self._var(k, np.tile(sx[rows], H))
+            self._entries(zero, rdyn[:, rows].ravel(), nu_p, ("const", -np.ones(k)))
+            self._entries(zero, rdyn[:, rows].ravel(), nu_m, ("const", np.ones(k)))
             self._nonneg_vars(nonneg, np.concatenate([nu_p, nu_m]))
             q_parts.append((np.concatenate([nu_p, nu_m]), spec.penalty))
 
