@@ -16,7 +16,6 @@ from typing import Any
 import helpers
 import numpy as np
 import pytest
-from safetensors import SafetensorError
 from safetensors.numpy import save_file
 
 from ttompc import zoo
@@ -185,8 +184,11 @@ def test_publish_list_download_round_trip(env: Path, capsys: pytest.CaptureFixtu
     assert main(["zoo", "list"]) == 0
     row = capsys.readouterr().out.splitlines()[1].split()
     assert row[:4] == ["ff-tiny", "toy", "v0.1", "TTO"] and row[-1] == "success_rate=0.9"
-    assert main(["zoo", "info", "ff-tiny"]) == 0
+    assert main(["zoo", "info", "ff-tiny", "--raw"]) == 0
     assert capsys.readouterr().out == (env / "zoo" / "ff-tiny.md").read_text()
+    assert main(["zoo", "info", "ff-tiny"]) == 0  # readable: the card's text first, the record summarised after
+    readable = capsys.readouterr().out
+    assert readable.startswith(card.body.strip()) and "success_rate=0.9" in readable and "sha256: " not in readable
 
     assert main(["zoo", "download", "ff-tiny", "--no-progress"]) == 0
     bundle = Path(capsys.readouterr().out.strip())
@@ -341,9 +343,9 @@ def test_loading_never_unpickles(env: Path) -> None:
     marker = env / "unpickled"
     bundle = make_bundle(env / "b")
     (bundle / "model.safetensors").write_bytes(_pickle_bomb(marker))
-    with pytest.raises(SafetensorError):
+    with pytest.raises(zoo.BundleError, match="damaged or not a safetensors file"):
         Planner.from_pretrained(bundle)
-    with pytest.raises(SafetensorError):
+    with pytest.raises(zoo.BundleError, match="damaged or not a safetensors file"):
         zoo.publish(bundle, "m", str(env / "out"), skip_eval=True)
     assert not marker.exists()
 
@@ -371,3 +373,44 @@ def test_hf_urls_need_huggingface_hub(env: Path, monkeypatch: pytest.MonkeyPatch
         fetch(entry, env / "blob", progress=False)
     with pytest.raises(zoo.DownloadError, match="expected hf://org/repo"):
         fetch(cards.FileEntry("x", "hf://org", "0" * 64, 1), env / "blob", progress=False)
+
+
+def _corrupt_in_place(path: Path) -> None:
+    """Flip the last bytes (tensor data, so the safetensors header still parses); same size, same inode."""
+    path.chmod(0o644)
+    data = bytearray(path.read_bytes())
+    data[-8:] = bytes(b ^ 0xFF for b in data[-8:])
+    path.write_bytes(bytes(data))
+
+
+def test_cache_corrupted_in_place_is_fetched_again(env: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A cached blob edited in place (same size) is re-hashed on load and on `zoo download`, and re-fetched."""
+    import torch
+
+    src = helpers.tiny_toy_planner().save(env / "b")
+    zoo.publish(src, "m", str(env / "zoo" / "models" / "m"), skip_eval=True)
+    bundle = zoo.download("m", progress=False)
+    weights = bundle / "model.safetensors"
+    _corrupt_in_place(weights)  # hard-linked: the blob changes with it
+    assert weights.stat().st_size == (src / "model.safetensors").stat().st_size
+    loaded = Planner.from_pretrained("m", progress=False)
+    assert "does not match its published sha256" in capsys.readouterr().err
+    for key, value in Planner.from_pretrained(src).model.state_dict().items():
+        torch.testing.assert_close(loaded.model.state_dict()[key], value, rtol=0, atol=0)
+
+    bundle = zoo.download("m", progress=False)
+    _corrupt_in_place(bundle / "config.json")
+    assert main(["zoo", "download", "m", "--no-progress"]) == 0
+    again = Path(capsys.readouterr().out.strip())
+    for name in ("model.safetensors", "config.json"):
+        assert (again / name).read_bytes() == (src / name).read_bytes()
+
+
+def test_cache_corrupted_without_a_source_is_a_clear_error(env: Path) -> None:
+    make_bundle(env / "b")
+    zoo.publish(env / "b", "m", str(env / "zoo" / "models" / "m"), skip_eval=True)
+    bundle = zoo.download("m", progress=False)
+    _corrupt_in_place(bundle / "model.safetensors")
+    (env / "zoo" / "models" / "m" / "model.safetensors").unlink()  # the published copy is gone too
+    with pytest.raises(zoo.DownloadError, match="cannot read"):
+        zoo.download("m", progress=False)

@@ -1,25 +1,18 @@
-"""``ttompc zoo list|info|download|publish|index``: the command-line face of ``ttompc.zoo``."""
+"""``ttompc zoo list|info|download|publish|index``: the command-line face of ``ttompc.zoo``.
+
+The zoo's errors are ``UserError``s (one line, exit 2, through ``ttompc.cli``); so are unreadable input files."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import textwrap
 
 from ttompc import zoo
+from ttompc.errors import UserError
 from ttompc.zoo.cards import KINDS, ModelCard, render_card
 from ttompc.zoo.registry import index_is_current, write_index
-
-_ERRORS = (
-    zoo.BundleError,
-    zoo.CardError,
-    zoo.DownloadError,
-    zoo.PublishError,
-    zoo.UnknownModelError,
-    zoo.UnsafePathError,
-    OSError,
-    json.JSONDecodeError,
-)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,9 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("list", parents=[common], help="table of the models in the zoo")
     p.add_argument("--json", action="store_true", help="print the index entries as JSON")
 
-    p = sub.add_parser("info", parents=[common], help="print a model card")
+    p = sub.add_parser("info", parents=[common], help="print a model card (the text, then a summary of its record)")
     p.add_argument("name")
     p.add_argument("--json", action="store_true", help="print the card's front matter as JSON")
+    p.add_argument("--raw", action="store_true", help="print the card file as stored (YAML front matter first)")
 
     p = sub.add_parser("download", parents=[common], help="fetch and verify a model into the local cache")
     p.add_argument("name")
@@ -59,9 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         return _ACTIONS[args.zoo_command](args)
-    except _ERRORS as err:
-        print(f"ttompc zoo {args.zoo_command}: error: {err}", file=sys.stderr)
-        return 1
+    except (FileNotFoundError, IsADirectoryError, PermissionError, json.JSONDecodeError) as err:
+        raise UserError(str(err)) from err
 
 
 def _list(args: argparse.Namespace) -> int:
@@ -94,9 +87,30 @@ def _info(args: argparse.Namespace) -> int:
     card = zoo.model_info(args.name, args.zoo_dir)
     if args.json:
         print(json.dumps(card.to_dict(), indent=2))
-    else:
+    elif args.raw:
         sys.stdout.write(render_card(card))
+    else:
+        sys.stdout.write(readable_card(card))
     return 0
+
+
+def readable_card(card: ModelCard) -> str:
+    """The card's text first, then what a reader needs from the front matter: files, metrics with how they were
+    measured, and where the full record is (``--json``/``--raw``)."""
+    arch = ", ".join(f"{k}={card.architecture[k]}" for k in ("n_layer", "n_embd", "n_head") if k in card.architecture)
+    lines = [
+        card.body.strip(),
+        "",
+        "-" * 80,
+        f"{card.name}: {card.kind}, scenario {card.scenario} v{card.scenario_version}" + (f", {arch}" if arch else ""),
+        f"recipe: {card.recipe or '-'}   data: {card.data_card or '-'}   licence: {card.license}",
+        "files: " + ", ".join(f"{f.filename} ({_human(f.size)}, sha256 {f.sha256[:12]}…)" for f in card.files),
+    ]
+    if card.metrics:
+        values = ", ".join(f"{k}={m['value']:.4g}" for k, m in card.metrics.items())
+        lines += textwrap.wrap(f"metrics: {values}", width=110, subsequent_indent="  ")
+    lines.append(f"how each metric was measured: ttompc zoo info {card.name} --json (--raw: the card file)")
+    return "\n".join(lines) + "\n"
 
 
 def _download(args: argparse.Namespace) -> int:

@@ -20,10 +20,11 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from ttompc.errors import UserError
 from ttompc.zoo.cards import REQUIRED_FILES, FileEntry, validate_name, validate_sha256
 
 
-class UnsafePathError(ValueError):
+class UnsafePathError(UserError, ValueError):
     """A path that would resolve outside the directory it must stay in."""
 
 
@@ -63,7 +64,9 @@ def assemble_bundle(root: Path, name: str, files: list[FileEntry]) -> Path:
     """
     target = inside(root, "models", validate_name(name), snapshot_id(files))
     if target.is_dir():
-        return target
+        if all(_same_file(blob_path(root, f.sha256), target / f.filename) for f in files):
+            return target
+        _discard_dir(target)  # a file was replaced or edited: rebuild from the verified blobs
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=target.parent))
     try:
@@ -80,6 +83,30 @@ def assemble_bundle(root: Path, name: str, files: list[FileEntry]) -> Path:
     return target
 
 
+def _same_file(blob: Path, linked: Path) -> bool:
+    """``linked`` is the (verified) blob itself, or a copy of it with the same bytes."""
+    if not linked.is_file():
+        return False
+    if os.path.samefile(blob, linked):
+        return True
+    return blob.stat().st_size == linked.stat().st_size and sha256_file(blob) == sha256_file(linked)
+
+
+def _discard_dir(path: Path) -> None:
+    """Move ``path`` aside before deleting it, so a process that has its files open or mapped keeps them."""
+    trash = Path(tempfile.mkdtemp(prefix=".trash-", dir=path.parent))
+    os.replace(path, trash / "snapshot")
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
 def _link_or_copy(src: Path, dst: Path) -> None:
     """Hard link (no extra disk space), falling back to a copy on file systems without hard links."""
     try:
@@ -88,7 +115,7 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
-class BundleError(ValueError):
+class BundleError(UserError, ValueError):
     """A directory that is not a loadable model bundle."""
 
 
@@ -98,15 +125,22 @@ def check_bundle(bundle_dir: str | Path) -> dict[str, Any]:
     ``model.safetensors`` is opened with safetensors (a header + raw tensors, no code), so a pickle or a torch
     checkpoint renamed to ``model.safetensors`` fails here with ``SafetensorError`` instead of being unpickled.
     """
-    from safetensors import safe_open
+    from safetensors import SafetensorError, safe_open
 
     bundle = Path(bundle_dir)
     missing = [f for f in REQUIRED_FILES if not (bundle / f).is_file()]
     if missing:
         raise BundleError(f"{bundle} is not a model bundle: missing {missing}")
-    with safe_open(bundle / "model.safetensors", framework="numpy") as weights:
-        if not list(weights.keys()):
-            raise BundleError(f"{bundle / 'model.safetensors'} holds no tensors")
+    weights_path = bundle / "model.safetensors"
+    try:
+        with safe_open(weights_path, framework="numpy") as weights:
+            if not list(weights.keys()):
+                raise BundleError(f"{weights_path} holds no tensors")
+    except SafetensorError as err:
+        raise BundleError(
+            f"{weights_path} is damaged or not a safetensors file ({err})",
+            "re-export the bundle, or for a zoo model run `ttompc zoo download NAME` again",
+        ) from None
     try:
         config = json.loads((bundle / "config.json").read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as err:

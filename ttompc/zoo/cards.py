@@ -15,6 +15,8 @@ from typing import Any
 
 import yaml
 
+from ttompc.errors import UserError
+
 KINDS = ("TTO", "FT-TTO")  # pre-trained transformer / DAgger fine-tuned transformer
 REQUIRED_FILES = ("model.safetensors", "config.json")
 # Names become directory and file names in the cache: one path component, no leading dot, no "..".
@@ -23,7 +25,7 @@ _SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
 _FRONT_MATTER_RE = re.compile(r"\A---[ \t]*\r?\n(.*?)\r?\n---[ \t]*(?:\r?\n|\Z)(.*)\Z", re.DOTALL)
 
 
-class CardError(ValueError):
+class CardError(UserError, ValueError):
     """A model card (or a name in one) that does not match the format."""
 
 

@@ -12,6 +12,7 @@ import contextlib
 import hashlib
 import os
 import re
+import sys
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -21,8 +22,9 @@ from typing import BinaryIO
 
 from tqdm.auto import tqdm
 
+from ttompc.errors import UserError
 from ttompc.version import code_version
-from ttompc.zoo.cache import assemble_bundle, blob_path, cache_root, inside
+from ttompc.zoo.cache import assemble_bundle, blob_path, cache_root, inside, sha256_file
 from ttompc.zoo.cards import FileEntry, ModelCard
 
 try:
@@ -35,7 +37,7 @@ TIMEOUT_S = 60.0
 _CONTENT_RANGE_RE = re.compile(r"^bytes (\d+)-\d+/(?:\d+|\*)$")
 
 
-class DownloadError(RuntimeError):
+class DownloadError(UserError, RuntimeError):
     """A file that could not be fetched."""
 
 
@@ -54,13 +56,14 @@ def download_bundle(
 
 
 def fetch(entry: FileEntry, dest: Path, base_dir: Path | None = None, progress: bool = True) -> Path:
-    """Download ``entry`` to ``dest`` unless it is already there; only verified bytes ever appear at ``dest``."""
-    if dest.is_file():
+    """Download ``entry`` to ``dest`` unless a copy with the published sha256 is already there; only verified
+    bytes ever appear at ``dest``. A cached file whose bytes changed (same size or not) is downloaded again."""
+    if _cached(entry, dest):
         return dest
     dest.parent.mkdir(parents=True, exist_ok=True)
     part = dest.with_name(dest.name + ".part")
     with _locked(dest.with_name(dest.name + ".lock")):
-        if dest.is_file():  # another process finished it while we waited for the lock
+        if _cached(entry, dest):  # another process finished it while we waited for the lock
             return dest
         offset = part.stat().st_size if part.exists() else 0
         if offset >= entry.size:  # a stale or over-long partial cannot be resumed
@@ -97,6 +100,24 @@ def fetch(entry: FileEntry, dest: Path, base_dir: Path | None = None, progress: 
         os.chmod(part, 0o444)  # blobs are shared by hard links: make accidental in-place edits fail
         os.replace(part, dest)
     return dest
+
+
+def _cached(entry: FileEntry, dest: Path) -> bool:
+    """Whether ``dest`` holds exactly the published bytes; a damaged copy is reported and removed.
+
+    Re-hashing on every load is cheap for our bundles (a few MB, milliseconds) and catches edits in place that
+    keep the size and modification time."""
+    if not dest.is_file():
+        return False
+    if dest.stat().st_size == entry.size and sha256_file(dest) == entry.sha256:
+        return True
+    print(
+        f"ttompc: cached {entry.filename} ({dest}) does not match its published sha256; downloading it again",
+        file=sys.stderr,
+    )
+    os.chmod(dest, 0o644)
+    dest.unlink()
+    return False
 
 
 @contextlib.contextmanager

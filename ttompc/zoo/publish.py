@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from ttompc.errors import UserError
 from ttompc.version import code_version
 from ttompc.zoo.cache import check_bundle
 from ttompc.zoo.cards import (
@@ -36,7 +37,7 @@ DEFAULT_TAGS = ("ttompc", "trajectory-optimization", "mpc")
 Evaluate = Callable[[Path], dict[str, dict[str, Any]]]
 
 
-class PublishError(RuntimeError):
+class PublishError(UserError, RuntimeError):
     """A publish request that cannot be carried out as asked."""
 
 

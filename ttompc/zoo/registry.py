@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from ttompc.errors import UserError
 from ttompc.zoo.cards import ModelCard, read_card, validate_name
 
 INDEX_FILE = "index.json"
@@ -18,7 +19,7 @@ INDEX_FORMAT = 1
 _NOT_CARDS = {"readme.md"}
 
 
-class UnknownModelError(KeyError):
+class UnknownModelError(UserError, KeyError):
     """A model name with no card in the zoo."""
 
     def __str__(self) -> str:  # KeyError would print the message with quotes around it
