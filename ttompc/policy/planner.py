@@ -145,7 +145,17 @@ class Planner:
         clipped: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Full-horizon warm starts for the SCP engine: states (B, N+1, n) in the *optimisation* representation and
-        controls (B, N, m), float64."""
+        controls (B, N, m), float64.
+
+        Each problem is validated like the solvers do (``Scenario.validate``): a start or goal inside a keep-out zone
+        raises the scenario's ``InfeasibleProblemError`` instead of yielding a plan no solver will accept."""
+        for i, problem in enumerate(problems):
+            try:
+                self.scenario.validate(problem)
+            except ValueError as err:  # InfeasibleProblemError included: same type and message as the solvers'
+                if len(problems) > 1:
+                    err.add_note(f"(problem {i} of a batch of {len(problems)})")
+                raise
         steps = {p.n_steps for p in problems}
         if len(steps) != 1:
             raise ValueError(f"problems in one batch must share n_steps, got {sorted(steps)}")
