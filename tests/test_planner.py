@@ -129,7 +129,7 @@ def test_from_pretrained_names_what_it_could_not_load(tmp_path: Path) -> None:
     other.write_bytes(b"not a checkpoint")
     with pytest.raises(BundleError, match="not a Lightning checkpoint"):
         Planner.from_pretrained(other)
-    with pytest.raises(BundleError, match="neither a bundle directory, a .ckpt file nor a zoo model name"):
+    with pytest.raises(BundleError, match=r"neither a bundle directory, a \.ckpt file nor a zoo model name"):
         Planner.from_pretrained(tmp_path / "missing" / "bundle")
     (tmp_path / "empty").mkdir()
     with pytest.raises(BundleError, match="missing"):
