@@ -1,8 +1,8 @@
 """ttompc: plan spacecraft and robot trajectories with a transformer that warm-starts SCP and MPC.
 
 The ``ttompc`` console entry point is a thin dispatcher: each subcommand lives in ``ttompc.commands.<name>`` with
-``add_arguments(parser)``, ``run(args) -> int`` and optionally ``resume_hint(args) -> str`` (said after Ctrl-C or a
-full disk), imported only when used so ``ttompc solve`` stays fast (no Lightning).
+``add_arguments(parser)``, ``run(args) -> int`` and optionally ``resume_hint(args) -> str`` (what to do after
+Ctrl-C or a full disk), imported only when used so ``ttompc solve`` stays fast (no Lightning).
 
 One error path for every command: a ``UserError`` (bad settings, unknown names, missing or damaged files) prints
 one line naming the problem and what to do and exits with 2; Ctrl-C says how to resume and exits with 130; a full
@@ -77,7 +77,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         if debug:
             raise
-        _say(f"\n{prog}: interrupted. {_resume_hint(module, args)}")
+        _say(f"\n{prog}: interrupted; {_resume_hint(module, args)}")
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # e.g. `ttompc zoo list | head`: the reader left, nothing to report
         _silence_stdout()
@@ -86,10 +86,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if debug or not is_disk_full(err):
             raise
         where = f" while writing {err.filename}" if err.filename else ""
-        _say(
-            f"{prog}: error: no space left on device{where}. Completed work is kept; free some space, then "
-            f"{_resume_hint(module, args, lower=True)}"
-        )
+        _say(f"{prog}: error: no space left on device{where}. Free some space, then {_resume_hint(module, args)}")
         return 1
     except Exception as err:
         if debug or type(err).__name__ != "SafetensorError":
@@ -108,10 +105,10 @@ def is_disk_full(err: BaseException) -> bool:
     )
 
 
-def _resume_hint(module: ModuleType, args: argparse.Namespace, lower: bool = False) -> str:
+def _resume_hint(module: ModuleType, args: argparse.Namespace) -> str:
+    """What to do next, e.g. "re-run the same command to resume (checkpoints in runs/x are kept)"."""
     hint_of = getattr(module, "resume_hint", None)
-    hint = hint_of(args) if hint_of is not None else "Nothing was kept: run the command again."
-    return hint[0].lower() + hint[1:] if lower else hint
+    return hint_of(args) if hint_of is not None else "run the command again (it keeps no partial results)"
 
 
 def _say(line: str) -> None:

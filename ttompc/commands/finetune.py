@@ -29,7 +29,7 @@ def resume_hint(args: argparse.Namespace) -> str:
         out_dir = _config(args).trainer.out_dir
     except UserError:
         out_dir = "trainer.out_dir"
-    return f"Finished iterations in {out_dir} are kept: re-run the same command to continue after the last one."
+    return f"re-run the same command to continue after the last finished iteration (kept in {out_dir})"
 
 
 def run(args: argparse.Namespace) -> int:

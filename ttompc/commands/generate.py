@@ -75,12 +75,8 @@ def _split_fractions(text: str | None) -> list[str]:
 
 
 def resume_hint(args: argparse.Namespace) -> str:
-    out = _out_of(args)
-    return (
-        f"Finished shards in {out} are kept: re-run the same command to generate only the missing ones."
-        if out
-        else "Finished shards are kept: re-run the same command to generate only the missing ones."
-    )
+    where = f" in {_out_of(args)}" if _out_of(args) else ""
+    return f"re-run the same command to generate only the missing shards (finished shards{where} are kept)"
 
 
 def _out_of(args: argparse.Namespace) -> str | None:

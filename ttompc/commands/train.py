@@ -41,7 +41,7 @@ def resume_hint(args: argparse.Namespace) -> str:
         out_dir = _config(args).trainer.out_dir
     except UserError:
         out_dir = "trainer.out_dir"
-    return f"Checkpoints in {out_dir}/checkpoints are kept: re-run the same command to resume from the newest."
+    return f"re-run the same command to resume from the newest checkpoint (checkpoints in {out_dir} are kept)"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,0 +1,189 @@
+"""The CLI's one error path, run as a user runs it (a subprocess): a user error is one line on stderr naming the
+problem and what to do, exit code 2, no traceback and nothing created; Ctrl-C and a full disk say how to resume;
+a closed pipe is quiet. None of these commands imports Lightning."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def cli_env(**extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != "TTOMPC_DEBUG"}
+    env.update(WANDB_MODE="offline", HF_HUB_OFFLINE="1", HF_DATASETS_OFFLINE="1", TTOMPC_PROGRESS="0", **extra)
+    return env
+
+
+def ttompc(*args: str, cwd: Path, timeout: float = 120, **env: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ttompc.cli", *args],
+        cwd=cwd,
+        env=cli_env(**env),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> str:
+    """Exit 2, exactly one line on stderr, no traceback; returns the line."""
+    assert res.returncode == 2, (res.returncode, res.stderr)
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["solve", "--scenario", "nope"], ["unknown scenario 'nope'", "freeflyer, quadrotor, rpod"]),
+        (["solve", "scenario=nope"], ["unknown scenario 'nope'"]),
+        (["solve", "--backend", "gurobi"], ["unknown solver backend 'gurobi'", "clarabel"]),
+        (["solve", "--seed", "-1"], ["seed must be a non-negative integer"]),
+        (["solve", "sead=3"], ["unknown setting 'sead'", "valid keys: scenario, seed"]),
+        (["generate", "--scenario", "nope", "--out", "out"], ["unknown scenario 'nope'"]),
+        (["generate", "problemz=3", "out=out"], ["unknown setting 'problemz'", "problems"]),
+        (["generate", "splits.tran=0.5", "out=out"], ["unknown setting 'splits.tran'", "under 'splits': train"]),
+        (["generate", "problems=many", "out=out"], ["'problems'", "could not be converted"]),
+        (["generate", "--seed", "-3", "--out", "out"], ["seed must be a non-negative integer"]),
+        (["generate", "--backend", "nope", "--out", "out"], ["unknown solver backend 'nope'"]),
+        (["generate", "missing.yaml", "out=out"], ["recipe not found: missing.yaml"]),
+        (
+            ["train", str(REPO / "recipes/freeflyer/tiny.yaml"), "data.paths=[no/such/data]", "trainer.out_dir=out"],
+            ["dataset folder no/such/data does not exist", "ttompc generate"],
+        ),
+        (["train", str(REPO / "recipes/freeflyer/tiny.yaml"), "optim.learning_rate=1"], ["'optim.learning_rate'"]),
+        (["finetune", str(REPO / "recipes/freeflyer/finetune.yaml")], ["--model"]),
+        (["zoo", "info", "nope"], ["no model 'nope'"]),
+    ],
+)
+def test_user_errors_are_one_line_and_create_nothing(tmp_path: Path, args: list[str], needles: list[str]) -> None:
+    res = ttompc(*args, cwd=tmp_path)
+    line = assert_user_error(res, *needles)
+    assert line.startswith(f"ttompc {args[0]}: error: ")
+    assert "--finalize" not in line  # the old wrong hint for a dataset that does not exist
+    assert list(tmp_path.iterdir()) == []  # no output folder, no card, no checkpoint dir
+
+
+def test_debug_shows_the_traceback(tmp_path: Path) -> None:
+    for res in (
+        ttompc("solve", "--scenario", "nope", "--debug", cwd=tmp_path),
+        ttompc("solve", "--scenario", "nope", cwd=tmp_path, TTOMPC_DEBUG="1"),
+    ):
+        assert res.returncode == 1 and "Traceback" in res.stderr and "UserError: unknown scenario" in res.stderr
+
+
+def test_settings_may_follow_options(tmp_path: Path) -> None:
+    """`COMMAND --flag X key=value`: key=value after an option still counts (the last word wins)."""
+    res = ttompc("solve", "--seed", "3", "seed=4", "--print-config", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert '"seed": 4' in res.stdout
+
+
+def test_damaged_safetensors_from_zoo_publish(tmp_path: Path) -> None:
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "model.safetensors").write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{not json")
+    (bundle / "config.json").write_text("{}")
+    res = ttompc(
+        "zoo", "publish", str(bundle), "--name", "m", "--to", str(tmp_path / "to"), "--skip-eval",
+        "--zoo-dir", str(tmp_path / "zoo"), cwd=tmp_path,
+    )  # fmt: skip
+    assert_user_error(res, "model.safetensors is damaged or not a safetensors file", "re-export")
+    assert not (tmp_path / "to").exists() and not (tmp_path / "zoo").exists()
+
+
+def test_zoo_list_into_a_closed_pipe_is_quiet(tmp_path: Path) -> None:
+    """`ttompc zoo list | head -0`: the reader is gone before we write; no 'Broken pipe', no traceback."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ttompc.cli", "zoo", "list"],
+        cwd=tmp_path,
+        env=cli_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()
+    err = proc.stderr.read()
+    proc.wait(timeout=60)
+    assert err == "", err
+    assert proc.returncode != 0  # like any program killed by SIGPIPE, but silently
+
+
+def test_help_says_what_the_tool_is(tmp_path: Path) -> None:
+    res = ttompc("--help", cwd=tmp_path)
+    assert res.returncode == 0
+    first = res.stdout.split("\n\n")[1].replace("\n", " ")
+    assert first.startswith("ttompc: plan") and "transformer" in first and "``" not in res.stdout
+
+
+def test_ctrl_c_during_generate_says_how_to_resume(tmp_path: Path) -> None:
+    out = tmp_path / "data"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ttompc.cli", "generate", "problems=200", "shard_size=2", "workers=1",
+         f"out={out}", "--no-progress"],
+        cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 90
+    while not (out / "meta" / "shard-00000.json").exists():
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert "interrupted; re-run the same command to generate only the missing shards" in err
+    assert f"finished shards in {out} are kept" in err
+    assert (out / "meta" / "shard-00000.json").exists()
+
+
+def test_full_disk_during_generate_names_the_path_and_keeps_finished_shards(tmp_path: Path) -> None:
+    """The second shard write fails with ENOSPC; the first shard stays and the re-run completes the set."""
+    out = tmp_path / "data"
+    args = [
+        "generate",
+        "problems=4",
+        "shard_size=2",
+        "--splits",
+        "0.5,0.25,0.25",
+        "workers=1",
+        f"out={out}",
+        "--no-progress",
+    ]
+    driver = textwrap.dedent(
+        f"""
+        import errno, sys
+        from ttompc.data import shards
+        write = shards.ShardWriter.write
+        def full_after_one(self, rows, index, split="train"):
+            if index >= 1:
+                raise OSError(errno.ENOSPC, "No space left on device", str(self.path(split, index)))
+            return write(self, rows, index, split)
+        shards.ShardWriter.write = full_after_one
+        from ttompc.cli import main
+        sys.exit(main({args!r}))
+        """
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", driver], cwd=tmp_path, env=cli_env(), capture_output=True, text=True, timeout=120
+    )
+    assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr
+    line = res.stderr.strip().splitlines()[-1]
+    assert "no space left on device while writing" in line and str(out) in line
+    assert "re-run the same command to generate only the missing shards" in line
+    assert (out / "meta" / "shard-00000.json").exists() and not (out / "meta" / "shard-00001.json").exists()
+    again = ttompc(*args, cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert (out / "manifest.json").exists()
