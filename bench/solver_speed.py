@@ -1,12 +1,14 @@
-"""SCP engine speed and robustness, measured against baselines in the same run.
+"""SCP engine speed and robustness, measured against baselines and a peer in the same run.
 
-1. Speed (per scenario, the same seeded problems): our engine (structure built once, values updated, QOCO/Clarabel)
-   vs the naive baseline that rebuilds a cvxpy problem from per-timestep constraint lists every iteration (the
-   reference's approach, Clarabel behind cvxpy). Reports time per SCP iteration, per whole REL+SCP solve, the raw
-   convex-solver share of our time, and the relative cost difference of the two (same subproblems, same optima).
-2. Robustness (free-flyer, 200 seeded problems): failure rate of the penalized (SCvx-style) formulation vs the
-   reference formulation (hard linearised constraints), and their costs where both succeed.
-3. Quadrotor: OSQP (∞-norm trust region, a QP) vs the conic path (2-norm trust region) — time, cost, iterations.
+1. Peer (free-flyer, quadrotor; the same seeded problems, interleaved): REL + SCP with the default backend (PIQP on
+   the compact QP, ∞-norm trust region), the previous default (``backend="conic"``: QOCO/Clarabel, 2-norm trust
+   region) and IPOPT through CasADi, built once as parametric NLPs with ``expand=True`` (REL, then the full problem
+   from the REL solution; ``bench/ipopt_peer.py``, needs the ``peer`` extra). Median time per problem, iterations
+   (SCP subproblems / IPOPT iterations), costs relative to IPOPT's.
+2. Robustness (free-flyer and quadrotor, 200 seeded problems each): failures of the default; for the free-flyer also
+   the reference formulation (hard linearised constraints) and its costs where both succeed.
+3. Naive baseline (every scenario, a few problems): time per SCP iteration of the default vs rebuilding a cvxpy
+   problem from per-timestep constraint lists every iteration (the reference's approach), and the cost difference.
 
 Ends with one JSON line of headline figures, also written to bench/results/solver_speed.json.
 """
@@ -15,7 +17,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -23,7 +27,11 @@ import numpy as np
 
 from ttompc.scenarios import get_scenario, list_scenarios
 from ttompc.solvers import solve_problem
-from ttompc.solvers.engine import backend_chain
+from ttompc.solvers.engine import backend_chain, default_trust_norm
+
+sys.path.insert(0, str(Path(__file__).parent))  # bench/ipopt_peer.py
+
+PEER_SCENARIOS = ("freeflyer", "quadrotor")
 
 
 def run_set(scenario, seeds, **kw) -> dict:
@@ -54,7 +62,8 @@ def speed(name: str, n_problems: int, n_naive: int) -> dict:
     seeds = list(range(n_problems))
     run_set(scenario, seeds[:1])  # warm the structure cache and imports outside the timing
     ours = run_set(scenario, seeds)
-    naive = run_set(scenario, seeds[:n_naive], backend="cvxpy-naive")
+    # the same subproblems: the naive model gets the default's trust-region norm
+    naive = run_set(scenario, seeds[:n_naive], backend="cvxpy-naive", trust_norm=default_trust_norm("auto", scenario))
     c_ours, c_naive = np.array(ours.pop("costs")[:n_naive]), np.array(naive.pop("costs"))
     both = np.isfinite(c_ours) & np.isfinite(c_naive)
     rel_diff = float(np.max(np.abs(c_ours[both] - c_naive[both]) / np.abs(c_naive[both]))) if both.any() else None
@@ -77,96 +86,159 @@ def speed(name: str, n_problems: int, n_naive: int) -> dict:
     return row
 
 
-def robustness(n: int) -> dict:
-    scenario = get_scenario("freeflyer")
-    out = {}
-    for form in ("penalized", "reference"):
-        costs, fails = [], []
+def robustness(name: str, n: int, reference: bool) -> dict:
+    """Failures of the default (penalized formulation, default backend) on seeds 0..n−1; with ``reference`` also the
+    hard-constraint formulation and the costs where both succeed."""
+    scenario = get_scenario(name)
+    out: dict = {}
+    for form in ("penalized", "reference") if reference else ("penalized",):
+        costs, fails, its = [], [], []
         for seed in range(n):
             p = scenario.sample(np.random.default_rng(seed))
-            _, scp = solve_problem(scenario, p, formulation=form)
+            rel, scp = solve_problem(scenario, p, formulation=form)
             good = scp is not None and scp.success
             costs.append(scp.cost if good else np.nan)
+            its.append(rel.iterations + (scp.iterations if scp else 0))
             if not good:
                 fails.append(seed)
         out[form] = {
             "failures": len(fails),
             "failure_rate": len(fails) / n,
             "failed_seeds": fails,
+            "mean_iterations": float(np.mean(its)),
             "costs": np.array(costs),
         }
-    a, b = out["penalized"].pop("costs"), out["reference"].pop("costs")
-    both = np.isfinite(a) & np.isfinite(b)
-    out["both_succeed"] = int(both.sum())
-    out["max_rel_cost_excess_vs_reference"] = float(np.max((a[both] - b[both]) / b[both])) if both.any() else None
+    a = out["penalized"].pop("costs")
+    msg = f"[robustness, {name}, {n} problems] failures: penalized {out['penalized']['failures']}"
+    if reference:
+        b = out["reference"].pop("costs")
+        both = np.isfinite(a) & np.isfinite(b)
+        out["both_succeed"] = int(both.sum())
+        out["max_rel_cost_excess_vs_reference"] = float(np.max((a[both] - b[both]) / b[both])) if both.any() else None
+        msg += (
+            f", reference {out['reference']['failures']}; where both succeed ({out['both_succeed']}) max relative "
+            f"cost excess of penalized over reference {out['max_rel_cost_excess_vs_reference']}"
+        )
+    print(msg, flush=True)
+    return out
+
+
+def peer(name: str, n: int) -> dict:
+    """Ours (default), the previous conic default and built-once IPOPT on the same problems, interleaved."""
+    from ipopt_peer import IpoptPeer
+
+    scenario = get_scenario(name)
+    ipopt = IpoptPeer(scenario)
+    runners = {
+        "ours": lambda p: _ours(scenario, p, "auto"),
+        "conic": lambda p: _ours(scenario, p, "conic"),
+        "ipopt": lambda p: _ipopt(ipopt, scenario, p),
+    }
+    warm = scenario.sample(np.random.default_rng(10_000))
+    for run in runners.values():  # imports, structure caches, CasADi code generation outside the timing
+        run(warm)
+    rows: dict[str, list[tuple[float, int, float, bool]]] = {k: [] for k in runners}
+    order = list(runners)
+    for i in range(n):
+        p = scenario.sample(np.random.default_rng(i))
+        for k in order[i % 3 :] + order[: i % 3]:  # rotate who goes first
+            rows[k].append(runners[k](p))
+    out: dict = {"scenario": name, "problems": n, "backend": "+".join(backend_chain("auto", scenario))}
+    cost = {}
+    for k, r in rows.items():
+        t, its, c, ok = (np.array(v) for v in zip(*r, strict=True))
+        cost[k] = np.where(ok, c, np.nan)
+        out[k] = {
+            "median_s": float(np.median(t)),
+            "mean_s": float(t.mean()),
+            "mean_iterations": float(its.mean()),
+            "failures": int((~ok).sum()),
+        }
+    both = np.isfinite(cost["ours"]) & np.isfinite(cost["ipopt"])
+    rel = (cost["ours"][both] - cost["ipopt"][both]) / cost["ipopt"][both]
+    out["speedup_vs_ipopt"] = out["ipopt"]["median_s"] / out["ours"]["median_s"]
+    out["speedup_vs_conic"] = out["conic"]["median_s"] / out["ours"]["median_s"]
+    out["cost_vs_ipopt"] = {
+        "median_rel_diff": float(np.median(rel)),
+        "rel_diff_of_medians": float(np.median(cost["ours"][both]) / np.median(cost["ipopt"][both]) - 1),
+        "worse_by_1pct": int(np.sum(rel > 0.01)),
+        "better_by_1pct": int(np.sum(rel < -0.01)),
+    }
+    conic_both = np.isfinite(cost["ours"]) & np.isfinite(cost["conic"])
+    out["max_rel_cost_diff_vs_conic"] = float(
+        np.max(np.abs(cost["ours"][conic_both] - cost["conic"][conic_both]) / cost["conic"][conic_both])
+    )
     print(
-        f"[robustness, freeflyer, {n} problems] failures: penalized {out['penalized']['failures']}, reference "
-        f"{out['reference']['failures']}; where both succeed ({out['both_succeed']}) max relative cost excess of "
-        f"penalized over reference {out['max_rel_cost_excess_vs_reference']}",
+        f"[peer {name}, {n} problems] median per problem: ours {out['ours']['median_s'] * 1e3:.1f} ms "
+        f"({out['ours']['mean_iterations']:.1f} SCP it.), conic {out['conic']['median_s'] * 1e3:.1f} ms, IPOPT "
+        f"{out['ipopt']['median_s'] * 1e3:.1f} ms ({out['ipopt']['mean_iterations']:.1f} it.) | x"
+        f"{out['speedup_vs_ipopt']:.2f} vs IPOPT, x{out['speedup_vs_conic']:.2f} vs conic | cost vs IPOPT median "
+        f"{out['cost_vs_ipopt']['median_rel_diff']:.1e}",
         flush=True,
     )
     return out
 
 
-def quadrotor_paths(n: int) -> dict:
-    scenario = get_scenario("quadrotor")
-    seeds = list(range(n))
-    rows = {}
-    for label, kw in {
-        "osqp-linf": {"backend": "osqp"},
-        "piqp-linf": {"backend": "piqp"},
-        "conic-l2": {"backend": "auto"},
-        "conic-linf": {"backend": "auto", "trust_norm": "linf"},
-    }.items():
-        run_set(scenario, seeds[:1], **kw)
-        r = run_set(scenario, seeds, **kw)
-        costs = np.array(r.pop("costs"))
-        r["mean_cost"] = float(np.nanmean(costs)) if np.isfinite(costs).any() else None
-        rows[label] = r
-        print(
-            f"[quadrotor {label}] {r['per_iter_s'] * 1e3:.1f} ms/iter, solve median {r['solve_median_s']:.3f} s, "
-            f"iters {r['mean_iterations']:.1f}, mean cost {r['mean_cost']}, success {r['success_rate']:.2f}",
-            flush=True,
-        )
-    return rows
+def _ours(scenario, problem, backend: str) -> tuple[float, int, float, bool]:
+    t0 = time.perf_counter()
+    rel, scp = solve_problem(scenario, problem, backend=backend)
+    elapsed = time.perf_counter() - t0
+    ok = scp is not None and scp.success
+    return elapsed, rel.iterations + (scp.iterations if scp else 0), scp.cost if ok else np.nan, ok
+
+
+def _ipopt(ipopt, scenario, problem) -> tuple[float, int, float, bool]:
+    t0 = time.perf_counter()
+    rel, full = ipopt.solve(problem)
+    elapsed = time.perf_counter() - t0
+    return elapsed, rel.iterations + full.iterations, scenario.cost(full.U), full.ok
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--problems", type=int, default=20)
-    ap.add_argument("--naive-problems", type=int, default=20, help="problems for the (slow) naive baseline")
+    ap.add_argument("--peer-problems", type=int, default=30, help="problems per scenario in the IPOPT comparison")
+    ap.add_argument("--naive-problems", type=int, default=3, help="problems for the (slow) naive baseline")
     ap.add_argument("--robustness", type=int, default=200)
-    ap.add_argument("--only", choices=["speed", "robustness", "quadrotor"], help="run one part (merged into --out)")
+    ap.add_argument("--only", choices=["peer", "robustness", "naive"], help="run one part (merged into --out)")
     ap.add_argument("--scenarios", default=",".join(list_scenarios()))
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "solver_speed.json"))
     args = ap.parse_args()
-    machine = {"platform": platform.platform(), "processor": platform.processor(), "python": platform.python_version()}
+    machine = {
+        "platform": platform.platform(),
+        "processor": platform.processor(),
+        "python": platform.python_version(),
+        "cpus": os.cpu_count(),
+        "load_average_start": os.getloadavg(),
+    }
     out = Path(args.out)
     # --only re-runs one part and keeps the others from the previous result file
-    result: dict = json.loads(out.read_text()) if args.only and out.is_file() else {"speed": {}}
+    result: dict = json.loads(out.read_text()) if args.only and out.is_file() else {}
     result["machine"] = machine
     scenarios = args.scenarios.split(",")
-    if args.only in (None, "speed"):
-        for name in scenarios:
-            n_naive = args.naive_problems if name == "freeflyer" else min(args.naive_problems, 5)
-            result["speed"][name] = speed(
-                name, args.problems if name == "freeflyer" else min(args.problems, 10), n_naive
-            )
+    if args.only in (None, "peer"):
+        result["peer"] = {name: peer(name, args.peer_problems) for name in scenarios if name in PEER_SCENARIOS}
     if args.only in (None, "robustness") and args.robustness:
-        result["robustness"] = robustness(args.robustness)
-    if args.only in (None, "quadrotor") and "quadrotor" in scenarios:
-        result["quadrotor_paths"] = quadrotor_paths(min(args.problems, 10))
-    ff = result["speed"].get("freeflyer", {})
-    headline = {
-        "ff_per_iter_ms": ff.get("ours", {}).get("per_iter_s", np.nan) * 1e3,
-        "ff_solve_median_s": ff.get("ours", {}).get("solve_median_s"),
-        "ff_speedup_vs_naive": ff.get("speedup_per_iter"),
-        "ff_overhead_vs_raw_solver": ff.get("overhead_vs_raw_solver"),
-        "ff_max_rel_cost_diff": ff.get("max_rel_cost_diff"),
-        "ff_failure_rate": result.get("robustness", {}).get("penalized", {}).get("failure_rate"),
-        "ff_reference_failure_rate": result.get("robustness", {}).get("reference", {}).get("failure_rate"),
-        **{f"{k}_speedup_vs_naive": v["speedup_per_iter"] for k, v in result["speed"].items() if k != "freeflyer"},
-    }
+        result["robustness"] = {
+            name: robustness(name, args.robustness, reference=name == "freeflyer")
+            for name in scenarios
+            if name in PEER_SCENARIOS
+        }
+    if args.only in (None, "naive"):
+        result["naive"] = {name: speed(name, args.naive_problems, args.naive_problems) for name in scenarios}
+    result["machine"]["load_average_end"] = os.getloadavg()
+    headline: dict = {}
+    for name, row in result.get("peer", {}).items():
+        key = {"freeflyer": "ff", "quadrotor": "quad"}[name]
+        headline[f"{key}_speedup_vs_ipopt"] = row["speedup_vs_ipopt"]
+        headline[f"{key}_median_s"] = row["ours"]["median_s"]
+        headline[f"{key}_ipopt_median_s"] = row["ipopt"]["median_s"]
+        headline[f"{key}_iterations"] = row["ours"]["mean_iterations"]
+        headline[f"{key}_ipopt_iterations"] = row["ipopt"]["mean_iterations"]
+        headline[f"{key}_cost_vs_ipopt_median_rel"] = row["cost_vs_ipopt"]["median_rel_diff"]
+    for name, row in result.get("robustness", {}).items():
+        headline[f"{name}_failures_of_{args.robustness}"] = row["penalized"]["failures"]
+    for name, row in result.get("naive", {}).items():
+        headline[f"{name}_speedup_per_iter_vs_naive"] = row["speedup_per_iter"]
     result["headline"] = headline
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2, default=float))

@@ -179,7 +179,7 @@ def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPB
     try:
         cls = BACKENDS[name]
     except KeyError:
-        known = sorted([*BACKENDS, "piqp", "auto", "cvxpy-naive"])
+        known = sorted([*BACKENDS, "piqp", "auto", "conic", "cvxpy-naive"])
         raise ValueError(f"unknown solver backend {name!r}; choose from {known}") from None
     return cls(sub)
 

@@ -43,11 +43,15 @@ class AssembledSolver:
 
 def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
     """``auto`` = the scenario's ``auto_backends`` (default: PIQP on the compact QP wherever the subproblem has
-    no cone, else QOCO, with Clarabel as the fallback on a numerical failure), restricted to installed solvers;
-    other names alone."""
-    if name != "auto":
+    no cone, else QOCO, with Clarabel as the fallback on a numerical failure); ``conic`` = QOCO then Clarabel on
+    every subproblem (the default before the QP path, kept for comparisons); both restricted to installed solvers.
+    Other names alone."""
+    if name == "auto":
+        chain = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
+    elif name == "conic":
+        chain = ["qoco", "clarabel"]
+    else:
         return [name]
-    chain = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
     chain = [b for b in chain if b not in ("piqp", "qoco") or _installed(b)]
     return chain or ["clarabel"]
 
@@ -63,11 +67,12 @@ def default_trust_norm(backend: str, scenario: Scenario | None = None) -> str:
 
 
 _CACHE: OrderedDict[tuple[SubproblemSpec, tuple[str, ...]], SubproblemSolver] = OrderedDict()
-_CACHE_SIZE = 64
+_CACHE_SIZE = 256  # receding-horizon REL uses one structure per remaining length (up to N = 100)
 
 
 def get_solver(spec: SubproblemSpec, backend: str, scenario: Scenario | None = None) -> SubproblemSolver:
-    """One solver per (structure, backends), least-recently-used cache (MPC windows produce a handful of keys)."""
+    """One solver per (structure, backends), least-recently-used cache (a receding-horizon REL needs one per
+    remaining length, its windows a handful more)."""
     chain = tuple(backend_chain(backend, scenario))
     key = (spec, chain)
     solver = _CACHE.get(key)

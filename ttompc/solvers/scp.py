@@ -52,9 +52,10 @@ def solve_scp(
     X_init[0] is the fixed initial state of the window. Without ``terminal`` a window that reaches the end gets
     x_N = goal (hard, or penalised in the penalized formulation); windows that stop early need a ``terminal``.
     ``obstacles=False`` gives the REL relaxation. ``soft_equalities`` turns waypoint-type equalities into weighted
-    2-norm penalties (MPC soft mode). ``backend``: "auto" (QOCO if installed, else Clarabel), "clarabel", "qoco",
-    "osqp", "piqp" or "cvxpy-naive" (the rebuild-every-iteration baseline). ``trust_norm`` defaults to l2 (SOC) for
-    conic backends, linf for QP ones.
+    2-norm penalties (MPC soft mode). ``backend``: "auto" (the scenario's chain: PIQP on subproblems without cones,
+    QOCO/Clarabel on the others, see ``engine.backend_chain``), "conic" (QOCO then Clarabel throughout),
+    "clarabel", "qoco", "osqp", "piqp" or "cvxpy-naive" (the rebuild-every-iteration baseline). ``trust_norm``
+    defaults to linf (bounds, so the subproblem can be a QP) where the chain starts with a QP solver, else l2.
     """
     window = window or Window.full(problem)
     return run_scp(
