@@ -11,7 +11,9 @@ rank 0 exports a ``Planner`` bundle to ``<out_dir>/planner/``.
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -158,12 +160,16 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     resume_from, start_step = found if found else (None, 0)
     if resume_from is not None and trainer.is_global_zero:
         print(f"ttompc: resuming from {resume_from} (step {start_step})", file=sys.stderr)
+    sigint = signal.getsignal(signal.SIGINT)
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(resume_from) if resume_from else None)
     except SystemExit as err:  # Lightning turns Ctrl-C into sys.exit(1) after writing on_exception.ckpt
         if trainer.interrupted:
             raise KeyboardInterrupt from err
         raise
+    finally:
+        if threading.current_thread() is threading.main_thread():  # Lightning ignores Ctrl-C from then on
+            signal.signal(signal.SIGINT, sigint)
     _finish_wandb(logger)
     exception_checkpoint(out).unlink(missing_ok=True)  # last.ckpt is newer; a stale one would only confuse
     # Read the outcome from the checkpoint: with spawn-based strategies the workers, not this process, trained.
