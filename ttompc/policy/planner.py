@@ -153,9 +153,9 @@ class Planner:
             try:
                 self.scenario.validate(problem)
             except ValueError as err:  # InfeasibleProblemError included: same type and message as the solvers'
-                if len(problems) > 1:
-                    err.add_note(f"(problem {i} of a batch of {len(problems)})")
-                raise
+                if len(problems) == 1:
+                    raise
+                raise type(err)(f"problem {i} of a batch of {len(problems)}: {err}") from err
         steps = {p.n_steps for p in problems}
         if len(steps) != 1:
             raise ValueError(f"problems in one batch must share n_steps, got {sorted(steps)}")

@@ -177,7 +177,8 @@ class RolloutContext:
         was_training = model.training
         model.eval()
         try:
-            S, A, R, C = [self.states[:, -1]], [], [self.rtg[:, -1]], [self.ctg[:, -1]]
+            S, R, C = [self.states[:, -1]], [self.rtg[:, -1]], [self.ctg[:, -1]]
+            A: list[Tensor] = []
             goal = self.goals[:, -1]  # the target is held over the generated window
             cache = self._history_cache().fork(TOKENS_PER_STEP * horizon) if self.use_cache else None
             for j in range(horizon):
