@@ -1,7 +1,10 @@
 """Data pipeline throughput: dataset generation (problems/s per scenario, real REL→SCP solves) and
 ``TrajectoryDataModule`` streaming (samples/s on synthetic shards written through the real pipeline).
 
-    .venv/bin/python bench/data_throughput.py [--problems 4] [--rows 6000] [--workers 1]
+    .venv/bin/python bench/data_throughput.py [--problems 8] [--rows 6000] [--workers 1]
+
+Generation runs the default backend and the previous default (backend="conic") on the same problems (free-flyer,
+quadrotor) for a same-run speed-up.
 
 Prints one JSON line and writes it to ``bench/results/data_throughput.json``.
 """
@@ -22,7 +25,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from ttompc.data.config import DataConfig, GenerateConfig  # noqa: E402
+from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig  # noqa: E402
 from ttompc.data.generate import generate  # noqa: E402
 from ttompc.data.schema import trajectory_features  # noqa: E402
 from ttompc.data.shards import ShardWriter, read_shard  # noqa: E402
@@ -44,6 +47,8 @@ def synthetic_solve(scenario: Scenario, problem: Problem, **kwargs: Any) -> tupl
 
 
 def bench_generation(problems: int, workers: int, tmp: Path) -> dict[str, Any]:
+    """Problems/s of ``generate`` with the default backend and with the previous default (``backend="conic"``:
+    QOCO/Clarabel, 2-norm trust region) on the same seeded problems, alternating, in the same run."""
     out: dict[str, Any] = {}
     for name in list_scenarios():
         try:
@@ -51,25 +56,34 @@ def bench_generation(problems: int, workers: int, tmp: Path) -> dict[str, Any]:
         except ImportError as err:  # scenario module not written yet
             out[name] = {"skipped": str(err)}
             continue
-        cfg = GenerateConfig(
-            scenario=name,
-            problems=problems,
-            out=str(tmp / f"gen-{name}"),
-            shard_size=problems,
-            workers=workers,
-            card_dir=None,
-        )
-        t0 = time.perf_counter()
-        manifest = generate(cfg, progress=False)
-        dt = time.perf_counter() - t0
-        out[name] = {
-            "problems": problems,
-            "workers": workers,
-            "seconds": round(dt, 2),
-            "problems_per_s": round(problems / dt, 3),
-            "failures": manifest["counts"]["failures"],
-            "mean_solve_time_s": {s: v["mean_solve_time"] for s, v in manifest["solver"].items()},
-        }
+        rows: dict[str, Any] = {}
+        backends = {"default": None, "conic": "conic"} if name in ("freeflyer", "quadrotor") else {"default": None}
+        for label, backend in backends.items():
+            cfg = GenerateConfig(
+                scenario=name,
+                problems=problems,
+                out=str(tmp / f"gen-{name}-{label}"),
+                shard_size=problems,
+                workers=workers,
+                backend=backend,
+                splits=SplitConfig(train=1.0, val=0.0, test=0.0),  # timing only: every problem in one split
+                card_dir=None,
+            )
+            t0 = time.perf_counter()
+            manifest = generate(cfg, progress=False)
+            dt = time.perf_counter() - t0
+            rows[label] = {
+                "problems": problems,
+                "workers": workers,
+                "seconds": round(dt, 2),
+                "problems_per_s": round(problems / dt, 3),
+                "failures": manifest["counts"]["failures"],
+                "mean_solve_time_s": {s: v["mean_solve_time"] for s, v in manifest["solver"].items()},
+                "mean_iterations": {s: v["mean_iterations"] for s, v in manifest["solver"].items()},
+            }
+        if "conic" in rows:
+            rows["speedup_vs_conic"] = round(rows["default"]["problems_per_s"] / rows["conic"]["problems_per_s"], 2)
+        out[name] = rows
     return out
 
 
@@ -116,7 +130,7 @@ def bench_datamodule(rows_total: int, tmp: Path, batches: int = 60) -> dict[str,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--problems", type=int, default=4, help="problems per scenario for generation")
+    parser.add_argument("--problems", type=int, default=8, help="problems per scenario for generation")
     parser.add_argument("--workers", type=int, default=1, help="generation workers")
     parser.add_argument("--rows", type=int, default=6000, help="synthetic rows for the DataModule")
     args = parser.parse_args()
@@ -124,6 +138,7 @@ def main() -> None:
         tmp = Path(d)
         result = {
             "bench": "data_throughput",
+            "load_average": os.getloadavg(),
             "code_version": code_version(),
             "cpus": os.cpu_count(),
             "generation": bench_generation(args.problems, args.workers, tmp),

@@ -197,7 +197,7 @@ def _ipopt(ipopt, scenario, problem) -> tuple[float, int, float, bool]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--peer-problems", type=int, default=30, help="problems per scenario in the IPOPT comparison")
-    ap.add_argument("--naive-problems", type=int, default=3, help="problems for the (slow) naive baseline")
+    ap.add_argument("--naive-problems", type=int, default=2, help="problems for the (slow) naive baseline")
     ap.add_argument("--robustness", type=int, default=200)
     ap.add_argument("--only", choices=["peer", "robustness", "naive"], help="run one part (merged into --out)")
     ap.add_argument("--scenarios", default=",".join(list_scenarios()))
