@@ -8,10 +8,11 @@ import numpy as np
 
 from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
 from ttompc.data.datamodule import TrajectoryDataModule
-from ttompc.data.generate import generate, problem_seed
+from ttompc.data.generate import generate
 from ttompc.data.schema import constraints_to_go, problem_from_row, returns_to_go
 from ttompc.data.shards import read_shard
 from ttompc.scenarios import get_scenario
+from ttompc.seeding import problem_seed
 
 
 def test_freeflyer_generation_end_to_end(tmp_path: Path) -> None:

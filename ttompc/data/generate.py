@@ -4,13 +4,15 @@ Reproducibility by construction (fact sheet §11 lists the reference's duplicate
 
 * problem i draws from ``default_rng(problem_seed(root, i))`` with ``SeedSequence(root, spawn_key=(i,))`` — the
   same problem whatever the number of workers or ranks, never a shared RNG state;
-* shard k always covers problem ids [k·K, (k+1)·K) and is written atomically, followed by its metadata
-  ``meta/shard-<k>.json``; a shard counts as done only when its metadata and checksummed files exist, so an
-  interrupted run resumes by skipping done shards and yields exactly the rows of an uninterrupted run;
+* shard k always covers problem ids [k·K, (k+1)·K) and is written by ``ShardedFolder`` (atomic files, then
+  metadata ``meta/shard-<k>.json``); an interrupted run resumes by skipping done shards and yields exactly the rows
+  of an uninterrupted run;
 * splits are a hash of the problem id, so REL and SCP rows of a problem share a split.
 
 Under torchrun/SLURM each rank generates every world_size-th shard; rank 0 (or ``ttompc generate --finalize``)
-writes ``manifest.json`` and the dataset card once every shard exists.
+writes ``manifest.json`` and the dataset card (``README.md`` inside the output folder, nowhere else unless
+``card_dir`` asks for a copy) once every shard exists. A split configuration that would leave a split with a
+positive fraction empty is refused before anything is solved.
 """
 
 from __future__ import annotations
@@ -18,10 +20,8 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
-import multiprocessing as mp
 import os
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,17 +29,18 @@ import numpy as np
 
 from ttompc.config import to_container
 from ttompc.data.config import GenerateConfig, SplitConfig
-from ttompc.data.distributed import RankInfo, rank_info, strided
+from ttompc.data.distributed import RankInfo, rank_info
+from ttompc.data.resumable import META_DIR, ShardedFolder
 from ttompc.data.schema import SCHEMA_VERSION, make_row, trajectory_features
-from ttompc.data.shards import SPLITS, ShardError, ShardWriter, atomic_write_json, verify_shard
-from ttompc.parallel import single_threaded_env
+from ttompc.data.shards import SPLITS, ShardError, atomic_write_json
+from ttompc.parallel import pool_map
 from ttompc.policy.stats import KEYS, NormStats
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import InfeasibleProblemError, Scenario
+from ttompc.seeding import problem_seed
 from ttompc.version import code_version
 
 MANIFEST = "manifest.json"
-META_DIR = "meta"
 STAGES = ("validate", "rel", "scp")
 
 
@@ -48,12 +49,6 @@ class GenerationError(RuntimeError):
 
 
 # ------------------------------------------------------------------------------------------------ determinism
-def problem_seed(root: int, problem_id: int) -> int:
-    """Seed of problem ``problem_id``: ``SeedSequence(root).spawn``'s child ``problem_id``, as a 63-bit int."""
-    state = np.random.SeedSequence(root, spawn_key=(problem_id,)).generate_state(1, dtype=np.uint64)[0]
-    return int(state >> np.uint64(1))
-
-
 def split_of(problem_id: int, splits: SplitConfig) -> str:
     """Deterministic split of a problem: u = sha256(salt:problem_id) ∈ [0, 1) against cumulative fractions."""
     digest = hashlib.sha256(f"{splits.salt}:{problem_id}".encode()).digest()
@@ -64,14 +59,6 @@ def split_of(problem_id: int, splits: SplitConfig) -> str:
         if u < acc:
             return name
     return "train" if splits.train > 0 else next(k for k, v in splits.fractions().items() if v > 0)
-
-
-def shard_range(index: int, cfg: GenerateConfig) -> tuple[int, int]:
-    return index * cfg.shard_size, min((index + 1) * cfg.shard_size, cfg.problems)
-
-
-def n_shards(cfg: GenerateConfig) -> int:
-    return -(-cfg.problems // cfg.shard_size)
 
 
 def fingerprint(cfg: GenerateConfig, scenario: Scenario) -> dict[str, Any]:
@@ -92,9 +79,8 @@ def fingerprint(cfg: GenerateConfig, scenario: Scenario) -> dict[str, Any]:
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(scenario_module: str, scenario_name: str, solver: str, backend: str | None) -> None:
-    """Runs once per process: the scenario module registers the scenario (also for test-defined ones)."""
-    importlib.import_module(scenario_module)
+def _init_worker(scenario_name: str, solver: str, backend: str | None) -> None:
+    """Runs once per process (after the scenario's module was imported, which registers it)."""
     module, _, func = solver.partition(":")
     _WORKER.update(
         scenario=get_scenario(scenario_name),
@@ -180,49 +166,21 @@ def _merge_moments(parts: list[dict[str, dict[str, Any]]]) -> NormStats:
 
 
 # ------------------------------------------------------------------------------------------------ shards
-def _meta_path(out: Path, index: int) -> Path:
-    return out / META_DIR / f"shard-{index:05d}.json"
-
-
-def shard_done(out: Path, index: int, cfg: GenerateConfig) -> bool:
-    """Done = metadata for the same id range exists and every file it lists matches its checksum."""
-    path = _meta_path(out, index)
-    if not path.is_file():
-        return False
-    meta = json.loads(path.read_text())
-    if (meta["start"], meta["stop"]) != shard_range(index, cfg):
-        return False
-    try:
-        for f in meta["files"]:
-            verify_shard(out / f["path"], f["sha256"])
-    except ShardError:
-        return False
-    return True
+def sharded_folder(cfg: GenerateConfig, scenario: Scenario) -> ShardedFolder:
+    """The output folder's shards: shard k holds problems [k·shard_size, (k+1)·shard_size)."""
+    return ShardedFolder(cfg.out, trajectory_features(scenario), cfg.problems, cfg.shard_size)
 
 
 def _write_shard(
-    out: Path,
-    index: int,
-    cfg: GenerateConfig,
-    scenario: Scenario,
-    writer: ShardWriter,
-    outcomes: list[dict[str, Any]],
+    folder: ShardedFolder, index: int, cfg: GenerateConfig, scenario: Scenario, outcomes: list[dict[str, Any]],
     seconds: float,
-) -> dict[str, Any]:
+) -> dict[str, Any]:  # fmt: skip
     by_split: dict[str, list[dict[str, Any]]] = {s: [] for s in SPLITS}
     failures = []
     for o in sorted(outcomes, key=lambda o: o["problem_id"]):
         by_split[split_of(o["problem_id"], cfg.splits)].extend(o["rows"])
         if o["failure"] is not None:
             failures.append(o["failure"])
-    _meta_path(out, index).unlink(missing_ok=True)  # not done until the new metadata lands
-    files = []
-    for split, rows in by_split.items():
-        path = writer.path(split, index)
-        if rows:
-            files.append({"split": split, **writer.write(rows, index, split).to_dict()})
-        else:
-            path.unlink(missing_ok=True)  # a stale file from a run with another problem count
     all_rows = [r for rows in by_split.values() for r in rows]
     solver: dict[str, dict[str, float]] = {}
     for source in ("rel", "scp"):
@@ -231,31 +189,34 @@ def _write_shard(
             "rows": len(rs),
             **{f"{k}_sum": float(sum(r[k] for r in rs)) for k in ("solve_time", "solver_time", "iterations", "cost")},
         }
-    start, stop = shard_range(index, cfg)
-    meta = {
-        "index": index,
-        "start": start,
-        "stop": stop,
-        "files": files,
-        "failures": failures,
-        "rows": {s: len(r) for s, r in by_split.items()},
-        "problems": {s: len({r["problem_id"] for r in rows}) for s, rows in by_split.items()},
-        "solver": solver,
-        "seconds": seconds,
-        "train_moments": _moments(by_split["train"], scenario.n_steps) if by_split["train"] else None,
-    }
-    atomic_write_json(_meta_path(out, index), meta)
-    return meta
+    return folder.write(
+        index,
+        by_split,
+        failures=failures,
+        rows={s: len(r) for s, r in by_split.items()},
+        problems={s: len({r["problem_id"] for r in rows}) for s, rows in by_split.items()},
+        solver=solver,
+        seconds=seconds,
+        train_moments=_moments(by_split["train"], scenario.n_steps) if by_split["train"] else None,
+    )
 
 
-def _outcomes(tasks: list[tuple[int, int]], workers: int, init_args: tuple) -> Iterator[dict[str, Any]]:
-    """Results in task order: inline for one worker, else a spawn-context pool (no inherited RNG state)."""
-    if workers <= 1:
-        _init_worker(*init_args)
-        yield from map(_solve_one, tasks)
-        return
-    with single_threaded_env(), mp.get_context("spawn").Pool(workers, _init_worker, init_args) as pool:
-        yield from pool.imap(_solve_one, tasks, chunksize=1)
+def check_splits(cfg: GenerateConfig) -> dict[str, int]:
+    """Problems per split (by id, before any failure); a split with a positive fraction but no problem is refused:
+    a small dataset with a 5% split would silently come out without it."""
+    fractions = cfg.splits.fractions()
+    counts = dict.fromkeys(SPLITS, 0)
+    for i in range(cfg.problems):
+        counts[split_of(i, cfg.splits)] += 1
+    empty = [s for s in SPLITS if fractions[s] > 0 and counts[s] == 0]
+    if empty:
+        raise GenerationError(
+            f"split(s) {', '.join(empty)} would get no problem: {cfg.problems} problems at fractions {fractions} "
+            f"assign {counts}; use more problems, larger fractions, another splits.salt, or set "
+            + " and ".join(f"splits.{s}=0" for s in empty)
+            + " to have none"
+        )
+    return counts
 
 
 def generate(
@@ -270,48 +231,48 @@ def generate(
 
     if cfg.problems <= 0 or cfg.shard_size <= 0:
         raise ValueError(f"problems and shard_size must be positive, got {cfg.problems}, {cfg.shard_size}")
-    cfg.splits.fractions()
+    check_splits(cfg)
     ranks = ranks or rank_info()
     scenario = get_scenario(cfg.scenario)
-    out = Path(cfg.out)
-    _check_folder(out, cfg, scenario)
-    mine = strided(list(range(n_shards(cfg))), ranks.rank, ranks.world_size)
-    pending = [k for k in mine if not shard_done(out, k, cfg)]
+    folder = sharded_folder(cfg, scenario)
+    _check_folder(folder, cfg, scenario)
+    mine = folder.mine(ranks)
+    pending = folder.pending(ranks)
     if cfg.max_shards is not None:
         pending = pending[: cfg.max_shards]
-    tasks = [(i, problem_seed(cfg.seed, i)) for k in pending for i in range(*shard_range(k, cfg))]
-    workers = min(cfg.workers or os.cpu_count() or 1, max(len(tasks), 1))
-    writer = ShardWriter(out, trajectory_features(scenario))
-    init_args = (type(scenario).__module__, scenario.name, cfg.solver, cfg.backend)
+    tasks = [(i, problem_seed(cfg.seed, i)) for i in folder.items(pending)]
+    workers = cfg.workers or os.cpu_count() or 1
+    init_args = (scenario.name, cfg.solver, cfg.backend)
     bar = tqdm(total=len(tasks), unit="problem", disable=not progress, desc=f"{scenario.name} rank {ranks.rank}")
-    bar.set_postfix(failures=0, skipped_shards=len(mine) - len(pending))
-    failures, shard_iter, t0 = 0, iter(pending), time.perf_counter()
-    current, buffer = next(shard_iter, None), []
-    for outcome in _outcomes(tasks, workers, init_args):
-        buffer.append(outcome)
-        failures += outcome["failure"] is not None
-        bar.update(1)
-        bar.set_postfix(failures=failures, skipped_shards=len(mine) - len(pending))
-        start, stop = shard_range(current, cfg)
-        if len(buffer) == stop - start:
-            meta = _write_shard(out, current, cfg, scenario, writer, buffer, time.perf_counter() - t0)
-            if on_shard is not None:
-                on_shard(meta)
-            current, buffer, t0 = next(shard_iter, None), [], time.perf_counter()
+    skipped = len(mine) - len(pending)
+    bar.set_postfix(failures=0, skipped_shards=skipped)
+    failures = 0
+
+    def counted(outcomes: Iterable[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        nonlocal failures
+        for outcome in outcomes:
+            failures += outcome["failure"] is not None
+            bar.update(1)
+            bar.set_postfix(failures=failures, skipped_shards=skipped)
+            yield outcome
+
+    outcomes = pool_map(
+        _solve_one, tasks, workers, _init_worker, init_args, imports=(type(scenario).__module__,), pin_torch=False
+    )
+    for k, batch, seconds in folder.group(pending, counted(outcomes)):
+        meta = _write_shard(folder, k, cfg, scenario, batch, seconds)
+        if on_shard is not None:
+            on_shard(meta)
     bar.close()
-    if not ranks.is_main:
+    if not ranks.is_main or not folder.wait(cfg.finalize_wait_s):
         return None
-    deadline = time.monotonic() + cfg.finalize_wait_s
-    while not all(shard_done(out, k, cfg) for k in range(n_shards(cfg))):
-        if time.monotonic() >= deadline:
-            return None
-        time.sleep(min(5.0, cfg.finalize_wait_s))
     return finalize(cfg)
 
 
-def _check_folder(out: Path, cfg: GenerateConfig, scenario: Scenario) -> None:
+def _check_folder(folder: ShardedFolder, cfg: GenerateConfig, scenario: Scenario) -> None:
     """Refuse to mix generations: the folder's recorded fingerprint must match, and no shard may lie beyond
     the requested problem count."""
+    out = folder.root
     fp = fingerprint(cfg, scenario)
     path = out / META_DIR / "generation.json"
     if path.is_file():
@@ -321,9 +282,9 @@ def _check_folder(out: Path, cfg: GenerateConfig, scenario: Scenario) -> None:
             raise GenerationError(f"{out} holds another generation (stored vs requested: {diff}); use a new folder")
     else:
         atomic_write_json(path, fp)
-    beyond = [p.name for p in (out / META_DIR).glob("shard-*.json") if int(p.stem.split("-")[1]) >= n_shards(cfg)]
+    beyond = folder.beyond()
     if beyond:
-        raise GenerationError(f"{out} has shards beyond --problems {cfg.problems} ({sorted(beyond)[:3]}...)")
+        raise GenerationError(f"{out} has shards beyond --problems {cfg.problems} ({beyond[:3]}...)")
 
 
 def finalize(cfg: GenerateConfig) -> dict[str, Any]:
@@ -332,14 +293,15 @@ def finalize(cfg: GenerateConfig) -> dict[str, Any]:
 
     scenario = get_scenario(cfg.scenario)
     out = Path(cfg.out)
-    _check_folder(out, cfg, scenario)
-    missing = [k for k in range(n_shards(cfg)) if not shard_done(out, k, cfg)]
+    folder = sharded_folder(cfg, scenario)
+    _check_folder(folder, cfg, scenario)
+    missing = folder.missing()
     if missing:
         raise GenerationError(
             f"{out}: {len(missing)} shard(s) missing or corrupt (first: {missing[:5]}); "
             "run `ttompc generate` with the same arguments to complete them"
         )
-    metas = [json.loads(_meta_path(out, k).read_text()) for k in range(n_shards(cfg))]
+    metas = [folder.meta(k) for k in range(folder.n_shards)]
     failures = [f for m in metas for f in m["failures"]]
     rows_by_split = {s: sum(m["rows"][s] for m in metas) for s in SPLITS}
     solver = {}
