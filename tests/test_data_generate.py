@@ -14,10 +14,11 @@ from ttompc.cli import main as cli_main
 from ttompc.data.cards import parse_front_matter
 from ttompc.data.config import GenerateConfig, SplitConfig
 from ttompc.data.distributed import RankInfo, rank_info
-from ttompc.data.generate import GenerationError, generate, problem_seed, split_of
+from ttompc.data.generate import GenerationError, generate, split_of
 from ttompc.data.schema import constraints_to_go, problem_from_row, returns_to_go
 from ttompc.data.shards import read_shard
 from ttompc.scenarios import get_scenario
+from ttompc.seeding import problem_seed
 
 PROBLEMS, SHARD = 60, 16
 
@@ -236,3 +237,43 @@ def test_cli_generate_writes_dataset_and_card_copy(tmp_path: Path, capsys: pytes
     assert manifest["generation"]["splits"] == {"train": 0.5, "val": 0.25, "test": 0.25, "salt": 0}
     assert (cards / "cli-set.md").read_text() == (out / "README.md").read_text()
     assert cli_main([*argv, "--finalize"]) == 0
+
+
+def test_card_is_written_only_inside_out_unless_asked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 14: a `data_cards/` folder in the current directory used to receive a copy named after the folder
+    (tmp_path / "data_cards").mkdir()
+    monkeypatch.chdir(tmp_path)
+    default = GenerateConfig().card_dir
+    for parent in ("a", "b"):
+        out = tmp_path / parent / "set"
+        assert generate(_cfg(out, problems=20, card_dir=default), progress=False) is not None
+        assert parse_front_matter((out / "README.md").read_text())["configs"]
+    assert list((tmp_path / "data_cards").iterdir()) == []
+    asked = tmp_path / "cards" / "nested"  # an explicit copy goes exactly there (folder created)
+    generate(_cfg(tmp_path / "a" / "set", problems=20, card_dir=str(asked)), progress=False)
+    assert (asked / "set.md").read_text() == (tmp_path / "a" / "set" / "README.md").read_text()
+
+
+def test_files_get_normal_modes(dataset: tuple[Path, dict], tmp_path: Path) -> None:
+    import os
+
+    old = os.umask(0o022)
+    try:
+        out = tmp_path / "modes"
+        generate(_cfg(out, problems=20), progress=False)
+    finally:
+        os.umask(old)
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert {"manifest.json", "README.md", "generation.json"} <= {p.name for p in files}
+    assert any(p.suffix == ".parquet" for p in files)
+    assert {p.name: oct(p.stat().st_mode & 0o777) for p in files} == {p.name: "0o644" for p in files}
+
+
+def test_split_left_empty_is_refused_before_any_work(tmp_path: Path) -> None:
+    out = tmp_path / "small"
+    # 20 problems at 5% test: the id hash gives the test split no problem at salt 0
+    with pytest.raises(GenerationError, match=r"split\(s\) test would get no problem.*splits\.test=0"):
+        generate(_cfg(out, problems=20, splits=SplitConfig(0.9, 0.05, 0.05)), progress=False)
+    assert not out.exists()
+    manifest = generate(_cfg(out, problems=20, splits=SplitConfig(0.9, 0.1, 0.0)), progress=False)
+    assert manifest is not None and manifest["splits"]["problems"]["val"] == 1

@@ -8,7 +8,6 @@ and check the header themselves (``parse_front_matter``).
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -155,11 +154,14 @@ fractions {splits["fractions"]}, salt {splits["salt"]}). Problems per split: {sp
 
 
 def write_card(root: str | Path, manifest: dict[str, Any], copy_dir: str | Path | None = None) -> Path:
-    """Write ``<root>/README.md`` and, if ``copy_dir`` exists, a copy ``<copy_dir>/<name>.md``."""
+    """Write ``<root>/README.md`` and, only when ``copy_dir`` is given, a copy ``<copy_dir>/<name>.md`` (the folder
+    is created). Nothing is written outside ``root`` unless asked: two datasets with the same folder name must not
+    overwrite each other's card in whatever directory the command ran from."""
     path = Path(root) / "README.md"
-    atomic_write_text(path, render_card(manifest))
-    if copy_dir is not None and Path(copy_dir).is_dir():
-        shutil.copyfile(path, Path(copy_dir) / f"{manifest['name']}.md")
+    text = render_card(manifest)
+    atomic_write_text(path, text)
+    if copy_dir is not None:
+        atomic_write_text(Path(copy_dir) / f"{manifest['name']}.md", text)
     return path
 
 

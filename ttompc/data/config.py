@@ -43,7 +43,7 @@ class GenerateConfig:
     finalize_wait_s: float = 0.0  # rank 0 waits this long for other ranks' shards before the manifest
     splits: SplitConfig = field(default_factory=SplitConfig)
     name: str | None = None  # dataset name for the card (default: the output folder name)
-    card_dir: str | None = "data_cards"  # also copy the card to <card_dir>/<name>.md if that folder exists
+    card_dir: str | None = None  # the card is <out>/README.md; set this to also copy it to <card_dir>/<name>.md
 
 
 @dataclass

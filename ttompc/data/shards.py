@@ -60,9 +60,20 @@ def _replace_atomically(tmp: Path, path: Path) -> None:
         os.close(dir_fd)
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _tmp_path(path: Path) -> Path:
+    """A fresh temporary file next to ``path`` with the mode a plain ``open`` would give (0666 & ~umask):
+    ``mkstemp`` creates 0600, which the rename would carry over to the final file."""
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())
+    finally:
+        os.close(fd)
     return Path(name)
 
 
