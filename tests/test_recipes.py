@@ -1,38 +1,89 @@
-"""Every training recipe loads against the schema, and describes the model it claims to."""
+"""Every YAML under recipes/ loads against its schema (training or fine-tuning) and describes the run it claims to:
+its scenario's data, dimensions and output folder, the advertised model size, the architecture of the zoo model it
+produced, and (fine-tuning) the same open-loop dataset as the model it starts from."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from ttompc.config import ConfigError
+from ttompc.finetune.config import FinetuneConfig, load_finetune_config
 from ttompc.policy import TrajectoryGPT
-from ttompc.training.config import load_train_config
+from ttompc.scenarios import get_scenario
+from ttompc.training.config import TrainConfig, load_train_config
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-TRAIN_RECIPES = sorted([*RECIPES.glob("*/pretrain.yaml"), *RECIPES.glob("*/tiny.yaml")])
-
-
-def test_all_scenarios_have_recipes() -> None:
-    names = {(p.parent.name, p.stem) for p in TRAIN_RECIPES}
-    assert names >= {(s, r) for s in ("freeflyer", "quadrotor", "rpod") for r in ("pretrain", "tiny")}
+ROOT = Path(__file__).resolve().parents[1]
+RECIPES = ROOT / "recipes"
+ALL = sorted(RECIPES.glob("**/*.y*ml"))
+ARCHITECTURE = ("state_dim", "control_dim", "n_embd", "n_layer", "n_head", "mlp_ratio", "activation", "max_steps")
 
 
-@pytest.mark.parametrize("path", TRAIN_RECIPES, ids=lambda p: f"{p.parent.name}/{p.name}")
-def test_recipe_loads_and_validates(path: Path) -> None:
+def is_finetune(path: Path) -> bool:
+    return path.stem.startswith("finetune")
+
+
+def load(path: Path) -> TrainConfig | FinetuneConfig:
+    return load_finetune_config(path) if is_finetune(path) else load_train_config(path)
+
+
+def source_recipe(path: Path) -> Path:
+    """The training recipe of the model a fine-tuning recipe starts from (finetune-X -> X, finetune -> pretrain)."""
+    stem = path.stem.removeprefix("finetune").removeprefix("-") or "pretrain"
+    return path.with_name(f"{stem}{path.suffix}")
+
+
+def test_every_scenario_has_the_documented_recipes() -> None:
+    names = {(p.parent.name, p.stem) for p in ALL}
+    for scenario in ("freeflyer", "quadrotor", "rpod"):
+        assert {(scenario, r) for r in ("pretrain", "small", "tiny", "finetune", "finetune-small")} <= names
+    assert all(p.parent.parent == RECIPES for p in ALL), "recipes live in recipes/<scenario>/"
+
+
+@pytest.mark.parametrize("path", ALL, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_recipe_loads_and_matches_its_scenario(path: Path) -> None:
+    cfg = load(path)
+    scenario = get_scenario(path.parent.name)
+    assert cfg.data.paths, "a recipe names its dataset"
+    for data in cfg.data.paths:
+        assert Path(data).name.startswith(f"{scenario.name}-"), f"{data} is not a {scenario.name} dataset"
+    assert scenario.name in Path(cfg.trainer.out_dir).name
+    if isinstance(cfg, TrainConfig):
+        model = cfg.model
+        assert (model.state_dim, model.control_dim) == (scenario.state_dim, scenario.control_dim)
+        assert cfg.data.context_length <= model.max_steps
+        assert scenario.n_steps <= model.max_steps, "the model must cover a full-horizon rollout"
+
+
+@pytest.mark.parametrize("path", [p for p in ALL if not is_finetune(p)], ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_training_recipe_builds_the_model_it_describes(path: Path) -> None:
     cfg = load_train_config(path)
-    scenario = path.parent.name
-    assert cfg.data.paths == [f"data/{scenario}-v1"]
-    assert scenario in cfg.trainer.out_dir
-    assert cfg.data.context_length <= cfg.model.max_steps
     n_params = TrajectoryGPT(cfg.model).num_parameters()
-    if path.stem == "pretrain":
+    if path.stem == "pretrain":  # the paper's size
         assert (cfg.model.n_embd, cfg.model.n_layer, cfg.model.n_head) == (384, 6, 6)
         assert cfg.optim.accumulate == 8 and cfg.optim.grad_clip == 1.0
         assert 10.5e6 < n_params < 11.5e6
-    else:
+    elif path.stem == "tiny":
         assert n_params < 300_000
+    elif path.stem == "small":  # the zoo's "-tto-small" model was trained with this file: same architecture
+        bundle: dict[str, Any] = json.loads(
+            (ROOT / "zoo" / "models" / f"{path.parent.name}-tto-small" / "config.json").read_text()
+        )
+        assert {k: getattr(cfg.model, k) for k in ARCHITECTURE} == {k: bundle["model"][k] for k in ARCHITECTURE}
+
+
+@pytest.mark.parametrize("path", [p for p in ALL if is_finetune(p)], ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_finetuning_recipe_mixes_the_source_models_dataset(path: Path) -> None:
+    """DAgger mixes new rollouts with the open-loop data the source model was trained on (same normalisation)."""
+    cfg = load_finetune_config(path)
+    source = source_recipe(path)
+    assert source.is_file(), f"{path.name} fine-tunes a model from {source.name}, which is missing"
+    assert cfg.data.paths == load_train_config(source).data.paths
+    assert 0.0 < cfg.data.open_loop_fraction < 1.0
+    assert all(h <= get_scenario(path.parent.name).n_steps for h in cfg.dagger.exploration.horizons)
 
 
 def test_unknown_key_and_wrong_type_name_the_key(tmp_path: Path) -> None:
@@ -40,6 +91,8 @@ def test_unknown_key_and_wrong_type_name_the_key(tmp_path: Path) -> None:
         load_train_config(RECIPES / "freeflyer" / "tiny.yaml", ["optim.learning_rate=1e-3"])
     with pytest.raises(ConfigError, match=r"trainer\.max_steps"):
         load_train_config(RECIPES / "freeflyer" / "tiny.yaml", ["trainer.max_steps=many"])
+    with pytest.raises(ConfigError, match=r"dagger\.iteration"):
+        load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", ["dagger.iteration=3"])
     bad = tmp_path / "bad.yaml"
     bad.write_text("model:\n  n_embd: 64\n  n_heads: 4\n")
     with pytest.raises(ConfigError, match="n_heads"):
