@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 from pathlib import Path
@@ -79,19 +80,26 @@ def main() -> None:
     n_params = sum(p.numel() for p in planner.model.parameters())
     horizons = [int(h) for h in args.horizons.split(",")]
     problems = [eval_problem(sc, args.seed, i, nonconvex_only=True) for i in range(args.problems)]
-    providers = {"REL-MPC": lambda: RELProvider(), "DIST-MPC": lambda: DISTProvider(),
-                 name: lambda: TTOProvider(planner, name)}  # fmt: skip
+    # (provider factory, solver backend); "REL-MPC[conic]" is REL-MPC on the previous default solver path (QOCO/
+    # Clarabel, 2-norm trust region), at the first horizon only, for a same-run speed-up of the solver change
+    providers = {"REL-MPC": (lambda: RELProvider(), "auto"), "DIST-MPC": (lambda: DISTProvider(), "auto"),
+                 name: (lambda: TTOProvider(planner, name), "auto"),
+                 "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic")}  # fmt: skip
     # warm-up (imports, solver structure caches, torch kernels) outside the timing
-    for make in providers.values():
-        run_mpc(sc, problems[0].problem, make(), horizons[0], rel_cost=problems[0].rel.cost, max_steps=2)
+    for make, backend in providers.values():
+        run_mpc(sc, problems[0].problem, make(), horizons[0], rel_cost=problems[0].rel.cost, max_steps=2,
+                backend=backend)  # fmt: skip
     results: dict[str, dict[str, float]] = {}
     print(f"{sc.name}: {len(problems)} problems, model {model_desc} ({n_params / 1e6:.2f}M params, {args.device})")
     print(f"{'method':>11} {'H':>4} {'mean step [ms]':>15} {'max step [ms]':>14} {'warm [ms]':>10} {'cost':>9}")
     t0 = time.perf_counter()
     for H in horizons:
-        for method, make in providers.items():
+        for method, (make, backend) in providers.items():
+            if method.endswith("[conic]") and H != horizons[0]:
+                continue
             eps = [
-                run_mpc(sc, ep.problem, make(), H, rel_cost=ep.rel.cost, max_steps=args.max_steps) for ep in problems
+                run_mpc(sc, ep.problem, make(), H, rel_cost=ep.rel.cost, max_steps=args.max_steps, backend=backend)
+                for ep in problems
             ]
             r = {
                 "mean_step_s": float(np.mean([e.step_times.mean() for e in eps])),
@@ -110,7 +118,13 @@ def main() -> None:
             "max": results["REL-MPC@30"]["max_step_s"] / results[f"{name}@10"]["max_step_s"],
         }
         print(f"REL-MPC@30 / {name}@10 step time: mean {ratio['mean']:.2f}x, max {ratio['max']:.2f}x (paper: ~7x)")
+    h0, speedup = horizons[0], None
+    if f"REL-MPC[conic]@{h0}" in results:
+        speedup = results[f"REL-MPC[conic]@{h0}"]["mean_step_s"] / results[f"REL-MPC@{h0}"]["mean_step_s"]
+        print(f"REL-MPC@{h0}: previous conic solver path / default, mean step time {speedup:.2f}x")
     summary = {
+        "load_average": os.getloadavg(),
+        f"rel_mpc{h0}_speedup_vs_conic": speedup,
         "bench": "mpc_speed",
         "scenario": sc.name,
         "model": model_desc,
