@@ -1,9 +1,11 @@
-"""Warm-start evaluation, planning-horizon study and their metrics (issues 5 and 6)."""
+"""The evaluation protocol (issue 10): seeded non-convex problems, intervals, infeasible runs counted apart, the
+paper normalisation, the oracle, the open-loop and closed-loop reports, the commands and the training callback."""
 
 from __future__ import annotations
 
 import csv
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -12,10 +14,13 @@ import numpy as np
 import pytest
 
 from ttompc.cli import main
-from ttompc.evaluation.common import eval_problem
-from ttompc.evaluation.horizon import HorizonStudyConfig, run_horizon_study
-from ttompc.evaluation.metrics import improvement_by_threshold, normalized_cost_increment
-from ttompc.scenarios import get_scenario
+from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+from ttompc.evaluation.metrics import gain_share, improvement_by_threshold, paper_normalized
+from ttompc.evaluation.problems import eval_problem, first_solvable
+from ttompc.evaluation.warmstart import ORACLE, evaluate_problem
+from ttompc.mpc.metrics import interval, summarize_episodes
+from ttompc.scenarios import Problem, get_scenario
+from ttompc.scenarios.freeflyer import DT
 
 SHORT = mpc_fakes.FreeFlyerShort.name
 
@@ -25,15 +30,58 @@ def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return mpc_fakes.tiny_planner().save(tmp_path_factory.mktemp("planner") / "bundle")
 
 
-def test_normalized_cost_increment_per_problem() -> None:
+def test_interval_mean_standard_error_and_bootstrap() -> None:
+    x = np.array([1.0, 2.0, 3.0, 4.0, float("nan")])
+    iv = interval(x, seed=1)
+    assert iv["n"] == 4 and iv["mean"] == pytest.approx(2.5)
+    assert iv["se"] == pytest.approx(np.std([1, 2, 3, 4], ddof=1) / 2)
+    assert 1.0 <= iv["lo"] < 2.5 < iv["hi"] <= 4.0
+    assert interval(x, seed=1) == iv  # seeded
+    assert np.isnan(interval([5.0])["se"]) and interval([])["n"] == 0
+
+
+def test_infeasible_runs_are_counted_apart_not_averaged() -> None:
     recs = [
-        {"problem": 0, "rel_cost": 1.0, "cost": 1.5},
-        {"problem": 0, "rel_cost": 1.0, "cost": 3.0},
-        {"problem": 1, "rel_cost": 2.0, "cost": 2.0},
-        {"problem": 1, "rel_cost": 2.0, "cost": 6.0},
-    ]
-    normalized_cost_increment(recs)
-    assert [r["norm_cost_increment"] for r in recs] == [0.25, 1.0, 0.0, 1.0]
+        {"feasible": True, "cost": 1.2, "rel_increment": 0.2, "target_change": 0.1, "mean_step_time": 0.01,
+         "max_step_time": 0.02, "fallbacks": 0},
+        {"feasible": True, "cost": 1.4, "rel_increment": 0.4, "target_change": 0.1, "mean_step_time": 0.01,
+         "max_step_time": 0.03, "fallbacks": 1},
+        {"feasible": False, "cost": 0.5, "rel_increment": float("nan"), "target_change": 0.5,
+         "mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0},
+    ]  # fmt: skip
+    s = summarize_episodes(recs)
+    assert (s["runs"], s["feasible"], s["infeasible"]) == (3, 2, 1)
+    assert s["rel_increment"]["mean"] == pytest.approx(0.3) and s["cost"]["mean"] == pytest.approx(1.3)
+    assert s["max_step_time"] == 0.03 and s["fallbacks"] == 1
+
+
+def _rec(problem: int, method: str, cost: float, feasible: bool = True, horizon: int = 10) -> dict[str, Any]:
+    return {"problem": problem, "method": method, "horizon": horizon, "cost": cost, "rel_cost": 1.0,
+            "feasible": feasible}  # fmt: skip
+
+
+def test_paper_normalisation_uses_problems_feasible_for_every_method() -> None:
+    recs = [
+        _rec(0, "DIST-MPC", 3.0), _rec(0, "REL-MPC", 2.0), _rec(0, "TTO-MPC", 1.5),
+        _rec(1, "DIST-MPC", 5.0), _rec(1, "REL-MPC", 2.0), _rec(1, "TTO-MPC", 9.0, feasible=False),
+        _rec(2, "DIST-MPC", 2.0), _rec(2, "REL-MPC", 1.5), _rec(2, "TTO-MPC", 1.25),
+        _rec(0, "DIST-MPC", 4.0, horizon=20), _rec(0, "REL-MPC", 1.5, horizon=20), _rec(0, "TTO-MPC", 1.5, horizon=20),
+        _rec(2, "DIST-MPC", 3.0, horizon=20), _rec(2, "REL-MPC", 1.5, horizon=20), _rec(2, "TTO-MPC", 1.5, horizon=20),
+    ]  # fmt: skip
+    rows = {(r["method"], r["horizon"]): r for r in paper_normalized(recs, ["DIST-MPC", "REL-MPC", "TTO-MPC"])}
+    # problem 1 is dropped (TTO infeasible there); DIST's worst horizon (H = 20: mean gap 2.5) is the unit
+    assert rows[("DIST-MPC", 20)]["paper_norm"]["mean"] == pytest.approx(1.0)
+    assert rows[("DIST-MPC", 10)]["paper_norm"]["mean"] == pytest.approx(1.5 / 2.5)
+    assert rows[("TTO-MPC", 10)]["paper_norm"]["mean"] == pytest.approx(0.375 / 2.5)
+    assert rows[("REL-MPC", 10)]["problems"] == 2 and rows[("REL-MPC", 10)]["paper_norm"]["n"] == 2
+
+
+def test_share_of_reachable_gain() -> None:
+    base, model, ceil = np.array([2.0, 3.0, 9.0]), np.array([1.5, 2.0, np.nan]), np.array([1.0, 1.0, 1.0])
+    g = gain_share(base, model, ceil, seed=0)  # problem 2 (model unsolved) is dropped: (2.5 − 1.75)/(2.5 − 1)
+    assert g["n"] == 2 and g["mean"] == pytest.approx(0.5)
+    assert gain_share(base, ceil, ceil)["mean"] == pytest.approx(1.0)
+    assert gain_share(base, base, ceil)["mean"] == pytest.approx(0.0)
 
 
 def test_improvement_by_threshold() -> None:
@@ -51,56 +99,103 @@ def test_improvement_by_threshold() -> None:
     assert out[1]["count"] == 1 and out[1]["TTO_subopt_improvement"] == pytest.approx(50.0)
 
 
-def test_eval_problems_are_seeded_and_nonconvex() -> None:
+def _short_problem(y0: float, y1: float) -> Problem:
+    x0, goal = np.zeros(6), np.zeros(6)
+    x0[:2], goal[:2] = [0.55, y0], [1.45, y1]
+    return Problem(x0=x0, goal=goal, dt=DT, n_steps=mpc_fakes.SHORT_STEPS)
+
+
+def test_nonconvex_selection_skips_problems_whose_rel_is_feasible() -> None:
     sc = get_scenario(SHORT)
-    a = eval_problem(sc, 7, 0, nonconvex_only=True)
-    b = eval_problem(sc, 7, 0, nonconvex_only=True)
-    assert a.ctg0 > 0 and a.seed == b.seed
+    convex, crossing = _short_problem(0.2, 0.2), _short_problem(0.7, 0.7)  # obstacle 0 sits at (1.0, 0.7)
+    attempt, _, _, _, ctg0 = first_solvable(sc, [convex, crossing], nonconvex_only=True)
+    assert attempt == 1 and ctg0 > 0
+    attempt, _, _, _, ctg0 = first_solvable(sc, [convex, crossing], nonconvex_only=False)
+    assert attempt == 0 and ctg0 == 0
+    assert first_solvable(sc, [convex], nonconvex_only=True) is None
+
+
+def test_eval_problems_are_seeded_held_out_and_nonconvex_by_default() -> None:
+    sc = get_scenario(SHORT)
+    a, b = eval_problem(sc, 7, 0), eval_problem(sc, 7, 0)
+    assert a.ctg0 > 0 and a.seed == b.seed and a.rel_cost == a.rel.cost
     np.testing.assert_array_equal(a.problem.x0, b.problem.x0)
     assert eval_problem(sc, 8, 0).seed != a.seed
 
 
-def test_horizon_study_report(tmp_path: Path, bundle: Path) -> None:
-    cfg = HorizonStudyConfig(
+def test_open_loop_oracle_is_the_best_of_its_warm_starts(bundle: Path) -> None:
+    from ttompc.policy import Planner
+
+    sc = get_scenario(SHORT)
+    ep = eval_problem(sc, 3, 0)
+    row, trajs = evaluate_problem(sc, ep, {"TTO": Planner.from_pretrained(bundle)}, oracle_detours=2)
+    solved = [row[f"{m}_cost"] for m in ("REL", "TTO") if row[f"{m}_success"]]
+    assert row[f"{ORACLE}_success"] and row[f"{ORACLE}_cost"] <= min(solved) + 1e-12
+    assert row[f"{ORACLE}_starts"] == 2 + 1 + 2  # REL, TTO, the straight line, two detours
+    assert row[f"{ORACLE}_suboptimality"] >= -1e-6  # never below the REL lower bound
+    assert {"REL (lower bound)", "SCP from REL", "TTO rollout", "SCP from TTO", "ORACLE (best optimum)"} == set(trajs)
+
+
+def test_warmstart_command_default_folder_and_report(tmp_path: Path, bundle: Path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    rc = main(["evaluate", "warmstart", "--model", str(bundle), "problems=2", "seed=3", "workers=1",
+               "oracle_detours=1", "thresholds=[0,0.5]"])  # fmt: skip
+    assert rc == 0
+    out = tmp_path / "outputs" / "evaluate" / f"warmstart-{SHORT}"
+    report = json.loads((out / "warmstart.json").read_text())
+    assert report["scenario"]["name"] == SHORT and report["config"]["nonconvex_only"] is True
+    assert [m["method"] for m in report["methods"]] == ["REL", "TTO", ORACLE]
+    tto = report["methods"][1]
+    assert tto["runs"] == 2 and {"mean", "se", "lo", "hi", "n"} <= set(tto["suboptimality"]) and "gain_share" in tto
+    for p in report["problems"]:
+        assert p["ctg0"] > 0 and p["REL_success"] and p["REL_suboptimality"] >= -1e-6
+    assert [r["threshold"] for r in report["thresholds"]] == [0.0, 0.5]
+    assert "share of reachable gain" in (out / "warmstart.md").read_text()
+    assert (out / "warmstart_improvement.png").is_file() and (out / "warmstart_problems.csv").is_file()
+
+
+@pytest.mark.slow
+def test_closed_loop_report_nominal_and_perturbed(tmp_path: Path, bundle: Path) -> None:
+    cfg = ClosedLoopConfig(
+        model=str(bundle),
         scenario=SHORT,
-        out=str(tmp_path),
-        checkpoint=str(bundle),
-        ft_checkpoint=str(bundle),
-        horizons=[10, 40, 200],
         problems=2,
+        horizons=[10, 200],
         workers=2,  # spawn pool: workers import the test scenario and load the model once
         max_steps=3,
+        out=str(tmp_path),
     )
-    report = run_horizon_study(cfg)
-    methods = {"REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC"}
-    assert {(r["method"], r["horizon"]) for r in report["summary"]} == {(m, h) for m in methods for h in (10, 40)}
-    saved = json.loads((tmp_path / "horizon.json").read_text())
+    report = run_closed_loop(cfg)
+    methods = {"REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC"}
+    keys = {(r["plant"], r["method"], r["horizon"]) for r in report["summary"]}
+    assert keys == {(p, m, h) for p in ("nominal", "perturbed") for m in methods for h in (10, 40)}
+    saved = json.loads((tmp_path / "mpc.json").read_text())
+    assert len(saved["runs"]) == 2 * 2 * 2 * 6 and {r["problem"] for r in saved["runs"]} == {0, 1}
     for r in saved["runs"]:
-        for key in ("cost", "rel_cost", "norm_cost_increment", "feasible", "terminal_error", "keepout_violations",
-                    "mean_step_time", "max_step_time", "fallbacks", "ctg0", "seed"):  # fmt: skip
-            assert key in r
         assert r["steps"] == 3 and r["ctg0"] > 0 and r["max_step_time"] >= r["mean_step_time"] > 0
-    with open(tmp_path / "horizon_summary.csv") as f:
-        rows = list(csv.DictReader(f))
-    assert len(saved["runs"]) == 2 * 2 * 4 and {r["problem"] for r in saved["runs"]} == {0, 1}
-    assert len(rows) == 8 and {"feasible_rate", "max_step_time", "norm_cost_increment"} <= set(rows[0])
-    assert (tmp_path / "horizon_cost.png").stat().st_size > 0 and (tmp_path / "horizon_runtime.png").is_file()
+    for r in saved["summary"]:
+        assert r["runs"] == 2 and r["feasible"] + r["infeasible"] == 2 and "mean" in r["rel_increment"]
+        assert ("gain_share" in r) == (r["method"] not in ("REL-MPC", "ORACLE-MPC"))
+    # the perturbed plant changes the executed trajectory, the nominal one repeats the plan-once run exactly
+    runs = {(r["plant"], r["method"], r["problem"], r["horizon"]): r for r in saved["runs"]}
+    assert runs[("perturbed", "PLAN-ONCE", 0, 10)]["cost"] != runs[("nominal", "PLAN-ONCE", 0, 10)]["cost"]
+    with open(tmp_path / "mpc_runs.csv") as f:
+        assert len(list(csv.DictReader(f))) == len(saved["runs"])
+    table = (tmp_path / "mpc.md").read_text()
+    assert "perturbed" in table and "ORACLE-MPC" in table and "share of reachable gain" in table
+    assert (tmp_path / "mpc_cost.png").stat().st_size > 0 and (tmp_path / "mpc_runtime.png").is_file()
 
 
-def test_warmstart_cli_report(tmp_path: Path, bundle: Path) -> None:
-    out = tmp_path / "ws"
-    rc = main(["evaluate", "warmstart", "--checkpoint", str(bundle), "--problems", "2", "--seed", "3",
-               "--out", str(out), "--thresholds", "0,0.5"])  # fmt: skip
+def test_evaluate_mpc_command_and_bad_settings(tmp_path: Path) -> None:
+    out = tmp_path / "mpc"
+    rc = main(["evaluate", "mpc", f"scenario={SHORT}", "problems=1", "workers=1", "max_steps=2", "plants=[nominal]",
+               "robust_blend=0", f"out={out}"])  # fmt: skip
     assert rc == 0
-    report = json.loads((out / "warmstart.json").read_text())
-    assert report["scenario"]["name"] == SHORT and [m["method"] for m in report["methods"]] == ["REL", "TTO"]
-    for p in report["problems"]:
-        for key in ("ctg0", "nonconvexity", "rel_cost", "REL_cost", "REL_iterations", "REL_time", "REL_success",
-                    "TTO_success", "TTO_warmstart_time", "TTO_iterations"):  # fmt: skip
-            assert key in p
-        assert p["REL_success"] and p["REL_suboptimality"] >= -1e-6
-    assert [r["threshold"] for r in report["thresholds"]] == [0.0, 0.5]
-    assert (out / "warmstart_improvement.png").is_file() and (out / "warmstart_problems.csv").is_file()
+    methods = {r["method"] for r in json.loads((out / "mpc.json").read_text())["summary"]}
+    assert methods == {"REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC"}
+    assert main(["evaluate", "mpc", f"scenario={SHORT}", "plants=[windy]"]) == 2
+    assert main(["evaluate", "mpc", "problems=1"]) == 2  # neither a model nor a scenario
+    assert not (tmp_path / "outputs").exists() and os.path.isdir(out)
 
 
 def _random_batches(n_batches: int, B: int = 2, L: int = 8) -> Any:
@@ -154,10 +249,13 @@ def test_closed_loop_callback_logs_metrics(tmp_path: Path) -> None:
     trainer.fit(module, train_dataloaders=_random_batches(2), val_dataloaders=_random_batches(1))
     assert cb._runs == 4 and module.model.training  # evaluated after validation runs 2 and 4, mode restored
     with open(tmp_path / "logs" / "metrics.csv") as f:
-        rows = [r for r in csv.DictReader(f) if r.get("mpc/cost")]
+        rows = [r for r in csv.DictReader(f) if r.get("mpc/feasible_rate")]
     assert len(rows) == 2
-    for key in ("mpc/cost", "mpc/cost_increment", "mpc/feasible_rate", "mpc/step_time_mean", "mpc/step_time_max"):
+    for key in ("mpc/feasible_rate", "mpc/infeasible", "mpc/target_change", "mpc/step_time_mean", "mpc/step_time_max"):
         assert np.isfinite(float(rows[-1][key]))
+    feasible = float(rows[-1]["mpc/feasible_rate"])
+    assert float(rows[-1]["mpc/infeasible"]) == round((1 - feasible) * 1)  # one problem: counted, not averaged
+    assert np.isfinite(float(rows[-1]["mpc/cost_increment"])) == (feasible > 0)
     assert float(rows[-1]["mpc/step_time_max"]) >= float(rows[-1]["mpc/step_time_mean"]) > 0
     assert len(list((tmp_path / "plots").glob("mpc_trajectory_*.png"))) == 2
 
@@ -192,4 +290,4 @@ def test_recipe_section_wires_the_callback_into_training(tmp_path: Path) -> None
         ]
     )  # fmt: skip
     train(cfg, RandomData())
-    assert "mpc/cost" in (tmp_path / "logs" / "session-0" / "metrics.csv").read_text()
+    assert "mpc/feasible_rate" in (tmp_path / "logs" / "session-0" / "metrics.csv").read_text()

@@ -20,7 +20,7 @@ from ttompc.solvers.scp import SCPResult, SCPStatus, solve_problem, solve_rel
 @pytest.fixture(autouse=True)
 def _one_torch_thread() -> Iterator[None]:
     """Batch-1 rollouts: extra threads only spin on a shared machine."""
-    from ttompc.evaluation.common import single_torch_thread
+    from ttompc.parallel import single_torch_thread
 
     with single_torch_thread():
         yield

@@ -1,117 +1,133 @@
-"""``ttompc demo``: the quickstart main job, offline. Load a shipped zoo model, plan a few seeded held-out problems
-with REL vs transformer (TTO) warm starts of the full-horizon SCP, and close the loop with REL-MPC, DIST-MPC and
-TTO-MPC at one planning horizon; print the comparison table and save a plot and a JSON summary."""
+"""``ttompc demo [RECIPE.yaml] key=value ...``: the quickstart, offline. Load a shipped zoo model, run a few seeded
+held-out non-convex problems through the evaluation protocol's per-problem steps — open loop (SCP from REL, from
+the transformer (TTO) and the oracle's best optimum, ``evaluation.warmstart.evaluate_problem``) and closed loop at
+one horizon on the nominal plant (every method of ``evaluation.closed_loop``) — then print the table and save
+``demo.png`` (one column per problem, titled with its seed; open loop on top, closed loop below; infeasible runs
+marked) and ``demo.json``. ``--model``, ``--problems``, ``--horizon``, ``--seed``, ``--no-mpc`` and ``--out`` are
+shortcuts for the ``DemoConfig`` keys."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import time
+import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from ttompc.commands import checks
+from ttompc.config import add_config_arguments, command_config, to_container
+
+
+@dataclass
+class DemoConfig:
+    model: str = "freeflyer-tto-small"  # zoo name, bundle folder or .ckpt
+    problems: int = 2
+    horizon: int = 10  # MPC planning horizon H
+    seed: int = 0  # root seed of the held-out evaluation stream
+    mpc: bool = True  # also close the loop (slower)
+    out: str = "outputs/demo"
+
+    def __post_init__(self) -> None:
+        if self.problems < 1 or self.horizon < 1:
+            raise ValueError(f"problems and horizon must be >= 1, got {self.problems}, {self.horizon}")
+
+
+_FLAGS = {"model": "model", "problems": "problems", "horizon": "horizon", "seed": "seed", "out": "out"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", default="freeflyer-tto-small", help="zoo name, bundle directory or .ckpt")
-    p.add_argument("--problems", type=int, default=2, help="held-out problems to plan")
-    p.add_argument("--horizon", type=int, default=10, help="MPC planning horizon H")
-    p.add_argument("--seed", type=int, default=0, help="root seed of the evaluation problem stream")
-    p.add_argument("--no-mpc", action="store_true", help="open-loop warm starts only (fast)")
-    p.add_argument("--out", default="outputs/demo", help="folder for demo.png and demo.json")
+    add_config_arguments(p, "problems=3 horizon=20")
+    p.add_argument("--model", help="zoo name, bundle folder or .ckpt (default freeflyer-tto-small)")
+    p.add_argument("--problems", type=int, help="held-out problems to plan (default 2)")
+    p.add_argument("--horizon", type=int, help="MPC planning horizon H (default 10)")
+    p.add_argument("--seed", type=int, help="root seed of the evaluation problem stream (default 0)")
+    p.add_argument("--no-mpc", action="store_true", help="open-loop warm starts only (fast); same as mpc=false")
+    p.add_argument("--out", help="folder for demo.png and demo.json (default outputs/demo)")
 
 
 def run(args: argparse.Namespace) -> int:
-    from ttompc.evaluation.common import eval_problem, single_torch_thread
-    from ttompc.mpc.loop import run_mpc
-    from ttompc.mpc.providers import DISTProvider, RELProvider, TTOProvider
+    cfg = command_config(DemoConfig, args, _FLAGS)
+    if args.no_mpc:
+        cfg.mpc = False
+    if args.print_config:
+        print(json.dumps(to_container(cfg), indent=2))
+        return 0
+    checks.seed(cfg.seed)
+    from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_problem
+    from ttompc.evaluation.plots import Panel, save_figure, trajectory_figure
+    from ttompc.evaluation.problems import eval_problem
+    from ttompc.evaluation.warmstart import evaluate_problem
+    from ttompc.parallel import single_torch_thread
     from ttompc.policy import Planner
-    from ttompc.solvers import solve_scp
 
-    planner = Planner.from_pretrained(args.model)
+    planner = Planner.from_pretrained(cfg.model)
     scenario = planner.scenario
     print(
-        f"model {args.model}: {scenario.name} v{scenario.version}, "
+        f"model {cfg.model}: {scenario.name} v{scenario.version}, "
         f"{sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M parameters"
     )
+    loop = ClosedLoopConfig(scenario=scenario.name, horizons=[cfg.horizon], plants=["nominal"])
     rows: list[dict[str, Any]] = []
-    plots = []
+    open_panels, closed_panels = [], []
     with single_torch_thread():
-        for i in range(args.problems):
-            ep = eval_problem(scenario, args.seed, i, nonconvex_only=True)
-            p, rel = ep.problem, ep.rel
-            row: dict[str, Any] = {"problem": i, "seed": ep.seed, "ctg0": ep.ctg0, "J_REL": rel.cost}
-            scp_rel = solve_scp(scenario, p, rel.X, rel.U)
-            t0 = time.perf_counter()
-            X, U = planner.warm_start([p], rtg0=-rel.cost, ctg0=0.0)
-            t_tto = time.perf_counter() - t0
-            X_tto, U_tto = X[0], U[0]
-            scp_tto = solve_scp(scenario, p, X_tto, U_tto)
-            for name, res, ws in (("SCP(REL)", scp_rel, ep.rel_time), ("SCP(TTO)", scp_tto, t_tto)):
-                row[name] = {
-                    "cost": res.cost if res.success else float("nan"),
-                    "iterations": res.iterations,
-                    "time": ws + res.solve_time,
-                    "status": res.status.value,
+        for i in range(cfg.problems):
+            ep = eval_problem(scenario, cfg.seed, i)
+            ws, trajs = evaluate_problem(scenario, ep, {"TTO": planner})
+            row: dict[str, Any] = {"problem": i, "seed": ep.seed, "ctg0": ep.ctg0, "J_REL": ep.rel_cost}
+            for name, label in (("REL", "SCP(REL)"), ("TTO", "SCP(TTO)"), ("ORACLE", "ORACLE")):
+                row[label] = {
+                    "cost": ws[f"{name}_cost"],
+                    "iterations": ws[f"{name}_iterations"],
+                    "time": ws[f"{name}_time"],
+                    "feasible": ws[f"{name}_success"],
                 }
-            trajs = {
-                "REL (lower bound)": rel.X,
-                "TTO rollout": X_tto,
-                "SCP from REL": scp_rel.X,
-                "SCP from TTO": scp_tto.X,
-            }
-            if not args.no_mpc:
-                for provider in (RELProvider(), DISTProvider(), TTOProvider(planner)):
-                    epi = run_mpc(scenario, p, provider, args.horizon, rel_cost=rel.cost)
-                    row[f"{provider.name}@{args.horizon}"] = {
-                        "cost": epi.cost,
-                        "feasible": epi.feasible,
-                        "mean_step": float(np.mean(epi.step_times)),
-                        "max_step": float(np.max(epi.step_times)),
+            title = f"problem {i}, seed {ep.seed} (ctg0 = {ep.ctg0})"
+            failed = {f"SCP from {n}" for n in ("REL", "TTO") if not ws[f"{n}_success"]}
+            open_panels.append(Panel(ep.problem, trajs, f"open loop: {title}", failed))
+            if cfg.mpc:
+                records, executed = run_problem(scenario, ep, {"TTO": planner}, loop)
+                for r in records:
+                    row[f"{r['method']}@{cfg.horizon}"] = {
+                        "cost": r["cost"],
+                        "feasible": r["feasible"],
+                        "mean_step": r["mean_step_time"],
+                        "max_step": r["max_step_time"],
                     }
-                    if provider.name == "TTO-MPC":
-                        trajs[f"TTO-MPC H={args.horizon}"] = epi.X
+                closed = {f"{m} H={H}": X for (_, m, H), X in executed.items()}
+                bad = {f"{r['method']} H={r['horizon']}" for r in records if not r["feasible"]}
+                closed_panels.append(Panel(ep.problem, closed, f"closed loop: {title}", bad))
             rows.append(row)
-            plots.append((p, trajs))
     _print_table(rows)
-    out = Path(args.out)
+    out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "demo.json").write_text(
-        json.dumps({"model": args.model, "scenario": scenario.name, "rows": rows}, indent=2, default=float)
+        json.dumps({"model": cfg.model, "scenario": scenario.name, "rows": rows}, indent=2, default=float)
     )
-    _plot(scenario, plots, out / "demo.png")
+    panels = open_panels + closed_panels
+    fig = trajectory_figure(scenario, panels, f"{cfg.model} on {scenario.name}", rows=2 if closed_panels else 1)
+    save_figure(fig, out / "demo.png")
     print(f"saved {out / 'demo.png'} and {out / 'demo.json'}")
     return 0
 
 
 def _print_table(rows: list[dict[str, Any]]) -> None:
     methods = [k for k in rows[0] if isinstance(rows[0][k], dict)]
-    print(f"\n{'problem':>7} {'ctg0':>5} {'J_REL (LB)':>11} " + " ".join(f"{m:>22}" for m in methods))
-    print(f"{'':>25}" + " ".join(f"{'cost / iters|feas / s':>22}" for _ in methods))
+    width = max(22, *(len(m) + 1 for m in methods))
+    print(f"\n{'problem':>7} {'seed':>20} {'ctg0':>5} {'J_REL (LB)':>11} " + " ".join(f"{m:>{width}}" for m in methods))
     for r in rows:
         cells = []
         for m in methods:
             c = r[m]
             mid = c["iterations"] if "iterations" in c else ("ok" if c["feasible"] else "INF")
+            cost = f"{c['cost']:.4f}" if math.isfinite(c["cost"]) else "INF"
             t = c.get("time", c.get("mean_step"))
-            cells.append(f"{c['cost']:>9.4f} /{mid!s:>4} /{t:>6.3f}")
-        print(f"{r['problem']:>7} {r['ctg0']:>5} {r['J_REL']:>11.4f} " + " ".join(f"{c:>22}" for c in cells))
+            cells.append(f"{cost:>9} /{mid!s:>4} /{t:>6.3f}")
+        print(
+            f"{r['problem']:>7} {r['seed']:>20} {r['ctg0']:>5} {r['J_REL']:>11.4f} "
+            + " ".join(f"{c:>{width}}" for c in cells)
+        )
     print(
-        "SCP columns: cost / SCP iterations / warm start + SCP seconds;"
-        " MPC columns: applied cost / feasible / mean step seconds"
+        "open-loop columns: cost / SCP iterations / warm start + SCP seconds;"
+        " MPC columns: applied cost (INF: infeasible or goal missed) / ok|INF / mean step seconds"
     )
-
-
-def _plot(scenario: Any, plots: list[tuple[Any, dict[str, np.ndarray]]], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(plots), figsize=(6 * len(plots), 4.5), squeeze=False)
-    for ax, (problem, trajs) in zip(axes[0], plots, strict=True):
-        scenario.plot(ax, problem, trajs)  # optimisation-representation states, like `ttompc solve --plot`
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

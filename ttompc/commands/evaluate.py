@@ -1,99 +1,89 @@
-"""``ttompc evaluate {warmstart,mpc}``: the open-loop warm-start evaluation (Fig. 3) and the closed-loop
-planning-horizon study (Fig. 4–5), written as JSON + CSV + PNG into ``--out``."""
+"""``ttompc evaluate warmstart|mpc [RECIPE.yaml] key=value ...``: the evaluation protocol (docs/evaluation.md).
+
+* ``warmstart``: open-loop SCP warm starts, REL vs the model(s) vs the oracle (best of several warm starts), on
+  ``problems`` (default 100) held-out non-convex problems (``WarmStartConfig`` keys);
+* ``mpc``: closed loop, REL-/DIST-MPC, plan-once, the oracle, TTO-MPC and the robust R-TTO-MPC, on the nominal and
+  the perturbed plant, ``problems`` (default 20) held-out non-convex problems (``ClosedLoopConfig`` keys).
+
+Reports (JSON, a markdown table, CSV, PNG) go to ``out`` (default ``outputs/evaluate/<kind>-<scenario>``).
+``--model``, ``--ft-model``, ``--scenario``, ``--problems``, ``--seed``, ``--workers`` and ``--out`` are shortcuts
+for the keys of the same name.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 
+from ttompc.commands import checks
+from ttompc.config import add_config_arguments, command_config, to_container
+from ttompc.errors import UserError
 
-def _ints(text: str) -> list[int]:
-    try:
-        return [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+_FLAGS = {
+    "model": "model",
+    "ft_model": "ft_model",
+    "scenario": "scenario",
+    "problems": "problems",
+    "seed": "seed",
+    "workers": "workers",
+    "out": "out",
+}
 
 
-def _common(p: argparse.ArgumentParser, checkpoint_required: bool) -> None:
-    p.add_argument(
-        "--checkpoint",
-        required=checkpoint_required,
-        help="TTO model: Lightning checkpoint (.ckpt), planner bundle directory or zoo model name",
-    )
-    p.add_argument("--ft-checkpoint", help="fine-tuned (FT-TTO) model, same forms as --checkpoint")
-    p.add_argument("--scenario", help="scenario name (default: the model's scenario)")
-    p.add_argument("--problems", type=int, default=10, help="number of seeded held-out problems")
-    p.add_argument("--seed", type=int, default=0, help="root seed of the evaluation problems")
-    p.add_argument("--workers", type=int, default=1, help="processes (spawn pool; each loads the model once)")
-    p.add_argument("--backend", default="auto", help="convex solver backend")
-    p.add_argument("--device", default="cpu", help="torch device of the model(s)")
-    p.add_argument("--out", required=True, help="output directory")
+def _shortcuts(p: argparse.ArgumentParser, example: str) -> None:
+    add_config_arguments(p, example)
+    p.add_argument("--model", help="TTO model: zoo name, bundle folder or Lightning .ckpt")
+    p.add_argument("--ft-model", dest="ft_model", help="fine-tuned (FT-TTO) model, same forms as --model")
+    p.add_argument("--scenario", help="scenario (default: the model's)")
+    p.add_argument("--problems", type=int, help="number of held-out problems")
+    p.add_argument("--seed", type=int, help="root seed of the held-out evaluation stream (default 0)")
+    p.add_argument("--workers", type=int, help="processes (default 0 = one per CPU core)")
+    p.add_argument("--out", help="output folder (default outputs/evaluate/<kind>-<scenario>)")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="evaluation", metavar="EVALUATION", required=True)
-    ws = sub.add_parser("warmstart", help="REL vs transformer warm starts of the open-loop SCP (Fig. 3)")
-    _common(ws, checkpoint_required=True)
-    ws.add_argument("--thresholds", default=None, help="non-convexity thresholds, e.g. 0,0.2,0.4 (default 0..0.9)")
-    mpc = sub.add_parser("mpc", help="REL-/DIST-/TTO-/FT-TTO-MPC over planning horizons (Fig. 4-5)")
-    _common(mpc, checkpoint_required=False)
-    mpc.add_argument("--horizons", type=_ints, default=list(range(10, 101, 10)), help="e.g. 10,20,30")
-    mpc.add_argument("--mode", choices=["soft", "hard"], default="soft")
-    mpc.add_argument("--max-steps", type=int, default=None, help="truncate episodes (smoke runs)")
+    ws = sub.add_parser("warmstart", help="open loop: SCP from REL vs from the model(s) vs the oracle")
+    _shortcuts(ws, "--model freeflyer-tto-small problems=100")
+    mpc = sub.add_parser("mpc", help="closed loop: REL/DIST/plan-once/oracle/TTO-MPC, nominal and perturbed plant")
+    _shortcuts(mpc, "--model freeflyer-tto-small horizons=[10,30] plants=[nominal]")
 
 
-def _scenario(args: argparse.Namespace) -> str:
-    if args.scenario:
-        return args.scenario
-    if not args.checkpoint:
-        raise SystemExit("ttompc evaluate: --scenario is required without --checkpoint")
-    from ttompc.policy import Planner
+def _resolve_scenario(cfg: object) -> None:
+    """The scenario defaults to the model's; checked before any work."""
+    model = getattr(cfg, "model", None)
+    if getattr(cfg, "scenario", None) is None:
+        if not model:
+            raise UserError("evaluate needs a model or a scenario", "pass --model NAME or scenario=NAME")
+        from ttompc.policy import Planner
 
-    return Planner.from_pretrained(args.checkpoint).scenario.name
+        cfg.scenario = Planner.from_pretrained(model).scenario.name  # type: ignore[attr-defined]
+    checks.scenario(cfg.scenario)  # type: ignore[attr-defined]
+    checks.seed(cfg.seed)  # type: ignore[attr-defined]
+    checks.backend(cfg.backend)  # type: ignore[attr-defined]
 
 
 def run(args: argparse.Namespace) -> int:
-    scenario = _scenario(args)
     if args.evaluation == "warmstart":
         from ttompc.evaluation.warmstart import WarmStartConfig, run_warmstart
 
-        cfg = WarmStartConfig(
-            scenario=scenario,
-            out=args.out,
-            checkpoint=args.checkpoint,
-            ft_checkpoint=args.ft_checkpoint,
-            problems=args.problems,
-            seed=args.seed,
-            workers=args.workers,
-            backend=args.backend,
-            device=args.device,
-        )
-        if args.thresholds:
-            cfg.thresholds = [float(v) for v in args.thresholds.split(",")]
+        cfg = command_config(WarmStartConfig, args, _FLAGS)
+        if args.print_config:
+            print(json.dumps(to_container(cfg), indent=2))
+            return 0
+        if not cfg.model and not cfg.ft_model:
+            raise UserError("evaluate warmstart needs a model", "pass --model NAME (zoo name, folder or .ckpt)")
+        _resolve_scenario(cfg)
         report = run_warmstart(cfg)
-        print(json.dumps({"methods": report["methods"], "out": args.out}, indent=2))
-        return 0
-    from ttompc.evaluation.horizon import HorizonStudyConfig, run_horizon_study
+    else:
+        from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
 
-    cfg_h = HorizonStudyConfig(
-        scenario=scenario,
-        out=args.out,
-        checkpoint=args.checkpoint,
-        ft_checkpoint=args.ft_checkpoint,
-        horizons=args.horizons,
-        problems=args.problems,
-        seed=args.seed,
-        workers=args.workers,
-        mode=args.mode,
-        max_steps=args.max_steps,
-        backend=args.backend,
-        device=args.device,
-    )
-    report = run_horizon_study(cfg_h)
-    for r in report["summary"]:
-        print(
-            f"{r['method']:>11} H={r['horizon']:>3}  cost {r['cost']:.4g}  norm {r['norm_cost_increment']:.3f}  "
-            f"feasible {r['feasible_rate']:.2f}  max step {r['max_step_time'] * 1e3:.1f} ms"
-        )
-    print(f"report: {args.out}/horizon.json")
+        cfg_m = command_config(ClosedLoopConfig, args, _FLAGS)
+        if args.print_config:
+            print(json.dumps(to_container(cfg_m), indent=2))
+            return 0
+        _resolve_scenario(cfg_m)
+        report = run_closed_loop(cfg_m)
+    print(report["table"])
+    print(f"report: {report['out']}")
     return 0

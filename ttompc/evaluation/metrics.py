@@ -1,8 +1,14 @@
 """Metrics of the evaluations (paper §V-B, §V-C; fact sheet §5.4, §5.5) and their JSON/CSV reports.
 
-* normalised cost increment (Fig. 4): per problem, (J − LB)/(J_max − LB) with LB = J_REL (open-loop REL cost, a lower
-  bound of the full problem) and J_max the largest cost of that problem over all methods and horizons of the study;
-  0 = the lower bound, 1 = the worst run observed.
+* absolute: (J − J_REL)/J_REL per run, J_REL the open-loop REL cost (a lower bound of the full problem); means over
+  feasible runs only, with standard error and bootstrap interval (``ttompc.mpc.metrics.interval``); infeasible runs
+  are counted apart.
+* paper normalisation (Fig. 4): over the problems on which *every* method's run is feasible, mean(J_m − J_REL) per
+  method and horizon divided by the largest mean(J_DIST-MPC − J_REL) over the horizons (DIST-MPC = 1 at its worst
+  horizon). Reported per problem as (J_m − J_REL)/D so that it gets an interval too.
+* share of the reachable gain: (mean J_base − mean J_m)/(mean J_base − mean J_oracle) over problems solved by base,
+  model and oracle — 0 = no better than the baseline (SCP from REL open loop, REL-MPC closed loop), 1 = as good as
+  the oracle — with a paired bootstrap interval.
 * warm-start improvement (Fig. 3): for each threshold c of the non-convexity factor (ctg0 / max ctg0), over problems
   with factor ≥ c solved by every method: 100·(1 − mean(J_m − J_REL)/mean(J_SCP(REL) − J_REL)) for the suboptimality
   and 100·(1 − mean(iter_m)/mean(iter_SCP(REL))) for the SCP iterations.
@@ -20,19 +26,64 @@ from typing import Any
 
 import numpy as np
 
+from ttompc.mpc.metrics import BOOTSTRAP_SAMPLES, interval
 
-def normalized_cost_increment(records: list[dict[str, Any]]) -> None:
-    """Add ``norm_cost_increment`` to each record (keys problem, cost, rel_cost) in place, per problem over all
-    its records (methods × horizons)."""
+
+def paper_normalized(
+    records: list[dict[str, Any]], methods: Sequence[str], reference: str = "DIST-MPC", *, seed: int = 0
+) -> list[dict[str, Any]]:
+    """Paper normalisation of closed-loop ``records`` (keys problem, method, horizon, cost, rel_cost, feasible) of
+    one plant: rows (method, horizon, problems, paper_norm interval) over the problems whose runs are feasible for
+    every method in ``methods`` at every horizon; empty if ``reference`` is missing or never costs more than J_REL."""
     by_problem: dict[Any, list[dict[str, Any]]] = defaultdict(list)
     for r in records:
-        by_problem[r["problem"]].append(r)
-    for rs in by_problem.values():
-        lb = rs[0]["rel_cost"]
-        worst = max(r["cost"] for r in rs)
-        span = worst - lb
+        if r["method"] in methods:
+            by_problem[r["problem"]].append(r)
+    horizons = sorted({r["horizon"] for r in records})
+    need = {(m, h) for m in methods for h in horizons}
+    ok = [rs for rs in by_problem.values() if {(r["method"], r["horizon"]) for r in rs if r["feasible"]} >= need]
+    gap: dict[tuple[str, int], list[float]] = defaultdict(list)
+    for rs in ok:
         for r in rs:
-            r["norm_cost_increment"] = float((r["cost"] - lb) / span) if span > 0 else 0.0
+            gap[(r["method"], r["horizon"])].append(r["cost"] - r["rel_cost"])
+    ref = [float(np.mean(gap[(reference, h)])) for h in horizons if gap.get((reference, h))]
+    denom = max(ref, default=float("nan"))
+    if not (denom > 0):
+        return []
+    return [
+        {
+            "method": m,
+            "horizon": h,
+            "problems": len(ok),
+            "paper_norm": interval(np.array(gap[(m, h)]) / denom, seed=seed),
+        }
+        for m in methods
+        for h in horizons
+    ]
+
+
+def gain_share(base: np.ndarray, model: np.ndarray, ceiling: np.ndarray, *, seed: int = 0) -> dict[str, float]:
+    """Share of the reachable gain (mean(base) − mean(model))/(mean(base) − mean(ceiling)) over paired per-problem
+    costs (rows with a nan anywhere are dropped), with a paired bootstrap s.e. and 95% interval."""
+    rows = np.column_stack([base, model, ceiling]).astype(np.float64)
+    rows = rows[np.all(np.isfinite(rows), axis=1)]
+    out = {"mean": float("nan"), "se": float("nan"), "lo": float("nan"), "hi": float("nan"), "n": len(rows)}
+
+    def share(r: np.ndarray) -> float:
+        b, m, c = r.mean(axis=0)
+        return float((b - m) / (b - c)) if b - c > 1e-12 * max(abs(b), 1.0) else float("nan")
+
+    if len(rows) == 0:
+        return out
+    out["mean"] = share(rows)
+    if len(rows) > 1:
+        idx = np.random.default_rng(seed).integers(0, len(rows), size=(BOOTSTRAP_SAMPLES, len(rows)))
+        boot = np.array([share(rows[i]) for i in idx])
+        boot = boot[np.isfinite(boot)]
+        if len(boot) > 1:
+            out["se"] = float(np.std(boot, ddof=1))
+            out["lo"], out["hi"] = (float(v) for v in np.quantile(boot, [0.025, 0.975]))
+    return out
 
 
 def _mean(values: Sequence[float]) -> float:
@@ -41,7 +92,7 @@ def _mean(values: Sequence[float]) -> float:
 
 
 def aggregate(records: list[dict[str, Any]], keys: Sequence[str], fields: Sequence[str]) -> list[dict[str, Any]]:
-    """Mean of ``fields`` per group of ``keys`` (plus ``count`` and ``feasible_rate`` when records have it)."""
+    """Mean of ``fields`` per group of ``keys`` (plus ``count``)."""
     groups: dict[tuple, list[dict[str, Any]]] = defaultdict(list)
     for r in records:
         groups[tuple(r[k] for k in keys)].append(r)
@@ -52,8 +103,6 @@ def aggregate(records: list[dict[str, Any]], keys: Sequence[str], fields: Sequen
         row["count"] = len(rs)
         for f in fields:
             row[f] = _mean([r[f] for r in rs])
-        if "feasible" in rs[0]:
-            row["feasible_rate"] = _mean([float(r["feasible"]) for r in rs])
         out.append(row)
     return out
 

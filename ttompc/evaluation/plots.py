@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -31,25 +32,39 @@ def _save(fig: Any, path: str | Path) -> Path:
 
 
 def plot_horizon(summary: list[dict[str, Any]], out_dir: str | Path) -> list[Path]:
-    """Fig. 4 (mean normalised cost increment vs H) and Fig. 5 (mean of the per-episode max step time vs H)."""
+    """Fig. 4 analogue (mean (J − J_REL)/J_REL over feasible runs ± s.e. vs H, one panel per plant) and Fig. 5 (the
+    largest step time of each method vs H)."""
     plt = _plt()
-    methods = sorted({r["method"] for r in summary})
-    paths = []
-    for field, ylabel, name in (
-        ("norm_cost_increment", "normalised cost increment", "horizon_cost.png"),
-        ("max_step_time", "max MPC step time [s]", "horizon_runtime.png"),
-    ):
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        for m in methods:
-            rs = sorted((r for r in summary if r["method"] == m), key=lambda r: r["horizon"])
-            ax.plot([r["horizon"] for r in rs], [r[field] for r in rs], "o-", label=m)
+    plants = sorted({r["plant"] for r in summary})
+    methods = list(dict.fromkeys(r["method"] for r in summary))
+    fig, axes = plt.subplots(1, len(plants), figsize=(5 * len(plants), 3.8), squeeze=False)
+    for ax, plant in zip(axes[0], plants, strict=True):
+        for i, m in enumerate(methods):
+            rs = sorted((r for r in summary if r["method"] == m and r["plant"] == plant), key=lambda r: r["horizon"])
+            ax.errorbar(
+                [r["horizon"] for r in rs],
+                [100 * r["rel_increment"]["mean"] for r in rs],
+                yerr=[100 * np.nan_to_num(r["rel_increment"]["se"]) for r in rs],
+                capsize=3,
+                **_style(i),
+                label=m,
+            )
+        ax.set_title(f"{plant} plant", fontsize=9)
         ax.set_xlabel("planning horizon H")
-        ax.set_ylabel(ylabel)
-        if field == "max_step_time":
-            ax.set_yscale("log")
+        ax.set_ylabel("(J − J_REL)/J_REL of feasible runs [%]")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        paths.append(_save(fig, Path(out_dir) / name))
+        ax.legend(fontsize=7)
+    paths = [_save(fig, Path(out_dir) / "mpc_cost.png")]
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for i, m in enumerate(methods):
+        rs = sorted((r for r in summary if r["method"] == m and r["plant"] == plants[0]), key=lambda r: r["horizon"])
+        ax.plot([r["horizon"] for r in rs], [r["max_step_time"] for r in rs], **_style(i), label=m)
+    ax.set_xlabel("planning horizon H")
+    ax.set_ylabel("max MPC step time [s]")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    paths.append(_save(fig, Path(out_dir) / "mpc_runtime.png"))
     return paths
 
 
@@ -76,13 +91,61 @@ def plot_warmstart(rows: list[dict[str, Any]], methods: Sequence[str], out_dir: 
     return _save(fig, Path(out_dir) / "warmstart_improvement.png")
 
 
-def trajectory_figure(
-    scenario: Scenario, problem: Problem, trajectories: dict[str, np.ndarray], title: str = ""
-) -> Any:
-    """The scenario's own drawing (keep-out zones, start, goal) of executed trajectories (label -> states)."""
+_LINESTYLES = ("-", "--", "-.", ":")
+
+
+def _style(i: int) -> dict[str, Any]:
+    """The i-th of a set of distinguishable line styles: colour, dash pattern and width all change, and earlier
+    lines are wider and drawn below later ones, so two identical trajectories both stay visible."""
+    return {
+        "color": f"C{i % 10}",
+        "linestyle": _LINESTYLES[i % len(_LINESTYLES)],
+        "linewidth": max(3.4 - 0.35 * i, 0.9),
+        "zorder": 2 + i,
+        "marker": "o" if i % 2 else "",
+        "markevery": 10,
+        "markersize": 3,
+    }
+
+
+@dataclass
+class Panel:
+    """One problem of a trajectory figure: label -> states (the optimisation representation), the labels whose run
+    was infeasible (drawn with an x at the end and marked in the legend) and a title (e.g. the problem seed)."""
+
+    problem: Problem
+    trajectories: dict[str, np.ndarray]
+    title: str = ""
+    infeasible: set[str] = field(default_factory=set)
+
+
+def trajectory_figure(scenario: Scenario, panels: Sequence[Panel], title: str = "", rows: int = 1) -> Any:
+    """The scenario's own drawing (keep-out zones, start, goal) of each panel's trajectories on a grid of ``rows``
+    rows, every label in its own style (same label, same style in every panel)."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(5, 4))
-    scenario.plot(ax, problem, trajectories)
-    ax.set_title(title, fontsize=9)
+    cols = -(-len(panels) // rows)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4.8 * rows), squeeze=False)
+    labels = list(dict.fromkeys(k for p in panels for k in p.trajectories))
+    for ax in axes.flat[len(panels) :]:
+        ax.set_visible(False)
+    for ax, panel in zip(axes.flat, panels, strict=False):
+        scenario.plot(ax, panel.problem, panel.trajectories)
+        for line in ax.get_lines():
+            label = line.get_label()
+            if label in labels:
+                line.set(**_style(labels.index(label)))
+                if label in panel.infeasible:
+                    line.set_label(f"{label} (INFEASIBLE)")
+                    x, y = line.get_data()
+                    ax.plot(x[-1:], y[-1:], "x", color=line.get_color(), markersize=12, mew=3, zorder=20)
+        ax.legend(loc="upper left", fontsize=7)
+        ax.set_title(panel.title, fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def save_figure(fig: Any, path: str | Path) -> Path:
+    """Write a figure as PNG (folders created) and close it."""
+    return _save(fig, path)

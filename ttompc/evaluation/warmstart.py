@@ -1,64 +1,75 @@
-"""Open-loop warm-start evaluation (paper §V-B, Fig. 3; fact sheet §5.4).
+"""Open-loop warm-start evaluation (paper §V-B, Fig. 3; fact sheet §5.4), the protocol of ``ttompc evaluate
+warmstart`` and the demo.
 
-For seeded held-out problems: REL (timed) → SCP from the REL warm start, versus a transformer rollout conditioned on
-rtg_0 = −J_REL, ctg_0 = 0 → SCP from that warm start (TTO, and FT-TTO when a second model is given). Per problem:
-cost, suboptimality (J − J_REL)/J_REL, SCP iterations, runtime (warm start + SCP), success. Reported per method,
-per non-convexity bin (ctg0 / max ctg0 in [c, c+0.1)) and as Fig. 3's % improvement over the REL warm start for
-problems with non-convexity ≥ c (problems solved by every method).
+For seeded held-out problems (non-convex by default: the REL solution violates a keep-out zone): REL (timed) → SCP
+from the REL warm start, versus a transformer rollout conditioned on rtg_0 = −κ·J_REL (κ = ``rtg_scale``, the
+paper: 1), ctg_0 = 0 → SCP from that warm start (TTO, and FT-TTO when a second model is given). The ceiling,
+ORACLE, is the best optimum the SCP reaches from several warm starts: REL, every model, the straight line and
+``oracle_detours`` seeded random detours around REL. Per problem: cost, suboptimality (J − J_REL)/J_REL, SCP
+iterations, runtime (warm start + SCP), success. Reported per method: failures counted apart, means with standard
+error and bootstrap interval over the solved problems, the share of the reachable gain (SCP(REL) → ORACLE) a model
+captures; per non-convexity bin, and Fig. 3's % improvement over the REL warm start.
 
 Our SCP returns its best feasible iterate, so "cost" is the reference's min(J_vect) and the returned trajectory at
-once; iteration counts are the number of convex subproblems solved (the reference's drone/freeflyer counts are
-one lower).
+once; iteration counts are the number of convex subproblems solved.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ttompc.evaluation.common import eval_problem, pool_map, scenario_module, worker_setup
-from ttompc.evaluation.metrics import aggregate, improvement_by_threshold, write_csv, write_json
+from ttompc.evaluation.metrics import aggregate, gain_share, improvement_by_threshold, write_csv, write_json
+from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.mpc.metrics import format_interval, interval
+from ttompc.parallel import pool_map, scenario_module
 from ttompc.scenarios import get_scenario
-from ttompc.solvers.scp import solve_scp
+from ttompc.scenarios.base import Scenario, Window
+from ttompc.seeding import rng
+from ttompc.solvers.scp import SCPResult, solve_scp
+
+if TYPE_CHECKING:
+    from ttompc.policy import Planner
 
 BASELINE = "REL"
+ORACLE = "ORACLE"
+ORACLE_STREAM = 0x6F72636C  # "orcl": seeds of the oracle's random detours
+DETOUR_SIZE = 0.3  # detour amplitude in units of the scenario's state_scale
 
 
 @dataclass
 class WarmStartConfig:
-    scenario: str
-    out: str
-    checkpoint: str | None = None
-    ft_checkpoint: str | None = None
-    problems: int = 200
-    seed: int = 0
-    workers: int = 1
+    """``ttompc evaluate warmstart`` settings (``key=value`` on the command line)."""
+
+    model: str | None = None  # TTO model: zoo name, bundle folder or .ckpt
+    ft_model: str | None = None  # FT-TTO model, same forms
+    scenario: str | None = None  # default: the model's scenario
+    problems: int = 100
+    seed: int = 0  # root seed of the held-out evaluation stream
+    nonconvex_only: bool = True  # keep problems whose REL solution violates a keep-out zone
+    rtg_scale: float = 1.0  # rtg_0 = −rtg_scale·J_REL
+    oracle_detours: int = 4  # random detours tried by the oracle (besides REL, models and the straight line)
+    workers: int = 0  # processes; 0 = one per CPU core
     thresholds: list[float] = field(default_factory=lambda: [round(0.1 * i, 1) for i in range(10)])
     backend: str = "auto"
     device: str = "cpu"
+    out: str = ""  # default: outputs/evaluate/warmstart-<scenario>
+
+    def __post_init__(self) -> None:
+        if self.problems < 1 or self.oracle_detours < 0 or self.workers < 0:
+            raise ValueError("problems must be >= 1, oracle_detours and workers >= 0")
 
 
-_W: dict[str, Any] = {}
+def default_workers(workers: int) -> int:
+    return workers if workers > 0 else os.cpu_count() or 1
 
 
-def _init(module: str, cfg: dict[str, Any]) -> None:
-    from ttompc.policy import Planner
-
-    worker_setup(module)
-    _W["cfg"] = WarmStartConfig(**cfg)
-    _W["scenario"] = scenario = get_scenario(cfg["scenario"])
-    _W["models"] = {
-        name: Planner.from_pretrained(cfg[key], scenario, device=cfg["device"])
-        for name, key in (("TTO", "checkpoint"), ("FT-TTO", "ft_checkpoint"))
-        if cfg[key]
-    }
-
-
-def _record(row: dict[str, Any], name: str, res: Any, ws_time: float, rel_cost: float) -> None:
+def _record(row: dict[str, Any], name: str, res: SCPResult, ws_time: float, rel_cost: float) -> None:
     row[f"{name}_success"] = bool(res.success)
     row[f"{name}_cost"] = float(res.cost) if res.success else float("nan")
     row[f"{name}_suboptimality"] = float((res.cost - rel_cost) / rel_cost) if res.success else float("nan")
@@ -68,66 +79,162 @@ def _record(row: dict[str, Any], name: str, res: Any, ws_time: float, rel_cost: 
     row[f"{name}_time"] = ws_time + float(res.solve_time)
 
 
+def detours(scenario: Scenario, ep: EvalProblem, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``count`` seeded warm starts: REL's states plus a smooth bump sin(πk/N)·DETOUR_SIZE·state_scale·z (one
+    random direction z per detour), REL's controls; drawn from the problem's seed, so they are reproducible."""
+    X, U = ep.rel.X, ep.rel.U
+    n = X.shape[1]
+    scale = np.asarray(scenario.state_scale, float) if len(scenario.state_scale) == n else np.ones(n)
+    bump = np.sin(np.pi * np.arange(len(X)) / (len(X) - 1))[:, None]
+    g = rng(ep.seed, ORACLE_STREAM)
+    out = []
+    for _ in range(count):
+        Xd = X + bump * DETOUR_SIZE * scale * g.standard_normal(n)
+        Xd[0] = X[0]
+        out.append((Xd, U.copy()))
+    return out
+
+
+def evaluate_problem(
+    scenario: Scenario,
+    ep: EvalProblem,
+    models: dict[str, Planner],
+    *,
+    rtg_scale: float = 1.0,
+    oracle_detours: int = 4,
+    backend: str = "auto",
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """One problem of the protocol: SCP from REL, from every model's rollout and the oracle's best optimum.
+    Returns the report row and the trajectories (label -> states) for plots."""
+    p, rel = ep.problem, ep.rel
+    row: dict[str, Any] = {"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, "rel_cost": rel.cost}
+    scp_rel = solve_scp(scenario, p, rel.X, rel.U, backend=backend)
+    _record(row, BASELINE, scp_rel, ep.rel_time, rel.cost)
+    trajectories = {"REL (lower bound)": rel.X, "SCP from REL": scp_rel.X}
+    optima = [scp_rel]
+    for name, planner in models.items():
+        t0 = time.perf_counter()
+        X, U = planner.warm_start([p], rtg0=-rtg_scale * rel.cost, ctg0=0.0)
+        ws_time = time.perf_counter() - t0
+        res = solve_scp(scenario, p, X[0], U[0], backend=backend)
+        _record(row, name, res, ws_time, rel.cost)
+        trajectories[f"{name} rollout"] = X[0]
+        trajectories[f"SCP from {name}"] = res.X
+        optima.append(res)
+    starts = [scenario.initial_guess(p, Window.full(p)), *detours(scenario, ep, oracle_detours)]
+    optima += [solve_scp(scenario, p, X, U, backend=backend) for X, U in starts]
+    solved = [r for r in optima if r.success]
+    best = min(solved, key=lambda r: r.cost) if solved else scp_rel
+    _record(row, ORACLE, best, 0.0, rel.cost)
+    row[f"{ORACLE}_starts"] = len(optima)
+    trajectories["ORACLE (best optimum)"] = best.X
+    return row, trajectories
+
+
+_W: dict[str, Any] = {}
+
+
+def _init(cfg: dict[str, Any]) -> None:
+    from ttompc.policy import Planner
+
+    _W["cfg"] = WarmStartConfig(**cfg)
+    _W["scenario"] = scenario = get_scenario(cfg["scenario"])
+    _W["models"] = {
+        name: Planner.from_pretrained(cfg[key], scenario, device=cfg["device"])
+        for name, key in (("TTO", "model"), ("FT-TTO", "ft_model"))
+        if cfg[key]
+    }
+
+
 def _run_problem(index: int) -> dict[str, Any]:
     cfg: WarmStartConfig = _W["cfg"]
     sc = _W["scenario"]
-    ep = eval_problem(sc, cfg.seed, index, backend=cfg.backend)
-    p, rel = ep.problem, ep.rel
-    row: dict[str, Any] = {"problem": index, "seed": ep.seed, "ctg0": ep.ctg0, "rel_cost": rel.cost}
-    _record(row, BASELINE, solve_scp(sc, p, rel.X, rel.U, backend=cfg.backend), ep.rel_time, rel.cost)
-    for name, planner in _W["models"].items():
-        t0 = time.perf_counter()
-        X, U = planner.warm_start([p], rtg0=-rel.cost, ctg0=0.0)
-        ws_time = time.perf_counter() - t0
-        _record(row, name, solve_scp(sc, p, X[0], U[0], backend=cfg.backend), ws_time, rel.cost)
+    ep = eval_problem(sc, cfg.seed, index, nonconvex_only=cfg.nonconvex_only, backend=cfg.backend)
+    row, _ = evaluate_problem(
+        sc, ep, _W["models"], rtg_scale=cfg.rtg_scale, oracle_detours=cfg.oracle_detours, backend=cfg.backend
+    )
     return row
 
 
+def method_summary(rows: list[dict[str, Any]], methods: list[str], seed: int = 0) -> list[dict[str, Any]]:
+    """Per method: runs, failures (counted apart), suboptimality/iterations intervals over solved problems, mean
+    times, and (models) the share of the reachable gain between SCP(REL) and the oracle."""
+    out = []
+    for m in methods:
+        ok = [r for r in rows if r[f"{m}_success"]]
+        entry: dict[str, Any] = {
+            "method": m,
+            "runs": len(rows),
+            "failures": len(rows) - len(ok),
+            "suboptimality": interval([r[f"{m}_suboptimality"] for r in ok], seed=seed),
+            "iterations": interval([r[f"{m}_iterations"] for r in ok], seed=seed),
+            "time": float(np.mean([r[f"{m}_time"] for r in ok])) if ok else float("nan"),
+        }
+        if m not in (BASELINE, ORACLE):
+            entry["gain_share"] = gain_share(
+                *(np.array([r[f"{k}_cost"] for r in rows]) for k in (BASELINE, m, ORACLE)), seed=seed
+            )
+        out.append(entry)
+    return out
+
+
+def format_table(summary: list[dict[str, Any]]) -> str:
+    """A readable table of ``method_summary``."""
+    lines = [
+        "| method | solved | suboptimality vs J_REL, % (mean ± s.e. [95% CI]) | SCP iterations | time [s] "
+        "| share of reachable gain |",
+        "|---|---|---|---|---|---|",
+    ]
+    for e in summary:
+        share = format_interval(e["gain_share"], 100, 2) + " %" if "gain_share" in e else "–"
+        lines.append(
+            f"| {e['method']} | {e['runs'] - e['failures']}/{e['runs']} | {format_interval(e['suboptimality'], 100)} "
+            f"| {format_interval(e['iterations'])} | {e['time']:.3f} | {share} |"
+        )
+    return "\n".join(lines)
+
+
 def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
-    """Run the evaluation; writes ``warmstart.json``, ``warmstart_problems.csv``, ``warmstart_thresholds.csv``,
-    ``warmstart_bins.csv`` and ``warmstart_improvement.png`` into ``cfg.out``."""
+    """Run the evaluation; writes ``warmstart.json``, ``warmstart.md`` (the table), ``warmstart_problems.csv``,
+    ``warmstart_thresholds.csv``, ``warmstart_bins.csv`` and ``warmstart_improvement.png`` into ``cfg.out``."""
     from ttompc.evaluation.plots import plot_warmstart
 
+    if cfg.scenario is None:
+        raise ValueError("WarmStartConfig.scenario is not set (the command takes it from the model)")
     sc = get_scenario(cfg.scenario)
+    out = Path(cfg.out or f"outputs/evaluate/warmstart-{sc.name}")
     t0 = time.perf_counter()
+    workers = default_workers(cfg.workers)
     rows = list(
-        pool_map(_run_problem, range(cfg.problems), cfg.workers, _init, (scenario_module(sc.name), asdict(cfg)))
+        pool_map(_run_problem, range(cfg.problems), workers, _init, (asdict(cfg),), imports=[scenario_module(sc.name)])
     )
-    methods = [m for m, key in (("TTO", cfg.checkpoint), ("FT-TTO", cfg.ft_checkpoint)) if key]
+    models = [m for m, key in (("TTO", cfg.model), ("FT-TTO", cfg.ft_model)) if key]
     cmax = max((r["ctg0"] for r in rows), default=0)
     for r in rows:
         r["nonconvexity"] = r["ctg0"] / cmax if cmax > 0 else 0.0
         r["bin"] = min(float(np.floor(r["nonconvexity"] * 10) / 10), 0.9)
-    per_method = []
-    for m in [BASELINE, *methods]:
-        ok = [r for r in rows if r[f"{m}_success"]]
-        per_method.append(
-            {
-                "method": m,
-                "failures": len(rows) - len(ok),
-                **{
-                    f: float(np.mean([r[f"{m}_{f}"] for r in ok])) if ok else float("nan")
-                    for f in ("cost", "suboptimality", "iterations", "time", "warmstart_time", "scp_time")
-                },
-            }
-        )
-    fields = [f"{m}_{f}" for m in [BASELINE, *methods] for f in ("suboptimality", "iterations", "time")]
+    names = [BASELINE, *models, ORACLE]
+    summary = method_summary(rows, names, cfg.seed)
+    fields = [f"{m}_{f}" for m in names for f in ("suboptimality", "iterations", "time")]
     bins = aggregate(rows, ("bin",), fields)
-    thresholds = improvement_by_threshold(rows, methods, BASELINE, cfg.thresholds)
-    out = Path(cfg.out)
+    thresholds = improvement_by_threshold(rows, [*models, ORACLE], BASELINE, cfg.thresholds)
+    table = format_table(summary)
     report = {
-        "config": asdict(cfg),
+        "config": {**asdict(cfg), "out": str(out), "workers": workers},
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
         "wall_time_s": time.perf_counter() - t0,
         "max_ctg0": cmax,
-        "methods": per_method,
+        "methods": summary,
+        "table": table,
         "bins": bins,
         "thresholds": thresholds,
         "problems": rows,
     }
     write_json(out / "warmstart.json", report)
+    (out / "warmstart.md").write_text(f"# Open-loop warm starts: {sc.name}, {len(rows)} problems\n\n{table}\n")
     write_csv(out / "warmstart_problems.csv", rows)
     write_csv(out / "warmstart_thresholds.csv", thresholds)
     write_csv(out / "warmstart_bins.csv", bins)
-    report["plots"] = [str(plot_warmstart(thresholds, methods, out))]
+    report["plots"] = [str(plot_warmstart(thresholds, [*models, ORACLE], out))]
+    report["out"] = str(out)
     return report

@@ -86,7 +86,7 @@ def expert_schedule(rng: np.random.Generator, n_steps: int, cfg: ExplorationConf
 
 def _sample_problem(scenario: Scenario, rng: np.random.Generator, attempts: int = 100) -> tuple[Problem, Any]:
     """A valid problem whose REL solves (its cost conditions the learner: rtg_0 = −J_REL)."""
-    from ttompc.evaluation.common import first_solvable
+    from ttompc.evaluation.problems import first_solvable
 
     found = first_solvable(scenario, (scenario.sample(rng) for _ in range(attempts)))
     if found is None:
@@ -279,15 +279,15 @@ def _wait(predicate: Any, timeout: float, what: str) -> None:
 
 
 def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[Any]:
-    from ttompc.evaluation.common import eval_problem
+    from ttompc.evaluation.problems import eval_problem
 
     e = cfg.dagger.eval
     return [eval_problem(scenario, e.seed, i, nonconvex_only=True) for i in range(e.problems)]
 
 
 def _closed_loop(cfg: FinetuneConfig, planner: Any, problems: list[Any]) -> dict[str, float]:
-    from ttompc.evaluation.common import single_torch_thread
-    from ttompc.evaluation.horizon import closed_loop_metrics
+    from ttompc.mpc.metrics import closed_loop_metrics
+    from ttompc.parallel import single_torch_thread
 
     e = cfg.dagger.eval
     with single_torch_thread():

@@ -2,11 +2,12 @@
 
 Teacher-forced validation loss says little about closed-loop behaviour (covariate shift, paper §IV-C), so every
 ``every_n_val`` validation runs the callback runs TTO-MPC with the current weights on a fixed, seeded set of held-out
-problems (REL solved once and cached) and logs ``<prefix>/cost``, ``<prefix>/cost_increment`` ((J − J_REL)/J_REL),
-``<prefix>/feasible_rate``, ``<prefix>/step_time_mean``, ``<prefix>/step_time_max``, ``<prefix>/fallbacks`` through
-``pl_module.log`` (any logger), plus a trajectory figure (PNG under ``<root>/plots/``, and an image on wandb or
-TensorBoard). Runs on global rank 0 only. Counting validation runs rather than epochs makes it work with the
-step-based validation of endless streaming epochs.
+problems (REL solved once and cached), on the nominal or the perturbed plant (``plant``, seeded per problem), and
+logs ``ttompc.mpc.metrics.closed_loop_metrics`` through ``pl_module.log`` (any logger): ``<prefix>/feasible_rate``,
+``<prefix>/infeasible`` (count), ``<prefix>/cost_increment`` (mean (J − J_REL)/J_REL over feasible runs) and its
+``_se``, ``<prefix>/cost``, ``<prefix>/target_change``, step times and fallbacks, plus a trajectory figure (PNG
+under ``<root>/plots/``, and an image on wandb or TensorBoard). Runs on global rank 0 only. Counting validation
+runs rather than epochs makes it work with the step-based validation of endless streaming epochs.
 """
 
 from __future__ import annotations
@@ -15,8 +16,10 @@ from typing import Any
 
 import lightning as L
 
-from ttompc.evaluation.common import EvalProblem, eval_problem, single_torch_thread
+from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.mpc.loop import Mode
+from ttompc.mpc.plant import PlantNoise
+from ttompc.parallel import single_torch_thread
 
 
 class ClosedLoopEvalCallback(L.Callback):
@@ -33,9 +36,13 @@ class ClosedLoopEvalCallback(L.Callback):
         plot: bool = True,
         backend: str = "auto",
         prefix: str = "mpc",
+        plant: str = "nominal",
     ) -> None:
         if problems < 1 or horizon < 1 or every_n_val < 1:
             raise ValueError("eval_mpc: problems, horizon and every_n_val must be >= 1")
+        if plant not in ("nominal", "perturbed"):
+            raise ValueError(f"eval_mpc: plant must be 'nominal' or 'perturbed', got {plant!r}")
+        self.plant = PlantNoise.perturbed() if plant == "perturbed" else None
         self.scenario_name, self.n_problems, self.horizon = scenario, problems, horizon
         self.max_steps, self.every_n_val, self.seed, self.mode = max_steps, every_n_val, seed, mode
         self.plot, self.backend, self.prefix = plot, backend, prefix
@@ -53,6 +60,7 @@ class ClosedLoopEvalCallback(L.Callback):
             max_steps=cfg.max_steps,
             every_n_val=cfg.every_n_epochs,
             seed=cfg.seed,
+            plant=cfg.plant,
         )
 
     def problems(self, scenario_name: str) -> list[EvalProblem]:
@@ -69,7 +77,7 @@ class ClosedLoopEvalCallback(L.Callback):
 
     def evaluate(self, pl_module: L.LightningModule) -> tuple[dict[str, float], list[Any], list[EvalProblem]]:
         """Closed-loop metrics of the module's current weights (model mode restored afterwards)."""
-        from ttompc.evaluation.horizon import closed_loop_metrics
+        from ttompc.mpc.metrics import closed_loop_metrics
         from ttompc.policy import Planner
         from ttompc.scenarios import get_scenario
 
@@ -81,7 +89,13 @@ class ClosedLoopEvalCallback(L.Callback):
             with single_torch_thread():
                 planner = Planner(model, get_scenario(name), pl_module.stats)
                 metrics, episodes = closed_loop_metrics(
-                    planner, problems, self.horizon, mode=self.mode, max_steps=self.max_steps, backend=self.backend
+                    planner,
+                    problems,
+                    self.horizon,
+                    mode=self.mode,
+                    max_steps=self.max_steps,
+                    backend=self.backend,
+                    plant=self.plant,
                 )
         finally:
             model.train(was_training)
@@ -98,15 +112,17 @@ class ClosedLoopEvalCallback(L.Callback):
         for k, v in metrics.items():
             pl_module.log(f"{self.prefix}/{k}", v, rank_zero_only=True)
         if self.plot:
-            from ttompc.evaluation.plots import trajectory_figure
+            from ttompc.evaluation.plots import Panel, trajectory_figure
             from ttompc.scenarios import get_scenario
             from ttompc.training.loggers import log_figure
 
             ep, e = problems[0], episodes[0]
-            fig = trajectory_figure(
-                get_scenario(self.scenario_name or pl_module.hparams["scenario"]),
+            label = f"TTO-MPC H={self.horizon}"
+            panel = Panel(
                 ep.problem,
-                {"REL (open loop)": ep.rel.X, f"TTO-MPC H={self.horizon}": e.X},
-                title=f"step {trainer.global_step}: cost {e.cost:.4g} (REL {ep.rel.cost:.4g})",
+                {"REL (open loop)": ep.rel.X, label: e.X},
+                f"step {trainer.global_step}, problem seed {ep.seed}: cost {e.cost:.4g} (REL {ep.rel.cost:.4g})",
+                set() if e.feasible else {label},
             )
+            fig = trajectory_figure(get_scenario(self.scenario_name or pl_module.hparams["scenario"]), [panel])
             log_figure(trainer, f"{self.prefix}/trajectory", fig, trainer.global_step)

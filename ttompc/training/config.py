@@ -92,6 +92,7 @@ class EvalMPCConfig:
     horizon: int = 10
     max_steps: int | None = None  # MPC steps per episode (None: whole episodes)
     seed: int = 0  # root seed of the held-out evaluation problems
+    plant: str = "nominal"  # nominal | perturbed (seeded actuation error + process noise, ttompc.mpc.plant)
 
 
 @dataclass

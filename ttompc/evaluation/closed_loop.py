@@ -1,0 +1,261 @@
+"""Closed-loop evaluation (paper §V-C, Fig. 4–5; fact sheet §5.5), the protocol of ``ttompc evaluate mpc``.
+
+For seeded held-out problems whose REL solution violates a keep-out zone, every planning horizon H and every plant
+(``nominal``: the exact dynamics; ``perturbed``: seeded actuation error and process noise, ``PlantNoise``, the same
+disturbances for every method of a problem), run in soft mode:
+
+* REL-MPC and DIST-MPC (the paper's baselines),
+* PLAN-ONCE: the open-loop SCP optimum solved at t = 0, then MPC tracking it (no model, no re-planning),
+* ORACLE-MPC, the ceiling: the full remaining-horizon SCP optimum from the measured state as warm start and target,
+* TTO-MPC (the paper's terminal target) and R-TTO-MPC (the robust target, ``TerminalDesign(blend)``), and the same
+  for a fine-tuned model (FT-TTO-MPC, R-FT-TTO-MPC) when given.
+
+Reported per (plant, method, H): runs, feasible and infeasible counts (infeasible or goal-missing runs are never
+averaged into a cost), (J − J_REL)/J_REL over feasible runs with standard error and bootstrap interval, the paper's
+normalisation (problems feasible for every method, DIST-MPC's worst horizon = 1), the share of the reachable gain
+REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between steps) and step times.
+Problems run in parallel in the spawn pool; each worker loads the model(s) once.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ttompc.evaluation.metrics import gain_share, paper_normalized, write_csv, write_json
+from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.evaluation.warmstart import default_workers
+from ttompc.mpc.loop import run_mpc
+from ttompc.mpc.metrics import episode_record, format_interval, summarize_episodes
+from ttompc.mpc.plant import PlantNoise
+from ttompc.mpc.providers import (
+    DISTProvider,
+    OracleProvider,
+    PlanProvider,
+    Provider,
+    RELProvider,
+    TerminalDesign,
+    TTOProvider,
+    full_horizon_plan,
+)
+from ttompc.parallel import pool_map, scenario_module
+from ttompc.scenarios import get_scenario
+from ttompc.scenarios.base import Scenario
+
+if TYPE_CHECKING:
+    from ttompc.policy import Planner
+
+BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"
+PLANTS = ("nominal", "perturbed")
+
+
+@dataclass
+class PlantConfig:
+    """The perturbed plant's disturbances, relative to the scenario's state/control scales (``PlantNoise``)."""
+
+    gain_std: float = 0.05
+    actuation_std: float = 0.02
+    process_std: float = 0.002
+
+    def noise(self) -> PlantNoise:
+        return PlantNoise(self.gain_std, self.actuation_std, self.process_std)
+
+
+@dataclass
+class ClosedLoopConfig:
+    """``ttompc evaluate mpc`` settings (``key=value`` on the command line)."""
+
+    model: str | None = None  # TTO model: zoo name, bundle folder or .ckpt; None: baselines only
+    ft_model: str | None = None  # FT-TTO model, same forms
+    scenario: str | None = None  # default: the model's scenario
+    problems: int = 20
+    seed: int = 0
+    horizons: list[int] = field(default_factory=lambda: [10])
+    plants: list[str] = field(default_factory=lambda: list(PLANTS))
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    robust_blend: float = 0.9  # target blend of the R-TTO-MPC variants; 0 leaves them out
+    rtg_scale: float = 1.0  # rtg_0 = −rtg_scale·J_REL
+    mode: str = "soft"
+    max_steps: int | None = None  # truncated episodes (smoke runs)
+    workers: int = 0  # processes; 0 = one per CPU core
+    backend: str = "auto"
+    device: str = "cpu"
+    out: str = ""  # default: outputs/evaluate/mpc-<scenario>
+
+    def __post_init__(self) -> None:
+        if self.problems < 1 or not self.horizons or min(self.horizons) < 1:
+            raise ValueError(f"problems and horizons must be positive, got {self.problems}, {self.horizons}")
+        bad = [p for p in self.plants if p not in PLANTS]
+        if bad or not self.plants:
+            raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")
+        if self.mode not in ("soft", "hard"):
+            raise ValueError(f"mode must be 'soft' or 'hard', got {self.mode!r}")
+        TerminalDesign(self.robust_blend)  # validates the blend
+
+
+def providers(
+    plan: tuple[np.ndarray, np.ndarray],
+    models: dict[str, Planner],
+    *,
+    robust_blend: float = 0.9,
+    rtg_scale: float = 1.0,
+    backend: str = "auto",
+) -> list[Provider]:
+    """Fresh providers of every method for one problem; ``plan`` is its open-loop SCP optimum (``full_horizon_plan``),
+    shared by PLAN-ONCE and ORACLE-MPC."""
+    out: list[Provider] = [
+        RELProvider(backend),
+        DISTProvider(backend),
+        PlanProvider(plan, backend=backend),
+        OracleProvider(plan, backend=backend),
+    ]
+    for name, planner in models.items():
+        out.append(TTOProvider(planner, f"{name}-MPC", rtg_scale=rtg_scale))
+        if robust_blend > 0:
+            design = TerminalDesign(blend=robust_blend)
+            out.append(TTOProvider(planner, f"R-{name}-MPC", rtg_scale=rtg_scale, design=design))
+    return out
+
+
+def run_problem(
+    scenario: Scenario,
+    ep: EvalProblem,
+    models: dict[str, Planner],
+    cfg: ClosedLoopConfig,
+) -> tuple[list[dict[str, Any]], dict[tuple[str, str, int], np.ndarray]]:
+    """Every (plant, H, method) episode of one problem: records and executed trajectories."""
+    records, trajectories = [], {}
+    plan = full_horizon_plan(scenario, ep.problem, cfg.backend)
+    for plant in cfg.plants:
+        noise = cfg.plant.noise() if plant == "perturbed" else None
+        for H in cfg.horizons:
+            for provider in providers(
+                plan, models, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale, backend=cfg.backend
+            ):
+                e = run_mpc(
+                    scenario,
+                    ep.problem,
+                    provider,
+                    H,
+                    rel_cost=ep.rel_cost,
+                    mode=cfg.mode,  # type: ignore[arg-type]
+                    max_steps=cfg.max_steps,
+                    backend=cfg.backend,
+                    plant=noise,
+                    plant_seed=ep.seed,
+                )
+                records.append({"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, **episode_record(e)})
+                trajectories[(plant, e.method, H)] = e.X
+    return records, trajectories
+
+
+_W: dict[str, Any] = {}
+
+
+def _init(cfg: dict[str, Any]) -> None:
+    from ttompc.config import from_container
+    from ttompc.policy import Planner
+
+    _W["cfg"] = c = from_container(ClosedLoopConfig, cfg)
+    _W["scenario"] = scenario = get_scenario(c.scenario)
+    _W["models"] = {
+        name: Planner.from_pretrained(src, scenario, device=c.device)
+        for name, src in (("TTO", c.model), ("FT-TTO", c.ft_model))
+        if src
+    }
+
+
+def _run(index: int) -> list[dict[str, Any]]:
+    cfg: ClosedLoopConfig = _W["cfg"]
+    sc = _W["scenario"]
+    ep = eval_problem(sc, cfg.seed, index, nonconvex_only=True, backend=cfg.backend)
+    return run_problem(sc, ep, _W["models"], cfg)[0]
+
+
+def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
+    """Rows per (plant, method, horizon): ``summarize_episodes`` + paper normalisation + share of reachable gain."""
+    rows = []
+    for plant in sorted({r["plant"] for r in records}):
+        recs = [r for r in records if r["plant"] == plant]
+        methods = list(dict.fromkeys(r["method"] for r in recs))
+        paper = {(p["method"], p["horizon"]): p for p in paper_normalized(recs, methods, REFERENCE, seed=seed)}
+        for m in methods:
+            for H in sorted({r["horizon"] for r in recs}):
+                group = [r for r in recs if r["method"] == m and r["horizon"] == H]
+                row: dict[str, Any] = {
+                    "plant": plant,
+                    "method": m,
+                    "horizon": H,
+                    **summarize_episodes(group, seed=seed),
+                }
+                if (m, H) in paper:
+                    row["paper_norm"] = paper[(m, H)]["paper_norm"]
+                    row["paper_problems"] = paper[(m, H)]["problems"]
+                if m not in (BASELINE, CEILING):
+                    cost = {
+                        k: {r["problem"]: (r["cost"] if r["feasible"] else np.nan) for r in recs
+                            if r["method"] == k and r["horizon"] == H}
+                        for k in (BASELINE, m, CEILING)
+                    }  # fmt: skip
+                    probs = sorted(cost[m])
+                    row["gain_share"] = gain_share(
+                        *(np.array([cost[k].get(p, np.nan) for p in probs]) for k in (BASELINE, m, CEILING)), seed=seed
+                    )
+                rows.append(row)
+    return rows
+
+
+def format_table(summary: list[dict[str, Any]]) -> str:
+    """A readable markdown table of ``summarize``."""
+    lines = [
+        "| plant | method | H | feasible | (J − J_REL)/J_REL, % (mean ± s.e. [95% CI]) | paper norm. | share of "
+        "reachable gain, % | target change | mean / max step [ms] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in summary:
+        paper = format_interval(r["paper_norm"], 1, 2) if "paper_norm" in r else "–"
+        share = format_interval(r["gain_share"], 100, 2) if "gain_share" in r else "–"
+        lines.append(
+            f"| {r['plant']} | {r['method']} | {r['horizon']} | {r['feasible']}/{r['runs']} "
+            f"| {format_interval(r['rel_increment'], 100)} | {paper} | {share} "
+            f"| {r['target_change']['mean']:.3g} | {r['mean_step_time'] * 1e3:.0f} / {r['max_step_time'] * 1e3:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
+    """Run the study; writes ``mpc.json``, ``mpc.md`` (the table), ``mpc_runs.csv`` and plots into ``cfg.out``."""
+    from ttompc.config import to_container
+    from ttompc.evaluation.plots import plot_horizon
+
+    if cfg.scenario is None:
+        raise ValueError("ClosedLoopConfig.scenario is not set (the command takes it from the model)")
+    sc = get_scenario(cfg.scenario)
+    cfg.horizons = sorted({min(h, sc.n_steps) for h in cfg.horizons})
+    out = Path(cfg.out or f"outputs/evaluate/mpc-{sc.name}")
+    workers = default_workers(cfg.workers)
+    t0 = time.perf_counter()
+    records: list[dict[str, Any]] = []
+    tasks = range(cfg.problems)
+    for rs in pool_map(_run, tasks, workers, _init, (to_container(cfg),), imports=[scenario_module(sc.name)]):
+        records.extend(rs)
+    summary = summarize(records, cfg.seed)
+    table = format_table(summary)
+    report = {
+        "config": {**asdict(cfg), "out": str(out), "workers": workers},
+        "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
+        "wall_time_s": time.perf_counter() - t0,
+        "summary": summary,
+        "table": table,
+        "runs": records,
+    }
+    write_json(out / "mpc.json", report)
+    (out / "mpc.md").write_text(f"# Closed loop: {sc.name}, {cfg.problems} problems\n\n{table}\n")
+    write_csv(out / "mpc_runs.csv", records)
+    report["plots"] = [str(p) for p in plot_horizon(summary, out)]
+    report["out"] = str(out)
+    return report
