@@ -5,9 +5,9 @@ from __future__ import annotations
 import itertools
 from pathlib import Path
 
+import data_fakes as fakes
 import numpy as np
 import pytest
-import test_data_fakes as fakes
 import torch
 
 from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig

@@ -6,9 +6,9 @@ import dataclasses
 import json
 from pathlib import Path
 
+import data_fakes as fakes
 import numpy as np
 import pytest
-import test_data_fakes as fakes
 
 from ttompc.cli import main as cli_main
 from ttompc.data.cards import parse_front_matter

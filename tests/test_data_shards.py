@@ -6,9 +6,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import data_fakes  # noqa: F401  (registers the fake scenario)
 import numpy as np
 import pytest
-import test_data_fakes  # noqa: F401  (registers the fake scenario)
 
 from ttompc.data.schema import make_row, trajectory_features
 from ttompc.data.shards import ShardError, ShardWriter, read_shard, sha256_file, write_shard
