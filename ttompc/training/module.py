@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import lightning as L
 import torch
@@ -27,6 +27,9 @@ from ttompc.policy.gpt import TrajectoryGPT
 from ttompc.policy.stats import NormStats
 from ttompc.training.config import OptimConfig
 from ttompc.training.loggers import log_figure, trajectory_figure
+
+if TYPE_CHECKING:
+    from ttompc.scenarios.base import Scenario
 
 
 def masked_mse(pred: Tensor, target: Tensor, mask: Tensor | None) -> Tensor:
@@ -143,3 +146,30 @@ class SaveLastCheckpoint(L.Callback):
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._save(trainer)
+
+
+def build_module(
+    model: ModelConfig,
+    optim: OptimConfig,
+    scenario: Scenario,
+    stats: NormStats,
+    *,
+    recipe: Any,
+    plot_trajectories: bool,
+) -> TrajectoryTransformerModule:
+    """The LightningModule of ``model`` on ``scenario``'s data, built the same way by pre-training and DAgger: typed
+    configs in, primitives stored as hyper-parameters (so the checkpoint loads with ``weights_only=True`` and is
+    enough for ``Planner.from_pretrained``), with the recipe (a typed config) and the code version recorded."""
+    from ttompc.config import to_container
+    from ttompc.version import code_version
+
+    return TrajectoryTransformerModule(
+        model_config=to_container(model),
+        optim=to_container(optim),
+        scenario=scenario.name,
+        scenario_version=scenario.version,
+        norm_stats=stats.to_dict(),
+        recipe=to_container(recipe),
+        code_version=code_version(),
+        plot_trajectories=plot_trajectories,
+    )

@@ -21,7 +21,6 @@ from typing import Any
 
 from ttompc.config import to_container
 from ttompc.training.config import OptimConfig, TrainConfig, TrainerConfig
-from ttompc.version import code_version
 
 
 @dataclass
@@ -98,7 +97,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         resume_checkpoint,
     )
     from ttompc.training.loggers import build_logger
-    from ttompc.training.module import SaveLastCheckpoint, TrajectoryTransformerModule
+    from ttompc.training.module import SaveLastCheckpoint, build_module
 
     L.seed_everything(cfg.trainer.seed, workers=True, verbose=False)
     out = Path(cfg.trainer.out_dir)
@@ -113,15 +112,8 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     model_cfg = replace(cfg.model, state_dim=scenario.state_dim, control_dim=scenario.control_dim)
     cfg = replace(cfg, model=model_cfg)
     recipe = to_container(cfg)
-    module = TrajectoryTransformerModule(
-        model_config=to_container(model_cfg),
-        optim=to_container(cfg.optim),
-        scenario=scenario.name,
-        scenario_version=scenario.version,
-        norm_stats=datamodule.stats.to_dict(),
-        recipe=recipe,
-        code_version=code_version(),
-        plot_trajectories=cfg.logger.plot_trajectories,
+    module = build_module(
+        model_cfg, cfg.optim, scenario, datamodule.stats, recipe=cfg, plot_trajectories=cfg.logger.plot_trajectories
     )
     logger = build_logger(cfg.logger, out, recipe)
     ckpt_dir = out / "checkpoints"
