@@ -3,10 +3,12 @@ subproblems, for every scenario it serves; the structural masks it relies on; an
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from ttompc.scenarios import Window, get_scenario
+from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
 from ttompc.solvers import TerminalCost, solve_rel, solve_scp
 from ttompc.solvers.engine import AssembledSolver, get_solver
 from ttompc.solvers.naive import NaiveCvxpySolver
@@ -159,3 +161,20 @@ def test_piqp_alone_rejects_cones() -> None:
     X, U = ff.initial_guess(p)
     with pytest.raises(ValueError, match="QPs only"):
         solve_scp(ff, p, X, U, backend="piqp", trust_norm="l2")
+
+
+@pytest.mark.parametrize("penalized", [True, False])
+def test_equality_blocks_match_conic(penalized) -> None:
+    """Waypoint-type equality rows (hard, or with e± slacks when penalised) give the conic assembly's optimum."""
+    _, spec, data = _subproblem("freeflyer", 4, Window(0, 100, 100), True, penalized, delta=0.5)
+    Gx = np.zeros((1, 2, 6))
+    Gx[0, 0, 0] = Gx[0, 1, 1] = 1.0
+    wp = ConstraintBlock("wp", BlockKind.EQ, np.array([40]), Gx, None, data.X_ref[40:41, :2] + 0.02)
+    data = dataclasses.replace(data, blocks=[*data.blocks, wp])
+    spec = dataclasses.replace(spec, blocks=(*spec.blocks, SubproblemSpec.block_signature(wp)))
+    X, _, qp = PIQPSolver(spec).solve(data)
+    _, _, conic = AssembledSolver(spec, ["clarabel"]).solve(data)
+    assert qp.ok and conic.ok
+    assert qp.objective == pytest.approx(conic.objective, rel=1e-6)
+    if not penalized:
+        np.testing.assert_allclose(X[40, :2], wp.h[0], atol=1e-7)
