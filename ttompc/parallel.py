@@ -13,6 +13,7 @@ import contextlib
 import importlib
 import multiprocessing as mp
 import os
+import signal
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
@@ -70,6 +71,13 @@ def _start_worker(
         initializer(*initargs)
 
 
+def _start_pool_worker(*args: Any) -> None:
+    """Ctrl-C reaches every process of the terminal's group: only the parent handles it (it stops the pool and
+    says how to resume), so workers ignore it instead of each printing a traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _start_worker(*args)
+
+
 def pool_map(
     fn: Callable[[Any], Any],
     tasks: Iterable[Any],
@@ -97,5 +105,5 @@ def pool_map(
         return
     init_args = (tuple(imports), pin_torch, initializer, initargs)
     n = min(workers, len(tasks))
-    with single_threaded_env(), mp.get_context("spawn").Pool(n, _start_worker, init_args) as pool:
+    with single_threaded_env(), mp.get_context("spawn").Pool(n, _start_pool_worker, init_args) as pool:
         yield from pool.imap(fn, tasks, chunksize=1)
