@@ -198,3 +198,36 @@ def test_full_disk_during_generate_names_the_path_and_keeps_finished_shards(tmp_
     again = ttompc(*args, cwd=tmp_path)
     assert again.returncode == 0, again.stderr
     assert (out / "manifest.json").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_train_says_how_to_resume_and_the_rerun_resumes(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    made = ttompc(
+        "generate", "problems=4", "shard_size=2", "workers=1", "--splits", "0.5,0.25,0.25", f"out={data}",
+        "--no-progress", cwd=tmp_path,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    run = tmp_path / "run"
+    argv = [
+        "train", str(REPO / "recipes/freeflyer/tiny.yaml"), f"data.paths=[{data}]", f"trainer.out_dir={run}",
+        "model.n_embd=32", "model.n_layer=1", "model.n_head=2", "data.batch_size=4", "logger.kind=none",
+        "trainer.checkpoint_every_n_steps=2", "trainer.val_check_interval=1000", "trainer.export_planner=false",
+    ]  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ttompc.cli", *argv, "trainer.max_steps=10000"],
+        cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 240
+    while not (run / "checkpoints" / "last.ckpt").exists():
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err, err
+    assert f"interrupted; re-run the same command to resume from the newest checkpoint (checkpoints in {run}" in err
+    again = ttompc(*argv, "trainer.max_steps=4", cwd=tmp_path, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert "resuming from" in again.stderr and "Traceback" not in again.stderr
