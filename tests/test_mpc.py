@@ -11,7 +11,22 @@ import numpy as np
 import pytest
 
 import ttompc.mpc.loop as loop_module
-from ttompc.mpc import DISTProvider, MPCController, RELProvider, ShiftProvider, TTOProvider, run_mpc
+from ttompc.mpc import (
+    DISTProvider,
+    MPCController,
+    OracleProvider,
+    PlanNoise,
+    PlanProvider,
+    Plant,
+    PlantNoise,
+    RELProvider,
+    ShiftProvider,
+    TerminalDesign,
+    TTOProvider,
+    run_mpc,
+)
+from ttompc.mpc.loop import target_change
+from ttompc.mpc.providers import TargetFilter
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import Window
 from ttompc.solvers.scp import SCPResult, SCPStatus, solve_problem, solve_rel
@@ -159,3 +174,117 @@ def test_failed_step_falls_back_to_the_shifted_plan(setup: tuple, monkeypatch: p
 def test_importing_mpc_does_not_import_lightning() -> None:
     code = "import sys, ttompc.mpc; assert 'lightning' not in sys.modules and 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ----------------------------------------------------------------------------------------- protocol pieces (issue 10)
+
+
+def test_perturbed_plant_is_seeded_and_nominal_plant_is_exact(setup: tuple) -> None:
+    sc, problem, _, scp = setup
+    noise = PlantNoise.perturbed()
+
+    def roll(seed: int, n: PlantNoise | None) -> np.ndarray:
+        plant = Plant(sc, n)
+        plant.reset(seed)
+        x, out = problem.x0, [problem.x0]
+        for t, u in enumerate(scp.U[:10]):
+            x = plant.step(problem, t, x, u)
+            out.append(x)
+        return np.stack(out)
+
+    np.testing.assert_array_equal(roll(3, noise), roll(3, noise))  # same seed, same disturbances
+    assert np.max(np.abs(roll(3, noise) - roll(4, noise))) > 1e-4  # another seed, other disturbances
+    np.testing.assert_array_equal(roll(3, None), roll(4, PlantNoise()))  # zero noise: no draws
+    np.testing.assert_allclose(roll(3, None), sc.rollout(problem, scp.U[:10])[:11], atol=1e-12)
+    with pytest.raises(ValueError, match="process_std"):
+        PlantNoise(process_std=-1.0)
+
+
+def test_mpc_on_the_perturbed_plant_repeats_with_its_seed(setup: tuple) -> None:
+    sc, problem, rel, scp = setup
+    plan = (scp.X, scp.U)
+    kw = {"rel_cost": rel.cost, "max_steps": 6, "plant": PlantNoise.perturbed()}
+    a = run_mpc(sc, problem, PlanProvider(plan), 10, plant_seed=1, **kw)
+    b = run_mpc(sc, problem, PlanProvider(plan), 10, plant_seed=1, **kw)
+    c = run_mpc(sc, problem, PlanProvider(plan), 10, plant_seed=2, **kw)
+    nominal = run_mpc(sc, problem, PlanProvider(plan), 10, rel_cost=rel.cost, max_steps=6)
+    np.testing.assert_array_equal(a.X, b.X)
+    assert np.max(np.abs(a.X - c.X)) > 1e-5 and a.plant == "perturbed" and nominal.plant == "nominal"
+    np.testing.assert_allclose(nominal.X, sc.rollout(problem, nominal.U)[:7], atol=1e-12)
+
+
+def test_plan_once_tracks_the_plan_and_oracle_replans_from_the_measured_state(setup: tuple) -> None:
+    sc, problem, rel, scp = setup
+    N, H = problem.n_steps, 10
+    once, oracle = PlanProvider((scp.X, scp.U)), OracleProvider((scp.X, scp.U))
+    for prov in (once, oracle):
+        prov.reset(sc, problem, rel.cost)
+        ws = prov.warm_start(Window(0, H, N), problem.x0)
+        np.testing.assert_allclose(ws.X, scp.X[: H + 1], atol=1e-12)  # t = 0: the full-horizon optimum itself
+        np.testing.assert_allclose(ws.terminal.target, scp.X[H])
+    # off the plan at t = 1: plan-once keeps the old target, the oracle re-solves [1, N) from the measured state
+    x = scp.X[1] + np.array([0.0, 0.05, 0, 0, 0, 0])
+    once.observe(scp.U[0], x, scp.X, scp.U)
+    oracle.observe(scp.U[0], x, scp.X, scp.U)
+    ws_once, ws_oracle = once.warm_start(Window(1, H, N), x), oracle.warm_start(Window(1, H, N), x)
+    np.testing.assert_allclose(ws_once.terminal.target, scp.X[H + 1])
+    assert np.linalg.norm(ws_oracle.terminal.target - scp.X[H + 1]) > 1e-3
+    np.testing.assert_array_equal(ws_oracle.X[0], x)
+    assert oracle.X.shape == (N, 6)  # the re-solved plan of [1, N], feasible for the rest of the problem
+    assert sc.path_violation(problem, oracle.X, oracle.U, Window(1, N - 1, N)) < 1e-3
+
+
+def test_oracle_mpc_reaches_the_goal_at_plan_cost(setup: tuple) -> None:
+    sc, problem, rel, scp = setup
+    e = run_mpc(sc, problem, OracleProvider((scp.X, scp.U)), 10, rel_cost=rel.cost)
+    assert e.feasible and e.cost == pytest.approx(scp.cost, rel=0.05)
+
+
+def test_plan_noise_is_seeded_and_drift_is_correlated(setup: tuple) -> None:
+    sc, problem, rel, scp = setup
+    N = problem.n_steps
+
+    def offsets(noise: PlanNoise) -> np.ndarray:
+        prov = PlanProvider((scp.X, scp.U), noise=noise)
+        prov.reset(sc, problem, rel.cost)
+        return np.stack([prov.warm_start(Window(t, 5, N), scp.X[t]).X[1, :2] - scp.X[t + 1, :2] for t in range(30)])
+
+    a, b = offsets(PlanNoise(0.03, seed=1)), offsets(PlanNoise(0.03, seed=1))
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, offsets(PlanNoise(0.03, seed=2)))
+    assert 0.015 < np.std(a) < 0.05
+    d = offsets(PlanNoise(0.03, "drift", seed=1))
+    lag1 = lambda e: np.mean(e[1:] * e[:-1]) / np.mean(e * e)  # noqa: E731
+    assert lag1(d) > 0.6 and abs(lag1(a)) < 0.4
+
+
+def test_blended_target_keeps_a_consistent_plan_and_damps_noise(setup: tuple) -> None:
+    sc, problem, _, scp = setup
+    N, H = problem.n_steps, 10
+    paper, blended = TargetFilter(), TargetFilter(TerminalDesign(blend=0.9))
+    for t in range(N - H):  # a consistent plan: the blended target is the plan's own state at t+H
+        w = Window(t, H, N)
+        np.testing.assert_allclose(
+            blended(sc, w, scp.X[t : t + H + 1]).target, paper(sc, w, scp.X[t : t + H + 1]).target, atol=1e-12
+        )
+    rng = np.random.default_rng(0)
+    errs = {0.0: [], 0.9: []}
+    for beta in errs:
+        f = TargetFilter(TerminalDesign(blend=beta))
+        for t in range(N - H):
+            X = scp.X[t : t + H + 1].copy()
+            X[1:, :2] += 0.03 * rng.standard_normal(2)
+            errs[beta].append(f(sc, Window(t, H, N), X).target[:2] - scp.X[t + H, :2])
+    assert np.std(errs[0.9][5:]) < 0.5 * np.std(errs[0.0][5:])
+    assert TargetFilter()(sc, Window(N - H, H, N), scp.X[N - H :]) is None  # the last window: the goal decides
+    with pytest.raises(ValueError, match="blend"):
+        TerminalDesign(blend=1.0)
+
+
+def test_target_change_measures_consistency() -> None:
+    sc = get_scenario(mpc_fakes.FreeFlyerShort.name)
+    a = np.zeros(6)
+    b = a.copy()
+    b[3] = 0.1  # one state_scale unit of velocity
+    assert target_change(sc, [a, b, None, a]) == pytest.approx(1.0)
+    assert np.isnan(target_change(sc, [a, None]))

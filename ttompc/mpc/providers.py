@@ -350,7 +350,7 @@ class OracleProvider:
 
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
         p = self.problem
-        if window.start > 0 or not np.array_equal(x, self.X[0]):
+        if window.start > 0 or not np.allclose(x, self.X[0], rtol=0, atol=1e-9):
             X0 = self.X.copy()
             X0[0] = x
             rest = Window(window.start, p.n_steps - window.start, p.n_steps)
