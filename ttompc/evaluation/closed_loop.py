@@ -77,7 +77,7 @@ class ClosedLoopConfig:
     horizons: list[int] = field(default_factory=lambda: [10])
     plants: list[str] = field(default_factory=lambda: list(PLANTS))
     plant: PlantConfig = field(default_factory=PlantConfig)
-    robust_blend: float = 0.9  # target blend of the R-TTO-MPC variants; 0 leaves them out
+    robust_blend: float = 0.95  # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0 leaves them out
     rtg_scale: float = 1.0  # rtg_0 = −rtg_scale·J_REL
     mode: str = "soft"
     max_steps: int | None = None  # truncated episodes (smoke runs)
@@ -101,7 +101,7 @@ def providers(
     plan: tuple[np.ndarray, np.ndarray],
     models: dict[str, Planner],
     *,
-    robust_blend: float = 0.9,
+    robust_blend: float = 0.95,
     rtg_scale: float = 1.0,
     backend: str = "auto",
 ) -> list[Provider]:

@@ -1,0 +1,199 @@
+"""How much plan error TTO-MPC tolerates: the noisy-oracle harness (issue 10, item 3).
+
+A model's plan is stood in for by the *oracle* — the open-loop SCP optimum of the problem, the best plan a perfect
+model could give — plus seeded noise of 0, 1, 3 and 10 cm per MPC step on the positions of the provided window
+plan (``ttompc.mpc.PlanNoise``): *independent* (drawn afresh every step) or *drifting* (AR(1), correlation 0.9,
+same stationary std). Each noisy plan drives the MPC with the paper's terminal target (``paper``: x̄ = the plan's
+state at t+H, weight 1 on the full state) and with the robust target (``robust``: ``TerminalDesign(blend=0.95)``,
+the new target blended with the previous target shifted by one step). REL-MPC and DIST-MPC run beside them. H = 10,
+soft mode, nominal plant, free-flyer and quadrotor, held-out non-convex problems (REL violates a keep-out zone).
+
+Normalised cost (the paper's): over the problems on which the verdict methods (oracle, robust 3 cm, REL-MPC,
+DIST-MPC) are all feasible, (J − J_REL) / mean(J_DIST-MPC − J_REL); infeasible runs of the other methods on those
+problems are counted apart. ``verdict = {scenario: {"oracle_mpc10", "tto_mpc10_noise3cm", "rel_mpc10", ...}}``
+with ``tto_mpc10_noise3cm`` the robust target under 3 cm of independent noise (``tto_mpc10_noise0``: without
+noise). Targets: ``tto_mpc10_noise3cm ≤ rel_mpc10`` and ``tto_mpc10_noise0`` within 10% of ``oracle_mpc10``.
+
+Ends with one JSON line, also written to bench/results/tto_mpc_robustness.json (+ a PNG plot next to it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ttompc.evaluation.metrics import write_json
+from ttompc.evaluation.problems import eval_problem
+from ttompc.mpc import DISTProvider, PlanNoise, PlanProvider, RELProvider, TerminalDesign, run_mpc
+from ttompc.mpc.metrics import interval
+from ttompc.mpc.providers import full_horizon_plan
+from ttompc.parallel import pool_map
+from ttompc.scenarios import get_scenario
+
+H = 10
+NOISE_CM = (1, 3, 10)
+KINDS = ("independent", "drift")
+ROBUST = TerminalDesign(blend=0.95)
+POSITIONS = {"freeflyer": (0, 1), "quadrotor": (0, 1, 2)}
+VERDICT = {"oracle_mpc10": "oracle", "tto_mpc10_noise3cm": "robust_independent_3cm", "rel_mpc10": "REL-MPC"}
+
+
+def variants(scenario: str, seed: int) -> list[tuple[str, Any]]:
+    """(name, provider factory) of every run of one problem."""
+    dims = POSITIONS[scenario]
+    out: list[tuple[str, Any]] = [
+        ("REL-MPC", lambda plan: RELProvider()),
+        ("DIST-MPC", lambda plan: DISTProvider()),
+        ("oracle", lambda plan: PlanProvider(plan)),
+        ("robust_noise0", lambda plan: PlanProvider(plan, design=ROBUST)),
+    ]
+    for design_name, design in (("paper", None), ("robust", ROBUST)):
+        for kind in KINDS:
+            for cm in NOISE_CM:
+                noise = PlanNoise(cm / 100, kind, dims, seed=seed)  # type: ignore[arg-type]
+                out.append(
+                    (
+                        f"{design_name}_{kind}_{cm}cm",
+                        lambda plan, n=noise, d=design: PlanProvider(plan, noise=n, design=d),
+                    )
+                )
+    return out
+
+
+def run_problem(task: tuple[str, int, int]) -> list[dict[str, Any]]:
+    """Every variant on problem ``index`` of ``scenario`` (one worker task)."""
+    name, root, index = task
+    sc = get_scenario(name)
+    ep = eval_problem(sc, root, index)
+    plan = full_horizon_plan(sc, ep.problem)
+    rows = []
+    for variant, make in variants(name, ep.seed):
+        e = run_mpc(sc, ep.problem, make(plan), H, rel_cost=ep.rel_cost)
+        rows.append(
+            {
+                "scenario": name,
+                "problem": index,
+                "seed": ep.seed,
+                "variant": variant,
+                "cost": e.cost,
+                "rel_cost": ep.rel_cost,
+                "feasible": e.feasible,
+                "terminal_error": e.terminal_error,
+                "target_change": e.target_change,
+                "mean_step_time": float(np.mean(e.step_times)),
+            }
+        )
+    return rows
+
+
+def summarize(rows: list[dict[str, Any]], seed: int) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Verdict (normalised cost of the verdict methods) and the full table of one scenario's rows."""
+    by = {(r["problem"], r["variant"]): r for r in rows}
+    problems = sorted({r["problem"] for r in rows})
+    must = [*VERDICT.values(), "DIST-MPC", "robust_noise0"]
+    common = [p for p in problems if all(by[(p, v)]["feasible"] for v in must)]
+    denom = float(np.mean([by[(p, "DIST-MPC")]["cost"] - by[(p, "DIST-MPC")]["rel_cost"] for p in common]))
+    table = []
+    for variant in dict.fromkeys(r["variant"] for r in rows):
+        runs = [by[(p, variant)] for p in problems]
+        on_common = [by[(p, variant)] for p in common]
+        norm = [(r["cost"] - r["rel_cost"]) / denom for r in on_common if r["feasible"]]
+        table.append(
+            {
+                "variant": variant,
+                "runs": len(runs),
+                "feasible": sum(r["feasible"] for r in runs),
+                "normalized_cost": interval(norm, seed=seed),
+                "infeasible_on_common": sum(not r["feasible"] for r in on_common),
+                "rel_increment": interval(
+                    [(r["cost"] - r["rel_cost"]) / r["rel_cost"] for r in runs if r["feasible"]], seed=seed
+                ),
+                "target_change": float(np.nanmean([r["target_change"] for r in runs])),
+                "mean_step_time": float(np.mean([r["mean_step_time"] for r in runs])),
+            }
+        )
+    norm_of = {t["variant"]: t["normalized_cost"]["mean"] for t in table}
+    verdict = {key: norm_of[v] for key, v in VERDICT.items()}
+    verdict["tto_mpc10_noise0"] = norm_of["robust_noise0"]
+    verdict["paper_tto_mpc10_noise3cm"] = norm_of["paper_independent_3cm"]
+    verdict["problems"] = len(common)
+    verdict["pass_noise3cm_le_rel"] = bool(verdict["tto_mpc10_noise3cm"] <= verdict["rel_mpc10"])
+    verdict["pass_noise0_within_10pct_of_oracle"] = bool(
+        abs(verdict["tto_mpc10_noise0"] - verdict["oracle_mpc10"]) <= 0.1 * abs(verdict["oracle_mpc10"])
+    )
+    return verdict, table
+
+
+def plot(tables: dict[str, list[dict[str, Any]]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(tables), figsize=(5.5 * len(tables), 4), squeeze=False)
+    for ax, (scenario, table) in zip(axes[0], tables.items(), strict=True):
+        t = {r["variant"]: r["normalized_cost"] for r in table}
+        x = [0, *NOISE_CM]
+        for i, (design, kind) in enumerate((d, k) for d in ("paper", "robust") for k in KINDS):
+            zero = t["oracle" if design == "paper" else "robust_noise0"]
+            ivs = [zero, *(t[f"{design}_{kind}_{cm}cm"] for cm in NOISE_CM)]
+            ax.errorbar(
+                x, [v["mean"] for v in ivs], yerr=[np.nan_to_num(v["se"]) for v in ivs], capsize=3,
+                marker="os^v"[i], linestyle="-" if design == "robust" else "--", label=f"{design} target, {kind}",
+            )  # fmt: skip
+        for name, style in (("REL-MPC", "k:"), ("DIST-MPC", "k-.")):
+            ax.axhline(t[name]["mean"], color=style[0], linestyle=style[1:], label=name)
+        ax.set_xscale("symlog", linthresh=1)
+        ax.set_xticks(x, [str(v) for v in x])
+        ax.set_xlabel("plan noise per MPC step [cm]")
+        ax.set_ylabel("normalised cost (DIST-MPC = 1)")
+        ax.set_title(f"{scenario}, H = {H}", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenarios", default="freeflyer,quadrotor")
+    ap.add_argument("--problems", type=int, default=10, help="held-out non-convex problems per scenario")
+    ap.add_argument("--seed", type=int, default=0, help="root seed of the evaluation stream")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", default="bench/results/tto_mpc_robustness.json")
+    args = ap.parse_args()
+    names = args.scenarios.split(",")
+    t0 = time.perf_counter()
+    tasks = [(n, args.seed, i) for n in names for i in range(args.problems)]
+    rows = [r for rs in pool_map(run_problem, tasks, args.workers, pin_torch=False) for r in rs]
+    verdict, tables = {}, {}
+    for n in names:
+        verdict[n], tables[n] = summarize([r for r in rows if r["scenario"] == n], args.seed)
+    out = Path(args.out)
+    plot(tables, out.with_suffix(".png"))
+    result = {
+        "bench": "tto_mpc_robustness",
+        "horizon": H,
+        "robust_design": {"blend": ROBUST.blend},
+        "problems_per_scenario": args.problems,
+        "seed": args.seed,
+        "verdict": verdict,
+        "table": tables,
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg": os.getloadavg()},
+        "wall_time_s": time.perf_counter() - t0,
+        "runs": rows,
+    }
+    write_json(out, result)
+    print(json.dumps({"bench": "tto_mpc_robustness", "verdict": verdict}))
+
+
+if __name__ == "__main__":
+    main()
