@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -221,8 +222,16 @@ class RolloutContext:
         return a_pred[:, -1]
 
     @torch.no_grad()
-    def advance(self, action: Tensor, next_state: Tensor, goal: Tensor | None = None, *, clipped: bool = False) -> None:
-        """Record the executed action a_t (B, m) and the measured state s_{t+1} (B, n) (optionally a new goal).
+    def advance(
+        self,
+        action: Tensor | np.ndarray,
+        next_state: Tensor | np.ndarray,
+        goal: Tensor | np.ndarray | None = None,
+        *,
+        clipped: bool = False,
+    ) -> None:
+        """Record the executed action a_t (B, m) and the measured state s_{t+1} (B, n) (optionally a new goal), as
+        tensors or arrays (converted to the model's dtype and device).
 
         Like the reference MPC context, rtg_{t+1} = rtg_t + c(a_t) and ctg_{t+1} = ctg_t − violations(s_{t+1})
         (``clipped=True`` keeps ctg constant instead). The cached history is extended by the five tokens of step t.
