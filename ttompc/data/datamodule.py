@@ -258,6 +258,7 @@ class TrainStream(IterableDataset):
             k = B if cl is None else int(rng.binomial(B, self.p_open_loop))
             parts = [ol.take(k)] if k else []
             if k < B:
+                assert cl is not None  # k < B only when there is a closed-loop pool
                 parts.append(cl.take(B - k))
             rows = {col: np.concatenate([p[col] for p in parts]) for col in parts[0]}
             yield self.batcher(rows, rng.integers(0, span, size=B))

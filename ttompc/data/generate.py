@@ -159,7 +159,7 @@ def _merge_moments(parts: list[dict[str, dict[str, Any]]]) -> NormStats:
             mu = mu + delta * nb / tot
             m2 = m2 + m2b + delta**2 * n * nb / tot
             n = tot
-        if not n:
+        if not n or mu is None or m2 is None:
             raise GenerationError("no training rows: cannot compute normalisation statistics")
         mean[k], std[k] = mu, np.sqrt(m2 / n)
     return NormStats(mean, std)

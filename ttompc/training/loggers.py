@@ -25,6 +25,7 @@ def build_logger(cfg: LoggerConfig, out_dir: Path, config: dict[str, Any]) -> An
 
     if cfg.kind == "none":
         return None
+    logger: loggers.Logger
     if cfg.kind == "csv":  # a new version folder per (resumed) session: Lightning would overwrite metrics.csv
         logger = loggers.CSVLogger(save_dir=str(out_dir), name="logs", version=_next_version(out_dir / "logs"))
     elif cfg.kind == "tensorboard":
@@ -43,7 +44,7 @@ def build_logger(cfg: LoggerConfig, out_dir: Path, config: dict[str, Any]) -> An
             id=run_id,
             resume="allow",
         )
-        if run_id is None and rank_zero_only.rank == 0:
+        if run_id is None and getattr(rank_zero_only, "rank", 0) == 0:  # set by Lightning at import
             id_file.write_text(str(logger.version) + "\n")
     logger.log_hyperparams(config)
     return logger
