@@ -1,4 +1,5 @@
-# Two commands do all the set-up on a fresh machine:  `make demo` (the main job) and `make test` (the tests).
+# Two commands do all the set-up on a fresh machine:  `make demo` (the main job) and `make test` (the tests; the
+# end-to-end tests marked `slow` run in `make test-all`, which CI runs).
 # Both create .venv on first use: CPU torch 2.13.0 first (a bare `torch` would pull a multi-GB CUDA build),
 # then the package with its dev and fast-solver extras. Everything runs offline.
 PY ?= python3
@@ -11,7 +12,7 @@ export HF_HUB_OFFLINE := 1
 export HF_DATASETS_OFFLINE := 1
 export PIP_DISABLE_PIP_VERSION_CHECK := 1
 
-.PHONY: install demo test lint bench
+.PHONY: install demo test test-all lint bench
 
 install: $(VENV)/.installed
 
@@ -25,6 +26,9 @@ demo: $(VENV)/.installed
 	$(BIN)/ttompc demo
 
 test: $(VENV)/.installed lint
+	$(BIN)/python -m pytest -q -m "not slow"
+
+test-all: $(VENV)/.installed lint
 	$(BIN)/python -m pytest -q
 
 lint: $(VENV)/.installed
