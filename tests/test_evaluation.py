@@ -291,3 +291,42 @@ def test_recipe_section_wires_the_callback_into_training(tmp_path: Path) -> None
     )  # fmt: skip
     train(cfg, RandomData())
     assert "mpc/feasible_rate" in (tmp_path / "logs" / "session-0" / "metrics.csv").read_text()
+
+
+def test_trajectory_figure_styles_every_method_and_marks_infeasible_runs() -> None:
+    from ttompc.evaluation.plots import Panel, trajectory_figure
+
+    sc = get_scenario(SHORT)
+    ep = eval_problem(sc, 3, 0)
+    X = ep.rel.X
+    trajs = {"SCP from REL": X, "SCP from TTO": X.copy(), "REL-MPC H=10": X + 0.01, "DIST-MPC H=10": X - 0.01}
+    fig = trajectory_figure(sc, [Panel(ep.problem, trajs, f"seed {ep.seed}", {"DIST-MPC H=10"})])
+    ax = fig.axes[0]
+    lines = {ln.get_label(): ln for ln in ax.get_lines() if not ln.get_label().startswith("_")}
+    assert set(lines) >= {"SCP from REL", "SCP from TTO", "REL-MPC H=10", "DIST-MPC H=10 (INFEASIBLE)"}
+    styles = {
+        (ln.get_color(), ln.get_linestyle(), ln.get_linewidth()) for k, ln in lines.items() if "MPC" in k or "SCP" in k
+    }
+    assert len(styles) == 4  # identical trajectories stay distinguishable
+    assert lines["SCP from REL"].get_linewidth() > lines["SCP from TTO"].get_linewidth()  # drawn wider, below
+    assert str(ep.seed) in ax.get_title()
+    assert [t.get_text() for t in ax.get_legend().get_texts()].count("DIST-MPC H=10 (INFEASIBLE)") == 1
+
+
+def test_demo_command_tiny(tmp_path: Path, bundle: Path) -> None:
+    out = tmp_path / "demo"
+    assert main(["demo", "--model", str(bundle), "--no-mpc", "problems=1", f"out={out}"]) == 0
+    rows = json.loads((out / "demo.json").read_text())["rows"]
+    assert len(rows) == 1 and {"SCP(REL)", "SCP(TTO)", "ORACLE"} <= set(rows[0]) and rows[0]["ctg0"] > 0
+    assert rows[0]["ORACLE"]["cost"] <= rows[0]["SCP(REL)"]["cost"] + 1e-12
+    assert (out / "demo.png").stat().st_size > 0
+    assert main(["demo", "--model", str(bundle), "horizon=0"]) == 2  # a clear error, exit code 2
+
+
+@pytest.mark.slow
+def test_demo_command_closed_loop(tmp_path: Path, bundle: Path) -> None:
+    out = tmp_path / "demo"
+    assert main(["demo", "--model", str(bundle), "problems=1", "horizon=5", f"out={out}"]) == 0
+    row = json.loads((out / "demo.json").read_text())["rows"][0]
+    for m in ("REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC"):
+        assert isinstance(row[f"{m}@5"]["feasible"], bool)
