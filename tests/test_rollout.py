@@ -107,3 +107,42 @@ def test_rejects_horizon_beyond_model(toy, toy_stats: NormStats) -> None:
     model, (s0, goal, rtg0) = _model(torch.float32), _start(torch.float32)
     with pytest.raises(ValueError, match="outside"):
         rollout(model, toy_stats, toy.batched_model([]), "l1", s0, goal, rtg0, horizon=STEPS + 1)
+
+
+@pytest.mark.parametrize("clipped", [True, False])
+def test_rollout_matches_the_teacher_forced_forward_pass(toy, toy_stats: NormStats, clipped: bool) -> None:
+    """Feeding the generated trajectory back through ``forward`` (the training path, normalised with NumPy) predicts
+    exactly the actions the rollout took: both paths see the same tokens, order and normalisation."""
+    model, (s0, goal, rtg0) = _model(torch.float64), _start(torch.float64)
+    res = rollout(model, toy_stats, toy.batched_model([]), "l1", s0, goal, rtg0, 1.0, clipped=clipped)
+    L = STEPS
+
+    def norm(key: str, x: torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(toy_stats.normalize(key, x.numpy()))
+
+    model.eval()
+    a_pred, _ = model(
+        norm("goals", goal[:, None].expand(-1, L, -1)),
+        norm("rtg", res.rtg[:, :L, None]),
+        norm("ctg", res.ctg[:, :L, None]),
+        norm("states", res.states[:, :L]),
+        norm("actions", res.actions),
+        torch.arange(L).expand(B, -1),
+    )
+    torch.testing.assert_close(a_pred, norm("actions", res.actions), rtol=0, atol=1e-10)
+
+
+def test_norm_stats_round_trip_in_the_callers_dtype(toy_stats: NormStats) -> None:
+    x = torch.randn(4, 6, dtype=torch.float64)
+    for dtype in (torch.float64, torch.float32, torch.float64):  # the tensor cache is per dtype
+        y = toy_stats.normalize("states", x.to(dtype))
+        assert y.dtype == dtype
+        torch.testing.assert_close(y.double(), torch.as_tensor(toy_stats.normalize("states", x.numpy())), **_tol(dtype))
+        torch.testing.assert_close(toy_stats.denormalize("states", y), x.to(dtype), **_tol(dtype))
+    assert not torch.allclose(toy_stats.normalize("states", x), x)  # the statistics are not the identity
+    with pytest.raises(ValueError, match="missing"):
+        NormStats.from_dict({"mean": toy_stats.to_dict()["mean"]})
+
+
+def _tol(dtype: torch.dtype) -> dict[str, float]:
+    return {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 0.0, "atol": 1e-12}
