@@ -152,16 +152,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     resume_from, start_step = found if found else (None, 0)
     if resume_from is not None and trainer.is_global_zero:
         print(f"ttompc: resuming from {resume_from} (step {start_step})", file=sys.stderr)
-    sigint = signal.getsignal(signal.SIGINT)
-    try:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=str(resume_from) if resume_from else None)
-    except SystemExit as err:  # Lightning turns Ctrl-C into sys.exit(1) after writing on_exception.ckpt
-        if trainer.interrupted:
-            raise KeyboardInterrupt from err
-        raise
-    finally:
-        if threading.current_thread() is threading.main_thread():  # Lightning ignores Ctrl-C from then on
-            signal.signal(signal.SIGINT, sigint)
+    fit(trainer, module, datamodule, resume_from)
     _finish_wandb(logger)
     exception_checkpoint(out).unlink(missing_ok=True)  # last.ckpt is newer; a stale one would only confuse
     # Read the outcome from the checkpoint: with spawn-based strategies the workers, not this process, trained.
@@ -173,6 +164,21 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         planner_dir = planner.save(out / "planner")
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     return TrainResult(out, last_checkpoint(out), planner_dir, start_step, global_step, metrics)
+
+
+def fit(trainer: Any, module: Any, datamodule: Any, ckpt_path: Path | None) -> None:
+    """``trainer.fit`` where Ctrl-C stays a ``KeyboardInterrupt`` (the CLI prints how to resume): Lightning turns it
+    into ``sys.exit(1)`` after the exception checkpoint is written, and ignores Ctrl-C from then on."""
+    sigint = signal.getsignal(signal.SIGINT)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None)
+    except SystemExit as err:
+        if trainer.interrupted:
+            raise KeyboardInterrupt from err
+        raise
+    finally:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, sigint)
 
 
 def _finish_wandb(logger: Any) -> None:
