@@ -39,13 +39,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.model is None:
         raise UserError("no model to fine-tune", "pass --model NAME (e.g. --model freeflyer-tto-small)")
-    from ttompc.finetune.dagger import finetune
+    from ttompc.finetune import finetune
 
     result = finetune(cfg, args.model)
     print(
         json.dumps(
             {
                 "run_dir": str(result.run_dir),
+                "planner": str(result.planner_dir),
+                "best_iteration": result.best_iteration,
                 "baseline_metrics": result.baseline_metrics,
                 "iterations": result.iterations,
             }

@@ -1,8 +1,10 @@
-"""DAgger fine-tuning of a pretrained trajectory transformer for MPC (paper Alg. 1). Importing this package does not
-import Lightning; ``finetune`` does when it trains."""
+"""DAgger fine-tuning of a pretrained trajectory transformer for MPC (paper Alg. 1): ``collect`` (rollouts and expert
+labels), ``loop`` (iterations, state, ranks, keep/reject), ``config`` (the typed recipe). Importing this package does
+not import Lightning; ``finetune`` does when it trains."""
 
+from ttompc.finetune.collect import collect_rollout, expert_schedule
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
-from ttompc.finetune.dagger import FinetuneResult, collect_rollout, expert_schedule, finetune, rollout_seed
+from ttompc.finetune.loop import FinetuneResult, finetune, improves
 
 __all__ = [
     "FinetuneConfig",
@@ -10,6 +12,6 @@ __all__ = [
     "collect_rollout",
     "expert_schedule",
     "finetune",
+    "improves",
     "load_finetune_config",
-    "rollout_seed",
 ]

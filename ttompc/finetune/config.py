@@ -1,10 +1,13 @@
-"""Typed DAgger fine-tuning recipe (``recipes/<scenario>/finetune.yaml``): the training sections of
-``TrainConfig`` (data, optim, trainer, logger; ``model`` comes from the pretrained model) plus ``dagger``.
+"""Typed DAgger fine-tuning recipe (``recipes/<scenario>/finetune*.yaml``): ``dagger`` plus the training sections
+``data``, ``optim``, ``trainer`` and ``logger`` (``model`` comes from the pretrained model).
 
-``trainer.max_steps`` is not used: each DAgger iteration trains ``dagger.steps_per_iteration`` optimiser steps, and
-global steps continue across iterations (iteration i ends at (i+1)·steps_per_iteration). The open-loop/closed-loop
-mix is ``data.open_loop_fraction`` with ``data.closed_loop_share`` "fixed" (that fraction at every iteration, the
-default) or "grow" (the reference's schedule: 9:1 at the first iteration, then a growing closed-loop share).
+Every key is used. The ``trainer`` section is ``DaggerTrainerConfig``, not pre-training's ``TrainerConfig``: DAgger
+sets the step budget itself (``dagger.steps_per_iteration`` per iteration, continuing from the parent's global
+step), always resumes (``dagger_state.json``), keeps one checkpoint per iteration and always exports the selected
+planner, so ``max_steps``, ``max_epochs``, ``keep_checkpoints``, ``resume`` and ``export_planner`` are rejected as
+unknown keys. The open-loop/closed-loop mix is ``data.open_loop_fraction`` with ``data.closed_loop_share``: "grow"
+is the paper's (9:1 at the first iteration, then the closed-loop share grows as DAgger data accumulates), "fixed"
+keeps that fraction at every iteration.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from ttompc.config import ConfigError, load_command_config
 from ttompc.data.config import DataConfig
@@ -44,19 +48,31 @@ class CollectConfig:
     workers: int = 0  # processes per rank (spawn pool); 0 = all cores
     shard_size: int = 50  # rollouts per shard (the unit of resumption and of the rank split)
     val_fraction: float = 0.1  # share of rollouts written to the DAgger val split (by rollout index hash)
-    mode: str = "soft"
+    mode: Literal["soft", "hard"] = "soft"  # MPC mode of learner and expert (and of the closed-loop measurement)
     backend: str = "auto"
-    wait_s: float = 3600.0  # multi-rank: how long to wait for other ranks' shards and rank 0's checkpoints
+    wait_s: float = 3600.0  # multi-rank: how long to wait for other ranks' shards and rank 0's decisions
+
+    def __post_init__(self) -> None:
+        if self.rollouts < 1 or self.shard_size < 1:
+            raise ValueError("dagger.collect.rollouts and dagger.collect.shard_size must be >= 1")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ValueError(f"dagger.collect.val_fraction must be in [0, 1), got {self.val_fraction}")
 
 
 @dataclass
 class EvalConfig:
-    """Closed-loop TTO-MPC metrics logged before the first and after every iteration."""
+    """Closed-loop TTO-MPC on fixed held-out problems (the metrics of ``ClosedLoopEvalCallback``,
+    ``ttompc.mpc.metrics.closed_loop_metrics``), measured for the pretrained model and after every iteration. They
+    decide which iterations are kept: see ``ttompc.finetune.loop.improves``."""
 
     problems: int = 4
     horizon: int = 10
-    max_steps: int | None = None
-    seed: int = 0
+    max_steps: int | None = None  # MPC steps per episode (None: whole episodes)
+    seed: int = 0  # root seed of the evaluation problems (the evaluation stream: disjoint from rollouts and data)
+
+    def __post_init__(self) -> None:
+        if self.problems < 1 or self.horizon < 1:
+            raise ValueError("dagger.eval.problems and dagger.eval.horizon must be >= 1")
 
 
 @dataclass
@@ -69,10 +85,49 @@ class DaggerConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
 
     def __post_init__(self) -> None:
-        if self.iterations < 1 or self.steps_per_iteration < 1 or self.collect.rollouts < 1:
-            raise ValueError("dagger.iterations, dagger.steps_per_iteration and dagger.collect.rollouts must be >= 1")
-        if not 0.0 <= self.collect.val_fraction < 1.0:
-            raise ValueError(f"dagger.collect.val_fraction must be in [0, 1), got {self.collect.val_fraction}")
+        if self.iterations < 1 or self.steps_per_iteration < 1:
+            raise ValueError("dagger.iterations and dagger.steps_per_iteration must be >= 1")
+
+
+@dataclass
+class DaggerTrainerConfig:
+    """The Lightning Trainer of each DAgger iteration (fields as in ``TrainerConfig``)."""
+
+    val_check_interval: float = 1.0  # <= 1: fraction of an epoch; > 1: every that many training batches
+    limit_val_batches: float = 1.0  # <= 1: fraction; > 1: number of batches
+    checkpoint_every_n_steps: int = 100  # refreshes checkpoints/iter-<i>.ckpt: an interrupted iteration resumes there
+    log_every_n_steps: int = 50
+    devices: int = 1
+    num_nodes: int = 1
+    accelerator: str = "auto"
+    strategy: str = "auto"
+    precision: str = "32-true"
+    num_sanity_val_steps: int = 0
+    seed: int = 0
+    out_dir: str = "runs/freeflyer-dagger"
+
+    def __post_init__(self) -> None:
+        if self.checkpoint_every_n_steps < 1:
+            raise ValueError(f"trainer.checkpoint_every_n_steps must be >= 1, got {self.checkpoint_every_n_steps}")
+
+    def lightning(self, max_steps: int) -> TrainerConfig:
+        """These settings as the ``TrainerConfig`` that ``build_trainer`` takes, for a run ending at ``max_steps``
+        (the other pre-training keys do not apply to a DAgger iteration and keep their defaults)."""
+        return TrainerConfig(
+            max_steps=max_steps,
+            val_check_interval=self.val_check_interval,
+            limit_val_batches=self.limit_val_batches,
+            checkpoint_every_n_steps=self.checkpoint_every_n_steps,
+            log_every_n_steps=self.log_every_n_steps,
+            devices=self.devices,
+            num_nodes=self.num_nodes,
+            accelerator=self.accelerator,
+            strategy=self.strategy,
+            precision=self.precision,
+            num_sanity_val_steps=self.num_sanity_val_steps,
+            seed=self.seed,
+            out_dir=self.out_dir,
+        )
 
 
 @dataclass
@@ -80,7 +135,7 @@ class FinetuneConfig:
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
     data: DataConfig = field(default_factory=DataConfig)
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-5, warmup_steps=0))
-    trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(out_dir="runs/freeflyer-dagger"))
+    trainer: DaggerTrainerConfig = field(default_factory=DaggerTrainerConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
 

@@ -1,0 +1,289 @@
+"""The DAgger iteration loop (paper Alg. 1): collect, aggregate, train, measure, keep or reject; resumable, multi-rank.
+
+Iteration i starts from its *parent*, the best model so far (the pretrained model, or the last kept iteration):
+
+1. **Collect** ``dagger.collect.rollouts`` rollouts with the parent into ``<run>/dagger/iter-<i>/``
+   (``ttompc.finetune.collect``).
+2. **Train** ``dagger.steps_per_iteration`` optimiser steps from the parent's weights and optimiser state on the
+   open-loop data mixed with every DAgger folder so far (``data.open_loop_fraction`` and ``data.closed_loop_share``;
+   "grow" is the paper's mix) into ``<run>/checkpoints/iter-<i>.ckpt``.
+3. **Measure** the candidate's closed-loop TTO-MPC on the fixed held-out problems of ``dagger.eval`` (the metrics the
+   training callback logs, ``ttompc.mpc.metrics.closed_loop_metrics``) and **keep** it only if it ``improves`` on
+   the parent; otherwise the next iteration starts again from the parent. A rejected iteration's rollouts stay in
+   the aggregate: its visited states carry valid expert labels.
+
+After the last iteration the selected model is exported to ``<run>/planner``. The fine-tuned model is therefore
+never worse than its pretrained parent by that measure; it *is* the parent when no iteration improved.
+
+``<run>/dagger_state.json`` records the source, the pretrained model's metrics, the current best and, per iteration,
+its checkpoint, planner, global step, metrics, parent and the keep/reject decision with its reason (also logged as
+``dagger/*`` metrics and printed). Re-running the same command continues: finished iterations are skipped, done
+rollout shards are not recollected, and an iteration whose training was interrupted resumes from its checkpoint
+(refreshed every ``trainer.checkpoint_every_n_steps`` and on an exception such as Ctrl-C).
+Ranks: every rank collects its own shards and trains (Lightning strategy); rank 0 measures and decides, and the other
+ranks wait for its decision in the state file.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ttompc.config import to_container
+from ttompc.data.distributed import RankInfo, rank_info
+from ttompc.data.shards import atomic_write_json
+from ttompc.finetune.collect import collect_iteration, rollout_folder
+from ttompc.finetune.config import FinetuneConfig
+
+if TYPE_CHECKING:
+    from ttompc.evaluation.problems import EvalProblem
+    from ttompc.policy import Planner
+    from ttompc.scenarios.base import Scenario
+
+STATE_FILE = "dagger_state.json"
+SOURCE_PLANNER = "source-planner"
+PLANNER = "planner"  # the exported, selected model
+
+
+@dataclass
+class FinetuneResult:
+    run_dir: Path
+    iterations: list[dict[str, Any]]  # one record per finished iteration (see the module docstring)
+    baseline_metrics: dict[str, float | None]  # the pretrained model's closed-loop metrics (None: not finite)
+    best_iteration: int  # the exported model's iteration; -1: the pretrained model (no iteration improved)
+    planner_dir: Path | None  # the exported model (rank 0)
+
+
+def improves(candidate: dict[str, float | None], best: dict[str, float | None]) -> tuple[bool, str]:
+    """Whether closed-loop ``candidate`` metrics beat ``best``, and why: fewer infeasible episodes, or as many and a
+    lower mean relative cost increment (J − J_REL)/J_REL over the feasible ones (None or nan: no feasible episode).
+    Ties are not improvements."""
+    ci, bi = candidate["infeasible"], best["infeasible"]
+    if ci != bi:
+        return ci < bi, f"infeasible episodes {ci:g} vs {bi:g}"  # type: ignore[operator]
+    cc, bc = _number(candidate["cost_increment"]), _number(best["cost_increment"])
+    if math.isnan(cc) or math.isnan(bc):
+        return False, f"no feasible episode to compare (infeasible {ci:g})"
+    return cc < bc, f"cost increment {cc:.4g} vs {bc:.4g} (infeasible {ci:g})"
+
+
+def _number(x: float | None) -> float:
+    return float("nan") if x is None else float(x)
+
+
+def _json_safe(metrics: dict[str, float]) -> dict[str, float | None]:
+    """Metrics for the state file: nan (e.g. a standard error of one episode) as null, which JSON can hold."""
+    return {k: (v if math.isfinite(v) else None) for k, v in metrics.items()}
+
+
+def _load_state(run: Path) -> dict[str, Any] | None:
+    import json
+
+    path = run / STATE_FILE
+    if not path.is_file():
+        return None
+    state = json.loads(path.read_text())
+    if "best" not in state:
+        raise ValueError(f"{path} was written by an older ttompc (no keep/reject record); use another trainer.out_dir")
+    return state
+
+
+def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"gave up waiting {timeout:.0f} s for {what}")
+        time.sleep(2.0)
+
+
+def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[EvalProblem]:
+    from ttompc.evaluation.problems import eval_problem
+
+    e = cfg.dagger.eval
+    return [eval_problem(scenario, e.seed, i, nonconvex_only=True) for i in range(e.problems)]
+
+
+def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) -> dict[str, float]:
+    """Closed-loop TTO-MPC metrics of ``planner`` on the evaluation problems (one torch thread: batch-1 rollouts)."""
+    from ttompc.mpc.metrics import closed_loop_metrics
+    from ttompc.parallel import single_torch_thread
+
+    e, c = cfg.dagger.eval, cfg.dagger.collect
+    with single_torch_thread():
+        metrics, _ = closed_loop_metrics(
+            planner, problems, e.horizon, max_steps=e.max_steps, mode=c.mode, backend=c.backend
+        )
+    return metrics
+
+
+def _check_data(dm: Any, planner: Planner, paths: list[str]) -> None:
+    """The open-loop data must be the model's: same scenario and normalisation statistics."""
+    if dm.scenario_name != planner.scenario.name:
+        raise ValueError(f"open-loop data is for {dm.scenario_name!r}, the model for {planner.scenario.name!r}")
+    for key in ("states", "actions", "rtg", "ctg"):
+        if not np.allclose(dm.stats.mean[key], planner.stats.mean[key], rtol=1e-4, atol=1e-6) or not np.allclose(
+            dm.stats.std[key], planner.stats.std[key], rtol=1e-4, atol=1e-6
+        ):
+            raise ValueError(
+                f"normalisation statistics of {paths} differ from the model's ({key}); fine-tune on the open-loop "
+                "dataset the model was trained on"
+            )
+
+
+def _train_iteration(
+    cfg: FinetuneConfig,
+    iteration: int,
+    source: Planner,
+    parent: dict[str, Any],
+    dagger_dirs: list[str],
+    logger: Any,
+    ckpt: Path,
+) -> int:
+    """Train ``steps_per_iteration`` steps from ``parent`` into ``ckpt`` (or continue an interrupted run of this
+    iteration from ``ckpt``); returns the global step reached."""
+    import lightning as L
+
+    from ttompc.data.datamodule import TrajectoryDataModule
+    from ttompc.training.checkpoints import ExceptionCheckpoint, checkpoint_step
+    from ttompc.training.module import SaveLastCheckpoint, build_module
+    from ttompc.training.run import build_trainer, fit
+
+    target = int(parent["global_step"]) + cfg.dagger.steps_per_iteration
+    resume_from: Path | None = None
+    if ckpt.is_file():
+        if checkpoint_step(ckpt) >= target:
+            return checkpoint_step(ckpt)  # trained before the state file recorded it
+        resume_from = ckpt
+    elif parent["checkpoint"] is not None:
+        resume_from = Path(parent["checkpoint"])
+    L.seed_everything(cfg.trainer.seed + iteration, workers=True, verbose=False)
+    dm = TrajectoryDataModule(replace(cfg.data, dagger_dirs=dagger_dirs, seed=cfg.data.seed + iteration))
+    dm.setup("fit")
+    _check_data(dm, source, cfg.data.paths)
+    module = build_module(source.model.cfg, cfg.optim, source.scenario, source.stats, recipe=cfg,
+                          plot_trajectories=False)  # fmt: skip
+    if resume_from is None:
+        module.model.load_state_dict(source.model.state_dict())
+    t = cfg.trainer
+    trainer = build_trainer(
+        t.lightning(target),
+        cfg.optim,
+        Path(t.out_dir),
+        logger,
+        max_steps=target,
+        callbacks=[SaveLastCheckpoint(ckpt, t.checkpoint_every_n_steps), ExceptionCheckpoint(ckpt)],
+        num_sanity_val_steps=t.num_sanity_val_steps,
+        enable_checkpointing=False,
+    )
+    fit(trainer, module, dm, resume_from)
+    return checkpoint_step(ckpt)
+
+
+def _log(logger: Any, metrics: dict[str, float], iteration: int, step: int) -> None:
+    if logger is None:
+        return
+    logger.log_metrics({**{f"dagger/{k}": v for k, v in metrics.items()}, "dagger/iteration": iteration}, step=step)
+    logger.save()
+
+
+def _export(run: Path, state: dict[str, Any], source: str) -> Path:
+    """Write the selected model to ``<run>/planner`` (the pretrained one when no iteration was kept)."""
+    from ttompc.policy import Planner
+
+    best = state["best"]
+    planner = Planner.from_pretrained(best["planner"])
+    planner.extra.update(
+        source="ttompc finetune",
+        finetuned_from=source,
+        dagger_iteration=best["iteration"],
+        dagger_kept=[r["iteration"] for r in state["completed"] if r["kept"]],
+        dagger_metrics=best["metrics"],
+        dagger_baseline_metrics=state["baseline_metrics"],
+    )
+    return planner.save(run / PLANNER)
+
+
+def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) -> FinetuneResult:
+    """Run (or resume) DAgger fine-tuning of ``source`` (zoo name, bundle folder or checkpoint) in
+    ``cfg.trainer.out_dir``; see the module docstring."""
+    from ttompc.policy import Planner
+    from ttompc.training.loggers import build_logger
+    from ttompc.training.run import _finish_wandb
+
+    ranks = ranks or rank_info()
+    run = Path(cfg.trainer.out_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    state = _load_state(run)
+    if state is not None and state["source"] != str(source):
+        raise ValueError(f"{run} fine-tunes {state['source']!r}, not {source!r}; use another trainer.out_dir")
+    src_dir = run / SOURCE_PLANNER
+    if ranks.is_main and not (src_dir / "config.json").is_file():
+        Planner.from_pretrained(source).save(src_dir)
+    wait_s = cfg.dagger.collect.wait_s
+    _wait(lambda: (src_dir / "config.json").is_file(), wait_s, "the source planner")
+    source_planner = Planner.from_pretrained(src_dir)
+    scenario = source_planner.scenario
+    logger = build_logger(cfg.logger, run, to_container(cfg)) if ranks.is_main else None
+    problems = _eval_problems(cfg, scenario) if ranks.is_main else []
+    if state is None and ranks.is_main:
+        baseline = measure(cfg, source_planner, problems)
+        _log(logger, baseline, -1, 0)
+        baseline = _json_safe(baseline)
+        best = {"iteration": -1, "planner": str(src_dir), "checkpoint": None, "global_step": 0, "metrics": baseline}
+        state = {"source": str(source), "seed": cfg.dagger.seed, "baseline_metrics": baseline, "best": best,
+                 "completed": []}  # fmt: skip
+        atomic_write_json(run / STATE_FILE, state)
+    elif state is None:
+        _wait(lambda: (run / STATE_FILE).is_file(), wait_s, "rank 0 to measure the pretrained model")
+        state = _load_state(run)
+    assert state is not None
+    c = cfg.dagger.collect
+    for i in range(len(state["completed"]), cfg.dagger.iterations):
+        parent = state["best"]
+        folder = rollout_folder(run / "dagger" / f"iter-{i:03d}", scenario, c.rollouts, c.shard_size)
+        collect_iteration(cfg.dagger, scenario, i, Path(parent["planner"]), folder, ranks)
+        if not folder.wait(wait_s):
+            raise TimeoutError(f"gave up waiting {wait_s:.0f} s for other ranks' rollout shards in {folder.root}")
+        dirs = [str(run / "dagger" / f"iter-{j:03d}") for j in range(i + 1)]
+        ckpt = run / "checkpoints" / f"iter-{i:03d}.ckpt"
+        step = _train_iteration(cfg, i, source_planner, parent, dirs, logger, ckpt)
+        if ranks.is_main:
+            candidate = Planner.from_pretrained(ckpt, scenario)
+            candidate.extra.update(source="ttompc finetune", dagger_iteration=i, finetuned_from=str(source))
+            out = candidate.save(run / f"iter-{i:03d}" / "planner")
+            measured = measure(cfg, candidate, problems)
+            metrics = _json_safe(measured)
+            kept, reason = improves(metrics, parent["metrics"])
+            record = {"iteration": i, "checkpoint": str(ckpt), "planner": str(out), "global_step": step,
+                      "metrics": metrics, "parent": parent["iteration"], "kept": kept, "reason": reason}  # fmt: skip
+            state["completed"].append(record)
+            if kept:
+                state["best"] = {k: record[k] for k in ("iteration", "planner", "checkpoint", "global_step", "metrics")}
+            _log(
+                logger, {**measured, "kept": float(kept), "best_iteration": float(state["best"]["iteration"])}, i, step
+            )
+            print(
+                f"ttompc finetune: iteration {i} {'kept' if kept else 'rejected'} against iteration "
+                f"{parent['iteration']} ({reason})",
+                file=sys.stderr,
+            )
+            atomic_write_json(run / STATE_FILE, state)
+        else:
+            _wait(
+                lambda k=i: len((_load_state(run) or {"completed": []})["completed"]) > k,
+                wait_s,
+                f"rank 0 to finish iteration {i}",
+            )
+            state = _load_state(run) or state
+    planner_dir = _export(run, state, str(source)) if ranks.is_main else None
+    if logger is not None:
+        logger.finalize("success")
+        _finish_wandb(logger)  # close the run so a later fine-tuning in this process starts or resumes its own
+    return FinetuneResult(run, state["completed"], state["baseline_metrics"], state["best"]["iteration"], planner_dir)
