@@ -95,6 +95,12 @@ def _load_state(run: Path) -> dict[str, Any] | None:
     return state
 
 
+def _finished(run: Path) -> int:
+    """Iterations rank 0 has recorded (other ranks poll this)."""
+    state = _load_state(run)
+    return len(state["completed"]) if state else 0
+
+
 def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
@@ -233,9 +239,9 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     logger = build_logger(cfg.logger, run, to_container(cfg)) if ranks.is_main else None
     problems = _eval_problems(cfg, scenario) if ranks.is_main else []
     if state is None and ranks.is_main:
-        baseline = measure(cfg, source_planner, problems)
-        _log(logger, baseline, -1, 0)
-        baseline = _json_safe(baseline)
+        measured = measure(cfg, source_planner, problems)
+        _log(logger, measured, -1, 0)
+        baseline = _json_safe(measured)
         best = {"iteration": -1, "planner": str(src_dir), "checkpoint": None, "global_step": 0, "metrics": baseline}
         state = {"source": str(source), "seed": cfg.dagger.seed, "baseline_metrics": baseline, "best": best,
                  "completed": []}  # fmt: skip
@@ -276,11 +282,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
             )
             atomic_write_json(run / STATE_FILE, state)
         else:
-            _wait(
-                lambda k=i: len((_load_state(run) or {"completed": []})["completed"]) > k,
-                wait_s,
-                f"rank 0 to finish iteration {i}",
-            )
+            _wait(lambda: _finished(run) > i, wait_s, f"rank 0 to finish iteration {i}")  # noqa: B023
             state = _load_state(run) or state
     planner_dir = _export(run, state, str(source)) if ranks.is_main else None
     if logger is not None:
