@@ -20,7 +20,7 @@ import lightning as L
 import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-EXCEPTION_CKPT = "on_exception"  # written by Lightning when fit raises (Ctrl-C included); removed after success
+EXCEPTION_CKPT = "on_exception"  # written by ExceptionCheckpoint when fit raises (Ctrl-C too); removed on success
 
 
 def checkpoint_dir(out_dir: str | Path) -> Path:
