@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import hashlib
 import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -140,3 +142,19 @@ def test_the_package_alias_is_the_one_loader() -> None:
 
     assert ttompc.load_pretrained == Planner.from_pretrained
     assert get_scenario("toy").name == "toy"  # conftest's scenario, used by helpers.tiny_toy_planner
+
+
+def test_the_policy_imports_nothing_above_it_and_data_stays_light() -> None:
+    """Layering: the policy needs scenarios and config only (no data, training, evaluation, MPC, zoo or Lightning
+    at import); the data package takes NormStats from ``ttompc.policy.stats`` without importing torch."""
+    code = (
+        "import sys, ttompc.policy.planner, ttompc.policy.rollout; "
+        "print(' '.join(sorted(m for m in sys.modules if m.startswith(('ttompc', 'lightning')))))"
+    )
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    above = ("ttompc.data", "ttompc.training", "ttompc.evaluation", "ttompc.mpc", "ttompc.finetune", "ttompc.zoo")
+    assert not [m for m in loaded if m.startswith(above) or m.startswith("lightning")], loaded
+    code = "import sys, ttompc.data; print('torch' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == (
+        "False"
+    )
