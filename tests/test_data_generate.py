@@ -277,3 +277,17 @@ def test_split_left_empty_is_refused_before_any_work(tmp_path: Path) -> None:
     assert not out.exists()
     manifest = generate(_cfg(out, problems=20, splits=SplitConfig(0.9, 0.1, 0.0)), progress=False)
     assert manifest is not None and manifest["splits"]["problems"]["val"] == 1
+
+
+def test_cli_refuses_empty_split_in_one_line(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    out = tmp_path / "twenty"
+    res = subprocess.run(
+        [sys.executable, "-m", "ttompc.cli", "generate", "scenario=freeflyer", "problems=20", f"out={out}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 2, res.stderr
+    assert "Traceback" not in res.stderr and "split(s) test would get no problem" in res.stderr
+    assert "splits.test=0" in res.stderr and not out.exists()
