@@ -198,6 +198,7 @@ def test_perturbed_plant_is_seeded_and_nominal_plant_is_exact(setup: tuple) -> N
     np.testing.assert_allclose(roll(3, None), sc.rollout(problem, scp.U[:10])[:11], atol=1e-12)
     with pytest.raises(ValueError, match="process_std"):
         PlantNoise(process_std=-1.0)
+    assert noise.path_tol(sc) == pytest.approx(0.01) and PlantNoise().path_tol(sc) == 1e-3
 
 
 def test_mpc_on_the_perturbed_plant_repeats_with_its_seed(setup: tuple) -> None:

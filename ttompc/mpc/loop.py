@@ -181,15 +181,18 @@ def episode_metrics(
     *,
     terminal_tol: float | None = None,
     path_tol: float = 1e-3,
+    strict_keepout: bool = True,
 ) -> dict[str, float | int | bool]:
-    """Feasibility of an executed trajectory: terminal error, keep-out violations, exact path violation."""
+    """Feasibility of an executed trajectory: terminal error, keep-out violations, exact path violation. With
+    ``strict_keepout`` any state inside a keep-out zone makes it infeasible; without, only a depth (part of the
+    path violation) beyond ``path_tol`` does (the perturbed plant, whose disturbances no controller can undo)."""
     T = len(U)
     complete = T == problem.n_steps
     err = float(np.linalg.norm(X[-1] - problem.goal)) if complete else float("nan")
     koz = int(np.sum(scenario.violations(problem, X)))
     path = scenario.path_violation(problem, X, U, Window(0, T, problem.n_steps)) if T else 0.0
     tol = scenario.terminal_tol if terminal_tol is None else terminal_tol
-    feasible = koz == 0 and path <= path_tol and (not complete or err <= tol)
+    feasible = (koz == 0 or not strict_keepout) and path <= path_tol and (not complete or err <= tol)
     return {
         "terminal_error": err,
         "keepout_violations": koz,
@@ -247,7 +250,16 @@ def run_mpc(
         targets.append(plan.target)
         fallbacks += plan.fallback
     Xa, Ua = np.stack(X), np.stack(U) if U else np.zeros((0, scenario.control_dim))
-    m = episode_metrics(scenario, problem, Xa, Ua, terminal_tol=terminal_tol)
+    perturbed = plant is not None and not plant.nominal
+    m = episode_metrics(
+        scenario,
+        problem,
+        Xa,
+        Ua,
+        terminal_tol=terminal_tol,
+        path_tol=plant.path_tol(scenario) if perturbed else 1e-3,
+        strict_keepout=not perturbed,
+    )
     return Episode(
         method=provider.name,
         horizon=horizon,
@@ -266,5 +278,5 @@ def run_mpc(
         complete=bool(m["complete"]),
         feasible=bool(m["feasible"]),
         target_change=target_change(scenario, targets),
-        plant="nominal" if plant is None or plant.nominal else "perturbed",
+        plant="perturbed" if perturbed else "nominal",
     )

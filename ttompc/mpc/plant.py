@@ -15,7 +15,9 @@ method stays feasible on most problems.
 
 Draws come from one generator seeded by the episode's seed, so the same seed gives the same disturbances (and the
 same executed trajectory for a deterministic controller) whatever the method, and another seed gives other ones.
-The cost of an episode is the cost of the *commanded* controls (what the controller decided to spend).
+The cost of an episode is the cost of the *commanded* controls (what the controller decided to spend). On the
+perturbed plant a run is feasible when its keep-out depth and other path violations stay within ``path_tol`` (5
+standard deviations of one step's process noise: 1 cm for free-flyer and quadrotor at the default), not at 1e-5 m.
 """
 
 from __future__ import annotations
@@ -45,6 +47,14 @@ class PlantNoise:
     @property
     def nominal(self) -> bool:
         return self.gain_std == self.actuation_std == self.process_std == 0
+
+    def path_tol(self, scenario: Scenario) -> float:
+        """Path-constraint tolerance of a run on this plant: 5 standard deviations of one step's process noise on
+        the scenario's largest state scale (free-flyer/quadrotor at the default: 1 cm of keep-out depth), at least
+        1e-3 like the nominal plant. A disturbance can push a plan that grazes a keep-out boundary inside it before
+        any controller reacts; runs are only infeasible when they go deeper than that."""
+        scale = max(scenario.state_scale, default=1.0)
+        return max(1e-3, 5.0 * self.process_std * scale)
 
     @classmethod
     def perturbed(cls) -> PlantNoise:
