@@ -113,3 +113,30 @@ def test_import_ttompc_data_does_not_import_lightning_or_datasets() -> None:
     code = "import sys, ttompc.data; print(any(m in sys.modules for m in ('lightning', 'datasets')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_sharded_folder_resume_contract(tmp_path: Path) -> None:
+    from ttompc.data.distributed import RankInfo
+    from ttompc.data.resumable import ShardedFolder
+
+    feats = trajectory_features(get_scenario("data-fake"))
+    folder = ShardedFolder(tmp_path, feats, total=7, shard_size=3)
+    assert folder.n_shards == 3 and folder.item_range(2) == (6, 7) and folder.items([0, 2]) == [0, 1, 2, 6]
+    assert folder.mine(RankInfo(1, 2)) == [1] and folder.pending(RankInfo(0, 2)) == [0, 2]
+    groups = list(folder.group([0, 2], iter("abcd")))
+    assert [(k, batch) for k, batch, _ in groups] == [(0, ["a", "b", "c"]), (2, ["d"])]
+    rows = _rows(3)
+    meta = folder.write(0, {"train": rows[:2], "val": rows[2:]}, note="x")
+    assert (meta["start"], meta["stop"], meta["note"]) == (0, 3, "x") and folder.done(0) and not folder.done(1)
+    assert folder.missing() == [1, 2] and not folder.wait(0.0)
+    # rewriting with an empty split removes its stale file; a corrupted file undoes "done"
+    folder.write(0, {"train": rows})
+    assert not (tmp_path / "val" / "shard-00000.parquet").exists() and folder.done(0)
+    (tmp_path / "train" / "shard-00000.parquet").write_bytes(b"broken")
+    assert not folder.done(0)
+    # the same folder read with another item count: shard 2 covers another range, so it is not done
+    folder.write(2, {"train": rows[:1]})
+    assert folder.done(2) and not ShardedFolder(tmp_path, feats, total=8, shard_size=3).done(2)
+    assert ShardedFolder(tmp_path, feats, total=3, shard_size=3).beyond() == ["shard-00002.json"]
+    with pytest.raises(ValueError, match="unknown splits"):
+        folder.write(1, {"holdout": rows})

@@ -1,4 +1,5 @@
-"""Trajectory datasets: generation, parquet shards, splits, cards and the streaming DataModule.
+"""Trajectory datasets: generation, parquet shards (and their one resumable writer), splits, cards and the streaming
+DataModule.
 
 Only light modules are imported eagerly; ``datasets`` and Lightning load on first use of the names below, so
 ``import ttompc.data`` stays fast and never imports Lightning.
@@ -16,6 +17,7 @@ _LAZY = {
     "TrajectoryDataModule": "ttompc.data.datamodule",
     "ShardError": "ttompc.data.shards",
     "ShardWriter": "ttompc.data.shards",
+    "ShardedFolder": "ttompc.data.resumable",
     "write_shard": "ttompc.data.shards",
     "read_shard": "ttompc.data.shards",
     "make_row": "ttompc.data.schema",
