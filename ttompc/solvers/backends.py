@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -56,7 +57,7 @@ class ClarabelBackend:
                 self.cones.append(clarabel.NonnegativeConeT(dim))
             else:
                 self.cones.append(clarabel.SecondOrderConeT(dim))
-        self.solver = None
+        self.solver: Any = None  # clarabel.DefaultSolver, built on the first solve
 
     def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
         t0 = time.perf_counter()
@@ -88,7 +89,7 @@ class OSQPBackend:
         self.sub = sub
         self.n_zero = dict(sub.cones)["zero"]
         self.eps, self.max_iter = eps, max_iter
-        self.solver = None
+        self.solver: Any = None  # osqp.OSQP, set up on the first solve
 
     def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
         t0 = time.perf_counter()

@@ -190,9 +190,9 @@ def run_scp(
         if X is None or U is None:
             history.append(IterateRecord(it, np.nan, np.nan, np.nan, np.nan, float(delta), sol.solve_time, sol.status))
             # the reference formulation gives up on an infeasible subproblem, like the authors' code
-            failed = SCPStatus.INFEASIBLE if (sol.infeasible and not penalized) else SCPStatus.SOLVER_ERROR
-            if failed is SCPStatus.INFEASIBLE or best is None:
-                status = failed
+            sub_failed = SCPStatus.INFEASIBLE if (sol.infeasible and not penalized) else SCPStatus.SOLVER_ERROR
+            if sub_failed is SCPStatus.INFEASIBLE or best is None:
+                status = sub_failed
             break
         cost = scenario.cost(U)
         merit = fuel_weight * cost + _terminal_term(X, terminal) + _soft_eq_term(blocks, X, U, soft_equalities)
@@ -230,6 +230,7 @@ def run_scp(
         viol_out, X_out, U_out, best_it = least_bad
     else:
         X_out, U_out, viol_out, best_it = X_init, U_init, float("inf"), -1
+    assert status is not None  # each branch above sets it
     return SCPResult(
         status=status,
         X=X_out,

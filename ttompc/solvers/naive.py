@@ -6,6 +6,7 @@ time) and independent of the sparse assembly, which makes it the ground truth fo
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import cvxpy as cp
 import numpy as np
@@ -27,7 +28,7 @@ class NaiveCvxpySolver:
         x = [cp.Variable(n) for _ in range(H + 1)]
         u = [cp.Variable(m) for _ in range(H)]
         cons = [x[0] == data.x_start]
-        cost = 0
+        cost: Any = 0  # a cvxpy expression once terms are added
         if spec.cost_norm == "l1":
             cost += spec.fuel_weight * sum(cp.norm1(u[j]) for j in range(H))
         elif spec.cost_norm == "l2":
@@ -68,7 +69,7 @@ class NaiveCvxpySolver:
                     else:
                         cons.append(expr == block.h[kk])
                 else:
-                    slack = 0
+                    slack: Any = 0  # a cvxpy variable for soft rows
                     if spec.penalized and block.soft:
                         slack = cp.Variable(block.rows_per_step, nonneg=True)
                         cost += spec.penalty * cp.sum(slack)
@@ -89,4 +90,4 @@ class NaiveCvxpySolver:
         )
         if not ok:
             return None, None, sol
-        return np.stack([xi.value for xi in x]), np.stack([ui.value for ui in u]), sol
+        return np.stack([np.asarray(xi.value) for xi in x]), np.stack([np.asarray(ui.value) for ui in u]), sol

@@ -21,7 +21,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -29,6 +29,9 @@ import scipy.sparse as sp
 from ttompc.scenarios.base import BlockKind
 from ttompc.solvers.backends import BackendSolution, cone_error
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+
+# a sparse-pattern entry: (rows, cols, source index into the flat data vector, coefficient[, keep mask])
+_Entry = tuple[np.ndarray | float, ...]
 
 
 class SubproblemSolver(Protocol):
@@ -91,8 +94,8 @@ class QPSubproblem:
         else:
             self.u_parts = [(self._var(np.tile(su, H), -np.inf, 0.0).reshape(H, m), 1.0)]
         # entries: (row, col, source index into the flat data vector, coefficient)
-        eq: list[tuple[np.ndarray, ...]] = []
-        ineq: list[tuple[np.ndarray, ...]] = []
+        eq: list[_Entry] = []
+        ineq: list[_Entry] = []
         self.n_eq = self.n_in = 0
         b_parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         lo_parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -297,7 +300,7 @@ class QPSubproblem:
     # ------------------------------------------------------------------------------------------------- updating
     def flat(self, data: SubproblemData) -> np.ndarray:
         """The iteration's data in the layout of ``_layout`` followed by the constants."""
-        parts = [
+        parts: list[np.ndarray | list[float]] = [
             np.ravel(data.model.A),
             np.ravel(data.model.B),
             np.ravel(data.model.c),
@@ -328,8 +331,11 @@ class QPSubproblem:
 class _CSCMap:
     """A sparse matrix whose CSC values are ``coef * flat[src]``: the pattern (explicit zeros kept) is fixed."""
 
-    def __init__(self, entries: list[tuple[np.ndarray, ...]], n_rows: int, n_cols: int, col_scale: np.ndarray) -> None:
-        rows, cols, src, coef = [], [], [], []
+    def __init__(self, entries: list[_Entry], n_rows: int, n_cols: int, col_scale: np.ndarray) -> None:
+        rows: list[np.ndarray] = []
+        cols: list[np.ndarray] = []
+        src: list[np.ndarray] = []
+        coef: list[np.ndarray] = []
         for r, c, s, k, *keep in entries:
             arrays = np.broadcast_arrays(np.asarray(r), np.asarray(c), np.asarray(s), np.asarray(k, dtype=float))
             sel = np.broadcast_to(keep[0], arrays[0].shape) if keep else np.ones(arrays[0].shape, bool)
@@ -376,7 +382,7 @@ class PIQPSolver:
 
         self._piqp = piqp
         self.qp = QPSubproblem(spec)
-        self.solver = None
+        self.solver: Any = None  # piqp.SparseSolver, set up on the first solve
         self._make_fallback = fallback
         self._fallback: SubproblemSolver | None = None
 
@@ -408,13 +414,14 @@ class PIQPSolver:
             elapsed,
         )  # fmt: skip
         if ok:
+            assert sol.z is not None  # PIQP returns its iterate whenever it reports SOLVED
             X, U = qp.split(sol.z)
             return X, U, sol
         if self._make_fallback is None:
             return None, None, sol
         if self._fallback is None:
             self._fallback = self._make_fallback()
-        X, U, fb = self._fallback.solve(data)
+        X_fb, U_fb, fb = self._fallback.solve(data)
         fb.solve_time += sol.solve_time
         fb.status = f"{status} -> {fb.status}"
-        return X, U, fb
+        return X_fb, U_fb, fb
