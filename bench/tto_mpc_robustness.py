@@ -5,8 +5,9 @@ model could give — plus seeded noise of 0, 1, 3 and 10 cm per MPC step on the 
 plan (``ttompc.mpc.PlanNoise``): *independent* (drawn afresh every step) or *drifting* (AR(1), correlation 0.9,
 same stationary std). Each noisy plan drives the MPC with the paper's terminal target (``paper``: x̄ = the plan's
 state at t+H, weight 1 on the full state) and with the robust target (``robust``: ``TerminalDesign(blend=0.95)``,
-the new target blended with the previous target shifted by one step). REL-MPC and DIST-MPC run beside them. H = 10,
-soft mode, nominal plant, free-flyer and quadrotor, held-out non-convex problems (REL violates a keep-out zone).
+``--blend``: the new target blended with the previous target shifted by one step). REL-MPC and DIST-MPC run beside
+them. H = 10, soft mode, nominal plant, free-flyer and quadrotor, held-out non-convex problems (REL violates a
+keep-out zone).
 
 Normalised cost (the paper's): over the problems on which the verdict methods (oracle, robust 3 cm, REL-MPC,
 DIST-MPC) are all feasible, (J − J_REL) / mean(J_DIST-MPC − J_REL); infeasible runs of the other methods on those
@@ -40,21 +41,22 @@ from ttompc.scenarios import get_scenario
 H = 10
 NOISE_CM = (1, 3, 10)
 KINDS = ("independent", "drift")
-ROBUST = TerminalDesign(blend=0.95)
+BLEND = 0.95  # the robust target's blend (docs/evaluation.md)
 POSITIONS = {"freeflyer": (0, 1), "quadrotor": (0, 1, 2)}
 VERDICT = {"oracle_mpc10": "oracle", "tto_mpc10_noise3cm": "robust_independent_3cm", "rel_mpc10": "REL-MPC"}
 
 
-def variants(scenario: str, seed: int) -> list[tuple[str, Any]]:
+def variants(scenario: str, seed: int, blend: float) -> list[tuple[str, Any]]:
     """(name, provider factory) of every run of one problem."""
     dims = POSITIONS[scenario]
+    robust = TerminalDesign(blend=blend)
     out: list[tuple[str, Any]] = [
         ("REL-MPC", lambda plan: RELProvider()),
         ("DIST-MPC", lambda plan: DISTProvider()),
         ("oracle", lambda plan: PlanProvider(plan)),
-        ("robust_noise0", lambda plan: PlanProvider(plan, design=ROBUST)),
+        ("robust_noise0", lambda plan: PlanProvider(plan, design=robust)),
     ]
-    for design_name, design in (("paper", None), ("robust", ROBUST)):
+    for design_name, design in (("paper", None), ("robust", robust)):
         for kind in KINDS:
             for cm in NOISE_CM:
                 noise = PlanNoise(cm / 100, kind, dims, seed=seed)  # type: ignore[arg-type]
@@ -67,14 +69,14 @@ def variants(scenario: str, seed: int) -> list[tuple[str, Any]]:
     return out
 
 
-def run_problem(task: tuple[str, int, int]) -> list[dict[str, Any]]:
+def run_problem(task: tuple[str, int, int, float]) -> list[dict[str, Any]]:
     """Every variant on problem ``index`` of ``scenario`` (one worker task)."""
-    name, root, index = task
+    name, root, index, blend = task
     sc = get_scenario(name)
     ep = eval_problem(sc, root, index)
     plan = full_horizon_plan(sc, ep.problem)
     rows = []
-    for variant, make in variants(name, ep.seed):
+    for variant, make in variants(name, ep.seed, blend):
         e = run_mpc(sc, ep.problem, make(plan), H, rel_cost=ep.rel_cost)
         rows.append(
             {
@@ -168,11 +170,12 @@ def main() -> None:
     ap.add_argument("--problems", type=int, default=10, help="held-out non-convex problems per scenario")
     ap.add_argument("--seed", type=int, default=0, help="root seed of the evaluation stream")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--blend", type=float, default=BLEND, help="the robust target's blend β")
     ap.add_argument("--out", default="bench/results/tto_mpc_robustness.json")
     args = ap.parse_args()
     names = args.scenarios.split(",")
     t0 = time.perf_counter()
-    tasks = [(n, args.seed, i) for n in names for i in range(args.problems)]
+    tasks = [(n, args.seed, i, args.blend) for n in names for i in range(args.problems)]
     rows = [r for rs in pool_map(run_problem, tasks, args.workers, pin_torch=False) for r in rs]
     verdict, tables = {}, {}
     for n in names:
@@ -182,7 +185,7 @@ def main() -> None:
     result = {
         "bench": "tto_mpc_robustness",
         "horizon": H,
-        "robust_design": {"blend": ROBUST.blend},
+        "robust_design": {"blend": args.blend},
         "problems_per_scenario": args.problems,
         "seed": args.seed,
         "verdict": verdict,
