@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ttompc.evaluation.common import eval_problem, load_planner
+from ttompc.evaluation.problems import eval_problem
 from ttompc.mpc import DISTProvider, RELProvider, TTOProvider, run_mpc
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import get_scenario
@@ -73,7 +73,8 @@ def main() -> None:
 
     sc = get_scenario(args.scenario)
     if args.checkpoint:
-        planner, model_desc, name = load_planner(args.checkpoint, device=args.device), args.checkpoint, "FT-TTO-MPC"
+        planner = Planner.from_pretrained(args.checkpoint, device=args.device)
+        model_desc, name = args.checkpoint, "FT-TTO-MPC"
     else:
         planner, model_desc = random_planner(args.scenario, args.size, args.device), f"random {args.size} (timing only)"
         name = "TTO-MPC"
