@@ -8,6 +8,7 @@ import enum
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ttompc.scenarios.base import Window
 
@@ -60,13 +61,13 @@ class SCPResult:
         }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class TerminalCost:
     """Soft terminal term ‖diag(weights) (x_{t+H} − target)‖₂ replacing the terminal equality (MPC)."""
 
-    target: np.ndarray
-    weights: np.ndarray
+    target: np.ndarray  # (n,)
+    weights: np.ndarray  # (n,); a scalar given to the constructor weighs every state alike
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "target", np.asarray(self.target, dtype=np.float64))
-        object.__setattr__(self, "weights", np.broadcast_to(np.asarray(self.weights, float), self.target.shape))
+    def __init__(self, target: ArrayLike, weights: ArrayLike) -> None:
+        object.__setattr__(self, "target", np.asarray(target, dtype=np.float64))
+        object.__setattr__(self, "weights", np.broadcast_to(np.asarray(weights, float), self.target.shape))
