@@ -3,7 +3,7 @@
 Layout under the cache root::
 
     blobs/sha256/<hex>                      verified file contents, read-only, named by their hash
-    models/<name>/<snapshot>/<filename>     hard links (or copies) of blobs: the bundle dir Planner.from_pretrained reads
+    models/<name>/<snapshot>/<filename>     hard links (or copies) of blobs: the bundle dir that gets loaded
 
 A snapshot id is derived from the card's (filename, sha256) pairs, so re-publishing a model under the same name
 creates a new snapshot instead of rewriting files that a running process may have memory-mapped.
