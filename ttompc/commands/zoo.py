@@ -50,6 +50,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--check", action="store_true", help="only check that index.json is up to date (exit 1 if not)")
 
 
+def resume_hint(args: argparse.Namespace) -> str:
+    if args.zoo_command == "download":
+        return "re-run the same command (verified files are kept and a partial download resumes)"
+    return "run the command again (it writes its files atomically: nothing half-written is left)"
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         return _ACTIONS[args.zoo_command](args)
