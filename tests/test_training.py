@@ -300,3 +300,51 @@ def test_ddp_two_cpu_processes(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.count("RESULT 2") == 2, proc.stdout  # both ranks finished at step 2
     assert torch.load(tmp_path / "ddp" / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 2
+
+
+PRETRAIN_RECIPES = sorted((Path(__file__).resolve().parents[1] / "recipes").glob("*/pretrain.yaml"))
+
+
+@pytest.mark.parametrize("cuda", [False, True], ids=["cpu", "cuda-faked"])
+def test_paper_recipes_pick_the_gpu_when_present_and_bf16_on_either(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cuda: bool
+) -> None:
+    """The paper-size recipes train on a CUDA GPU when one is visible and on the CPU otherwise, in bf16 autocast on
+    both. No GPU is needed: CUDA availability is faked, and only the Trainer is built (nothing runs on it)."""
+    from lightning.pytorch.accelerators import CPUAccelerator, CUDAAccelerator
+    from lightning.pytorch.plugins.precision import MixedPrecision
+
+    from ttompc.training.run import build_trainer
+
+    if cuda:
+        monkeypatch.setattr(CUDAAccelerator, "is_available", staticmethod(lambda: True))
+        monkeypatch.setattr("lightning.fabric.accelerators.cuda.num_cuda_devices", lambda: 1)
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+        monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert {p.parent.name for p in PRETRAIN_RECIPES} == {"freeflyer", "quadrotor", "rpod"}
+    for path in PRETRAIN_RECIPES:
+        cfg = load_train_config(path, [f"trainer.out_dir={tmp_path}"])
+        trainer = build_trainer(cfg.trainer, cfg.optim, tmp_path, None, max_steps=1)
+        assert isinstance(trainer.accelerator, CUDAAccelerator if cuda else CPUAccelerator), path
+        plugin = trainer.precision_plugin
+        assert isinstance(plugin, MixedPrecision) and plugin.precision == "bf16-mixed", path
+        assert plugin.device == ("cuda" if cuda else "cpu"), path
+    # the schema default (a recipe that says nothing) stays full precision
+    assert TrainConfig().trainer.precision == "32-true"
+
+
+def test_bf16_mixed_cpu_run_keeps_fp32_weights(tmp_path: Path) -> None:
+    """bf16 autocast on the CPU trains (finite loss) and keeps fp32 master weights, so checkpoints
+    and exported planners are the same fp32 models as from a 32-true run."""
+    torch.manual_seed(0)
+    res = train(
+        tiny_config(tmp_path / "run", "trainer.max_steps=3", "trainer.precision=bf16-mixed", "logger.kind=none"),
+        ToyDataModule(n=32),
+    )
+    assert res.global_step == 3 and np.isfinite(res.metrics["train/loss"])
+    ckpt = torch.load(res.last_checkpoint, map_location="cpu", weights_only=True)
+    assert ckpt["hyper_parameters"]["recipe"]["trainer"]["precision"] == "bf16-mixed"
+    weights = ckpt["state_dict"]
+    assert all(w.dtype == torch.float32 for w in weights.values() if w.is_floating_point())
+    planner = Planner.from_pretrained(res.planner_dir, get_scenario("toy"))
+    assert next(planner.model.parameters()).dtype == torch.float32

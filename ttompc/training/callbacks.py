@@ -52,13 +52,13 @@ class ClosedLoopEvalCallback(L.Callback):
 
     @classmethod
     def from_config(cls, cfg: Any, scenario: str | None = None) -> ClosedLoopEvalCallback:
-        """From the recipe section ``callbacks.eval_mpc`` (``every_n_epochs`` counts validation runs)."""
+        """From the recipe section ``callbacks.eval_mpc``."""
         return cls(
             scenario,
             problems=cfg.problems,
             horizon=cfg.horizon,
             max_steps=cfg.max_steps,
-            every_n_val=cfg.every_n_epochs,
+            every_n_val=cfg.every_n_val,
             seed=cfg.seed,
             plant=cfg.plant,
         )

@@ -84,10 +84,10 @@ class LoggerConfig:
 @dataclass
 class EvalMPCConfig:
     """Closed-loop TTO-MPC evaluation during training (``ttompc.training.callbacks.ClosedLoopEvalCallback``), every
-    ``every_n_epochs`` validation runs (counted, so step-based validation of endless epochs works too)."""
+    ``every_n_val`` validation runs (validation runs, not epochs: step-based validation of endless epochs works)."""
 
     enabled: bool = False
-    every_n_epochs: int = 1
+    every_n_val: int = 1
     problems: int = 8
     horizon: int = 10
     max_steps: int | None = None  # MPC steps per episode (None: whole episodes)

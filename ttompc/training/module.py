@@ -108,10 +108,12 @@ class TrajectoryTransformerModule(L.LightningModule):
         cfg = self.optim_cfg
         decay = [p for p in self.parameters() if p.requires_grad and p.dim() >= 2]
         no_decay = [p for p in self.parameters() if p.requires_grad and p.dim() < 2]
+        on_gpu = all(p.is_cuda for p in decay + no_decay)  # Lightning moved the model before this call
         opt = torch.optim.AdamW(
             [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
             lr=cfg.lr,
             betas=(cfg.betas[0], cfg.betas[1]),
+            fused=True if on_gpu else None,  # one kernel per step on CUDA; on CPU the step is <1% of the time
         )
         total = max(int(self.trainer.estimated_stepping_batches), 1) if cfg.schedule == "cosine" else 0
 
