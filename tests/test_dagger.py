@@ -271,3 +271,21 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     assert shards.done(1)
     redo = datasets.load_dataset("parquet", data_files=[str(folder / "train" / "dagger-00001.parquet")], split="train")
     np.testing.assert_array_equal(np.asarray(redo["target_actions"]), np.asarray(rows["target_actions"]))
+
+
+def test_run_folder_of_another_fine_tuning_is_refused(tmp_path: Path, dataset: Path) -> None:
+    from ttompc.finetune import FinetuneError
+
+    run = tmp_path / "run"
+    run.mkdir()
+    state = {"source": "a", "seed": 0, "baseline_metrics": {}, "best": {}, "completed": []}
+    (run / "dagger_state.json").write_text(json.dumps(state))
+    cfg = _config(dataset, run)
+    with pytest.raises(FinetuneError, match="fine-tunes 'a', not 'b'"):
+        finetune(cfg, "b")
+    cfg.dagger.seed = 5
+    with pytest.raises(FinetuneError, match=r"dagger\.seed=0"):
+        finetune(cfg, "a")
+    (run / "dagger_state.json").write_text(json.dumps({"source": "a", "seed": 0, "completed": []}))
+    with pytest.raises(FinetuneError, match="older ttompc"):
+        finetune(cfg, "a")

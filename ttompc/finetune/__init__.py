@@ -4,10 +4,11 @@ not import Lightning; ``finetune`` does when it trains."""
 
 from ttompc.finetune.collect import collect_rollout, expert_schedule
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
-from ttompc.finetune.loop import FinetuneResult, finetune, improves
+from ttompc.finetune.loop import FinetuneError, FinetuneResult, finetune, improves
 
 __all__ = [
     "FinetuneConfig",
+    "FinetuneError",
     "FinetuneResult",
     "collect_rollout",
     "expert_schedule",

@@ -19,7 +19,7 @@ from typing import Literal
 
 from ttompc.config import ConfigError, load_command_config
 from ttompc.data.config import DataConfig
-from ttompc.training.config import LoggerConfig, OptimConfig, TrainerConfig
+from ttompc.training.config import LoggerConfig, OptimConfig, Precision, TrainerConfig
 
 
 @dataclass
@@ -101,7 +101,7 @@ class DaggerTrainerConfig:
     num_nodes: int = 1
     accelerator: str = "auto"
     strategy: str = "auto"
-    precision: str = "32-true"
+    precision: Precision = "32-true"
     num_sanity_val_steps: int = 0
     seed: int = 0
     out_dir: str = "runs/freeflyer-dagger"

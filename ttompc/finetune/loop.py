@@ -39,6 +39,7 @@ import numpy as np
 from ttompc.config import to_container
 from ttompc.data.distributed import RankInfo, rank_info
 from ttompc.data.shards import atomic_write_json
+from ttompc.errors import UserError
 from ttompc.finetune.collect import collect_iteration, rollout_folder
 from ttompc.finetune.config import FinetuneConfig
 
@@ -50,6 +51,10 @@ if TYPE_CHECKING:
 STATE_FILE = "dagger_state.json"
 SOURCE_PLANNER = "source-planner"
 PLANNER = "planner"  # the exported, selected model
+
+
+class FinetuneError(UserError, ValueError):
+    """A run folder or dataset that does not match the requested fine-tuning (the CLI prints it as one line)."""
 
 
 @dataclass
@@ -91,7 +96,7 @@ def _load_state(run: Path) -> dict[str, Any] | None:
         return None
     state = json.loads(path.read_text())
     if "best" not in state:
-        raise ValueError(f"{path} was written by an older ttompc (no keep/reject record); use another trainer.out_dir")
+        raise FinetuneError(f"{path} was written by an older ttompc (no keep/reject record)", "use another out_dir")
     return state
 
 
@@ -132,12 +137,12 @@ def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) 
 def _check_data(dm: Any, planner: Planner, paths: list[str]) -> None:
     """The open-loop data must be the model's: same scenario and normalisation statistics."""
     if dm.scenario_name != planner.scenario.name:
-        raise ValueError(f"open-loop data is for {dm.scenario_name!r}, the model for {planner.scenario.name!r}")
+        raise FinetuneError(f"open-loop data is for {dm.scenario_name!r}, the model for {planner.scenario.name!r}")
     for key in ("states", "actions", "rtg", "ctg"):
         if not np.allclose(dm.stats.mean[key], planner.stats.mean[key], rtol=1e-4, atol=1e-6) or not np.allclose(
             dm.stats.std[key], planner.stats.std[key], rtol=1e-4, atol=1e-6
         ):
-            raise ValueError(
+            raise FinetuneError(
                 f"normalisation statistics of {paths} differ from the model's ({key}); fine-tune on the open-loop "
                 "dataset the model was trained on"
             )
@@ -228,7 +233,9 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     run.mkdir(parents=True, exist_ok=True)
     state = _load_state(run)
     if state is not None and state["source"] != str(source):
-        raise ValueError(f"{run} fine-tunes {state['source']!r}, not {source!r}; use another trainer.out_dir")
+        raise FinetuneError(f"{run} fine-tunes {state['source']!r}, not {source!r}", "use another trainer.out_dir")
+    if state is not None and state["seed"] != cfg.dagger.seed:  # its rollouts so far were drawn with that seed
+        raise FinetuneError(f"{run} was collected with dagger.seed={state['seed']}", "keep it or use another out_dir")
     src_dir = run / SOURCE_PLANNER
     if ranks.is_main and not (src_dir / "config.json").is_file():
         Planner.from_pretrained(source).save(src_dir)
