@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+TINY = str(REPO / "recipes/freeflyer/tiny.yaml")
 
 
 def cli_env(**extra: str) -> dict[str, str]:
@@ -60,10 +61,19 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
         (["generate", "--backend", "nope", "--out", "out"], ["unknown solver backend 'nope'"]),
         (["generate", "missing.yaml", "out=out"], ["recipe not found: missing.yaml"]),
         (
-            ["train", str(REPO / "recipes/freeflyer/tiny.yaml"), "data.paths=[no/such/data]", "trainer.out_dir=out"],
+            ["train", TINY, "data.paths=[no/such/data]", "trainer.out_dir=out"],
             ["dataset folder no/such/data does not exist", "ttompc generate"],
         ),
-        (["train", str(REPO / "recipes/freeflyer/tiny.yaml"), "optim.learning_rate=1"], ["'optim.learning_rate'"]),
+        (["train", TINY, "optim.learning_rate=1"], ["'optim.learning_rate'"]),
+        (
+            [
+                "train",
+                str(REPO / "recipes/freeflyer/tiny.yaml"),
+                f"data.paths=[{REPO / 'recipes'}]",
+                "trainer.out_dir=o",
+            ],
+            ["is not a dataset made by `ttompc generate` (no manifest.json)"],
+        ),
         (["finetune", str(REPO / "recipes/freeflyer/finetune.yaml")], ["--model"]),
         (["zoo", "info", "nope"], ["no model 'nope'"]),
     ],

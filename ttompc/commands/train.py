@@ -34,6 +34,21 @@ def check_datasets(paths: list[str], dagger_dirs: list[str]) -> None:
                 f"{key}: dataset folder {missing[0]} does not exist",
                 f"make it with `ttompc generate out={missing[0]} ...` or point {key}=[...] at existing folders",
             )
+    from ttompc.data.generate import MANIFEST
+    from ttompc.data.resumable import META_DIR
+
+    for folder in map(Path, paths):
+        if (folder / MANIFEST).is_file():
+            continue
+        if (folder / META_DIR).is_dir():
+            raise UserError(
+                f"data.paths: the generation of {folder} is not finished (no {MANIFEST})",
+                "re-run the same `ttompc generate` command (add --finalize once every rank's shards exist)",
+            )
+        raise UserError(
+            f"data.paths: {folder} is not a dataset made by `ttompc generate` (no {MANIFEST})",
+            "point data.paths=[...] at a folder written by `ttompc generate`",
+        )
 
 
 def resume_hint(args: argparse.Namespace) -> str:
