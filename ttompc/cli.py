@@ -68,7 +68,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     module = importlib.import_module(COMMANDS[args.command][0])
     prog = f"ttompc {args.command}"
     try:
-        return int(module.run(args) or 0)
+        code = int(module.run(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows up here, inside the handlers, not at interpreter exit
+        return code
     except UserError as err:
         if debug:
             raise
