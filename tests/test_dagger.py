@@ -46,6 +46,8 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
 def test_trainer_keys_dagger_would_ignore_are_rejected(key: str) -> None:
     with pytest.raises(ConfigError, match=key):
         load_finetune_config(RECIPES / "freeflyer" / "finetune-tiny.yaml", [f"trainer.{key}=1"])
+    with pytest.raises(ConfigError, match="dagger_dirs"):
+        load_finetune_config(None, ["data.dagger_dirs=[x]"])  # DAgger fills it: a value would be ignored
     cfg = load_finetune_config(None, ["trainer.num_sanity_val_steps=2", "trainer.checkpoint_every_n_steps=7"])
     lightning = cfg.trainer.lightning(max_steps=30)  # what build_trainer gets: every DAgger key carried over
     assert (lightning.num_sanity_val_steps, lightning.checkpoint_every_n_steps, lightning.max_steps) == (2, 7, 30)

@@ -138,6 +138,13 @@ class FinetuneConfig:
     trainer: DaggerTrainerConfig = field(default_factory=DaggerTrainerConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
+    def __post_init__(self) -> None:
+        if self.data.dagger_dirs:
+            raise ValueError(
+                "data.dagger_dirs is filled by DAgger itself (<out_dir>/dagger/iter-*); leave it empty in a "
+                f"fine-tuning recipe, got {list(self.data.dagger_dirs)}"
+            )
+
 
 def load_finetune_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> FinetuneConfig:
     """Load and validate a fine-tuning recipe (schema <- YAML <- ``key=value`` overrides)."""
