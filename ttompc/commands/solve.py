@@ -8,7 +8,7 @@ import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     problem = scenario.sample(np.random.default_rng(cfg.seed))
     rel, scp = solve_problem(scenario, problem, backend=cfg.backend, formulation=cfg.formulation)
     rows = {"REL": rel, "SCP": scp}
-    results = {}
+    results: dict[str, dict[str, Any]] = {}
     for name, res in rows.items():
         if res is None:
             results[name] = {"status": "skipped (REL failed)"}

@@ -161,6 +161,7 @@ def _init(cfg: dict[str, Any]) -> None:
     from ttompc.policy import Planner
 
     _W["cfg"] = c = from_container(ClosedLoopConfig, cfg)
+    assert c.scenario is not None  # the caller resolved it before starting the workers
     _W["scenario"] = scenario = get_scenario(c.scenario)
     _W["models"] = {
         name: Planner.from_pretrained(src, scenario, device=c.device)

@@ -257,7 +257,7 @@ def run_mpc(
         Xa,
         Ua,
         terminal_tol=terminal_tol,
-        path_tol=plant.path_tol(scenario) if perturbed else 1e-3,
+        path_tol=plant.path_tol(scenario) if plant is not None and perturbed else 1e-3,
         strict_keepout=not perturbed,
     )
     return Episode(

@@ -80,7 +80,10 @@ class ClosedLoopEvalCallback(L.Callback):
         from ttompc.mpc.metrics import closed_loop_metrics
         from ttompc.policy import Planner
         from ttompc.scenarios import get_scenario
+        from ttompc.training.module import TrajectoryTransformerModule
 
+        if not isinstance(pl_module, TrajectoryTransformerModule):
+            raise TypeError(f"{type(self).__name__} evaluates a TrajectoryTransformerModule, not {type(pl_module)}")
         name = self.scenario_name or pl_module.hparams["scenario"]
         problems = self.problems(name)
         model = pl_module.model

@@ -17,6 +17,12 @@ from ttompc.config import ConfigError, load_command_config
 from ttompc.data.config import DataConfig
 from ttompc.policy.config import ModelConfig
 
+# what ``lightning.Trainer(precision=...)`` accepts (checked when the recipe loads, not when training starts)
+Precision = Literal[
+    "64-true", "32-true", "16-true", "bf16-true", "16-mixed", "bf16-mixed", "transformer-engine",
+    "transformer-engine-float16", "64", "32", "16", "bf16",
+]  # fmt: skip
+
 
 @dataclass
 class OptimConfig:
@@ -51,7 +57,7 @@ class TrainerConfig:
     num_nodes: int = 1
     accelerator: str = "auto"
     strategy: str = "auto"  # e.g. ddp, ddp_spawn, fsdp
-    precision: str = "32-true"  # e.g. bf16-mixed on GPUs
+    precision: Precision = "32-true"  # e.g. bf16-mixed on GPUs
     num_sanity_val_steps: int = 0
     seed: int = 0
     out_dir: str = "runs/freeflyer-pretrain"

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import lightning as L
 import torch
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from torch import Tensor
 
 from ttompc.config import from_container
@@ -84,7 +85,7 @@ class TrajectoryTransformerModule(L.LightningModule):
         B = batch["states"].shape[0]
         self.log("val/loss", loss, prog_bar=True, sync_dist=True, batch_size=B)
         self.log_dict({"val/loss_action": loss_a, "val/loss_state": loss_s}, sync_dist=True, batch_size=B)
-        if batch_idx == 0 and self.hparams.plot_trajectories:
+        if batch_idx == 0 and self.hparams["plot_trajectories"]:
             k = min(4, B)
             self._plot_batch = {
                 "states": batch["states"][:k].detach().cpu(),
@@ -104,7 +105,7 @@ class TrajectoryTransformerModule(L.LightningModule):
         )
         log_figure(self.trainer, "val/trajectories", fig, self.global_step)
 
-    def configure_optimizers(self) -> dict[str, Any]:
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         cfg = self.optim_cfg
         decay = [p for p in self.parameters() if p.requires_grad and p.dim() >= 2]
         no_decay = [p for p in self.parameters() if p.requires_grad and p.dim() < 2]
