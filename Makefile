@@ -34,6 +34,7 @@ test-all: $(VENV)/.installed lint
 lint: $(VENV)/.installed
 	$(BIN)/ruff check ttompc tests bench
 	$(BIN)/ruff format --check ttompc tests bench
+	$(BIN)/mypy  # the package, configured in pyproject.toml [tool.mypy]
 
 bench: $(VENV)/.installed
 	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done
