@@ -125,13 +125,37 @@ def test_from_pretrained_reads_a_bundle_dir_with_its_stats(tmp_path: Path) -> No
         assert torch.equal(loaded.model.state_dict()[key], value), key
 
 
+class _Bomb:
+    """Creates ``marker`` when unpickled."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self) -> tuple[object, tuple[str, str]]:
+        return (open, (str(self.marker), "w"))
+
+
 def test_from_pretrained_names_what_it_could_not_load(tmp_path: Path) -> None:
     other = tmp_path / "weights.pt"
     other.write_bytes(b"not a checkpoint")
     with pytest.raises(BundleError, match="not a Lightning checkpoint"):
         Planner.from_pretrained(other)
-    with pytest.raises(BundleError, match=r"neither a bundle directory, a \.ckpt file nor a zoo model name"):
-        Planner.from_pretrained(tmp_path / "missing" / "bundle")
+    with pytest.raises(BundleError, match=r"no such bundle folder or \.ckpt file") as missing:
+        Planner.from_pretrained(tmp_path / "missing" / "last.ckpt")
+    assert "ttompc zoo list" in str(missing.value.hint)
+    truncated = tmp_path / "truncated.ckpt"
+    truncated.write_bytes(b"PK\x03\x04 cut short")
+    with pytest.raises(BundleError, match="not a readable checkpoint"):
+        Planner.from_pretrained(truncated)
+    marker, bomb = tmp_path / "unpickled", tmp_path / "bomb.ckpt"
+    torch.save({"state_dict": {}, "hyper_parameters": _Bomb(marker)}, bomb)
+    with pytest.raises(BundleError, match="not a readable checkpoint"):
+        Planner.from_pretrained(bomb)
+    assert not marker.exists()  # weights_only loading refused the object instead of running it
+    foreign = tmp_path / "foreign.ckpt"
+    torch.save({"weights": torch.zeros(2)}, foreign)
+    with pytest.raises(BundleError, match="not a checkpoint written by `ttompc train`"):
+        Planner.from_pretrained(foreign)
     (tmp_path / "empty").mkdir()
     with pytest.raises(BundleError, match="missing"):
         Planner.from_pretrained(tmp_path / "empty")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import pickle
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -211,18 +212,17 @@ class Planner:
         from ttompc.zoo import BundleError, check_bundle, download
         from ttompc.zoo.cards import CardError, validate_name
 
+        forms = "pass a zoo model name (see `ttompc zoo list`), a bundle folder or a Lightning .ckpt file"
         path = Path(source)
         if path.is_file():
             if path.suffix != ".ckpt":
-                raise BundleError(f"{path} is a file but not a Lightning checkpoint (*.ckpt)")
+                raise BundleError(f"{path} is a file but not a Lightning checkpoint (*.ckpt)", forms)
             return cls._from_checkpoint(path, scenario, device=device, check_version=check_version)
         if not path.is_dir():
             try:
                 validate_name(str(source))
             except CardError:
-                raise BundleError(
-                    f"{str(source)!r} is neither a bundle directory, a .ckpt file nor a zoo model name"
-                ) from None
+                raise BundleError(f"{str(source)!r}: no such bundle folder or .ckpt file", forms) from None
             path = download(str(source), cache_dir, zoo_dir=zoo_dir, progress=progress)
         check_bundle(path)  # safetensors header + JSON, before anything reads the weights into torch
         return cls._from_bundle(path, scenario, device=device, check_version=check_version)
@@ -255,7 +255,14 @@ class Planner:
     def _from_checkpoint(
         cls, path: Path, scenario: Scenario | None, *, device: str | torch.device, check_version: bool
     ) -> Planner:
-        ckpt = torch.load(path, map_location=device, weights_only=True)
+        from ttompc.zoo import BundleError
+
+        try:  # weights_only: tensors and primitives only, never arbitrary objects
+            ckpt = torch.load(path, map_location=device, weights_only=True)
+        except (OSError, EOFError, RuntimeError, pickle.UnpicklingError) as err:
+            raise BundleError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from None
+        if not isinstance(ckpt, dict) or "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
+            raise BundleError(f"{path} is not a checkpoint written by `ttompc train` (no hyper-parameters)")
         hp = ckpt["hyper_parameters"]
         state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
         extra = {"global_step": int(ckpt.get("global_step", 0)), "epoch": int(ckpt.get("epoch", 0))}
