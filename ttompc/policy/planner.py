@@ -233,9 +233,11 @@ class Planner:
     ) -> Planner:
         from safetensors.torch import load_file
 
+        from ttompc.zoo import BundleError
+
         meta = json.loads((src / CONFIG_FILE).read_text())
         if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
-            raise ValueError(f"{src}: not a {FORMAT} v{FORMAT_VERSION} bundle")
+            raise BundleError(f"{src}: not a {FORMAT} v{FORMAT_VERSION} bundle")
         state = load_file(str(src / WEIGHTS_FILE), device=str(device))
         return cls._build(
             meta["model"],
@@ -294,13 +296,16 @@ class Planner:
         check_version: bool,
         **meta: Any,
     ) -> Planner:
+        from ttompc.zoo import BundleError
+
         scenario = scenario or get_scenario(scenario_name)
         if scenario.name != scenario_name:
-            raise ValueError(f"model was trained on scenario {scenario_name!r}, not {scenario.name!r}")
+            raise BundleError(f"model was trained on scenario {scenario_name!r}, not {scenario.name!r}")
         if check_version and scenario.version != scenario_version:
-            raise ValueError(
+            raise BundleError(
                 f"model was trained on {scenario_name} v{scenario_version} but the installed scenario is "
-                f"v{scenario.version}; pass check_version=False to use it anyway"
+                f"v{scenario.version}",
+                "use a model trained on the installed scenario, or pass check_version=False to use it anyway",
             )
         model = TrajectoryGPT(from_container(ModelConfig, model_cfg))
         model.load_state_dict(state)
