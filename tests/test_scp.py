@@ -161,3 +161,14 @@ def test_bad_inputs_raise_clear_errors(ff) -> None:
     X_bad[3, 0] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
         solve_scp(ff, p, X_bad, U)
+
+
+def test_converged_warm_start_costs_one_subproblem(ff, solved) -> None:
+    """The stopping rule compares the first iterate with the warm start: restarting from an SCP optimum is a fixed
+    point found in one subproblem, at the same cost; a far-off warm start still iterates."""
+    p, _, scp = solved[1]
+    again = solve_scp(ff, p, scp.X, scp.U)
+    assert again.success and again.iterations == 1
+    assert again.cost == pytest.approx(scp.cost, rel=1e-6)
+    X0, U0 = ff.initial_guess(p)
+    assert solve_scp(ff, p, X0, U0).iterations > 1

@@ -151,6 +151,8 @@ def run_scp(
         blocks = scenario.constraints(problem, window, X_ref, U_ref, obstacles=obstacles)
         if not penalized:  # the reference formulation: every linearised constraint is hard
             blocks = [_hard(b) for b in blocks]
+        if it == 0:  # the warm start's merit (see the stopping rule below)
+            prev_merit = _merit(scenario, X_ref, U_ref, blocks, fuel_weight, terminal, soft_equalities)
         if solver is None:  # block structure depends only on the window (Scenario.constraints): one spec per solve
             spec = SubproblemSpec(
                 H=H,
@@ -195,7 +197,7 @@ def run_scp(
                 status = sub_failed
             break
         cost = scenario.cost(U)
-        merit = fuel_weight * cost + _terminal_term(X, terminal) + _soft_eq_term(blocks, X, U, soft_equalities)
+        merit = _merit(scenario, X, U, blocks, fuel_weight, terminal, soft_equalities)
         violation = scenario.constraint_violation(problem, X, U, window, obstacles=obstacles)
         if terminal is None:
             violation = max(violation, float(np.max(np.abs(X[-1] - problem.goal))))
@@ -207,12 +209,10 @@ def run_scp(
             best = (merit, X, U, violation, it)
         if least_bad is None or violation < least_bad[0]:
             least_bad = (violation, X, U, it)
-        converged = (
-            it >= 1
-            and step <= settings.tr_end
-            and prev_merit is not None
-            and (abs(merit - prev_merit) <= settings.cost_tol)
-        )
+        # a fixed point: the step from this iteration's linearisation point and the merit change from that point
+        # are both below tolerance. The first iteration compares with the warm start, so a converged warm start
+        # costs one subproblem, not two.
+        converged = step <= settings.tr_end and prev_merit is not None and abs(merit - prev_merit) <= settings.cost_tol
         X_ref, U_ref, prev_merit = X, U, merit
         delta *= shrink
         if converged or not use_tr:
@@ -244,6 +244,19 @@ def run_scp(
         history=history,
         best_iteration=best_it,
     )
+
+
+def _merit(
+    scenario: Scenario,
+    X: np.ndarray,
+    U: np.ndarray,
+    blocks: list[ConstraintBlock],
+    fuel_weight: float,
+    terminal: TerminalCost | None,
+    soft_equalities: bool,
+) -> float:
+    """Weighted stage cost + soft terminal term + soft equality penalties of a window trajectory."""
+    return fuel_weight * scenario.cost(U) + _terminal_term(X, terminal) + _soft_eq_term(blocks, X, U, soft_equalities)
 
 
 def _shapes(blocks: list[ConstraintBlock]) -> tuple:
