@@ -100,7 +100,7 @@ def _style(i: int) -> dict[str, Any]:
     return {
         "color": f"C{i % 10}",
         "linestyle": _LINESTYLES[i % len(_LINESTYLES)],
-        "linewidth": max(3.4 - 0.35 * i, 0.9),
+        "linewidth": max(5.0 - 0.8 * i, 1.0),
         "zorder": 2 + i,
         "marker": "o" if i % 2 else "",
         "markevery": 10,
@@ -138,7 +138,7 @@ def trajectory_figure(scenario: Scenario, panels: Sequence[Panel], title: str = 
                     line.set_label(f"{label} (INFEASIBLE)")
                     x, y = line.get_data()
                     ax.plot(x[-1:], y[-1:], "x", color=line.get_color(), markersize=12, mew=3, zorder=20)
-        ax.legend(loc="upper left", fontsize=7)
+        ax.legend(loc="best", fontsize=7, framealpha=0.7)
         ax.set_title(panel.title, fontsize=9)
     if title:
         fig.suptitle(title, fontsize=10)
