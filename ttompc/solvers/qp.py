@@ -8,8 +8,11 @@ solver takes two-sided rows and variable bounds directly:
 
 * L1 cost: u = u⁺ − u⁻ with u± ≥ 0 as bounds and cost Σ(u⁺ + u⁻) (the conic form needs t and 2·H·m rows);
 * a soft row lower ≤ g ≤ h with exact penalty ρ·dist(g, [lower, h]) is the single row lower ≤ g − e⁺ + e⁻ ≤ h,
-  e± ≥ 0 (the conic form needs two rows and a slack row); penalised equalities and virtual control likewise;
-* the ∞-norm trust region is a pair of bounds on each state, not 2n rows per step.
+  e± ≥ 0 (the conic form needs two rows and a slack row); a one-sided row needs e⁺ only; penalised equalities
+  and virtual control as g − e⁺ + e⁻ = h;
+* the ∞-norm trust region is a pair of bounds on each state, not 2n rows per step, and hard rows that touch one
+  variable each (the free-flyer's table, the quadrotor's control box; from the blocks' structural masks) are
+  bounds intersected with it.
 
 Every number that changes between SCP iterations is gathered in one pass from a flat vector of the iteration's
 data (dynamics, constraint blocks, trust-region centre and radius) through index maps built once per structure,
