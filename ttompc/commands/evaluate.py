@@ -14,10 +14,15 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TYPE_CHECKING
 
 from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
 from ttompc.errors import UserError
+
+if TYPE_CHECKING:
+    from ttompc.evaluation.closed_loop import ClosedLoopConfig
+    from ttompc.evaluation.warmstart import WarmStartConfig
 
 _FLAGS = {
     "model": "model",
@@ -49,18 +54,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _shortcuts(mpc, "--model freeflyer-tto-small horizons=[10,30] plants=[nominal]")
 
 
-def _resolve_scenario(cfg: object) -> None:
-    """The scenario defaults to the model's; checked before any work."""
-    model = getattr(cfg, "model", None)
-    if getattr(cfg, "scenario", None) is None:
-        if not model:
+def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
+    """The scenario defaults to the model's; settings are checked before any work."""
+    if cfg.scenario is None:
+        if not cfg.model:
             raise UserError("evaluate needs a model or a scenario", "pass --model NAME or scenario=NAME")
         from ttompc.policy import Planner
 
-        cfg.scenario = Planner.from_pretrained(model).scenario.name  # type: ignore[attr-defined]
-    checks.scenario(cfg.scenario)  # type: ignore[attr-defined]
-    checks.seed(cfg.seed)  # type: ignore[attr-defined]
-    checks.backend(cfg.backend)  # type: ignore[attr-defined]
+        cfg.scenario = Planner.from_pretrained(cfg.model).scenario.name
+    checks.scenario(cfg.scenario)
+    checks.seed(cfg.seed)
+    checks.backend(cfg.backend)
 
 
 def run(args: argparse.Namespace) -> int:

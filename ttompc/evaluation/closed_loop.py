@@ -29,7 +29,7 @@ import numpy as np
 from ttompc.evaluation.metrics import gain_share, paper_normalized, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.warmstart import default_workers
-from ttompc.mpc.loop import run_mpc
+from ttompc.mpc.loop import Mode, run_mpc
 from ttompc.mpc.metrics import episode_record, format_interval, summarize_episodes
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import (
@@ -79,7 +79,7 @@ class ClosedLoopConfig:
     plant: PlantConfig = field(default_factory=PlantConfig)
     robust_blend: float = 0.95  # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0 leaves them out
     rtg_scale: float = 1.0  # rtg_0 = −rtg_scale·J_REL
-    mode: str = "soft"
+    mode: Mode = "soft"
     max_steps: int | None = None  # truncated episodes (smoke runs)
     workers: int = 0  # processes; 0 = one per CPU core
     backend: str = "auto"
@@ -92,8 +92,6 @@ class ClosedLoopConfig:
         bad = [p for p in self.plants if p not in PLANTS]
         if bad or not self.plants:
             raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")
-        if self.mode not in ("soft", "hard"):
-            raise ValueError(f"mode must be 'soft' or 'hard', got {self.mode!r}")
         TerminalDesign(self.robust_blend)  # validates the blend
 
 
@@ -142,7 +140,7 @@ def run_problem(
                     provider,
                     H,
                     rel_cost=ep.rel_cost,
-                    mode=cfg.mode,  # type: ignore[arg-type]
+                    mode=cfg.mode,
                     max_steps=cfg.max_steps,
                     backend=cfg.backend,
                     plant=noise,
