@@ -241,3 +241,30 @@ def test_ctrl_c_during_train_says_how_to_resume_and_the_rerun_resumes(tmp_path: 
     again = ttompc(*argv, "trainer.max_steps=4", cwd=tmp_path, timeout=300)
     assert again.returncode == 0, again.stderr
     assert "resuming from" in again.stderr and "Traceback" not in again.stderr
+
+
+@pytest.mark.parametrize(
+    ("argv", "key"),
+    [
+        (["solve"], "seed"),
+        (["generate"], "seed"),
+        (["train", TINY], "trainer.seed"),
+        (["finetune", str(REPO / "recipes/freeflyer/finetune.yaml")], "dagger.seed"),
+        (["evaluate", "warmstart"], "seed"),
+        (["evaluate", "mpc"], "seed"),
+        (["demo"], "seed"),
+    ],
+)
+def test_every_command_takes_key_value_settings(argv: list[str], key: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """One config style: `ttompc COMMAND [RECIPE] key=value --print-config` resolves through the one loader."""
+    import json
+
+    from ttompc.cli import main
+
+    assert main([*argv, f"{key}=5", "--print-config"]) == 0
+    node = json.loads(capsys.readouterr().out)
+    for part in key.split("."):
+        node = node[part]
+    assert node == 5
+    assert main([*argv, f"{key}x=5"]) == 2
+    assert f"unknown setting '{key}x'" in capsys.readouterr().err
