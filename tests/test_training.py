@@ -121,6 +121,7 @@ def tiny_config(out_dir: Path, *overrides: str) -> TrainConfig:
     )
 
 
+@pytest.mark.slow  # ~50 s on the loaded 2-core machine: make test-all / CI
 def test_loss_decreases_on_synthetic_data() -> None:
     torch.manual_seed(0)
     dm = ToyDataModule(n=64, batch_size=32)
@@ -253,6 +254,7 @@ def test_train_cli_reports_config_errors(capsys: pytest.CaptureFixture[str]) -> 
     assert json.loads(capsys.readouterr().out)["optim"]["lr"] == 0.5
 
 
+@pytest.mark.slow  # two spawned training processes, ~40 s: make test-all / CI
 def test_ddp_spawn_two_cpu_processes(tmp_path: Path) -> None:
     """Spawned workers train; the launching process still reports the workers' step and exports the planner."""
     out = tmp_path / "ddp_spawn"
@@ -283,6 +285,7 @@ print("RESULT", res.global_step, flush=True)
 """
 
 
+@pytest.mark.slow  # two training processes, ~40 s: make test-all / CI
 def test_ddp_two_cpu_processes(tmp_path: Path) -> None:
     """``trainer.strategy=ddp``: Lightning re-launches the script as a second process (gloo on localhost)."""
     script = tmp_path / "ddp_run.py"
