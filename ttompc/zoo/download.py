@@ -122,7 +122,7 @@ def _cached(entry: FileEntry, dest: Path) -> bool:
 
 @contextlib.contextmanager
 def _locked(path: Path) -> Iterator[None]:
-    """Serialise downloads of one blob across processes (e.g. DDP ranks all calling load_pretrained)."""
+    """Serialise downloads of one blob across processes (e.g. DDP ranks all calling Planner.from_pretrained)."""
     if fcntl is None:
         yield
         return
