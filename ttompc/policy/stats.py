@@ -18,6 +18,9 @@ EPS = 1e-6  # added to σ like the reference, so constant dimensions (RPOD goal)
 
 @dataclass
 class NormStats:
+    """Per-modality mean and std (float64 arrays, one value per feature). Treat as read-only once used: tensor copies
+    are cached per dtype and device."""
+
     mean: dict[str, np.ndarray]
     std: dict[str, np.ndarray]
     # (key, dtype, device) -> (μ, σ + ε) as tensors: the rollout normalises every step, converting once is cheaper
