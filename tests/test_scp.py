@@ -172,3 +172,15 @@ def test_converged_warm_start_costs_one_subproblem(ff, solved) -> None:
     assert again.cost == pytest.approx(scp.cost, rel=1e-6)
     X0, U0 = ff.initial_guess(p)
     assert solve_scp(ff, p, X0, U0).iterations > 1
+
+
+def test_rel_from_a_guess(ff) -> None:
+    """A REL solution as the guess (e.g. the previous MPC step's plan) is a fixed point: one subproblem, same cost;
+    a guess of the wrong shape is refused by name."""
+    p = ff.sample(np.random.default_rng(9))
+    rel = solve_rel(ff, p)
+    again = solve_rel(ff, p, guess=(rel.X, rel.U))
+    assert rel.iterations >= 2 and again.iterations == 1
+    assert again.cost == pytest.approx(rel.cost, rel=1e-6)
+    with pytest.raises(ValueError, match="REL guess must have shapes"):
+        solve_rel(ff, p, guess=(rel.X[:-1], rel.U))

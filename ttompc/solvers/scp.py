@@ -81,12 +81,26 @@ def solve_rel(
     *,
     window: Window | None = None,
     x_start: np.ndarray | None = None,
+    guess: tuple[np.ndarray, np.ndarray] | None = None,
     **kwargs,
 ) -> SCPResult:
     """The REL relaxation (no keep-out constraints) from the straight-line guess; a single convex solve when the
-    scenario's REL is convex (RPOD), otherwise SCP (free-flyer heading-dependent thruster bound, quadrotor drag)."""
+    scenario's REL is convex (RPOD), otherwise SCP (free-flyer heading-dependent thruster bound, quadrotor drag).
+
+    ``guess`` (X (H+1, n), U (H, m)) replaces the straight line as the SCP's starting point (its X[0] is replaced by
+    the window's first state), e.g. the previous receding-horizon step's REL plan shifted by one step: a converged
+    guess costs one subproblem instead of three."""
     window = window or Window.full(problem)
     X0, U0 = scenario.initial_guess(problem, window, x_start)
+    if guess is not None:
+        X_g, U_g = np.array(guess[0], dtype=np.float64), np.array(guess[1], dtype=np.float64)
+        if X_g.shape != X0.shape or U_g.shape != U0.shape:
+            raise ValueError(
+                f"{scenario.name}: REL guess must have shapes {X0.shape} and {U0.shape}, got {X_g.shape} and "
+                f"{U_g.shape}"
+            )
+        X_g[0] = X0[0]
+        X0, U0 = X_g, U_g
     if scenario.rel_is_convex:
         kwargs.setdefault("settings", _single_solve(kwargs.get("settings") or scenario.scp))
     return solve_scp(scenario, problem, X0, U0, window=window, obstacles=False, **kwargs)
