@@ -208,24 +208,29 @@ def main() -> None:
         "processor": platform.processor(),
         "python": platform.python_version(),
         "cpus": os.cpu_count(),
-        "load_average_start": os.getloadavg(),
     }
     out = Path(args.out)
     # --only re-runs one part and keeps the others from the previous result file
     result: dict = json.loads(out.read_text()) if args.only and out.is_file() else {}
     result["machine"] = machine
     scenarios = args.scenarios.split(",")
+    loads = result.setdefault("load_average", {})  # per part: (start, end) 1/5/15-minute load averages
     if args.only in (None, "peer"):
+        start = os.getloadavg()
         result["peer"] = {name: peer(name, args.peer_problems) for name in scenarios if name in PEER_SCENARIOS}
+        loads["peer"] = (start, os.getloadavg())
     if args.only in (None, "robustness") and args.robustness:
+        start = os.getloadavg()
         result["robustness"] = {
             name: robustness(name, args.robustness, reference=name == "freeflyer")
             for name in scenarios
             if name in PEER_SCENARIOS
         }
+        loads["robustness"] = (start, os.getloadavg())
     if args.only in (None, "naive"):
+        start = os.getloadavg()
         result["naive"] = {name: speed(name, args.naive_problems, args.naive_problems) for name in scenarios}
-    result["machine"]["load_average_end"] = os.getloadavg()
+        loads["naive"] = (start, os.getloadavg())
     headline: dict = {}
     for name, row in result.get("peer", {}).items():
         key = {"freeflyer": "ff", "quadrotor": "quad"}[name]
