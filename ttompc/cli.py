@@ -2,7 +2,8 @@
 
 The ``ttompc`` console entry point is a thin dispatcher: each subcommand lives in ``ttompc.commands.<name>`` with
 ``add_arguments(parser)``, ``run(args) -> int`` and optionally ``resume_hint(args) -> str`` (what to do after
-Ctrl-C or a full disk), imported only when used so ``ttompc solve`` stays fast (no Lightning).
+Ctrl-C or a full disk) and ``output_dir(args) -> str`` (where it writes), imported only when used so
+``ttompc solve`` stays fast (no Lightning).
 
 One error path for every command: a ``UserError`` (bad settings, unknown names, missing or damaged files) prints
 one line naming the problem and what to do and exits with 2; Ctrl-C says how to resume and exits with 130; a full
@@ -87,7 +88,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as err:
         if debug or not is_disk_full(err):
             raise
-        where = f" while writing {err.filename}" if err.filename else ""
+        target = err.filename or _output_dir(module, args)
+        where = f" while writing {target}" if target else ""
         _say(f"{prog}: error: no space left on device{where}. Free some space, then {_resume_hint(module, args)}")
         return 1
     except Exception as err:
@@ -111,6 +113,16 @@ def _resume_hint(module: ModuleType, args: argparse.Namespace) -> str:
     """What to do next, e.g. "re-run the same command to resume (checkpoints in runs/x are kept)"."""
     hint_of = getattr(module, "resume_hint", None)
     return hint_of(args) if hint_of is not None else "run the command again (it keeps no partial results)"
+
+
+def _output_dir(module: ModuleType, args: argparse.Namespace) -> str | None:
+    """Where the command writes (``output_dir(args)`` of its module), to name the full disk when the error does not
+    (pyarrow's and many libraries' write errors carry no file name)."""
+    output_of = getattr(module, "output_dir", None)
+    try:
+        return output_of(args) if output_of is not None else None
+    except UserError:
+        return None
 
 
 def _say(line: str) -> None:

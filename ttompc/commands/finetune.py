@@ -24,9 +24,13 @@ def _config(args: argparse.Namespace) -> FinetuneConfig:
     return load_finetune_config(recipe, overrides)
 
 
+def output_dir(args: argparse.Namespace) -> str:
+    return _config(args).trainer.out_dir
+
+
 def resume_hint(args: argparse.Namespace) -> str:
     try:
-        out_dir = _config(args).trainer.out_dir
+        out_dir = output_dir(args)
     except UserError:
         out_dir = "trainer.out_dir"
     return f"re-run the same command to continue after the last finished iteration (kept in {out_dir})"

@@ -75,15 +75,12 @@ def _split_fractions(text: str | None) -> list[str]:
 
 
 def resume_hint(args: argparse.Namespace) -> str:
-    where = f" in {_out_of(args)}" if _out_of(args) else ""
-    return f"re-run the same command to generate only the missing shards (finished shards{where} are kept)"
+    kept = f"finished shards in {output_dir(args)} are kept"
+    return f"re-run the same command to generate only the missing shards ({kept})"
 
 
-def _out_of(args: argparse.Namespace) -> str | None:
-    try:
-        return config_from_args(args).out
-    except UserError:
-        return None
+def output_dir(args: argparse.Namespace) -> str:
+    return config_from_args(args).out
 
 
 def run(args: argparse.Namespace) -> int:

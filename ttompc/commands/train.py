@@ -51,9 +51,13 @@ def check_datasets(paths: list[str], dagger_dirs: list[str]) -> None:
         )
 
 
+def output_dir(args: argparse.Namespace) -> str:
+    return _config(args).trainer.out_dir
+
+
 def resume_hint(args: argparse.Namespace) -> str:
     try:
-        out_dir = _config(args).trainer.out_dir
+        out_dir = output_dir(args)
     except UserError:
         out_dir = "trainer.out_dir"
     return f"re-run the same command to resume from the newest checkpoint (checkpoints in {out_dir} are kept)"
