@@ -109,11 +109,11 @@ def shortcut_overrides(args: argparse.Namespace, flags: Mapping[str, str]) -> li
     return [f"{key}={getattr(args, dest)}" for dest, key in flags.items() if getattr(args, dest, None) is not None]
 
 
-def command_config(schema_cls: type[T], args: argparse.Namespace, flags: Mapping[str, str] = {}) -> T:
+def command_config(schema_cls: type[T], args: argparse.Namespace, flags: Mapping[str, str] | None = None) -> T:
     """The config of a command whose parser used ``add_config_arguments``: recipe, then shortcut flags, then the
     explicit ``key=value`` overrides (the last word wins)."""
     recipe, overrides = split_recipe(args.settings)
-    return load_command_config(schema_cls, recipe, [*shortcut_overrides(args, flags), *overrides])
+    return load_command_config(schema_cls, recipe, [*shortcut_overrides(args, flags or {}), *overrides])
 
 
 def from_container(schema: type[T], data: dict[str, Any]) -> T:
