@@ -32,6 +32,7 @@ def test_progress_default_and_switches(monkeypatch: pytest.MonkeyPatch, env: dic
     assert progress_enabled() is expected
 
 
+@pytest.mark.slow  # two tiny Lightning runs (~25 s on the shared 2-core machine)
 def test_training_shows_steps_rate_eta_and_loss_without_noise(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
 ) -> None:
@@ -52,3 +53,10 @@ def test_training_shows_steps_rate_eta_and_loss_without_noise(
     for word in NOISE:
         assert word not in captured.out + captured.err, (word, captured.err)
     assert [str(w.message) for w in caught] == []
+
+    # resumed mid-epoch: the bar continues at the resumed step, towards the new max_steps
+    resumed = tiny_config(out, "trainer.max_steps=8", "logger.kind=csv", "trainer.export_planner=false")
+    train(resumed, ToyDataModule(n=32))
+    frames = capfd.readouterr().out.replace("\r", "\n").splitlines()
+    bars = [f for f in frames if f.startswith("train:")]
+    assert bars and "6/8" in bars[0] and "8/8" in bars[-1], bars

@@ -38,8 +38,15 @@ class StepProgressBar(TQDMProgressBar):
     resume; this bar shows ``step/max_steps``, steps/s over this session, the ETA and the logged losses.
     """
 
+    def on_train_start(self, trainer: Any, pl_module: Any) -> None:
+        super().on_train_start(trainer, pl_module)
+        self._count_steps(trainer)  # a run resumed mid-epoch gets no on_train_epoch_start first
+
     def on_train_epoch_start(self, trainer: Any, *args: Any) -> None:
         super().on_train_epoch_start(trainer, *args)
+        self._count_steps(trainer)
+
+    def _count_steps(self, trainer: Any) -> None:
         if trainer.max_steps > 0:
             bar = self.train_progress_bar
             bar.reset(total=trainer.max_steps)
