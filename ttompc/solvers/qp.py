@@ -31,7 +31,7 @@ import scipy.sparse as sp
 
 from ttompc.scenarios.base import BlockKind
 from ttompc.solvers.backends import BackendSolution, cone_error
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec, structural_mask
 
 # a sparse-pattern entry: (rows, cols, source index into the flat data vector, coefficient[, keep mask])
 _Entry = tuple[np.ndarray | float, ...]
@@ -117,11 +117,11 @@ class QPSubproblem:
         eq.append((rd, self.ix[1:], np.full((H, n), one), np.ones((H, n))))
         rr = np.broadcast_to(rd[:, :, None], (H, n, n))
         cols = np.broadcast_to(self.ix[:-1][:, None, :], (H, n, n))
-        eq.append((rr, cols, self._key("A").reshape(H, n, n), -1.0, _mask(a_mask, (n, n))))
+        eq.append((rr, cols, self._key("A").reshape(H, n, n), -1.0, structural_mask(a_mask, (n, n))))
         for iu, sign in self.u_parts:
             rr = np.broadcast_to(rd[:, :, None], (H, n, m))
             cols = np.broadcast_to(iu[:, None, :], (H, n, m))
-            eq.append((rr, cols, self._key("B").reshape(H, n, m), -sign, _mask(b_mask, (n, m))))
+            eq.append((rr, cols, self._key("B").reshape(H, n, m), -sign, structural_mask(b_mask, (n, m))))
         b_parts.append((rd.ravel(), self._key("c"), np.ones(H * n)))
         if spec.virtual_control:
             rows = spec.virtual_rows()
@@ -150,12 +150,14 @@ class QPSubproblem:
             dest = eq if is_eq else ineq
             rr = np.broadcast_to(r[:, :, None], (K, M, n))
             cols = np.broadcast_to(self.ix[steps][:, None, :], (K, M, n))
-            dest.append((rr, cols, self._key(f"G{bi}x").reshape(K, M, n), 1.0, _mask(gx_mask, (M, n))))
+            dest.append((rr, cols, self._key(f"G{bi}x").reshape(K, M, n), 1.0, structural_mask(gx_mask, (M, n))))
             if has_u:
                 for iu, sign in self.u_parts:
                     rr = np.broadcast_to(r[:, :, None], (K, M, m))
                     cols = np.broadcast_to(iu[steps][:, None, :], (K, M, m))
-                    dest.append((rr, cols, self._key(f"G{bi}u").reshape(K, M, m), sign, _mask(gu_mask, (M, m))))
+                    dest.append(
+                        (rr, cols, self._key(f"G{bi}u").reshape(K, M, m), sign, structural_mask(gu_mask, (M, m)))
+                    )
             if is_eq:
                 b_parts.append((r.ravel(), self._key(f"h{bi}"), np.ones(K * M)))
             else:
@@ -178,7 +180,9 @@ class QPSubproblem:
         n, m, K = self.spec.n, self.spec.m, len(steps)
         if gx_mask is None or (has_u and gu_mask is None):
             return False
-        mask = np.hstack([_mask(gx_mask, (M, n)), _mask(gu_mask, (M, m)) if has_u else np.zeros((M, m), bool)])
+        mask = np.hstack(
+            [structural_mask(gx_mask, (M, n)), structural_mask(gu_mask, (M, m)) if has_u else np.zeros((M, m), bool)]
+        )
         col = np.argmax(mask, axis=1)  # (M,) the one variable of each row: state entries, then controls
         on_u = col >= n
         if not np.all(mask.sum(axis=1) == 1) or (on_u.any() and len(self.u_parts) != 1):
@@ -360,11 +364,6 @@ class _CSCMap:
 
     def matrix(self, values: np.ndarray) -> sp.csc_matrix:
         return sp.csc_matrix((values, self.indices, self.indptr), shape=self.shape)
-
-
-def _mask(flat: tuple[bool, ...] | None, shape: tuple[int, int]) -> np.ndarray:
-    """A structural mask from its spec form (None: dense)."""
-    return np.ones(shape, bool) if flat is None else np.asarray(flat, bool).reshape(shape)
 
 
 def _vector(base: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> _Vector:

@@ -86,6 +86,11 @@ class SubproblemSpec:
         )
 
 
+def structural_mask(flat: tuple[bool, ...] | None, shape: tuple[int, int]) -> np.ndarray:
+    """A structural mask from its spec form (None: dense)."""
+    return np.ones(shape, bool) if flat is None else np.asarray(flat, bool).reshape(shape)
+
+
 @dataclass
 class _Group:
     """Rows of one cone type with their COO entries; values either constant or gathered from update data."""
@@ -126,10 +131,13 @@ class AssembledSubproblem:
         # dynamics: x_{j+1} − A_j x_j − B_j u_j − (ν⁺_j − ν⁻_j) = c_j
         rdyn = zero.add_rows(H * n).reshape(H, n)
         self._entries(zero, rdyn, self.ix[1:], ("const", np.ones((H, n))))
-        rr = np.repeat(rdyn[:, :, None], n, axis=2)
-        self._entries(zero, rr, np.broadcast_to(self.ix[:-1][:, None, :], (H, n, n)), ("data", ("A", None, -1.0)))
-        rr = np.repeat(rdyn[:, :, None], m, axis=2)
-        self._entries(zero, rr, np.broadcast_to(self.iu[:, None, :], (H, n, m)), ("data", ("B", None, -1.0)))
+        # A_j, B_j entries: only the structural nonzeros (spec.model_masks), gathered from the flattened arrays
+        a_mask, b_mask = (None, None) if spec.model_masks is None else spec.model_masks
+        for key, cols, width, mask in (("A", self.ix[:-1], n, a_mask), ("B", self.iu, m, b_mask)):
+            keep = np.broadcast_to(structural_mask(mask, (n, width)), (H, n, width))
+            rr = np.broadcast_to(rdyn[:, :, None], (H, n, width))[keep]
+            cc = np.broadcast_to(cols[:, None, :], (H, n, width))[keep]
+            self._entries(zero, rr, cc, ("data", (key, np.arange(H * n * width).reshape(H, n, width)[keep], -1.0)))
         zero.b.append((rdyn.ravel(), ("c", None, 1.0)))
         if spec.virtual_control:
             rows = spec.virtual_rows()
@@ -275,15 +283,20 @@ class AssembledSubproblem:
     def _block_entries(
         self, group: _Group, rows: np.ndarray, bi: int, kk: int, step: int, has_u: bool, sign: float
     ) -> None:
+        """Gx[kk] (M, n) on x_step and Gu[kk] (M, m) on u_step, gathered from the flattened (K, M, ·) arrays; only
+        the block's structural nonzeros (its masks in the signature)."""
         n, m = self.spec.n, self.spec.m
         M = len(rows)
-        # Gx[kk] (M, n) on x_step, gathered from the flattened (K, M, n) array
-        self._entries(
-            group, rows[:, None], self.ix[step][None, :], ("data", (f"G{bi}x", kk * M * n + np.arange(M * n), sign))
-        )
+        sig = self.spec.blocks[bi]
+        parts = [(f"G{bi}x", self.ix[step], n, sig[8] if len(sig) > 8 else None)]
         if has_u:
+            parts.append((f"G{bi}u", self.iu[step], m, sig[9] if len(sig) > 9 else None))
+        for key, cols, width, mask in parts:
+            keep = structural_mask(mask, (M, width))
+            rr = np.broadcast_to(rows[:, None], (M, width))[keep]
+            cc = np.broadcast_to(cols[None, :], (M, width))[keep]
             self._entries(
-                group, rows[:, None], self.iu[step][None, :], ("data", (f"G{bi}u", kk * M * m + np.arange(M * m), sign))
+                group, rr, cc, ("data", (key, (kk * M * width + np.arange(M * width)).reshape(M, width)[keep], sign))
             )
 
     def _finalise(self, zero: _Group, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]) -> None:
