@@ -186,7 +186,7 @@ def format_table(summary: list[dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|",
     ]
     for e in summary:
-        share = format_interval(e["gain_share"], 100, 2) + " %" if "gain_share" in e else "–"
+        share = format_interval(e["gain_share"], 100) + " %" if "gain_share" in e else "–"
         lines.append(
             f"| {e['method']} | {e['runs'] - e['failures']}/{e['runs']} | {format_interval(e['suboptimality'], 100)} "
             f"| {format_interval(e['iterations'])} | {e['time']:.3f} | {share} |"

@@ -62,7 +62,8 @@ def episode_record(e: Episode) -> dict[str, Any]:
 
 def summarize_episodes(records: Sequence[dict[str, Any]], *, seed: int = 0) -> dict[str, Any]:
     """Counts (runs, feasible, infeasible), intervals of the relative cost increment and applied cost over the
-    feasible runs, plan consistency, step times and fallbacks of a group of episode records."""
+    feasible runs, plan consistency, step times, fallbacks and the goal miss of the infeasible runs of a group of
+    episode records."""
     feasible = [r for r in records if r["feasible"]]
     return {
         "runs": len(records),
@@ -74,6 +75,9 @@ def summarize_episodes(records: Sequence[dict[str, Any]], *, seed: int = 0) -> d
         "mean_step_time": float(np.mean([r["mean_step_time"] for r in records])) if records else float("nan"),
         "max_step_time": float(np.max([r["max_step_time"] for r in records])) if records else float("nan"),
         "fallbacks": int(sum(r["fallbacks"] for r in records)),
+        "infeasible_terminal_error": interval(
+            [r["terminal_error"] for r in records if not r["feasible"]], seed=seed
+        ),  # how far the infeasible runs ended from the goal
     }
 
 
