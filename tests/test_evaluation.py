@@ -41,17 +41,17 @@ def test_interval_mean_standard_error_and_bootstrap() -> None:
 
 
 def test_infeasible_runs_are_counted_apart_not_averaged() -> None:
+    common = {"mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0, "target_change": 0.1}
     recs = [
-        {"feasible": True, "cost": 1.2, "rel_increment": 0.2, "target_change": 0.1, "mean_step_time": 0.01,
-         "max_step_time": 0.02, "fallbacks": 0},
-        {"feasible": True, "cost": 1.4, "rel_increment": 0.4, "target_change": 0.1, "mean_step_time": 0.01,
-         "max_step_time": 0.03, "fallbacks": 1},
-        {"feasible": False, "cost": 0.5, "rel_increment": float("nan"), "target_change": 0.5,
-         "mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0},
+        {**common, "feasible": True, "cost": 1.2, "rel_increment": 0.2, "terminal_error": 0.01},
+        {**common, "feasible": True, "cost": 1.4, "rel_increment": 0.4, "terminal_error": 0.02, "max_step_time": 0.03,
+         "fallbacks": 1},
+        {**common, "feasible": False, "cost": 0.5, "rel_increment": float("nan"), "terminal_error": 0.7},
     ]  # fmt: skip
     s = summarize_episodes(recs)
     assert (s["runs"], s["feasible"], s["infeasible"]) == (3, 2, 1)
     assert s["rel_increment"]["mean"] == pytest.approx(0.3) and s["cost"]["mean"] == pytest.approx(1.3)
+    assert s["infeasible_terminal_error"]["mean"] == pytest.approx(0.7) and s["infeasible_terminal_error"]["n"] == 1
     assert s["max_step_time"] == 0.03 and s["fallbacks"] == 1
 
 
