@@ -330,3 +330,14 @@ def test_demo_command_closed_loop(tmp_path: Path, bundle: Path) -> None:
     row = json.loads((out / "demo.json").read_text())["rows"][0]
     for m in ("REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC"):
         assert isinstance(row[f"{m}@5"]["feasible"], bool)
+
+
+def test_callback_plant_is_selectable() -> None:
+    from ttompc.mpc.plant import PlantNoise
+    from ttompc.training.callbacks import ClosedLoopEvalCallback
+    from ttompc.training.config import EvalMPCConfig
+
+    cb = ClosedLoopEvalCallback.from_config(EvalMPCConfig(plant="perturbed"), SHORT)
+    assert cb.plant == PlantNoise.perturbed() and ClosedLoopEvalCallback(SHORT).plant is None
+    with pytest.raises(ValueError, match="plant"):
+        ClosedLoopEvalCallback(SHORT, plant="windy")

@@ -35,12 +35,12 @@ _FLAGS = {
 }
 
 
-def _shortcuts(p: argparse.ArgumentParser, example: str) -> None:
+def _shortcuts(p: argparse.ArgumentParser, example: str, problems: int) -> None:
     add_config_arguments(p, example)
     p.add_argument("--model", help="TTO model: zoo name, bundle folder or Lightning .ckpt")
     p.add_argument("--ft-model", dest="ft_model", help="fine-tuned (FT-TTO) model, same forms as --model")
     p.add_argument("--scenario", help="scenario (default: the model's)")
-    p.add_argument("--problems", type=int, help="number of held-out problems")
+    p.add_argument("--problems", type=int, help=f"number of held-out non-convex problems (default {problems})")
     p.add_argument("--seed", type=int, help="root seed of the held-out evaluation stream (default 0)")
     p.add_argument("--workers", type=int, help="processes (default 0 = one per CPU core)")
     p.add_argument("--out", help="output folder (default outputs/evaluate/<kind>-<scenario>)")
@@ -49,9 +49,9 @@ def _shortcuts(p: argparse.ArgumentParser, example: str) -> None:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="evaluation", metavar="EVALUATION", required=True)
     ws = sub.add_parser("warmstart", help="open loop: SCP from REL vs from the model(s) vs the oracle")
-    _shortcuts(ws, "--model freeflyer-tto-small problems=100")
+    _shortcuts(ws, "problems=100 seed=2027 rtg_scale=1.3", 100)
     mpc = sub.add_parser("mpc", help="closed loop: REL/DIST/plan-once/oracle/TTO-MPC, nominal and perturbed plant")
-    _shortcuts(mpc, "--model freeflyer-tto-small horizons=[10,30] plants=[nominal]")
+    _shortcuts(mpc, "horizons=[10,30] plants=[perturbed] plant.process_std=0.005", 20)
 
 
 def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
