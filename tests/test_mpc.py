@@ -289,3 +289,28 @@ def test_target_change_measures_consistency() -> None:
     b[3] = 0.1  # one state_scale unit of velocity
     assert target_change(sc, [a, b, None, a]) == pytest.approx(1.0)
     assert np.isnan(target_change(sc, [a, None]))
+
+
+def test_rel_mpc_starts_each_rel_from_the_previous_plan(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    import ttompc.mpc.providers as providers_module
+
+    sc, problem, rel, _ = setup
+    N, H = problem.n_steps, 10
+    iterations: list[tuple[bool, int]] = []
+    real = providers_module.solve_rel
+
+    def spy(*args, guess=None, **kw):
+        res = real(*args, guess=guess, **kw)
+        iterations.append((guess is not None, res.iterations))
+        return res
+
+    monkeypatch.setattr(providers_module, "solve_rel", spy)
+    warm, cold = RELProvider(), RELProvider(warm_rel=False)
+    for prov in (warm, cold):
+        prov.reset(sc, problem, rel.cost)
+        prov.warm_start(Window(0, H, N), problem.x0)
+    x1 = rel.X[1]
+    a, b = warm.warm_start(Window(1, H, N), x1), cold.warm_start(Window(1, H, N), x1)
+    assert [g for g, _ in iterations] == [False, False, True, False]  # only the warm provider's second REL
+    assert iterations[2][1] < iterations[3][1]  # a converged guess needs fewer subproblems
+    np.testing.assert_allclose(a.X, b.X, atol=5e-3)  # the same relaxation's plan

@@ -119,20 +119,27 @@ class TargetFilter:
 
 
 class RELProvider:
-    """REL-MPC: full remaining-horizon REL, truncated; terminal target = REL state at t+H."""
+    """REL-MPC: full remaining-horizon REL, truncated; terminal target = REL state at t+H. The REL of step t starts
+    from the REL plan of step t−1 shifted by one step (``solve_rel(guess=...)``) instead of the straight line: the
+    same relaxation from a nearby start, about half the step time (measured in docs/benchmarks.md, MPC section);
+    ``warm_rel=False`` restarts from the straight line every step."""
 
     name = "REL-MPC"
 
-    def __init__(self, backend: str = "auto") -> None:
-        self.backend = backend
+    def __init__(self, backend: str = "auto", *, warm_rel: bool = True) -> None:
+        self.backend, self.warm_rel = backend, warm_rel
+        self._rel: tuple[np.ndarray, np.ndarray] | None = None
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         self.scenario, self.problem = scenario, problem
+        self._rel = None
 
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
         sc, p = self.scenario, self.problem
         rest = Window(window.start, p.n_steps - window.start, p.n_steps)
-        rel = solve_rel(sc, p, window=rest, x_start=x, backend=self.backend)
+        guess = self._rel if self.warm_rel and self._rel is not None and len(self._rel[1]) == rest.length else None
+        rel = solve_rel(sc, p, window=rest, x_start=x, guess=guess, backend=self.backend)
+        self._rel = (rel.X[1:], rel.U[1:]) if rel.success and rest.length > 1 else None
         if rel.success:
             X, U = rel.X[: window.length + 1].copy(), rel.U[: window.length].copy()
         else:  # an unconverged REL is still a usable guess; the straight line is the last resort
