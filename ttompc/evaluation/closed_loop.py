@@ -226,7 +226,12 @@ def format_table(summary: list[dict[str, Any]]) -> str:
         )
     for plant in dict.fromkeys(r["plant"] for r in summary):
         n = max((r.get("paper_problems", 0) for r in summary if r["plant"] == plant), default=0)
-        lines.append(f"\n{plant} plant: paper normalisation over {n} problems feasible for every method.")
+        lines.append(
+            f"\n{plant} plant: paper normalisation over {n} problems feasible for every method."
+            if n
+            else f"\n{plant} plant: paper normalisation undefined (no problem on which every method is feasible, or "
+            "DIST-MPC never costs more than J_REL)."
+        )
     lines.append(
         "Costs average feasible runs only; infeasible runs (keep-out, path or goal tolerance violated) are counted "
         "in 'feasible' and described by their goal miss. Share of reachable gain: REL-MPC = 0, ORACLE-MPC = 100."
