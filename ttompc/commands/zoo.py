@@ -8,6 +8,7 @@ import argparse
 import json
 import sys
 import textwrap
+from pathlib import Path
 
 from ttompc import zoo
 from ttompc.errors import UserError
@@ -45,6 +46,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--recipe", help="path of the training recipe, e.g. recipes/freeflyer/pretrain.yaml")
     p.add_argument("--data-card", help="path or name of the training data card")
     p.add_argument("--tag", action="append", dest="tags", help="card tag (repeatable; replaces the default tags)")
+
+    p = sub.add_parser("metrics", help="card metrics ({metric: {value, how}}) from `ttompc evaluate` reports")
+    p.add_argument("--method", required=True, choices=KINDS, help="which model of the reports (TTO or FT-TTO)")
+    p.add_argument("--warmstart", help="warmstart.json of `ttompc evaluate warmstart`")
+    p.add_argument("--mpc", help="mpc.json of `ttompc evaluate mpc`")
+    p.add_argument("--horizon", type=int, default=10, help="closed-loop horizon to report (default 10)")
+    p.add_argument("--out", help="write the JSON here (for `zoo publish --card-metrics`) instead of stdout")
 
     p = sub.add_parser("index", parents=[common], help="regenerate zoo/index.json from the cards")
     p.add_argument("--check", action="store_true", help="only check that index.json is up to date (exit 1 if not)")
@@ -152,6 +160,25 @@ def _publish(args: argparse.Namespace) -> int:
     return 0
 
 
+def _metrics(args: argparse.Namespace) -> int:
+    from ttompc.zoo.report_metrics import card_metrics
+
+    if not args.warmstart and not args.mpc:
+        raise UserError("zoo metrics needs a report", "pass --warmstart FILE and/or --mpc FILE")
+    pairs = (("warmstart", args.warmstart), ("mpc", args.mpc))
+    reports = {k: json.loads(Path(v).read_text()) if v else None for k, v in pairs}
+    try:
+        metrics = card_metrics(args.method, horizon=args.horizon, **reports)
+    except KeyError as err:
+        raise UserError(str(err.args[0]), "evaluate with --model (TTO) and --ft-model (FT-TTO)") from err
+    text = json.dumps(metrics, indent=2)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    else:
+        print(text)
+    return 0
+
+
 def _index(args: argparse.Namespace) -> int:
     if args.check:
         if index_is_current(args.zoo_dir):
@@ -162,4 +189,11 @@ def _index(args: argparse.Namespace) -> int:
     return 0
 
 
-_ACTIONS = {"list": _list, "info": _info, "download": _download, "publish": _publish, "index": _index}
+_ACTIONS = {
+    "list": _list,
+    "info": _info,
+    "download": _download,
+    "publish": _publish,
+    "metrics": _metrics,
+    "index": _index,
+}

@@ -1,0 +1,92 @@
+"""Card metrics are the evaluation reports' numbers, each with the command that reproduces it."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from ttompc.zoo.cards import validate_metrics
+from ttompc.zoo.report_metrics import card_metrics, command_line
+
+
+def _iv(mean: float, se: float = 0.01) -> dict[str, float]:
+    return {"mean": mean, "se": se, "lo": mean - 2 * se, "hi": mean + 2 * se, "n": 10}
+
+
+WS = {
+    "config": {"model": "m-tto", "ft_model": "m-ft", "problems": 10, "seed": 4242, "nonconvex_only": True},
+    "methods": [
+        {"method": "REL", "runs": 10, "failures": 0, "suboptimality": _iv(0.40), "iterations": _iv(5.8)},
+        {"method": "TTO", "runs": 10, "failures": 1, "suboptimality": _iv(0.35), "iterations": _iv(5.0),
+         "gain_share": _iv(0.5)},
+        {"method": "FT-TTO", "runs": 10, "failures": 0, "suboptimality": _iv(0.45), "iterations": _iv(7.0),
+         "gain_share": _iv(-0.5)},
+        {"method": "ORACLE", "runs": 10, "failures": 0, "suboptimality": _iv(0.30), "iterations": _iv(6.0)},
+    ],
+}  # fmt: skip
+
+
+def _row(plant: str, method: str, feasible: int, inc: float, **extra: object) -> dict[str, object]:
+    return {"plant": plant, "method": method, "horizon": 10, "feasible": feasible, "runs": 4,
+            "rel_increment": _iv(inc), "mean_step_time": 0.05, **extra}  # fmt: skip
+
+
+MPC = {
+    "config": {"model": "m-tto", "problems": 4, "seed": 4242, "horizons": [10], "plants": ["nominal", "perturbed"]},
+    "summary": [
+        _row("nominal", "REL-MPC", 4, 0.9, paper_norm=_iv(0.7)),
+        _row("nominal", "TTO-MPC", 2, 0.5),
+        _row("nominal", "R-TTO-MPC", 0, float("nan")),
+        _row("perturbed", "TTO-MPC", 3, 0.6),
+        _row("nominal", "DIST-MPC", 4, 1.2),
+    ],
+}
+
+
+def test_metrics_are_the_reports_numbers_with_their_command() -> None:
+    m = validate_metrics(card_metrics("TTO", warmstart=WS, mpc=MPC))
+    assert m["ws_suboptimality"]["value"] == pytest.approx(0.35)
+    assert m["ws_suboptimality_rel"]["value"] == pytest.approx(0.40)
+    assert m["ws_suboptimality_oracle"]["value"] == pytest.approx(0.30)
+    assert m["ws_gain_share"]["value"] == pytest.approx(0.5)
+    assert m["ws_failures"]["value"] == 1
+    assert m["mpc10_nominal_model_feasible_rate"]["value"] == pytest.approx(0.5)
+    assert m["mpc10_nominal_rel_paper_norm"]["value"] == pytest.approx(0.7)
+    assert m["mpc10_perturbed_model_rel_increment"]["value"] == pytest.approx(0.6)
+    # an undefined mean (no feasible run) is not a value; its feasible rate (0) is
+    assert "mpc10_nominal_robust_rel_increment" not in m
+    assert m["mpc10_nominal_robust_feasible_rate"]["value"] == 0
+    assert "DIST" not in json.dumps(list(m))  # only the model, its robust variant, REL, oracle and plan-once
+    assert all(math.isfinite(v["value"]) for v in m.values())
+    assert "`ttompc evaluate warmstart --model m-tto --ft-model m-ft problems=10 seed=4242" in m["ws_iterations"]["how"]
+    assert "horizons=[10] plants=[nominal,perturbed]" in m["mpc10_nominal_model_step_time_s"]["how"]
+
+
+def test_ft_metrics_pick_the_ft_rows() -> None:
+    m = card_metrics("FT-TTO", warmstart=WS)
+    assert m["ws_suboptimality"]["value"] == pytest.approx(0.45)
+    assert m["ws_gain_share"]["value"] == pytest.approx(-0.5)
+
+
+def test_missing_method_is_named() -> None:
+    with pytest.raises(KeyError, match="FT-TTO-MPC"):
+        card_metrics("FT-TTO", mpc=MPC)
+    assert (
+        command_line("mpc", {"problems": 2, "horizons": [10, 30]}) == "ttompc evaluate mpc problems=2 horizons=[10,30]"
+    )
+
+
+def test_cli_writes_publishable_metrics(tmp_path) -> None:
+    ws = tmp_path / "warmstart.json"
+    ws.write_text(json.dumps(WS))
+    out = tmp_path / "metrics.json"
+    cmd = [sys.executable, "-m", "ttompc.cli", "zoo", "metrics", "--method", "TTO", "--warmstart", str(ws)]
+    done = subprocess.run([*cmd, "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert validate_metrics(json.loads(out.read_text()))["ws_suboptimality"]["value"] == pytest.approx(0.35)
+    bad = subprocess.run([*cmd[:-4], "--method", "TTO"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "needs a report" in bad.stderr

@@ -1,0 +1,123 @@
+"""Model-card metrics taken from ``ttompc evaluate`` reports, so every number on a card is a report's number and its
+``how`` is the command line that produced it (re-run it to check the card).
+
+``card_metrics("TTO", warmstart=..., mpc=...)`` reads the open-loop report (``warmstart.json``) and the closed-loop
+report (``mpc.json``) of the evaluation protocol (docs/evaluation.md) and returns ``{name: {value, how}}`` for a
+card's front matter (``ttompc zoo publish --card-metrics``, ``ttompc zoo metrics``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+# config keys that are part of the protocol's command line (others are defaults or output locations)
+_WS_KEYS = ("problems", "seed", "nonconvex_only", "rtg_scale", "oracle_detours")
+_MPC_KEYS = ("problems", "seed", "horizons", "plants", "robust_blend", "rtg_scale", "mode")
+
+
+def command_line(kind: str, config: dict[str, Any]) -> str:
+    """The ``ttompc evaluate KIND`` command that reproduces a report with ``config`` (its ``config`` section)."""
+    parts = ["ttompc evaluate", kind]
+    for flag, key in (("--model", "model"), ("--ft-model", "ft_model")):
+        if config.get(key):
+            parts.append(f"{flag} {config[key]}")
+    for key in _WS_KEYS if kind == "warmstart" else _MPC_KEYS:
+        if key in config:
+            value = config[key]
+            if isinstance(value, list):
+                value = "[" + ",".join(str(v) for v in value) + "]"
+            parts.append(f"{key}={value}")
+    return " ".join(parts)
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _put(out: dict[str, dict[str, Any]], name: str, value: Any, how: str) -> None:
+    """Add a metric only when the report has a finite number for it (an undefined mean is not a value)."""
+    if _finite(value):
+        out[name] = {"value": float(value), "how": how}
+
+
+def warmstart_metrics(report: dict[str, Any], method: str) -> dict[str, dict[str, Any]]:
+    """Open-loop metrics of ``method`` (``TTO`` or ``FT-TTO``) with REL and the oracle ceiling beside it."""
+    rows = {r["method"]: r for r in report["methods"]}
+    if method not in rows:
+        raise KeyError(f"the warm-start report has no method {method!r} (it has {sorted(rows)})")
+    cmd = command_line("warmstart", report["config"])
+    n = report["config"].get("problems")
+    what = f"`{cmd}`: {n} held-out non-convex problems, full-horizon SCP"
+    out: dict[str, dict[str, Any]] = {}
+    for tag, name in (("", method), ("_rel", "REL"), ("_oracle", "ORACLE")):
+        row = rows.get(name)
+        if row is None:
+            continue
+        sub = row["suboptimality"]
+        warm = "the best optimum of several warm starts (oracle)" if name == "ORACLE" else f"{name} warm start"
+        _put(out, f"ws_suboptimality{tag}", sub["mean"], f"{what} from {warm}: mean (J - J_REL)/J_REL over solved runs")
+        _put(out, f"ws_suboptimality{tag}_se", sub["se"], f"{what} from {warm}: standard error of that mean")
+        _put(out, f"ws_iterations{tag}", row["iterations"]["mean"], f"{what} from {warm}: mean SCP iterations")
+        _put(out, f"ws_failures{tag}", row["failures"], f"{what} from {warm}: SCP runs ending infeasible (of {n})")
+    share = rows[method].get("gain_share")
+    if share is not None:
+        _put(
+            out,
+            "ws_gain_share",
+            share["mean"],
+            f"{what}: share of the oracle-reachable gain over SCP-from-REL captured by the {method} warm start "
+            "(1 = the oracle, 0 = REL, negative = worse than REL)",
+        )
+    return out
+
+
+def mpc_metrics(report: dict[str, Any], method: str, horizon: int = 10) -> dict[str, dict[str, Any]]:
+    """Closed-loop metrics at ``horizon`` of ``method``'s TTO-MPC and robust R-TTO-MPC, with REL-MPC and the oracle,
+    per plant (nominal, perturbed)."""
+    cmd = command_line("mpc", report["config"])
+    n = report["config"].get("problems")
+    names = {
+        "model": f"{method}-MPC",
+        "robust": f"R-{method}-MPC",
+        "rel": "REL-MPC",
+        "oracle": "ORACLE-MPC",
+        "planonce": "PLAN-ONCE",
+    }
+    if not any(r["method"] == names["model"] for r in report["summary"]):
+        raise KeyError(f"the closed-loop report has no method {names['model']!r}")
+    out: dict[str, dict[str, Any]] = {}
+    for row in report["summary"]:
+        tag = next((t for t, m in names.items() if m == row["method"]), None)
+        if tag is None or row["horizon"] != horizon:
+            continue
+        what = f"`{cmd}`: {n} held-out non-convex problems, {row['plant']} plant, {row['method']} at H={horizon}"
+        key = f"mpc{horizon}_{row['plant']}_{tag}"
+        _put(out, f"{key}_feasible_rate", row["feasible"] / row["runs"], f"{what}: share of episodes feasible")
+        _put(
+            out,
+            f"{key}_rel_increment",
+            row["rel_increment"]["mean"],
+            f"{what}: mean (J - J_REL)/J_REL over its feasible episodes",
+        )
+        if "paper_norm" in row:
+            _put(
+                out,
+                f"{key}_paper_norm",
+                row["paper_norm"]["mean"],
+                f"{what}: paper normalisation (problems feasible for every method, DIST-MPC = 1)",
+            )
+        _put(out, f"{key}_step_time_s", row["mean_step_time"], f"{what}: mean MPC step time [s], shared 2-core CPU")
+    return out
+
+
+def card_metrics(
+    method: str, *, warmstart: dict[str, Any] | None = None, mpc: dict[str, Any] | None = None, horizon: int = 10
+) -> dict[str, dict[str, Any]]:
+    """All card metrics of ``method`` from the given reports (either may be missing)."""
+    out: dict[str, dict[str, Any]] = {}
+    if warmstart is not None:
+        out.update(warmstart_metrics(warmstart, method))
+    if mpc is not None:
+        out.update(mpc_metrics(mpc, method, horizon))
+    return out
