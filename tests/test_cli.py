@@ -148,6 +148,12 @@ def test_help_says_what_the_tool_is(tmp_path: Path) -> None:
     assert first.startswith("ttompc: plan") and "transformer" in first and "``" not in res.stdout
 
 
+def _terminal_sigint() -> None:
+    """The child gets SIGINT's default disposition, as a program started from a terminal has: a test run that was
+    itself started in the background (``cmd &`` in a script ignores SIGINT) would otherwise pass that on."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_during_generate_says_how_to_resume(tmp_path: Path) -> None:
     """Ctrl-C in a terminal signals the whole process group: the pool workers stay quiet, the parent explains."""
     out = tmp_path / "data"
@@ -155,7 +161,7 @@ def test_ctrl_c_during_generate_says_how_to_resume(tmp_path: Path) -> None:
         [sys.executable, "-m", "ttompc.cli", "generate", "problems=200", "shard_size=2", "workers=2",
          f"out={out}", "--no-progress"],
         cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True,
+        start_new_session=True, preexec_fn=_terminal_sigint,
     )  # fmt: skip
     deadline = time.monotonic() + 90
     while not (out / "meta" / "shard-00000.json").exists():
@@ -227,7 +233,7 @@ def test_ctrl_c_during_train_says_how_to_resume_and_the_rerun_resumes(tmp_path: 
     proc = subprocess.Popen(
         [sys.executable, "-m", "ttompc.cli", *argv, "trainer.max_steps=10000"],
         cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True,
+        start_new_session=True, preexec_fn=_terminal_sigint,
     )  # fmt: skip
     deadline = time.monotonic() + 240
     while not (run / "checkpoints" / "last.ckpt").exists():
