@@ -22,7 +22,6 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from datasets import Dataset, Features
 from datasets.table import InMemoryTable
-from datasets.utils import logging as hf_logging
 
 SPLITS = ("train", "val", "test")
 
@@ -112,16 +111,15 @@ def write_shard(rows: Sequence[dict[str, Any]], path: str | Path, features: Feat
         raise ValueError(f"refusing to write an empty shard {path}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    ds = Dataset.from_dict(rows_to_columns(rows, features), features=features)
+    # the table carries the ``datasets`` features in its schema metadata; pyarrow's own writer (a context manager)
+    # is closed even when Ctrl-C lands mid-write, where ``Dataset.to_parquet`` left a writer whose finaliser printed
+    # a traceback at exit
+    table = Dataset.from_dict(rows_to_columns(rows, features), features=features).data.table
     tmp = _tmp_path(path)
-    bars_were_on = hf_logging.is_progress_bar_enabled()
-    hf_logging.disable_progress_bar()
     try:
-        ds.to_parquet(str(tmp))
+        pq.write_table(table, str(tmp))
         _replace_atomically(tmp, path)
     finally:
-        if bars_were_on:
-            hf_logging.enable_progress_bar()
         tmp.unlink(missing_ok=True)
     return len(rows)
 
