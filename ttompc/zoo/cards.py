@@ -176,6 +176,11 @@ class ModelCard:
         )
 
 
+def is_metric_value(x: Any) -> bool:
+    """A reportable metric value: a finite int or float (not a bool)."""
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
 def validate_metrics(metrics: Any) -> dict[str, dict[str, Any]]:
     """Each metric is ``{value: number, how: str, ...}``: a number without how it was measured is not reportable."""
     if not isinstance(metrics, dict):
@@ -183,7 +188,7 @@ def validate_metrics(metrics: Any) -> dict[str, dict[str, Any]]:
     for key, m in metrics.items():
         ok = isinstance(m, dict) and "value" in m and isinstance(m.get("how"), str) and m["how"].strip()
         value = m.get("value") if isinstance(m, dict) else None
-        if not ok or not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+        if not ok or not is_metric_value(value):
             raise CardError(f"metric {key!r} must be {{value: finite number, how: non-empty text}}, got {m!r}")
     return metrics
 

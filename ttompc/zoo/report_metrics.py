@@ -8,8 +8,9 @@ card's front matter (``ttompc zoo publish --card-metrics``, ``ttompc zoo metrics
 
 from __future__ import annotations
 
-import math
 from typing import Any
+
+from ttompc.zoo.cards import is_metric_value
 
 # config keys that are part of the protocol's command line (others are defaults or output locations)
 _WS_KEYS = ("problems", "seed", "nonconvex_only", "rtg_scale", "oracle_detours")
@@ -31,13 +32,9 @@ def command_line(kind: str, config: dict[str, Any]) -> str:
     return " ".join(parts)
 
 
-def _finite(x: Any) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
-
-
 def _put(out: dict[str, dict[str, Any]], name: str, value: Any, how: str) -> None:
     """Add a metric only when the report has a finite number for it (an undefined mean is not a value)."""
-    if _finite(value):
+    if is_metric_value(value):
         out[name] = {"value": float(value), "how": how}
 
 
