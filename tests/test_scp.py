@@ -70,6 +70,27 @@ def test_deterministic(ff) -> None:
     np.testing.assert_array_equal(a.U, b.U)
 
 
+@pytest.mark.parametrize("name", ["freeflyer", "rpod"])  # PIQP's cached QP, Clarabel's cached conic problem
+def test_a_solve_does_not_depend_on_earlier_solves(name: str) -> None:
+    """Solvers are cached per structure and process; a problem solved after another one (a pool worker's second
+    task) gives the bits of the same problem solved first (a fresh worker), so regenerated data rows are exact."""
+    from ttompc.seeding import problem_seed
+    from ttompc.solvers import engine
+
+    scenario = get_scenario(name)
+    earlier, problem = (scenario.sample(np.random.default_rng(problem_seed(0, i))) for i in (1, 0))
+    engine._CACHE.clear()
+    fresh = solve_problem(scenario, problem)
+    engine._CACHE.clear()
+    solve_problem(scenario, earlier)
+    after = solve_problem(scenario, problem)
+    for a, b in zip(fresh, after, strict=True):
+        assert a is not None and b is not None
+        np.testing.assert_array_equal(a.X, b.X)
+        np.testing.assert_array_equal(a.U, b.U)
+        assert a.iterations == b.iterations
+
+
 @pytest.mark.parametrize("terminal", ["hard", "soft"])
 @pytest.mark.parametrize("trust", ["l2", "linf"])
 def test_assembled_subproblem_matches_cvxpy(ff, terminal, trust) -> None:

@@ -1,12 +1,15 @@
 """Dataset generation: sample problems, solve REL then SCP warm-started from REL, store both solutions.
 
-Reproducibility by construction (fact sheet §11 lists the reference's duplicate-sample bugs):
+Reproducibility by construction (``docs/design.md`` lists the research code's duplicate-sample bugs this avoids):
 
 * problem i draws from ``default_rng(problem_seed(root, i))`` with ``SeedSequence(root, spawn_key=(i,))`` — the
   same problem whatever the number of workers or ranks, never a shared RNG state;
 * shard k always covers problem ids [k·K, (k+1)·K) and is written by ``ShardedFolder`` (atomic files, then
-  metadata ``meta/shard-<k>.json``); an interrupted run resumes by skipping done shards and yields exactly the rows
-  of an uninterrupted run;
+  metadata ``meta/shard-<k>.json``); an interrupted run resumes by skipping done shards;
+* a problem's rows depend only on (seed, problem id): the solvers cached in a worker are restarted for every solve
+  (``engine.run_scp``), so whichever worker, worker count or resumed run solves a problem, every column of its rows
+  is bit-identical to an uninterrupted run's except the wall-clock ``solve_time`` and ``solver_time`` (tested in
+  ``tests/test_data_generate.py``; 1 and 2 BLAS threads gave the same bits);
 * splits are a hash of the problem id, so REL and SCP rows of a problem share a split.
 
 Under torchrun/SLURM each rank generates every world_size-th shard; rank 0 (or ``ttompc generate --finalize``)
@@ -35,7 +38,7 @@ from ttompc.data.schema import SCHEMA_VERSION, make_row, trajectory_features
 from ttompc.data.shards import SPLITS, ShardError, atomic_write_json
 from ttompc.parallel import pool_map
 from ttompc.policy.stats import KEYS, NormStats
-from ttompc.scenarios import get_scenario
+from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import InfeasibleProblemError, Scenario
 from ttompc.seeding import problem_seed
 from ttompc.version import code_version
@@ -257,7 +260,7 @@ def generate(
             yield outcome
 
     outcomes = pool_map(
-        _solve_one, tasks, workers, _init_worker, init_args, imports=(type(scenario).__module__,), pin_torch=False
+        _solve_one, tasks, workers, _init_worker, init_args, scenarios=[scenario_spec(scenario)], pin_torch=False
     )
     for k, batch, seconds in folder.group(pending, counted(outcomes)):
         meta = _write_shard(folder, k, cfg, scenario, batch, seconds)
@@ -320,6 +323,7 @@ def finalize(cfg: GenerateConfig) -> dict[str, Any]:
         "name": cfg.name or out.resolve().name,
         "scenario": {
             "name": scenario.name,
+            "spec": scenario_spec(scenario),  # how later commands load it (``ttompc.scenarios.find_scenario``)
             "version": scenario.version,
             "n_steps": scenario.n_steps,
             "state_dim": scenario.state_dim,

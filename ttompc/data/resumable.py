@@ -4,8 +4,9 @@ Items 0..total−1 (problems, rollouts) are cut into fixed shards: shard k alway
 is written as one parquet file per non-empty split (``ShardWriter``, atomic) and then its metadata
 ``meta/shard-<k>.json`` (atomic), which lists each file with its sha256. A shard counts as *done* only when that
 metadata exists, covers the same item range and every file it lists matches its checksum, so an interrupted run
-resumes by skipping done shards and yields exactly the files of an uninterrupted run. Under torchrun/SLURM rank r
-owns the shards k ≡ r (mod world size).
+resumes by skipping done shards and yields the shards of an uninterrupted run (the same rows when the producer's
+rows depend only on the item, as generation's do up to their wall-clock timings). Under torchrun/SLURM rank r owns
+the shards k ≡ r (mod world size).
 """
 
 from __future__ import annotations

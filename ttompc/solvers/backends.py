@@ -59,6 +59,11 @@ class ClarabelBackend:
                 self.cones.append(clarabel.SecondOrderConeT(dim))
         self.solver: Any = None  # clarabel.DefaultSolver, built on the first solve
 
+    def restart(self) -> None:
+        """Build the solver afresh on the next solve: ``update`` keeps the first data's equilibration, so an
+        optimum would depend (at solver tolerance) on what was solved before."""
+        self.solver = None
+
     def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
         t0 = time.perf_counter()
         if self.solver is None:
@@ -90,6 +95,10 @@ class OSQPBackend:
         self.n_zero = dict(sub.cones)["zero"]
         self.eps, self.max_iter = eps, max_iter
         self.solver: Any = None  # osqp.OSQP, set up on the first solve
+
+    def restart(self) -> None:
+        """Set up afresh on the next solve instead of warm-starting from the previous problem's iterate."""
+        self.solver = None
 
     def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
         t0 = time.perf_counter()
@@ -142,6 +151,9 @@ class QOCOBackend:
         self.n_zero, self.n_nonneg = cones["zero"], cones["nonneg"]
         self.soc_dims = np.array([d for k, d in sub.cones if k == "soc"], dtype=np.int64)
         self.P = sp.triu(sub.P, format="csc")
+
+    def restart(self) -> None:
+        """Nothing to forget: QOCO is set up afresh for every solve."""
 
     def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
         t0 = time.perf_counter()

@@ -26,6 +26,10 @@ class AssembledSolver:
         self.sub = AssembledSubproblem(spec)
         self.backends = [make_backend(name, self.sub) for name in backends]
 
+    def restart(self) -> None:
+        for backend in self.backends:
+            backend.restart()
+
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         a_values, b = self.sub.update(data)
         spent = 0.0
@@ -174,6 +178,10 @@ def run_scp(
                 model_masks=SubproblemSpec.model_signature(model),
             )
             solver = get_solver(spec, backend, scenario)
+            # Solvers are cached per structure across solves; restarting them makes this solve's result depend on
+            # its inputs only, not on the problems this process solved before (e.g. which pool worker a dataset
+            # problem landed on): regenerated rows are bit-identical.
+            solver.restart()
             shapes = _shapes(blocks)
         elif _shapes(blocks) != shapes:
             raise ValueError(f"{scenario.name}: constraint block shapes changed between SCP iterations")

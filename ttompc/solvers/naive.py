@@ -21,6 +21,9 @@ class NaiveCvxpySolver:
         self.spec = spec
         self.solver = solver
 
+    def restart(self) -> None:
+        """Nothing to forget: the problem is rebuilt for every solve."""
+
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         t0 = time.perf_counter()
         spec = self.spec

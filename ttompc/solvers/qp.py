@@ -40,6 +40,9 @@ _Entry = tuple[np.ndarray | float, ...]
 class SubproblemSolver(Protocol):
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]: ...
 
+    def restart(self) -> None:
+        """Make the next ``solve`` independent of the data solved before (see ``engine.run_scp``)."""
+
 
 def is_qp(spec: SubproblemSpec) -> bool:
     """Whether ``spec`` has no second-order cone: a QP backend can solve it."""
@@ -387,6 +390,14 @@ class PIQPSolver:
         self.solver: Any = None  # piqp.SparseSolver, set up on the first solve
         self._make_fallback = fallback
         self._fallback: SubproblemSolver | None = None
+        self._rescale = False  # the next update recomputes the equilibration (set by ``restart``)
+
+    def restart(self) -> None:
+        """The next solve equilibrates its own data instead of reusing the first data's scaling, which would make
+        its optimum depend (at solver tolerance) on whatever this cached solver solved before."""
+        self._rescale = True
+        if self._fallback is not None:
+            self._fallback.restart()
 
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         t0 = time.perf_counter()
@@ -406,7 +417,10 @@ class PIQPSolver:
         else:  # same pattern: overwrite the values of the persistent matrices
             self._A.data[:] = A
             self._G.data[:] = G
+            self.solver.settings.preconditioner_reuse_on_update = not self._rescale
             self.solver.update(A=self._A, b=b, G=self._G, h_l=h_l, h_u=h_u, x_l=z_l, x_u=z_u)
+            self.solver.settings.preconditioner_reuse_on_update = True
+        self._rescale = False
         status = str(self.solver.solve())
         elapsed = time.perf_counter() - t0
         ok = "PIQP_SOLVED" in status
