@@ -128,6 +128,31 @@ def test_from_pretrained_reads_a_bundle_dir_with_its_stats(tmp_path: Path) -> No
         assert torch.equal(loaded.model.state_dict()[key], value), key
 
 
+def test_a_damaged_bundle_fails_by_name_and_old_bundles_still_load(tmp_path: Path) -> None:
+    """Flipped bytes in a saved bundle's weights (header intact, so safetensors alone would load them and the model
+    would plan NaNs): the sha256 that ``save`` records stops ``from_pretrained`` and ``ttompc evaluate`` with one
+    line naming the file. The shipped zoo bundles predate the checksum and still load (their cards verify them)."""
+    shipped = ROOT / "zoo" / "models" / "freeflyer-tto-v2"
+    assert "sha256" not in json.loads((shipped / "config.json").read_text())
+    bundle = Planner.from_pretrained(shipped).save(tmp_path / "bundle")
+    weights = bundle / "model.safetensors"
+    data = bytearray(weights.read_bytes())
+    data[-3] ^= 0x40  # an exponent bit of the last float32
+    weights.write_bytes(bytes(data))
+    with pytest.raises(BundleError, match=r"model\.safetensors is damaged: sha256"):
+        Planner.from_pretrained(bundle)
+    env = {k: v for k, v in os.environ.items() if k != "TTOMPC_DEBUG"}
+    res = subprocess.run(
+        [sys.executable, "-m", "ttompc.cli", "evaluate", "warmstart", "--model", str(bundle), "problems=1"],
+        cwd=tmp_path, env={**env, "TTOMPC_PROGRESS": "0", "WANDB_MODE": "offline"}, capture_output=True, text=True,
+        timeout=600,
+    )  # fmt: skip
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
+    assert f"{weights} is damaged" in lines[0] and "re-export the bundle" in lines[0], lines[0]
+    assert not (tmp_path / "outputs").exists()
+
+
 class _Bomb:
     """Creates ``marker`` when unpickled."""
 

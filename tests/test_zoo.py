@@ -414,3 +414,26 @@ def test_cache_corrupted_without_a_source_is_a_clear_error(env: Path) -> None:
     (env / "zoo" / "models" / "m" / "model.safetensors").unlink()  # the published copy is gone too
     with pytest.raises(zoo.DownloadError, match="cannot read"):
         zoo.download("m", progress=False)
+
+
+def test_the_zoo_imports_no_model_code(tmp_path: Path) -> None:
+    """Layering: ``Planner.from_pretrained`` loads zoo names through ``ttompc.zoo``, so the zoo (cards, cache,
+    downloads, publishing of bundle files) imports nothing of ttompc but itself, errors and version, not even inside
+    a function: a checkpoint is converted to a bundle by ``ttompc zoo publish``, not by ``zoo.publish``."""
+    import ast
+
+    allowed = ("ttompc.zoo", "ttompc.errors", "ttompc.version")
+    for path in sorted((Path(zoo.__file__).parent).glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                names = [node.module or ""]
+            else:
+                continue
+            wrong = [n for n in names if n.split(".")[0] == "ttompc" and not n.startswith(allowed)]
+            assert not wrong, f"{path.name}:{node.lineno} imports {wrong}"
+    ckpt = tmp_path / "last.ckpt"
+    ckpt.write_bytes(b"never read")
+    with pytest.raises(zoo.PublishError, match=r"Lightning checkpoint, not a bundle.*ttompc zoo publish"):
+        zoo.publish(ckpt, "m", str(tmp_path / "out"), zoo_dir=tmp_path / "zoo", skip_eval=True)

@@ -5,9 +5,12 @@ The zoo's errors are ``UserError``s (one line, exit 2, through ``ttompc.cli``); 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
+import tempfile
 import textwrap
+from collections.abc import Iterator
 from pathlib import Path
 
 from ttompc import zoo
@@ -132,6 +135,19 @@ def _download(args: argparse.Namespace) -> int:
     return 0
 
 
+@contextlib.contextmanager
+def _as_bundle(source: Path) -> Iterator[Path]:
+    """A Lightning checkpoint as a temporary bundle (the zoo publishes bundles and never builds a model); anything
+    else as given. Checkpoints are pickles, read with ``weights_only=True``: publish only those you made yourself."""
+    if not (source.is_file() and source.suffix == ".ckpt"):
+        yield source
+        return
+    from ttompc.policy import Planner
+
+    with tempfile.TemporaryDirectory(prefix="ttompc-publish-") as tmp:
+        yield Planner.from_pretrained(source).save(tmp)
+
+
 def _publish(args: argparse.Namespace) -> int:
     from ttompc.zoo.publish import load_metrics
 
@@ -143,16 +159,17 @@ def _publish(args: argparse.Namespace) -> int:
         "data_card": args.data_card,
     }
     fields = {k: v for k, v in given.items() if v is not None}
-    card = zoo.publish(
-        args.source,
-        args.name,
-        args.to,
-        zoo_dir=args.zoo_dir,
-        metrics=load_metrics(args.card_metrics) if args.card_metrics else None,
-        skip_eval=args.skip_eval,
-        base_url=args.base_url,
-        card_fields=fields,
-    )
+    with _as_bundle(Path(args.source)) as source:
+        card = zoo.publish(
+            source,
+            args.name,
+            args.to,
+            zoo_dir=args.zoo_dir,
+            metrics=load_metrics(args.card_metrics) if args.card_metrics else None,
+            skip_eval=args.skip_eval,
+            base_url=args.base_url,
+            card_fields=fields,
+        )
     print(
         f"published {card.name}: "
         + ", ".join(f"{f.filename} ({f.size} B, sha256 {f.sha256[:12]}…)" for f in card.files)

@@ -13,8 +13,13 @@ directories)::
                                 "recipe": {training recipe as a plain dict, may be empty},
                                 "code_version": str,                    # ttompc version + git commit of the trainer
                                 "created": ISO-8601 UTC time,
-                                "extra": {free-form metadata: training steps, val loss, dataset ...}
+                                "extra": {free-form metadata: training steps, val loss, dataset ...},
+                                "sha256": {"model.safetensors": hex digest}  # written by save, checked by loads
                               }
+
+Every load re-hashes the files ``"sha256"`` lists and refuses a mismatch with a ``BundleError`` naming the file
+(``ttompc.zoo.check_bundle``), so damaged weights fail instead of planning NaNs. Bundles saved before the key
+existed still load; zoo copies are also checked against their card's sha256 when fetched.
 
 ``Planner.from_pretrained`` is the one loader: a zoo model name (downloaded and verified into the cache), a bundle
 directory, or a Lightning ``.ckpt`` written by ``TrajectoryTransformerModule`` (read without importing Lightning: its
@@ -168,7 +173,7 @@ class Planner:
 
     # ----------------------------------------------------------------------------------------------- persistence
     def metadata(self) -> dict[str, Any]:
-        """The content of ``config.json``."""
+        """The content of ``config.json`` but the weights' checksum, which ``save`` adds once they are written."""
         return {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
@@ -182,14 +187,18 @@ class Planner:
         }
 
     def save(self, directory: str | Path) -> Path:
-        """Write ``model.safetensors`` and ``config.json`` into ``directory`` (created if needed)."""
+        """Write ``model.safetensors``, then ``config.json`` with the sha256 of the weights as written, into
+        ``directory`` (created if needed)."""
         from safetensors.torch import save_file
+
+        from ttompc.zoo.cache import CHECKSUMS, sha256_file
 
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         state = {k: v.detach().cpu().contiguous() for k, v in self.model.state_dict().items()}
         save_file(state, str(out / WEIGHTS_FILE), metadata={"format": "pt"})
-        (out / CONFIG_FILE).write_text(json.dumps(self.metadata(), indent=2) + "\n")
+        meta = {**self.metadata(), CHECKSUMS: {WEIGHTS_FILE: sha256_file(out / WEIGHTS_FILE)}}
+        (out / CONFIG_FILE).write_text(json.dumps(meta, indent=2) + "\n")
         return out
 
     @classmethod
@@ -224,18 +233,23 @@ class Planner:
             except CardError:
                 raise BundleError(f"{str(source)!r}: no such bundle folder or .ckpt file", forms) from None
             path = download(str(source), cache_dir, zoo_dir=zoo_dir, progress=progress)
-        check_bundle(path)  # safetensors header + JSON, before anything reads the weights into torch
-        return cls._from_bundle(path, scenario, device=device, check_version=check_version)
+        meta = check_bundle(path)  # checksums, safetensors header and JSON, before torch reads any weight
+        return cls._from_bundle(path, meta, scenario, device=device, check_version=check_version)
 
     @classmethod
     def _from_bundle(
-        cls, src: Path, scenario: Scenario | None, *, device: str | torch.device, check_version: bool
+        cls,
+        src: Path,
+        meta: dict[str, Any],
+        scenario: Scenario | None,
+        *,
+        device: str | torch.device,
+        check_version: bool,
     ) -> Planner:
         from safetensors.torch import load_file
 
         from ttompc.zoo import BundleError
 
-        meta = json.loads((src / CONFIG_FILE).read_text())
         if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
             raise BundleError(f"{src}: not a {FORMAT} v{FORMAT_VERSION} bundle")
         state = load_file(str(src / WEIGHTS_FILE), device=str(device))

@@ -119,11 +119,17 @@ class BundleError(UserError, ValueError):
     """A directory that is not a loadable model bundle."""
 
 
+CHECKSUMS = "sha256"  # config.json key: {file name: sha256} of the bundle's other files (``Planner.save``)
+_REEXPORT = "re-export the bundle, or for a zoo model run `ttompc zoo download NAME` again"
+
+
 def check_bundle(bundle_dir: str | Path) -> dict[str, Any]:
     """Validate a bundle without executing anything in it; returns its parsed ``config.json``.
 
-    ``model.safetensors`` is opened with safetensors (a header + raw tensors, no code), so a pickle or a torch
-    checkpoint renamed to ``model.safetensors`` fails here with ``SafetensorError`` instead of being unpickled.
+    The files whose sha256 ``config.json`` records (``CHECKSUMS``; bundles saved before it existed have none) are
+    re-hashed: flipped bytes in the weights would otherwise load silently and plan NaNs. ``model.safetensors`` is
+    opened with safetensors (a header + raw tensors, no code), so a pickle or a torch checkpoint renamed to
+    ``model.safetensors`` fails here with ``SafetensorError`` instead of being unpickled.
     """
     from safetensors import SafetensorError, safe_open
 
@@ -131,20 +137,35 @@ def check_bundle(bundle_dir: str | Path) -> dict[str, Any]:
     missing = [f for f in REQUIRED_FILES if not (bundle / f).is_file()]
     if missing:
         raise BundleError(f"{bundle} is not a model bundle: missing {missing}")
+    config_path = bundle / "config.json"
+    try:
+        config = json.loads(config_path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise BundleError(f"{config_path} is not valid JSON: {err}", _REEXPORT) from None
+    if not isinstance(config, dict):
+        raise BundleError(f"{config_path} must hold a JSON object")
+    _verify_checksums(bundle, config.get(CHECKSUMS, {}))
     weights_path = bundle / "model.safetensors"
     try:
         with safe_open(weights_path, framework="numpy") as weights:
             if not list(weights.keys()):
                 raise BundleError(f"{weights_path} holds no tensors")
     except SafetensorError as err:
-        raise BundleError(
-            f"{weights_path} is damaged or not a safetensors file ({err})",
-            "re-export the bundle, or for a zoo model run `ttompc zoo download NAME` again",
-        ) from None
-    try:
-        config = json.loads((bundle / "config.json").read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise BundleError(f"{bundle / 'config.json'} is not valid JSON: {err}") from None
-    if not isinstance(config, dict):
-        raise BundleError(f"{bundle / 'config.json'} must hold a JSON object")
+        raise BundleError(f"{weights_path} is damaged or not a safetensors file ({err})", _REEXPORT) from None
     return config
+
+
+def _verify_checksums(bundle: Path, recorded: object) -> None:
+    if not isinstance(recorded, dict) or not all(isinstance(v, str) for v in recorded.values()):
+        raise BundleError(f"{bundle / 'config.json'}: {CHECKSUMS!r} must map file names to sha256 hex digests")
+    for filename, expected in recorded.items():
+        path = inside(bundle, validate_name(filename, "file name"))
+        if not path.is_file():
+            raise BundleError(f"{path} is missing (config.json records its sha256)", _REEXPORT)
+        actual = sha256_file(path)
+        if actual != expected:
+            raise BundleError(
+                f"{path} is damaged: sha256 {actual[:16]}… differs from {expected[:16]}… recorded when the bundle "
+                "was saved",
+                _REEXPORT,
+            )

@@ -1,6 +1,8 @@
 """Publishing a model bundle: copy its two files to a destination, hash them, write the card and the index.
 
-Only ``model.safetensors`` and ``config.json`` are published. Card fields come from the bundle's ``config.json``
+The zoo stores bundles and never builds a model (``ttompc.policy`` imports the zoo to load names, not the reverse):
+a Lightning checkpoint is converted by the caller (``ttompc zoo publish`` does). Only ``model.safetensors`` and
+``config.json`` are published. Card fields come from the bundle's ``config.json``
 (``scenario: {name, version}``, ``model`` = architecture, and optionally ``kind``, ``recipe``, ``data_card``,
 ``code_version``) over an existing card's hand-edited fields (body, licence, tags, recipe, ...), and explicit
 ``card_fields`` over both.
@@ -8,13 +10,11 @@ Only ``model.safetensors`` and ``config.json`` are published. Card fields come f
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
-import tempfile
 import urllib.parse
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +53,7 @@ def publish(
     base_url: str | None = None,
     card_fields: dict[str, Any] | None = None,
 ) -> ModelCard:
-    """Publish the bundle dir (or Lightning ``.ckpt``) ``source`` as ``name`` into ``to``; returns the new card.
+    """Publish the bundle dir ``source`` as ``name`` into ``to``; returns the new card.
 
     ``to`` is a local directory or ``file://`` URL. Card URLs are relative when ``to`` lies inside the zoo dir
     (models shipped with the repository), ``base_url + filename`` when the files will be uploaded there by hand,
@@ -65,21 +65,21 @@ def publish(
     dest = _destination(to)
     card_path = zoo / f"{name}.md"
     previous = _read_existing(card_path)
-    with _bundle_from(Path(source)) as bundle:
-        from_config = _from_config(check_bundle(bundle))
-        if metrics is None and not skip_eval:
-            if evaluate is None:
-                raise PublishError(
-                    "no metrics: pass metrics (--card-metrics FILE) or skip_eval (--skip-eval); the "
-                    "standard evaluation is not wired into publish yet"
-                )
-            metrics = evaluate(bundle)
-        metrics = validate_metrics(metrics or {})
-        dest.mkdir(parents=True, exist_ok=True)
-        files = []
-        for filename in REQUIRED_FILES:
-            sha256, size = _copy_hashed(bundle / filename, dest / filename)
-            files.append(FileEntry(filename, _url_for(dest / filename, zoo, base_url), sha256, size))
+    bundle = _bundle_dir(Path(source))
+    from_config = _from_config(check_bundle(bundle))
+    if metrics is None and not skip_eval:
+        if evaluate is None:
+            raise PublishError(
+                "no metrics: pass metrics (--card-metrics FILE) or skip_eval (--skip-eval); the "
+                "standard evaluation is not wired into publish yet"
+            )
+        metrics = evaluate(bundle)
+    metrics = validate_metrics(metrics or {})
+    dest.mkdir(parents=True, exist_ok=True)
+    files = []
+    for filename in REQUIRED_FILES:
+        sha256, size = _copy_hashed(bundle / filename, dest / filename)
+        files.append(FileEntry(filename, _url_for(dest / filename, zoo, base_url), sha256, size))
     fields: dict[str, Any] = {"name": name, "kind": "TTO", "license": "MIT", "tags": list(DEFAULT_TAGS)}
     if previous is not None:  # keep what a maintainer edited by hand; metrics and files are replaced
         fields.update(
@@ -120,20 +120,15 @@ def _from_config(config: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-@contextlib.contextmanager
-def _bundle_from(source: Path) -> Iterator[Path]:
-    """``source`` itself if it is a bundle dir; a converted temporary bundle if it is a Lightning checkpoint."""
+def _bundle_dir(source: Path) -> Path:
     if source.is_dir():
-        yield source
-    elif source.is_file() and source.suffix == ".ckpt":
-        # Lightning checkpoints are pickles: only publish checkpoints you produced yourself.
-        from ttompc.policy import Planner
-
-        with tempfile.TemporaryDirectory(prefix="ttompc-publish-") as tmp:
-            Planner.from_pretrained(source).save(tmp)
-            yield Path(tmp)
-    else:
-        raise PublishError(f"{source} is neither a bundle directory nor a Lightning .ckpt file")
+        return source
+    if source.is_file() and source.suffix == ".ckpt":
+        raise PublishError(
+            f"{source} is a Lightning checkpoint, not a bundle directory",
+            "convert it with Planner.from_pretrained(CKPT).save(DIR), or publish it with `ttompc zoo publish`",
+        )
+    raise PublishError(f"{source} is neither a bundle directory nor a Lightning .ckpt file")
 
 
 def _destination(to: str) -> Path:
