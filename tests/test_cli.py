@@ -91,7 +91,7 @@ def test_debug_shows_the_traceback(tmp_path: Path) -> None:
         ttompc("solve", "--scenario", "nope", "--debug", cwd=tmp_path),
         ttompc("solve", "--scenario", "nope", cwd=tmp_path, TTOMPC_DEBUG="1"),
     ):
-        assert res.returncode == 1 and "Traceback" in res.stderr and "UserError: unknown scenario" in res.stderr
+        assert res.returncode == 1 and "Traceback" in res.stderr and "ScenarioNotFoundError: unknown scenario" in res.stderr
 
 
 def test_settings_may_follow_options(tmp_path: Path) -> None:

@@ -235,7 +235,8 @@ def test_planner_bundle_roundtrip(tmp_path: Path, toy, toy_stats: NormStats) -> 
     np.testing.assert_array_equal(U, loaded.warm_start(problems, -2.0)[1])
     assert X.dtype == np.float64 and np.array_equal(X[0, 0], problems[0].x0)  # the SCP's fixed state, exactly
     meta = json.loads((tmp_path / "p" / "config.json").read_text())
-    assert meta["scenario"] == {"name": "toy", "version": "0.1"} and meta["recipe"] == {"note": "test"}
+    assert meta["scenario"] == {"name": "toy", "version": "0.1", "spec": "conftest:ToyScenario"}
+    assert meta["recipe"] == {"note": "test"}
     meta["scenario"]["version"] = "9.9"
     (tmp_path / "p" / "config.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match=r"v9\.9"):

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from ttompc.errors import UserError
+from ttompc.parallel import starting_worker
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "solve": ("ttompc.commands.solve", "sample a problem, solve REL then SCP, print a table (and plot)"),
@@ -54,6 +55,8 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if starting_worker():  # a pool worker importing an unguarded script that calls main(): the parent reports it
+        raise SystemExit(EXIT_USER_ERROR)
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("TTOMPC_DEBUG", "") not in ("", "0")
     argv = [a for a in argv if a != "--debug"]

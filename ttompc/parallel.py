@@ -10,7 +10,6 @@ thread (a 10-step rollout was 100x slower with 2 threads than with 1 on a shared
 from __future__ import annotations
 
 import contextlib
-import importlib
 import multiprocessing as mp
 import os
 import signal
@@ -49,20 +48,17 @@ def single_torch_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-def scenario_module(name: str) -> str:
-    """The module that registers scenario ``name``: spawned workers import it (``pool_map(imports=...)``), which
-    also makes scenarios defined in tests available there."""
-    from ttompc.scenarios import get_scenario
-
-    return type(get_scenario(name)).__module__
-
-
 def _start_worker(
-    imports: Sequence[str], pin_torch: bool, initializer: Callable[..., None] | None, initargs: tuple[Any, ...]
+    scenarios: Sequence[str], pin_torch: bool, initializer: Callable[..., None] | None, initargs: tuple[Any, ...]
 ) -> None:
-    """Runs once in each spawned worker: imports, torch thread pin, then the caller's initializer."""
-    for module in imports:
-        importlib.import_module(module)
+    """Runs once in each spawned worker: loads the parent's scenarios by spec (so their names resolve here too,
+    whether built in, defined in a test module or loaded from a user's file), torch thread pin, then the caller's
+    initializer."""
+    if scenarios:
+        from ttompc.scenarios import get_scenario
+
+        for spec in scenarios:
+            get_scenario(spec)
     if pin_torch:
         import torch
 
@@ -85,15 +81,16 @@ def pool_map(
     initializer: Callable[..., None] | None = None,
     initargs: tuple[Any, ...] = (),
     *,
-    imports: Sequence[str] = (),
+    scenarios: Sequence[str] = (),
     pin_torch: bool = True,
 ) -> Iterator[Any]:
     """``fn(task)`` for every task, yielded in task order as they finish.
 
     ``workers <= 1`` runs inline in this process; otherwise a spawn pool of ``min(workers, len(tasks))``
-    processes, each of which imports ``imports`` (e.g. ``scenario_module(name)``) and runs ``initializer(*initargs)``
-    once (e.g. to load a model once per worker). With ``pin_torch`` torch uses one thread, in the workers and, for
-    the duration of the inline run, in this process; data generation, which never touches torch, turns it off.
+    processes, each of which loads ``scenarios`` (specs: ``ttompc.scenarios.scenario_spec(name)``) and runs
+    ``initializer(*initargs)`` once (e.g. to load a model once per worker). With ``pin_torch`` torch uses one
+    thread, in the workers and, for the duration of the inline run, in this process; data generation, which never
+    touches torch, turns it off.
     """
     tasks = list(tasks)
     if not tasks:
@@ -103,7 +100,7 @@ def pool_map(
             _start_worker((), False, initializer, initargs)
             yield from map(fn, tasks)
         return
-    init_args = (tuple(imports), pin_torch, initializer, initargs)
+    init_args = (tuple(scenarios), pin_torch, initializer, initargs)
     n = min(workers, len(tasks))
     with single_threaded_env(), mp.get_context("spawn").Pool(n, _start_pool_worker, init_args) as pool:
         yield from pool.imap(fn, tasks, chunksize=1)

@@ -11,13 +11,12 @@ if TYPE_CHECKING:
     from ttompc.scenarios import Scenario
 
 
-def scenario(name: str) -> Scenario:
-    """The registered scenario ``name``, or a ``UserError`` listing the registered ones."""
-    from ttompc.scenarios import get_scenario, list_scenarios
+def scenario(spec: str) -> Scenario:
+    """The scenario ``spec`` names (a name, ``module:Class``, ``path/to/file.py:Class`` or an entry point), or a
+    ``UserError`` saying what is missing (``ttompc.scenarios.ScenarioNotFoundError``)."""
+    from ttompc.scenarios import get_scenario
 
-    if name not in list_scenarios():
-        raise UserError(f"unknown scenario {name!r}", f"choose one of: {', '.join(list_scenarios())}")
-    return get_scenario(name)
+    return get_scenario(spec)
 
 
 def backend(name: str | None) -> None:

@@ -40,6 +40,7 @@ from ttompc.data.generate import load_manifest
 from ttompc.data.schema import SOURCE_CODES
 from ttompc.data.shards import SPLITS, ShardError, verify_shard
 from ttompc.policy.stats import NormStats
+from ttompc.scenarios import find_scenario
 
 COLUMNS = ("problem_id", "source", "states", "actions", "goal", "rtg", "ctg", "target_actions", "target_next_states")
 Chunk = dict[str, np.ndarray]
@@ -337,6 +338,8 @@ class TrajectoryDataModule(L.LightningDataModule):
             raise ValueError(f"open-loop datasets mix scenarios/horizons: {sorted(names)}, {sorted(steps)}")
         self.manifest = manifests[0]
         self.scenario_name, self.n_steps = names.pop(), steps.pop()
+        # load the scenario from its recorded spec, so that its name resolves in this process (user scenarios)
+        find_scenario(self.scenario_name, self.manifest["scenario"].get("spec"))
         self.stats = NormStats.from_dict(self.manifest["norm_stats"])
         self._files = {s: [] for s in SPLITS}
         for root, m in zip(cfg.paths, manifests, strict=True):

@@ -38,7 +38,7 @@ from ttompc.data.schema import SCHEMA_VERSION, make_row, trajectory_features
 from ttompc.data.shards import SPLITS, ShardError, atomic_write_json
 from ttompc.parallel import pool_map
 from ttompc.policy.stats import KEYS, NormStats
-from ttompc.scenarios import get_scenario
+from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import InfeasibleProblemError, Scenario
 from ttompc.seeding import problem_seed
 from ttompc.version import code_version
@@ -260,7 +260,7 @@ def generate(
             yield outcome
 
     outcomes = pool_map(
-        _solve_one, tasks, workers, _init_worker, init_args, imports=(type(scenario).__module__,), pin_torch=False
+        _solve_one, tasks, workers, _init_worker, init_args, scenarios=[scenario_spec(scenario)], pin_torch=False
     )
     for k, batch, seconds in folder.group(pending, counted(outcomes)):
         meta = _write_shard(folder, k, cfg, scenario, batch, seconds)
@@ -323,6 +323,7 @@ def finalize(cfg: GenerateConfig) -> dict[str, Any]:
         "name": cfg.name or out.resolve().name,
         "scenario": {
             "name": scenario.name,
+            "spec": scenario_spec(scenario),  # how later commands load it (``ttompc.scenarios.find_scenario``)
             "version": scenario.version,
             "n_steps": scenario.n_steps,
             "state_dim": scenario.state_dim,

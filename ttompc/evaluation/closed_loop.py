@@ -42,8 +42,8 @@ from ttompc.mpc.providers import (
     TTOProvider,
     full_horizon_plan,
 )
-from ttompc.parallel import pool_map, scenario_module
-from ttompc.scenarios import get_scenario
+from ttompc.parallel import pool_map
+from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario
 
 if TYPE_CHECKING:
@@ -253,7 +253,7 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     records: list[dict[str, Any]] = []
     tasks = range(cfg.problems)
-    for rs in pool_map(_run, tasks, workers, _init, (to_container(cfg),), imports=[scenario_module(sc.name)]):
+    for rs in pool_map(_run, tasks, workers, _init, (to_container(cfg),), scenarios=[scenario_spec(sc)]):
         records.extend(rs)
     summary = summarize(records, cfg.seed)
     table = format_table(summary)

@@ -27,8 +27,8 @@ import numpy as np
 from ttompc.evaluation.metrics import aggregate, gain_share, improvement_by_threshold, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.mpc.metrics import format_interval, interval
-from ttompc.parallel import pool_map, scenario_module
-from ttompc.scenarios import get_scenario
+from ttompc.parallel import pool_map
+from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario, Window
 from ttompc.seeding import rng
 from ttompc.solvers.scp import SCPResult, solve_scp
@@ -206,7 +206,7 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     workers = default_workers(cfg.workers)
     rows = list(
-        pool_map(_run_problem, range(cfg.problems), workers, _init, (asdict(cfg),), imports=[scenario_module(sc.name)])
+        pool_map(_run_problem, range(cfg.problems), workers, _init, (asdict(cfg),), scenarios=[scenario_spec(sc)])
     )
     models = [m for m, key in (("TTO", cfg.model), ("FT-TTO", cfg.ft_model)) if key]
     cmax = max((r["ctg0"] for r in rows), default=0)

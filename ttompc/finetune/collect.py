@@ -36,8 +36,8 @@ from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig
 from ttompc.mpc.loop import Mode, MPCController
 from ttompc.mpc.providers import ShiftProvider, TTOProvider
-from ttompc.parallel import pool_map, scenario_module
-from ttompc.scenarios import get_scenario
+from ttompc.parallel import pool_map
+from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Problem, Scenario
 from ttompc.seeding import rollout_seed
 
@@ -196,7 +196,7 @@ def collect_iteration(
     workers = cfg.collect.workers or os.cpu_count() or 1
     splits = SplitConfig(train=1.0 - cfg.collect.val_fraction, val=cfg.collect.val_fraction, test=0.0, salt=iteration)
     init = (scenario.name, str(planner_dir), cfg)
-    rows = pool_map(_collect_one, tasks, workers, _init_collector, init, imports=(scenario_module(scenario.name),))
+    rows = pool_map(_collect_one, tasks, workers, _init_collector, init, scenarios=[scenario_spec(scenario)])
     for k, shard_rows, seconds in folder.group(todo, rows):
         by_split: dict[str, list[dict[str, Any]]] = {"train": [], "val": []}
         for row in shard_rows:

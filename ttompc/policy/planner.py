@@ -8,7 +8,7 @@ directories)::
     <dir>/config.json         {
                                 "format": "ttompc-planner", "format_version": 1,
                                 "model": {ModelConfig fields},
-                                "scenario": {"name": str, "version": str},
+                                "scenario": {"name": str, "version": str, "spec": str},  # spec: how to load it
                                 "norm_stats": NormStats.to_dict(),      # mean/std lists for the 5 modalities
                                 "recipe": {training recipe as a plain dict, may be empty},
                                 "code_version": str,                    # ttompc version + git commit of the trainer
@@ -44,7 +44,7 @@ from ttompc.policy.config import ModelConfig
 from ttompc.policy.gpt import TrajectoryGPT
 from ttompc.policy.rollout import RolloutContext, RolloutResult
 from ttompc.policy.stats import NormStats
-from ttompc.scenarios import Problem, Scenario, get_scenario
+from ttompc.scenarios import Problem, Scenario, find_scenario, scenario_spec
 from ttompc.version import code_version
 
 FORMAT = "ttompc-planner"
@@ -178,7 +178,11 @@ class Planner:
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
             "model": asdict(self.model.cfg),
-            "scenario": {"name": self.scenario.name, "version": self.scenario.version},
+            "scenario": {
+                "name": self.scenario.name,
+                "version": self.scenario.version,
+                "spec": scenario_spec(self.scenario),
+            },
             "norm_stats": self.stats.to_dict(),
             "recipe": self.recipe,
             "code_version": self.trained_code_version,
@@ -216,8 +220,9 @@ class Planner:
         """A planner from a Lightning checkpoint (``*.ckpt``), a bundle directory or a zoo model name (downloaded
         into the verified cache if needed), in that order of precedence: a local path wins over a zoo name.
 
-        The scenario defaults to the registered one the model was trained on; a scenario version different from
-        the training one is an error unless ``check_version=False``."""
+        The scenario defaults to the one the model was trained on (by name, else loaded from the recorded spec:
+        ``ttompc.scenarios.find_scenario``); a scenario version different from the training one is an error unless
+        ``check_version=False``."""
         from ttompc.zoo import BundleError, check_bundle, download
         from ttompc.zoo.cards import CardError, validate_name
 
@@ -255,8 +260,7 @@ class Planner:
         state = load_file(str(src / WEIGHTS_FILE), device=str(device))
         return cls._build(
             meta["model"],
-            meta["scenario"]["name"],
-            meta["scenario"]["version"],
+            meta["scenario"],
             meta["norm_stats"],
             state,
             scenario=scenario,
@@ -284,8 +288,7 @@ class Planner:
         extra = {"global_step": int(ckpt.get("global_step", 0)), "epoch": int(ckpt.get("epoch", 0))}
         return cls._build(
             hp["model_config"],
-            hp["scenario"],
-            hp["scenario_version"],
+            {"name": hp["scenario"], "version": hp["scenario_version"], "spec": hp.get("scenario_spec")},
             hp["norm_stats"],
             state,
             scenario=scenario,
@@ -300,8 +303,7 @@ class Planner:
     def _build(
         cls,
         model_cfg: dict[str, Any],
-        scenario_name: str,
-        scenario_version: str,
+        trained_on: dict[str, Any],
         stats: dict[str, Any],
         state: dict[str, torch.Tensor],
         *,
@@ -312,7 +314,8 @@ class Planner:
     ) -> Planner:
         from ttompc.zoo import BundleError
 
-        scenario = scenario or get_scenario(scenario_name)
+        scenario_name, scenario_version = trained_on["name"], trained_on["version"]
+        scenario = scenario or find_scenario(scenario_name, trained_on.get("spec"))
         if scenario.name != scenario_name:
             raise BundleError(f"model was trained on scenario {scenario_name!r}, not {scenario.name!r}")
         if check_version and scenario.version != scenario_version:

@@ -53,6 +53,7 @@ class TrajectoryTransformerModule(L.LightningModule):
         recipe: dict[str, Any] | None = None,
         code_version: str | None = None,
         plot_trajectories: bool = True,
+        scenario_spec: str | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -164,6 +165,7 @@ def build_module(
     configs in, primitives stored as hyper-parameters (so the checkpoint loads with ``weights_only=True`` and is
     enough for ``Planner.from_pretrained``), with the recipe (a typed config) and the code version recorded."""
     from ttompc.config import to_container
+    from ttompc.scenarios import scenario_spec as spec_of
     from ttompc.version import code_version
 
     return TrajectoryTransformerModule(
@@ -171,6 +173,7 @@ def build_module(
         optim=to_container(optim),
         scenario=scenario.name,
         scenario_version=scenario.version,
+        scenario_spec=spec_of(scenario),  # how a fresh process loads it
         norm_stats=stats.to_dict(),
         recipe=to_container(recipe),
         code_version=code_version(),
