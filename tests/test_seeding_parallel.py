@@ -8,7 +8,8 @@ import os
 import numpy as np
 import pytest
 
-from ttompc.parallel import pool_map, single_threaded_env, single_torch_thread
+from ttompc.errors import UserError
+from ttompc.parallel import WorkerError, pool_map, single_threaded_env, single_torch_thread
 from ttompc.seeding import DAGGER_STREAM, EVAL_STREAM, derive_seed, eval_seed, problem_seed, rng, rollout_seed
 
 
@@ -57,6 +58,26 @@ def test_pool_map_keeps_task_order_for_any_worker_count() -> None:
     assert list(pool_map(_square, tasks, 1, pin_torch=False)) == [t * t for t in tasks]
     assert list(pool_map(_square, tasks, 2, pin_torch=False)) == [t * t for t in tasks]
     assert list(pool_map(_square, [], 2)) == []
+
+
+def _fail_to_start(kind: str) -> None:
+    if kind == "user":
+        raise UserError("no model 'nope' in the zoo", "see `ttompc zoo list`")
+    raise RuntimeError("a broken\ninstallation")
+
+
+@pytest.mark.timeout(120)  # a pool that replaced its failed workers (multiprocessing.Pool) waited forever
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        ("user", "no model 'nope' in the zoo; see `ttompc zoo list`"),
+        ("bug", "a worker process failed while starting (RuntimeError: a broken installation); --debug shows where"),
+    ],
+)
+def test_a_worker_that_fails_to_start_ends_the_pool_with_its_error(kind: str, message: str) -> None:
+    with pytest.raises(WorkerError) as info:
+        list(pool_map(_square, range(6), 2, _fail_to_start, (kind,), pin_torch=False))
+    assert str(info.value) == message
 
 
 def test_workers_get_one_thread_and_the_parent_is_restored() -> None:

@@ -5,18 +5,35 @@ torch or solver state, so results depend only on the task (with ``ttompc.seeding
 Each worker gets one BLAS/OpenMP thread (``single_threaded_env``) and one torch thread: a pool of one worker per
 core then does not oversubscribe the machine, and batch-1 model rollouts, chains of tiny kernels, run fastest on one
 thread (a 10-step rollout was 100x slower with 2 threads than with 1 on a shared 2-core machine).
+
+A worker that fails while starting (an unknown model in the initializer, a script without
+``if __name__ == "__main__":`` that re-runs the command when a worker imports it) or dies later ends the whole
+``pool_map`` with a ``WorkerError`` (one line through the CLI): ``concurrent.futures`` marks the pool broken instead
+of starting replacement workers that fail the same way forever, as ``multiprocessing.Pool`` does.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import itertools
 import multiprocessing as mp
 import os
 import signal
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
+from ttompc.errors import UserError
+
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+_STARTING = "TTOMPC_POOL_WORKER_STARTING"  # set for spawned workers until they have started (``starting_worker``)
+_AHEAD = 8  # tasks submitted per worker ahead of the one awaited: a slow task does not leave the others idle
+
+
+class WorkerError(UserError):
+    """A pool worker failed while starting, or died: the command stops instead of waiting forever."""
 
 
 @contextlib.contextmanager
@@ -67,11 +84,36 @@ def _start_worker(
         initializer(*initargs)
 
 
+def starting_worker() -> bool:
+    """True in a pool worker that has not finished starting, e.g. while it imports the parent's main script: a script
+    that calls ``ttompc.cli.main()`` without ``if __name__ == "__main__":`` would run the command again there."""
+    return _STARTING in os.environ
+
+
+_start_failure: list[Exception] = []  # in a worker whose start failed: the error, which each of its tasks raises
+
+
 def _start_pool_worker(*args: Any) -> None:
     """Ctrl-C reaches every process of the terminal's group: only the parent handles it (it stops the pool and
-    says how to resume), so workers ignore it instead of each printing a traceback."""
+    says how to resume), so workers ignore it instead of each printing a traceback. A failed start is kept for
+    ``_run_task`` to raise: the parent then stops with that error (an exception escaping here would only mark the
+    pool broken, after a traceback, without saying why)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _start_worker(*args)
+    os.environ.pop(_STARTING, None)
+    try:
+        _start_worker(*args)
+    except Exception as err:
+        _start_failure.append(err)
+
+
+def _run_task(fn: Callable[[Any], Any], task: Any) -> Any:
+    if _start_failure:
+        err = _start_failure[0]
+        if isinstance(err, UserError):  # e.g. an unknown model: the same line as without a pool
+            raise WorkerError(" ".join(str(err).split())) from err
+        reason = " ".join(f"{type(err).__name__}: {err}".split())
+        raise WorkerError(f"a worker process failed while starting ({reason})", "--debug shows where") from err
+    return fn(task)
 
 
 def pool_map(
@@ -101,6 +143,34 @@ def pool_map(
             yield from map(fn, tasks)
         return
     init_args = (tuple(scenarios), pin_torch, initializer, initargs)
-    n = min(workers, len(tasks))
-    with single_threaded_env(), mp.get_context("spawn").Pool(n, _start_pool_worker, init_args) as pool:
-        yield from pool.imap(fn, tasks, chunksize=1)
+    with single_threaded_env():
+        yield from _pool_results(fn, tasks, min(workers, len(tasks)), init_args)
+
+
+def _pool_results(fn: Callable[[Any], Any], tasks: list[Any], n: int, init_args: tuple[Any, ...]) -> Iterator[Any]:
+    """``pool_map``'s spawn pool: results in task order, at most ``_AHEAD`` tasks per worker submitted ahead. Any
+    way out but the last result (an error, Ctrl-C, a consumer that stops) terminates the workers at once."""
+    pool = ProcessPoolExecutor(n, mp.get_context("spawn"), initializer=_start_pool_worker, initargs=init_args)
+    todo = iter(tasks)
+    pending: collections.deque[Future[Any]] = collections.deque()
+    finished = False
+    os.environ[_STARTING] = "1"  # inherited by the workers, which clear it once started
+    try:
+        while True:
+            pending.extend(pool.submit(_run_task, fn, t) for t in itertools.islice(todo, n * _AHEAD - len(pending)))
+            if not pending:
+                break
+            yield pending.popleft().result()
+        finished = True
+    except BrokenProcessPool as err:
+        raise WorkerError(
+            "a worker process exited unexpectedly: killed (e.g. out of memory), or it ran a script that calls "
+            'ttompc.cli.main() without `if __name__ == "__main__":`',
+            "guard that call, or use fewer workers",
+        ) from err
+    finally:
+        os.environ.pop(_STARTING, None)
+        if not finished:  # shutdown() waits for running tasks; ProcessPoolExecutor can only terminate from 3.14
+            for process in list((pool._processes or {}).values()):
+                process.terminate()
+        pool.shutdown(cancel_futures=True)

@@ -55,14 +55,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
-    """The scenario defaults to the model's; settings are checked before any work."""
-    if cfg.scenario is None:
-        if not cfg.model:
+    """The scenario defaults to the model's; settings and models are checked before any work. Every model is loaded
+    here as the pool workers will load it: a name that is not in the zoo, a damaged bundle or a model of another
+    scenario is one error line before the pool starts, not a failure in every worker."""
+    sources = [source for source in (cfg.model, cfg.ft_model) if source]
+    if not sources:
+        if cfg.scenario is None:
             raise UserError("evaluate needs a model or a scenario", "pass --model NAME or scenario=NAME")
+        checks.scenario(cfg.scenario)
+    else:
         from ttompc.policy import Planner
 
-        cfg.scenario = Planner.from_pretrained(cfg.model).scenario.name
-    checks.scenario(cfg.scenario)
+        if cfg.scenario is None:
+            cfg.scenario = Planner.from_pretrained(sources[0]).scenario.name
+        scenario = checks.scenario(cfg.scenario)
+        for source in sources:
+            Planner.from_pretrained(source, scenario, device=cfg.device)
     checks.seed(cfg.seed)
     checks.backend(cfg.backend)
 
