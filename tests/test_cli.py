@@ -274,3 +274,41 @@ def test_every_command_takes_key_value_settings(argv: list[str], key: str, capsy
     assert node == 5
     assert main([*argv, f"{key}x=5"]) == 2
     assert f"unknown setting '{key}x'" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(300)  # before the fix every worker failed at start and the pool replaced it, forever
+@pytest.mark.parametrize(
+    ("args", "missing"),
+    [
+        (["warmstart", "--model", "freeflyer-tto-small", "--ft-model", "rpod-ft-tto-small"], "rpod-ft-tto-small"),
+        (["mpc", "--ft-model", "nope", "max_steps=2"], "nope"),
+    ],
+)
+def test_evaluate_with_a_model_not_in_the_zoo_stops_before_any_worker(
+    tmp_path: Path, args: list[str], missing: str
+) -> None:
+    """A withdrawn or misspelt model is one line from the parent, which loads every model before the pool starts."""
+    work, cache = tmp_path / "work", str(tmp_path / "cache")
+    work.mkdir()
+    cached = ttompc("zoo", "download", "freeflyer-tto-small", "--no-progress", cwd=work, TTOMPC_HOME=cache)
+    assert cached.returncode == 0, cached.stderr  # a first download would draw a progress bar
+    res = ttompc("evaluate", *args, "problems=2", "workers=2", "out=out", cwd=work, timeout=240, TTOMPC_HOME=cache)
+    assert_user_error(res, f"no model '{missing}'", "available: ")
+    assert list(work.iterdir()) == []
+
+
+@pytest.mark.timeout(300)  # before the fix: the spawn error, from every replacement worker, forever
+def test_a_script_that_runs_a_pool_command_without_a_main_guard_ends_with_one_line(tmp_path: Path) -> None:
+    """Each spawned worker imports the parent's script; one that calls ``ttompc.cli.main()`` unguarded would run the
+    command again there. The workers stop quietly and the parent says what to do."""
+    script = tmp_path / "my_generate.py"
+    script.write_text(
+        "import sys\n"
+        "import ttompc.cli\n\n"
+        "sys.exit(ttompc.cli.main(['generate', 'problems=4', 'shard_size=1', 'workers=2', 'splits.train=0.5',\n"
+        "                          'splits.val=0.5', 'splits.test=0', 'out=data', '--no-progress']))\n"
+    )
+    res = subprocess.run(
+        [sys.executable, str(script)], cwd=tmp_path, env=cli_env(), capture_output=True, text=True, timeout=240
+    )
+    assert_user_error(res, "ttompc generate: error: a worker process exited", 'if __name__ == "__main__":')
