@@ -126,6 +126,15 @@ def test_batch_contract_windows_and_values(data: dict[str, Path]) -> None:
     assert torch.all(batch["mask"] == 1)
 
 
+def test_default_context_is_the_datasets_horizon(data: dict[str, Path]) -> None:
+    """DataConfig.context_length None (the default) means the whole horizon N of the datasets' scenario."""
+    dm = _dm(data, context_length=None)
+    batch = next(iter(dm.val_dataloader()))
+    assert batch["timesteps"].shape[1] == N and torch.all(batch["timesteps"][:, 0] == 0)
+    with pytest.raises(ValueError, match=rf"\[1, {N}\]"):
+        _dm(data, context_length=N + 1)
+
+
 def test_train_batches_are_normalised(data: dict[str, Path]) -> None:
     dm = _dm(data, train_batches_per_epoch=60)
     batches = list(dm.train_dataloader())

@@ -1,6 +1,7 @@
 """Every YAML under recipes/ loads against its schema (training or fine-tuning) and describes the run it claims to:
 its scenario's data, dimensions and output folder, the advertised model size, the architecture of the zoo model it
-produced, and (fine-tuning) the same open-loop dataset as the model it starts from."""
+produced, and (fine-tuning) the same open-loop dataset as the model it starts from. The generic recipes name no
+scenario: their horizon-dependent settings follow the dataset they are given."""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from ttompc.training.config import TrainConfig, load_train_config
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = ROOT / "recipes"
 ALL = sorted(RECIPES.glob("**/*.y*ml"))
+GENERIC = [p for p in ALL if p.parent.name == "generic"]
+SCENARIO_RECIPES = [p for p in ALL if p not in GENERIC]
 ARCHITECTURE = ("state_dim", "control_dim", "n_embd", "n_layer", "n_head", "mlp_ratio", "activation", "max_steps")
 
 
@@ -40,10 +43,11 @@ def test_every_scenario_has_the_documented_recipes() -> None:
     names = {(p.parent.name, p.stem) for p in ALL}
     for scenario in ("freeflyer", "quadrotor", "rpod"):
         assert {(scenario, r) for r in ("pretrain", "small", "tiny", "finetune", "finetune-small")} <= names
+    assert {("generic", "tiny"), ("generic", "small")} <= names
     assert all(p.parent.parent == RECIPES for p in ALL), "recipes live in recipes/<scenario>/"
 
 
-@pytest.mark.parametrize("path", ALL, ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize("path", SCENARIO_RECIPES, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_recipe_loads_and_matches_its_scenario(path: Path) -> None:
     cfg = load(path)
     scenario = get_scenario(path.parent.name)
@@ -54,7 +58,7 @@ def test_recipe_loads_and_matches_its_scenario(path: Path) -> None:
     if isinstance(cfg, TrainConfig):
         model = cfg.model
         assert (model.state_dim, model.control_dim) == (scenario.state_dim, scenario.control_dim)
-        assert cfg.data.context_length <= model.max_steps
+        assert (cfg.data.context_length or scenario.n_steps) <= model.max_steps
         assert scenario.n_steps <= model.max_steps, "the model must cover a full-horizon rollout"
 
 
@@ -69,10 +73,25 @@ def test_training_recipe_builds_the_model_it_describes(path: Path) -> None:
     elif path.stem == "tiny":
         assert n_params < 300_000
     elif path.stem == "small":  # the zoo's "-tto-small" model was trained with this file: same architecture
+        zoo_model = "freeflyer" if path.parent.name == "generic" else path.parent.name
         bundle: dict[str, Any] = json.loads(
-            (ROOT / "zoo" / "models" / f"{path.parent.name}-tto-small" / "config.json").read_text()
+            (ROOT / "zoo" / "models" / f"{zoo_model}-tto-small" / "config.json").read_text()
         )
-        assert {k: getattr(cfg.model, k) for k in ARCHITECTURE} == {k: bundle["model"][k] for k in ARCHITECTURE}
+        keys = ARCHITECTURE[2:-1] if path in GENERIC else ARCHITECTURE  # generic: dims and horizon follow the data
+        assert {k: getattr(cfg.model, k) for k in keys} == {k: bundle["model"][k] for k in keys}
+
+
+@pytest.mark.parametrize("path", GENERIC, ids=lambda p: p.name)
+def test_generic_recipe_follows_the_dataset_horizon(path: Path, tmp_path: Path) -> None:
+    """No dataset, scenario or horizon in the file: model.max_steps follows the manifest of the dataset given on
+    the command line (context_length None = the whole horizon, resolved by the data module), unless set."""
+    cfg = load_train_config(path)
+    assert cfg.data.paths == [] and cfg.data.context_length is None
+    data = tmp_path / "di2d-v1"
+    data.mkdir()
+    (data / "manifest.json").write_text(json.dumps({"scenario": {"name": "di2d", "n_steps": 40}}))
+    assert load_train_config(path, [f"data.paths=[{data}]"]).model.max_steps == 40
+    assert load_train_config(path, [f"data.paths=[{data}]", "model.max_steps=64"]).model.max_steps == 64
 
 
 @pytest.mark.parametrize("path", [p for p in ALL if is_finetune(p)], ids=lambda p: f"{p.parent.name}/{p.name}")

@@ -65,6 +65,26 @@ def load_command_config(schema_cls: type[T], recipe: str | Path | None = None, o
         raise ConfigError(str(err)) from None
 
 
+def given_keys(recipe: str | Path | None = None, overrides: Sequence[str] = ()) -> set[str]:
+    """The dotted keys a recipe and ``key=value`` overrides set explicitly (call it once ``load_command_config``
+    accepted the same arguments): settings whose default follows the data may only fill in the others."""
+    layers = [OmegaConf.load(recipe)] if recipe is not None else []
+    if overrides:
+        layers.append(OmegaConf.from_dotlist(list(overrides)))
+    keys: set[str] = set()
+
+    def walk(node: DictConfig, prefix: str) -> None:
+        for key, value in node.items_ex(resolve=False):
+            keys.add(f"{prefix}{key!s}")
+            if isinstance(value, DictConfig):
+                walk(value, f"{prefix}{key!s}.")
+
+    for layer in layers:
+        if isinstance(layer, DictConfig):
+            walk(layer, "")
+    return keys
+
+
 def _merge(base: DictConfig, merged: DictConfig, layer: Any, where: str) -> DictConfig:
     try:
         return OmegaConf.merge(merged, layer)  # type: ignore[return-value]

@@ -91,7 +91,8 @@ def render_card(manifest: dict[str, Any]) -> str:
 
     fr = gen["splits"]
     reproduce = (
-        f"ttompc generate --scenario {sc['name']} --problems {gen['problems']} --seed {manifest['root_seed']} "
+        f"ttompc generate --scenario {sc.get('spec', sc['name'])} --problems {gen['problems']} "
+        f"--seed {manifest['root_seed']} "
         f"--shard-size {gen['shard_size']} --splits {fr['train']},{fr['val']},{fr['test']} --split-salt {fr['salt']} "
         f"--out data/{manifest['name']}" + (f" --backend {gen['backend']}" if gen["backend"] else "")
     )

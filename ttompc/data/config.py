@@ -65,7 +65,7 @@ class DataConfig:
     num_workers: int = 0
     shuffle_pool: int = 4096  # rows held per source for in-memory shuffling
     read_batch_size: int = 256  # rows per ``IterableDataset.iter`` read
-    context_length: int = 100  # L ≤ N; random windows of length L when L < N
+    context_length: int | None = None  # L ≤ N, random windows of length L when L < N; None: the whole horizon N
     train_batches_per_epoch: int | None = None  # None: one endless epoch (use max_steps); else equal per rank
     verify_checksums: bool = True  # sha256 of every open-loop shard against its manifest at setup
     seed: int = 0

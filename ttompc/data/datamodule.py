@@ -158,10 +158,12 @@ class _ShufflePool:
 class _Batcher:
     """Rows -> the batch contract: context windows, normalisation, torch tensors."""
 
-    def __init__(self, stats: NormStats, n_steps: int, context_length: int) -> None:
-        if not 1 <= context_length <= n_steps:
-            raise ValueError(f"context_length must be in [1, {n_steps}], got {context_length}")
-        self.stats, self.N, self.L = stats, n_steps, context_length
+    def __init__(self, stats: NormStats, n_steps: int, context_length: int | None) -> None:
+        """``context_length`` None: the whole horizon, whatever the scenario's N."""
+        L = n_steps if context_length is None else context_length
+        if not 1 <= L <= n_steps:
+            raise ValueError(f"context_length must be in [1, {n_steps}] (the datasets' horizon), got {L}")
+        self.stats, self.N, self.L = stats, n_steps, L
 
     def __call__(self, rows: Chunk, starts: np.ndarray) -> dict[str, torch.Tensor]:
         B, N, Lc, st = len(rows["problem_id"]), self.N, self.L, self.stats

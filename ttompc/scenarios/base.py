@@ -348,12 +348,29 @@ class Scenario(abc.ABC):
         return X, np.zeros((window.length, self.control_dim))
 
     # ------------------------------------------------------------------------------------------------ plotting
+    def keepout_zones(self, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
+        """Keep-out balls over the first d state entries (optimisation representation): centres (K, d), radii (K,).
+        The default ``plot`` draws them and ``ttompc check-scenario`` probes states inside them; none by default."""
+        return np.zeros((0, 2)), np.zeros(0)
+
     def plot(self, ax: Any, problem: Problem, trajectories: dict[str, np.ndarray]) -> None:
         """Draw keep-out zones and trajectories (dict label -> optimisation-representation states (T, n) from step
-        0) on a matplotlib axis (RPOD accepts an array of axes for several projections)."""
+        0) on a matplotlib axis (RPOD accepts an array of axes for several projections). The default draws the
+        plane of the first two state entries: the ``keepout_zones`` as discs, the trajectories, start and goal."""
+        import matplotlib.patches as mpatches
+
+        centres, radii = self.keepout_zones(problem)
+        for c, r in zip(centres, radii, strict=True):
+            ax.add_patch(mpatches.Circle(tuple(c[:2]), float(r), color="tab:red", alpha=0.4))
         for label, X in trajectories.items():
             ax.plot(X[:, 0], X[:, 1], label=label)
-        ax.legend()
+        ax.plot(*problem.x0[:2], "ko")
+        ax.plot(*problem.goal[:2], "k*", markersize=10)
+        if len(radii):
+            ax.set_aspect("equal")  # discs stay round
+        ax.set_xlabel(self.state_labels[0])
+        ax.set_ylabel(self.state_labels[1])
+        ax.legend(loc="upper left", fontsize=8)
 
 
 def stage_cost(U: np.ndarray, norm: CostNorm) -> np.ndarray:

@@ -7,13 +7,14 @@ import Lightning.
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from ttompc.config import ConfigError, load_command_config
+from ttompc.config import ConfigError, given_keys, load_command_config
 from ttompc.data.config import DataConfig
 from ttompc.policy.config import ModelConfig
 
@@ -117,10 +118,30 @@ class TrainConfig:
 
 
 def load_train_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> TrainConfig:
-    """Load and validate a training recipe; value errors from the sections' checks become ``ConfigError`` too."""
+    """Load and validate a training recipe; value errors from the sections' checks become ``ConfigError`` too.
+
+    Unless the recipe or the overrides set it, ``model.max_steps`` (the timestep-embedding table) follows the horizon
+    N of the first dataset in ``data.paths`` when its manifest is there, so one recipe trains on any scenario
+    (``data.context_length`` defaults to that horizon in the data module)."""
     try:
-        return load_command_config(TrainConfig, path, overrides)
+        cfg = load_command_config(TrainConfig, path, overrides)
     except ConfigError:
         raise
     except ValueError as err:
         raise ConfigError(f"invalid config ({path or 'defaults'}): {err}") from None
+    horizon = _data_horizon(cfg.data.paths)
+    if horizon is not None and "model.max_steps" not in given_keys(path, overrides):
+        cfg.model.max_steps = horizon
+    return cfg
+
+
+def _data_horizon(paths: Sequence[str]) -> int | None:
+    """N of the first dataset's scenario, or None when it has no readable manifest (``train`` reports that)."""
+    if not paths or not Path(paths[0]).is_dir():
+        return None
+    from ttompc.data.generate import MANIFEST
+
+    try:
+        return int(json.loads((Path(paths[0]) / MANIFEST).read_text())["scenario"]["n_steps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
