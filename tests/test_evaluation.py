@@ -323,6 +323,50 @@ def test_demo_command_tiny(tmp_path: Path, bundle: Path) -> None:
     assert main(["demo", "--model", str(bundle), "horizon=0"]) == 2  # a clear error, exit code 2
 
 
+def test_demo_figure_shows_costs_and_why_rel_crosses_obstacles(
+    tmp_path: Path, bundle: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import ttompc.evaluation.plots as plots
+
+    figures: list[Any] = []
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path: figures.append(fig) or Path(path))
+    assert main(["demo", "--model", str(bundle), "--no-mpc", "problems=1", f"out={tmp_path}"]) == 0
+    row = json.loads((tmp_path / "demo.json").read_text())["rows"][0]
+    (fig,) = figures
+    assert "convex relaxation without keep-out zones" in " ".join(fig._suptitle.get_text().split())
+    legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert f"REL (lower bound): J = {row['J_REL']:.4g}" in legend
+    assert f"ORACLE (best optimum): J = {row['ORACLE']['cost']:.4g}" in legend
+    for method in ("REL", "TTO"):
+        cell = row[f"SCP({method})"]
+        expected = f"SCP from {method}: J = {cell['cost']:.4g}" if cell["feasible"] else f"SCP from {method} (INF"
+        assert any(text.startswith(expected) for text in legend), legend
+
+
+def test_mpc_cost_plot_keeps_infeasible_methods_and_ticks_at_the_horizons() -> None:
+    """A method with no feasible run at H = 15 is still drawn there (a hollow triangle at the top) and one with some
+    infeasible runs gets a hollow marker at the mean of its feasible ones; ticks are the horizons, never 12.5."""
+    from ttompc.evaluation.plots import horizon_cost_figure
+
+    def row(method: str, horizon: int, feasible: int, mean: float) -> dict[str, Any]:
+        increment = {"mean": mean if feasible else float("nan"), "se": 0.01}
+        return {"plant": "nominal", "method": method, "horizon": horizon, "runs": 4, "feasible": feasible,
+                "rel_increment": increment, "max_step_time": 0.01}  # fmt: skip
+
+    summary = [row("REL-MPC", 10, 4, 0.2), row("REL-MPC", 15, 4, 0.1)]
+    summary += [row("TTO-MPC", 10, 4, 0.3), row("TTO-MPC", 15, 0, 0.0)]
+    summary += [row("DIST-MPC", 10, 2, 0.5), row("DIST-MPC", 15, 4, 0.4)]
+    ax = horizon_cost_figure(summary).axes[0]
+    assert list(ax.get_xticks()) == [10, 15] and [t.get_text() for t in ax.get_xticklabels()] == ["10", "15"]
+    marks = {ln.get_label(): ln for ln in ax.get_lines() if ln.get_label().startswith("_")}
+    none, some = marks["_TTO-MPC 0/4 feasible"], marks["_DIST-MPC 2/4 feasible"]
+    assert list(none.get_xdata()) == [15] and none.get_marker() == "^" and none.get_markerfacecolor() == "none"
+    assert list(some.get_xdata()) == [10] and some.get_ydata()[0] == pytest.approx(50.0)
+    assert some.get_markerfacecolor() == "none"
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert {"REL-MPC", "TTO-MPC", "DIST-MPC", "no feasible run"} <= set(legend)
+
+
 @pytest.mark.slow
 def test_demo_command_closed_loop(tmp_path: Path, bundle: Path) -> None:
     out = tmp_path / "demo"

@@ -2,9 +2,10 @@
 held-out non-convex problems through the evaluation protocol's per-problem steps — open loop (SCP from REL, from
 the transformer (TTO) and the oracle's best optimum, ``evaluation.warmstart.evaluate_problem``) and closed loop at
 one horizon on the nominal plant (every method of ``evaluation.closed_loop``) — then print the table and save
-``demo.png`` (one column per problem, titled with its seed; open loop on top, closed loop below; infeasible runs
-marked) and ``demo.json``. ``--model``, ``--problems``, ``--horizon``, ``--seed``, ``--no-mpc`` and ``--out`` are
-shortcuts for the ``DemoConfig`` keys."""
+``demo.png`` (one column per problem, titled with its seed; open loop on top, closed loop below; each solution's
+cost in the legend, infeasible runs marked, and the title says why REL may cross obstacles) and ``demo.json``.
+``--model``, ``--problems``, ``--horizon``, ``--seed``, ``--no-mpc`` and ``--out`` are shortcuts for the
+``DemoConfig`` keys."""
 
 from __future__ import annotations
 
@@ -84,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
                 }
             title = f"problem {i}, seed {ep.seed} (ctg0 = {ep.ctg0})"
             failed = {f"SCP from {n}" for n in ("REL", "TTO") if not ws[f"{n}_success"]}
-            open_panels.append(Panel(ep.problem, trajs, f"open loop: {title}", failed))
+            costs = {"REL (lower bound)": ep.rel_cost, "ORACLE (best optimum)": ws["ORACLE_cost"]}
+            costs |= {f"SCP from {n}": ws[f"{n}_cost"] for n in ("REL", "TTO") if ws[f"{n}_success"]}
+            open_panels.append(Panel(ep.problem, trajs, f"open loop: {title}", failed, costs))
             if cfg.mpc:
                 records, executed = run_problem(scenario, ep, {"TTO": planner}, loop)
                 for r in records:
@@ -96,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
                     }
                 closed = {f"{m} H={H}": X for (_, m, H), X in executed.items()}
                 bad = {f"{r['method']} H={r['horizon']}" for r in records if not r["feasible"]}
-                closed_panels.append(Panel(ep.problem, closed, f"closed loop: {title}", bad))
+                applied = {f"{r['method']} H={r['horizon']}": r["cost"] for r in records if r["feasible"]}
+                closed_panels.append(Panel(ep.problem, closed, f"closed loop: {title}", bad, applied))
             rows.append(row)
     _print_table(rows)
     out = Path(cfg.out)
@@ -105,7 +109,11 @@ def run(args: argparse.Namespace) -> int:
         json.dumps({"model": cfg.model, "scenario": scenario.name, "rows": rows}, indent=2, default=float)
     )
     panels = open_panels + closed_panels
-    fig = trajectory_figure(scenario, panels, f"{cfg.model} on {scenario.name}", rows=2 if closed_panels else 1)
+    heading = (
+        f"{cfg.model} on {scenario.name}. J: control cost (lower is better).\nREL: the convex relaxation without "
+        "keep-out zones (a lower bound on J), so it may cross obstacles."
+    )
+    fig = trajectory_figure(scenario, panels, heading, rows=2 if closed_panels else 1)
     save_figure(fig, out / "demo.png")
     print(f"saved {out / 'demo.png'} and {out / 'demo.json'}")
     return 0

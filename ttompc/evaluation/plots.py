@@ -1,8 +1,9 @@
-"""Figures of the evaluations (matplotlib Agg, no display): Fig. 3 (warm-start improvement bars), Fig. 4–5
-(normalised cost and runtime vs planning horizon) and closed-loop trajectories."""
+"""Figures of the evaluations (matplotlib Agg, no display), after the paper's: Fig. 4 (warm-start improvement bars),
+Fig. 5–6 (cost and runtime vs planning horizon) and trajectories."""
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,8 +33,30 @@ def _save(fig: Any, path: str | Path) -> Path:
 
 
 def plot_horizon(summary: list[dict[str, Any]], out_dir: str | Path) -> list[Path]:
-    """Fig. 4 analogue (mean (J − J_REL)/J_REL over feasible runs ± s.e. vs H, one panel per plant) and Fig. 5 (the
-    largest step time of each method vs H)."""
+    """``mpc_cost.png`` (``horizon_cost_figure``) and ``mpc_runtime.png`` (Fig. 6 analogue: the largest step time
+    of each method vs H)."""
+    plt = _plt()
+    paths = [_save(horizon_cost_figure(summary), Path(out_dir) / "mpc_cost.png")]
+    plants = sorted({r["plant"] for r in summary})
+    methods = list(dict.fromkeys(r["method"] for r in summary))
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for i, m in enumerate(methods):
+        rs = sorted((r for r in summary if r["method"] == m and r["plant"] == plants[0]), key=lambda r: r["horizon"])
+        ax.plot([r["horizon"] for r in rs], [r["max_step_time"] for r in rs], **_style(i), label=m)
+    _horizon_axis(ax, summary)
+    ax.set_ylabel("max MPC step time [s]")
+    ax.set_yscale("log")
+    ax.legend(fontsize=7)
+    paths.append(_save(fig, Path(out_dir) / "mpc_runtime.png"))
+    return paths
+
+
+def horizon_cost_figure(summary: list[dict[str, Any]]) -> Any:
+    """Fig. 5 analogue: mean (J − J_REL)/J_REL over feasible runs ± s.e. vs H, one panel per plant. No method is
+    dropped where runs were infeasible: a hollow marker is the mean of the feasible runs when some were infeasible,
+    a hollow triangle at the top edge marks a horizon with no feasible run, both annotated feasible/runs."""
+    from matplotlib.lines import Line2D
+
     plt = _plt()
     plants = sorted({r["plant"] for r in summary})
     methods = list(dict.fromkeys(r["method"] for r in summary))
@@ -41,35 +64,51 @@ def plot_horizon(summary: list[dict[str, Any]], out_dir: str | Path) -> list[Pat
     for ax, plant in zip(axes[0], plants, strict=True):
         for i, m in enumerate(methods):
             rs = sorted((r for r in summary if r["method"] == m and r["plant"] == plant), key=lambda r: r["horizon"])
-            ax.errorbar(
+            style = {**_style(i), "marker": "o", "markersize": 5}
+            style["markevery"] = [r["feasible"] == r["runs"] for r in rs]  # filled: every run feasible
+            line = ax.errorbar(
                 [r["horizon"] for r in rs],
-                [100 * r["rel_increment"]["mean"] for r in rs],
+                [100 * r["rel_increment"]["mean"] if r["feasible"] else np.nan for r in rs],
                 yerr=[100 * np.nan_to_num(r["rel_increment"]["se"]) for r in rs],
                 capsize=3,
-                **_style(i),
+                **style,
                 label=m,
-            )
+            )[0]
+            color = line.get_color()
+            for r in rs:
+                if r["feasible"] == r["runs"]:
+                    continue
+                count = f"{r['feasible']}/{r['runs']}"
+                if r["feasible"]:
+                    y, transform, marker = 100 * r["rel_increment"]["mean"], ax.transData, "o"
+                else:  # no cost to show: a marker at the top edge of the panel
+                    y, transform, marker = 0.97, ax.get_xaxis_transform(), "^"
+                ax.plot(
+                    [r["horizon"]], [y], marker, transform=transform, mfc="none", mec=color, mew=1.5, ms=8,
+                    clip_on=False, zorder=10, label=f"_{m} {count} feasible",
+                )  # fmt: skip
+                ax.annotate(count, (r["horizon"], y), xycoords=transform, xytext=(6, 3),
+                            textcoords="offset points", fontsize=6, color=color)  # fmt: skip
+        _horizon_axis(ax, summary)
         ax.set_title(f"{plant} plant", fontsize=9)
-        ax.set_xlabel("planning horizon H")
         ax.set_ylabel("(J − J_REL)/J_REL of feasible runs [%]")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    paths = [_save(fig, Path(out_dir) / "mpc_cost.png")]
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    for i, m in enumerate(methods):
-        rs = sorted((r for r in summary if r["method"] == m and r["plant"] == plants[0]), key=lambda r: r["horizon"])
-        ax.plot([r["horizon"] for r in rs], [r["max_step_time"] for r in rs], **_style(i), label=m)
+        keys = [
+            Line2D([], [], ls="", marker="o", mfc="none", mec="0.4", label="some runs infeasible (feasible/runs)"),
+            Line2D([], [], ls="", marker="^", mfc="none", mec="0.4", label="no feasible run"),
+        ]
+        ax.legend(handles=[*ax.get_legend_handles_labels()[0], *keys], fontsize=7)
+    return fig
+
+
+def _horizon_axis(ax: Any, summary: list[dict[str, Any]]) -> None:
+    """Ticks at the evaluated horizons only (integers, never 12.5)."""
+    ax.set_xticks(sorted({int(r["horizon"]) for r in summary}))
     ax.set_xlabel("planning horizon H")
-    ax.set_ylabel("max MPC step time [s]")
-    ax.set_yscale("log")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    paths.append(_save(fig, Path(out_dir) / "mpc_runtime.png"))
-    return paths
 
 
 def plot_warmstart(rows: list[dict[str, Any]], methods: Sequence[str], out_dir: str | Path) -> Path:
-    """Fig. 3: % improvement over the REL warm start in suboptimality (top) and SCP iterations (bottom), per
+    """Fig. 4: % improvement over the REL warm start in suboptimality (top) and SCP iterations (bottom), per
     non-convexity threshold."""
     plt = _plt()
     fig, axes = plt.subplots(2, 1, figsize=(6, 5), sharex=True)
@@ -111,12 +150,14 @@ def _style(i: int) -> dict[str, Any]:
 @dataclass
 class Panel:
     """One problem of a trajectory figure: label -> states (the optimisation representation), the labels whose run
-    was infeasible (drawn with an x at the end and marked in the legend) and a title (e.g. the problem seed)."""
+    was infeasible (drawn with an x at the end and marked in the legend), each label's cost where it has one (shown
+    in the legend) and a title (e.g. the problem seed)."""
 
     problem: Problem
     trajectories: dict[str, np.ndarray]
     title: str = ""
     infeasible: set[str] = field(default_factory=set)
+    costs: dict[str, float] = field(default_factory=dict)
 
 
 def trajectory_figure(scenario: Scenario, panels: Sequence[Panel], title: str = "", rows: int = 1) -> Any:
@@ -134,14 +175,17 @@ def trajectory_figure(scenario: Scenario, panels: Sequence[Panel], title: str = 
             label = line.get_label()
             if label in labels:
                 line.set(**_style(labels.index(label)))
+                if label in panel.costs:
+                    line.set_label(f"{line.get_label()}: J = {panel.costs[label]:.4g}")
                 if label in panel.infeasible:
-                    line.set_label(f"{label} (INFEASIBLE)")
+                    line.set_label(f"{line.get_label()} (INFEASIBLE)")
                     x, y = line.get_data()
                     ax.plot(x[-1:], y[-1:], "x", color=line.get_color(), markersize=12, mew=3, zorder=20)
         ax.legend(loc="best", fontsize=7, framealpha=0.7)
         ax.set_title(panel.title, fontsize=9)
-    if title:
-        fig.suptitle(title, fontsize=10)
+    if title:  # wrapped to the figure's width (about 11 characters per inch at this size)
+        width = int(11 * fig.get_figwidth())
+        fig.suptitle("\n".join(textwrap.fill(line, width) for line in title.splitlines()), fontsize=10)
     fig.tight_layout()
     return fig
 
