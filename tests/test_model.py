@@ -10,9 +10,21 @@ from ttompc.policy import ModelConfig, TrajectoryGPT
 N, M, L, B = 6, 3, 7, 2
 
 
-def _model(dtype: torch.dtype = torch.float32, seed: int = 0) -> TrajectoryGPT:
+LAYOUTS = pytest.mark.parametrize("layout", ["interleaved", "stacked"])
+
+
+def _model(dtype: torch.dtype = torch.float32, seed: int = 0, layout: str = "interleaved") -> TrajectoryGPT:
     torch.manual_seed(seed)
-    cfg = ModelConfig(state_dim=N, control_dim=M, n_embd=32, n_layer=2, n_head=4, max_steps=10, dropout=0.1)
+    cfg = ModelConfig(
+        state_dim=N,
+        control_dim=M,
+        n_embd=32,
+        n_layer=2,
+        n_head=4,
+        max_steps=10,
+        dropout=0.1,
+        layout=layout,  # type: ignore[arg-type]
+    )
     return TrajectoryGPT(cfg).to(dtype).eval()
 
 
@@ -29,8 +41,9 @@ def _inputs(dtype: torch.dtype = torch.float32, seed: int = 1) -> dict[str, torc
     }
 
 
-def test_shapes_and_paper_size() -> None:
-    a, s = _model()(**_inputs())
+@LAYOUTS
+def test_shapes_and_paper_size(layout: str) -> None:
+    a, s = _model(layout=layout)(**_inputs())
     assert a.shape == (B, L, M) and s.shape == (B, L, N)
     paper = TrajectoryGPT(ModelConfig())
     assert 10.5e6 < paper.num_parameters() < 11.5e6  # the reference prints "GPT size: 11.1M parameters"
@@ -39,12 +52,15 @@ def test_shapes_and_paper_size() -> None:
 def test_rejects_bad_config() -> None:
     with pytest.raises(ValueError, match="divisible"):
         ModelConfig(n_embd=30, n_head=4)
+    with pytest.raises(ValueError, match="layout"):
+        ModelConfig(layout="braided")  # type: ignore[arg-type]
 
 
+@LAYOUTS
 @pytest.mark.parametrize("field", ["goals", "rtg", "ctg", "states", "actions"])
-def test_causality(field: str) -> None:
-    """Changing step j's token never changes predictions that precede it in the token order."""
-    model, x = _model(), _inputs()
+def test_causality(field: str, layout: str) -> None:
+    """Changing step j's inputs never changes predictions of earlier steps, nor a_j when the input is a_j."""
+    model, x = _model(layout=layout), _inputs()
     a0, s0 = model(**x)
     j = 4
     y = dict(x)
@@ -53,25 +69,29 @@ def test_causality(field: str) -> None:
     a1, s1 = model(**y)
     torch.testing.assert_close(a1[:, :j], a0[:, :j], rtol=0, atol=1e-6)
     torch.testing.assert_close(s1[:, :j], s0[:, :j], rtol=0, atol=1e-6)
-    if field == "actions":  # the action token comes after the state token of its own step
+    if field == "actions":  # a_j enters after the state token of its own step (stacked: with step j+1's token)
         torch.testing.assert_close(a1[:, j], a0[:, j], rtol=0, atol=1e-6)
         assert (s1[:, j] - s0[:, j]).abs().max() > 1e-5
     else:
         assert (a1[:, j] - a0[:, j]).abs().max() > 1e-5
 
 
+@LAYOUTS
 @pytest.mark.parametrize(("dtype", "atol"), [(torch.float32, 1e-5), (torch.float64, 1e-10)])
-def test_kv_cache_matches_full_forward(dtype: torch.dtype, atol: float) -> None:
+def test_kv_cache_matches_full_forward(dtype: torch.dtype, atol: float, layout: str) -> None:
     """Feeding the tokens in uneven chunks through the cache gives the full forward's hidden states."""
-    model, x = _model(dtype), _inputs(dtype)
-    tokens = model.embed_sequence(**x)  # (B, 5L, d)
+    model, x = _model(dtype, layout=layout), _inputs(dtype)
+    x["prev_actions"] = x.pop("actions")[:, :-1]
+    tokens = model.embed_steps(**x)  # (B, 5L-1, d) interleaved, (B, L, d) stacked
     full = model.encode(tokens)
     cache = model.new_cache(B)
     chunks, i = [], 0
-    for size in (4, 1, 5, 2, 3, 1, 9, 10):
+    sizes = (4, 1, 5, 2, 3, 1, 9, 9) if layout == "interleaved" else (1, 2, 1, 3)
+    for size in sizes:
         chunks.append(model.encode(tokens[:, i : i + size], cache))
         i += size
-    assert i == tokens.shape[1] and cache.length == i
+    assert i == tokens.shape[1] == L * model.cfg.tokens_per_step - (layout == "interleaved")
+    assert cache.length == i
     torch.testing.assert_close(torch.cat(chunks, dim=1), full, rtol=0, atol=atol)
     # A fork continues independently of its parent.
     fork = cache.fork()

@@ -12,9 +12,14 @@ from ttompc.policy.stats import NormStats
 B, STEPS = 3, 12
 
 
-def _model(dtype: torch.dtype) -> TrajectoryGPT:
+@pytest.fixture(params=["interleaved", "stacked"])
+def layout(request: pytest.FixtureRequest) -> str:
+    return str(request.param)
+
+
+def _model(dtype: torch.dtype, layout: str = "interleaved") -> TrajectoryGPT:
     torch.manual_seed(0)
-    cfg = ModelConfig(n_embd=32, n_layer=2, n_head=4, max_steps=STEPS)
+    cfg = ModelConfig(n_embd=32, n_layer=2, n_head=4, max_steps=STEPS, layout=layout)  # type: ignore[arg-type]
     return TrajectoryGPT(cfg).to(dtype)  # left in train mode on purpose: rollouts must switch dropout off
 
 
@@ -28,9 +33,9 @@ def _start(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor
 @pytest.mark.parametrize(("dtype", "atol"), [(torch.float32, 1e-5), (torch.float64, 1e-10)])
 @pytest.mark.parametrize("clipped", [True, False])
 def test_cached_equals_full_recompute(
-    toy, toy_stats: NormStats, dtype: torch.dtype, atol: float, clipped: bool
+    toy, toy_stats: NormStats, dtype: torch.dtype, atol: float, clipped: bool, layout: str
 ) -> None:
-    model, (s0, goal, rtg0) = _model(dtype), _start(dtype)
+    model, (s0, goal, rtg0) = _model(dtype, layout), _start(dtype)
     dyn = toy.batched_model([])
     fast = rollout(model, toy_stats, dyn, "l1", s0, goal, rtg0, 0.0, use_cache=True, clipped=clipped)
     slow = rollout(model, toy_stats, dyn, "l1", s0, goal, rtg0, 0.0, use_cache=False, clipped=clipped)
@@ -58,8 +63,8 @@ def test_conditioning_updates(toy, toy_stats: NormStats) -> None:
 
 
 @pytest.mark.parametrize("use_cache", [True, False])
-def test_restart_from_context_equals_slice(toy, toy_stats: NormStats, use_cache: bool) -> None:
-    model, (s0, goal, rtg0) = _model(torch.float64), _start(torch.float64)
+def test_restart_from_context_equals_slice(toy, toy_stats: NormStats, use_cache: bool, layout: str) -> None:
+    model, (s0, goal, rtg0) = _model(torch.float64, layout), _start(torch.float64)
     dyn = toy.batched_model([])
     full = rollout(model, toy_stats, dyn, "l1", s0, goal, rtg0, 0.0)
     t0 = 5
@@ -81,9 +86,11 @@ def test_restart_from_context_equals_slice(toy, toy_stats: NormStats, use_cache:
         torch.testing.assert_close(getattr(part, name), getattr(full, name)[:, t0:], rtol=0, atol=1e-10)
 
 
-def test_mpc_context_reuses_cache_correctly(toy, toy_stats: NormStats) -> None:
+def test_mpc_context_reuses_cache_correctly(toy, toy_stats: NormStats, layout: str) -> None:
     """advance() + rollout() on the cached context equals a from-scratch recompute of the same history."""
-    model, (s0, goal, rtg0) = _model(torch.float64), _start(torch.float64)
+    model, (s0, goal, rtg0) = _model(torch.float64, layout), _start(torch.float64)
+    # the deciding tokens of steps 0..t: interleaved g R C s, then a g R C s per step; stacked one per step
+    cached_tokens = {"interleaved": lambda steps: 5 * steps - 1, "stacked": lambda steps: steps}[layout]
     dyn = toy.batched_model([])
     ctx = RolloutContext.start(model, toy_stats, dyn, "l1", s0, goal, rtg0, 1.0)
     g = torch.Generator().manual_seed(7)
@@ -92,7 +99,7 @@ def test_mpc_context_reuses_cache_correctly(toy, toy_stats: NormStats) -> None:
         executed = plan.actions[:, 0] + 0.01 * torch.randn(B, 3, generator=g, dtype=torch.float64)
         measured = dyn.step(ctx.states[:, -1], executed, t) + 0.01 * torch.randn(B, 6, generator=g, dtype=torch.float64)
         ctx.advance(executed, measured)
-        assert ctx.t == t + 1 and ctx._cache is not None and ctx._cache.length == 5 * (t + 1)
+        assert ctx.t == t + 1 and ctx._cache is not None and ctx._cache.length == cached_tokens(t + 1)
     fresh = RolloutContext(
         model, toy_stats, dyn, "l1", ctx.states, ctx.goals, ctx.rtg, ctx.ctg, ctx.actions, use_cache=False
     )
@@ -110,10 +117,10 @@ def test_rejects_horizon_beyond_model(toy, toy_stats: NormStats) -> None:
 
 
 @pytest.mark.parametrize("clipped", [True, False])
-def test_rollout_matches_the_teacher_forced_forward_pass(toy, toy_stats: NormStats, clipped: bool) -> None:
+def test_rollout_matches_the_teacher_forced_forward_pass(toy, toy_stats: NormStats, clipped: bool, layout: str) -> None:
     """Feeding the generated trajectory back through ``forward`` (the training path, normalised with NumPy) predicts
     exactly the actions the rollout took: both paths see the same tokens, order and normalisation."""
-    model, (s0, goal, rtg0) = _model(torch.float64), _start(torch.float64)
+    model, (s0, goal, rtg0) = _model(torch.float64, layout), _start(torch.float64)
     res = rollout(model, toy_stats, toy.batched_model([]), "l1", s0, goal, rtg0, 1.0, clipped=clipped)
     L = STEPS
 

@@ -1,18 +1,28 @@
-"""A compact causal GPT over interleaved trajectory tokens (paper §IV-A, fact sheet §2), in plain PyTorch.
+"""A compact causal GPT over trajectory tokens (paper §IV-A), in plain PyTorch, with two token layouts.
 
-Each time step t contributes five tokens, in this order::
+Each time step t carries five modalities: goal_t (n), rtg_t (1), ctg_t (1), state_t (n) and action_t (m).
 
-    goal_t (n) | rtg_t (1) | ctg_t (1) | state_t (n) | action_t (m)
+``interleaved`` (the paper's layout, the default) gives each modality a token of its own::
 
-Every modality has its own linear embedding; a learned timestep embedding (the only positional signal) is added to
-all five tokens of a step; a LayerNorm (``embed_ln``) and dropout follow; then pre-LN transformer blocks with causal
-``scaled_dot_product_attention`` and a final LayerNorm. The action head reads the hidden state of the *state* token
-(it has seen goal, rtg, ctg and state of step t), the next-state head reads the *action* token.
+    ... a_{t-1} | g_t  R_t  C_t  s_t | a_t | g_{t+1} ...        (5 tokens per step, 500 for 100 steps)
 
-Because positions are carried by the timestep embedding only, the token stream can be fed in any chunks: a
-``KVCache`` keeps the keys/values of the tokens seen so far and ``encode(tokens, cache)`` processes only the new
-ones. That is what makes a 100-step rollout cost O(steps) forward work instead of O(steps²) (the reference re-encodes
-the whole prefix every step).
+with one linear embedding per modality. The action head reads the hidden state of the *state* token (it has seen
+goal, rtg, ctg and state of step t), the next-state head reads the *action* token.
+
+``stacked`` (a departure, measured in docs/scaling.md) embeds the same five modalities as one token per step::
+
+    ... | [g_t R_t C_t s_t a_{t-1}] | [g_{t+1} ...] ...           (1 token per step, a_{-1} = 0)
+
+The action head reads that token; the next-state head is a small MLP of [hidden_t, a_t]. Attention over 100
+instead of 500 tokens makes a training step about 5x cheaper on a CPU, and the KV cache and MPC re-plans likewise.
+
+In both layouts a learned timestep embedding (the only positional signal) is added to every token; a LayerNorm
+(``embed_ln``) and dropout follow; then pre-LN transformer blocks with causal ``scaled_dot_product_attention`` and a
+final LayerNorm. ``embed_steps`` makes the tokens that decide the actions of a run of steps, whatever the layout:
+the last token's hidden state always decides the last step's action. Because positions are carried by the timestep
+embedding only, the token stream can be fed in any chunks: a ``KVCache`` keeps the keys/values of the tokens seen
+so far and ``encode(tokens, cache)`` processes only the new ones. That is what makes a 100-step rollout cost
+O(steps) forward work instead of O(steps²) (the reference re-encodes the whole prefix every step).
 """
 
 from __future__ import annotations
@@ -23,14 +33,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ttompc.policy.config import TOKENS_PER_STEP, ModelConfig
+from ttompc.policy.config import ModelConfig
 
 _ACTIVATIONS = {"relu": nn.ReLU, "gelu": nn.GELU, "silu": nn.SiLU}
 
 
 class KVCache:
-    """Preallocated keys/values per layer, (B, heads, capacity, head_dim) with capacity 5·max_steps unless given,
-    and the number of tokens filled.
+    """Preallocated keys/values per layer, (B, heads, capacity, head_dim) with capacity ``cfg.max_tokens`` (tokens
+    per step × max_steps) unless given, and the number of tokens filled.
 
     ``fork()`` copies the filled prefix so a speculative rollout can extend the copy while the original (e.g. the
     executed MPC history) stays untouched.
@@ -131,24 +141,31 @@ class Block(nn.Module):
 
 class TrajectoryGPT(nn.Module):
     """The trajectory transformer. ``forward`` is the teacher-forced training path over full steps; ``encode`` with
-    the ``embed_*`` helpers is the token-level path used (with a ``KVCache``) by the autoregressive rollout."""
+    ``embed_steps`` is the token-level path used (with a ``KVCache``) by the autoregressive rollout."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
         n, m, d = cfg.state_dim, cfg.control_dim, cfg.n_embd
-        self.embed_goal = nn.Linear(n, d)
-        self.embed_rtg = nn.Linear(1, d)
-        self.embed_ctg = nn.Linear(1, d)
-        self.embed_state = nn.Linear(n, d)
-        self.embed_action = nn.Linear(m, d)
+        if cfg.layout == "interleaved":
+            self.embed_goal = nn.Linear(n, d)
+            self.embed_rtg = nn.Linear(1, d)
+            self.embed_ctg = nn.Linear(1, d)
+            self.embed_state = nn.Linear(n, d)
+            self.embed_action = nn.Linear(m, d)
+        else:  # stacked: [goal, rtg, ctg, state, previous action] -> one token
+            self.embed_stacked = nn.Linear(2 * n + 2 + m, d)
         self.embed_timestep = nn.Embedding(cfg.max_steps, d)
         self.embed_ln = nn.LayerNorm(d, bias=cfg.bias)
         self.drop = nn.Dropout(cfg.dropout)
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layer))
         self.ln_f = nn.LayerNorm(d, bias=cfg.bias)
         self.action_head = nn.Linear(d, m)
-        self.state_head = nn.Linear(d, n)
+        self.state_head: nn.Module
+        if cfg.layout == "interleaved":
+            self.state_head = nn.Linear(d, n)
+        else:  # the step's token has not seen a_t: the head reads it beside the hidden state
+            self.state_head = nn.Sequential(nn.Linear(d + m, d), _ACTIVATIONS[cfg.activation](), nn.Linear(d, n))
         self.apply(self._init_weights)
         # GPT-2 scaled init of residual projections keeps the residual stream's variance independent of depth.
         for name, p in self.named_parameters():
@@ -165,26 +182,29 @@ class TrajectoryGPT(nn.Module):
         return sum(p.numel() for p in self.parameters())
 
     # ------------------------------------------------------------------------------------------ token embeddings
-    def embed_step(self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, timesteps: Tensor) -> Tensor:
-        """The first four tokens of each step: goals/states (B, L, n), rtg/ctg (B, L, 1), timesteps (B, L) int
-        -> (B, 4L, d) interleaved as g_0 R_0 C_0 s_0 g_1 ..."""
-        t = self.embed_timestep(timesteps)  # (B, L, d)
-        toks = (self.embed_goal(goals), self.embed_rtg(rtg), self.embed_ctg(ctg), self.embed_state(states))
-        x = torch.stack([e + t for e in toks], dim=2)  # (B, L, 4, d)
-        return x.flatten(1, 2)  # (B, 4L, d)
-
-    def embed_actions(self, actions: Tensor, timesteps: Tensor) -> Tensor:
-        """Action tokens: actions (B, L, m), timesteps (B, L) -> (B, L, d)."""
-        return self.embed_action(actions) + self.embed_timestep(timesteps)
-
-    def embed_sequence(
-        self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, actions: Tensor, timesteps: Tensor
+    def embed_steps(
+        self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, prev_actions: Tensor, timesteps: Tensor
     ) -> Tensor:
-        """Full steps -> (B, 5L, d) interleaved g R C s a per step."""
-        B, L = timesteps.shape
-        four = self.embed_step(goals, rtg, ctg, states, timesteps).view(B, L, 4, -1)  # (B, L, 4, d)
-        act = self.embed_actions(actions, timesteps).unsqueeze(2)  # (B, L, 1, d)
-        return torch.cat([four, act], dim=2).flatten(1, 2)  # (B, 5L, d)
+        """The tokens that decide the actions of L consecutive steps k0..k0+L-1 (all normalised): goals/states
+        (B, L, n), rtg/ctg (B, L, 1), timesteps (B, L) int, prev_actions (B, L, m) = a_{k-1} of each step, or
+        (B, L-1, m) when the first step has none (the start of a sequence). The hidden state of the last token
+        decides the last step's action.
+
+        -> interleaved (B, 5L, d): a_{k-1} g_k R_k C_k s_k per step (a_{k0-1} left out when not given);
+        -> stacked (B, L, d): one token per step (a missing a_{k0-1} is zero)."""
+        L = timesteps.shape[1]
+        if prev_actions.shape[1] not in (L - 1, L):
+            raise ValueError(f"prev_actions must hold {L - 1} or {L} steps for {L} steps, got {prev_actions.shape[1]}")
+        first_missing = prev_actions.shape[1] == L - 1
+        if first_missing:
+            prev_actions = F.pad(prev_actions, (0, 0, 1, 0))  # (B, L, m), a zero a_{k0-1}
+        t = self.embed_timestep(timesteps)  # (B, L, d)
+        if self.cfg.layout == "stacked":
+            return self.embed_stacked(torch.cat([goals, rtg, ctg, states, prev_actions], dim=-1)) + t  # (B, L, d)
+        act = self.embed_action(prev_actions) + self.embed_timestep((timesteps - 1).clamp_min(0))  # a_{k-1} at k-1
+        toks = (act, self.embed_goal(goals) + t, self.embed_rtg(rtg) + t, self.embed_ctg(ctg) + t)
+        x = torch.stack([*toks, self.embed_state(states) + t], dim=2).flatten(1, 2)  # (B, 5L, d)
+        return x[:, 1:] if first_missing else x
 
     # ------------------------------------------------------------------------------------------------- trunk
     def encode(self, tokens: Tensor, cache: KVCache | None = None) -> Tensor:
@@ -211,12 +231,16 @@ class TrajectoryGPT(nn.Module):
         actions: Tensor,
         timesteps: Tensor,
     ) -> tuple[Tensor, Tensor]:
-        """Teacher-forced predictions for L steps (all inputs normalised, shapes as in ``embed_step``; actions
-        (B, L, m)). Returns (action_preds (B, L, m) read at state tokens, next_state_preds (B, L, n) read at action
-        tokens)."""
+        """Teacher-forced predictions for L steps (all inputs normalised, shapes as in ``embed_steps``; actions
+        (B, L, m) = a_k of each step). Returns (action_preds (B, L, m), next_state_preds (B, L, n)); the action of
+        step k sees nothing of a_k or later, the next state of step k sees a_k."""
         B, L = timesteps.shape
         if L > self.cfg.max_steps:
             raise ValueError(f"sequence of {L} steps exceeds max_steps={self.cfg.max_steps}")
-        h = self.encode(self.embed_sequence(goals, rtg, ctg, states, actions, timesteps))  # (B, 5L, d)
-        h = h.view(B, L, TOKENS_PER_STEP, -1)  # (B, L, 5, d)
+        x = self.embed_steps(goals, rtg, ctg, states, actions[:, :-1], timesteps)
+        if self.cfg.layout == "stacked":
+            h = self.encode(x)  # (B, L, d)
+            return self.action_head(h), self.state_head(torch.cat([h, actions], dim=-1))
+        last = self.embed_action(actions[:, -1:]) + self.embed_timestep(timesteps[:, -1:])  # reads s_L
+        h = self.encode(torch.cat([x, last], dim=1)).view(B, L, 5, -1)  # (B, L, 5, d): g R C s a per step
         return self.action_head(h[:, :, 3]), self.state_head(h[:, :, 4])

@@ -23,7 +23,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ttompc.policy.config import TOKENS_PER_STEP
 from ttompc.policy.gpt import KVCache, TrajectoryGPT
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios.base import BatchedModel, CostNorm
@@ -147,25 +146,25 @@ class RolloutContext:
     def _timesteps(self, start: int, stop: int) -> Tensor:
         return torch.arange(start, stop, device=self.states.device).expand(self.batch, -1)
 
-    def _embed_steps(self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, start: int) -> Tensor:
-        """First four tokens of steps start.. (B, 4L, d) from un-normalised (B, L, ·) values."""
+    def _embed_steps(
+        self, goals: Tensor, rtg: Tensor, ctg: Tensor, states: Tensor, prev_actions: Tensor, start: int
+    ) -> Tensor:
+        """The deciding tokens of steps start.. from un-normalised (B, L, ·) values and the L or L-1 previous
+        actions (``TrajectoryGPT.embed_steps``)."""
         ts = self._timesteps(start, start + states.shape[1])
-        return self.model.embed_step(*self._norm_step(goals, rtg, ctg, states), ts)
-
-    def _embed_actions(self, actions: Tensor, start: int) -> Tensor:
-        ts = self._timesteps(start, start + actions.shape[1])
-        return self.model.embed_actions(self.stats.normalize("actions", actions), ts)
+        g, r, c, s = self._norm_step(goals, rtg, ctg, states)
+        return self.model.embed_steps(g, r, c, s, self.stats.normalize("actions", prev_actions), ts)
 
     def _history_cache(self) -> KVCache:
-        """The KV cache of all completed steps 0..t-1 (built once, then extended by ``advance``)."""
+        """The KV cache of the deciding tokens of steps 0..t-1 (built once, then extended by ``advance``)."""
         if self._cache is None:
             self._cache = self.model.new_cache(self.batch)
             t = self.t
             if t > 0:
-                ts = self._timesteps(0, t)
-                g, r, c, s = self._norm_step(self.goals[:, :t], self.rtg[:, :t], self.ctg[:, :t], self.states[:, :t])
-                a = self.stats.normalize("actions", self.actions)
-                self.model.encode(self.model.embed_sequence(g, r, c, s, a, ts), self._cache)
+                tok = self._embed_steps(
+                    self.goals[:, :t], self.rtg[:, :t], self.ctg[:, :t], self.states[:, :t], self.actions[:, : t - 1], 0
+                )
+                self.model.encode(tok, self._cache)
         return self._cache
 
     # -------------------------------------------------------------------------------------------------- public
@@ -181,19 +180,19 @@ class RolloutContext:
             S, R, C = [self.states[:, -1]], [self.rtg[:, -1]], [self.ctg[:, -1]]
             A: list[Tensor] = []
             goal = self.goals[:, -1]  # the target is held over the generated window
-            cache = self._history_cache().fork(TOKENS_PER_STEP * horizon) if self.use_cache else None
+            cache = self._history_cache().fork(model.cfg.tokens_per_step * horizon) if self.use_cache else None
+            prev = self.actions[:, -1:]  # a_{t0-1} (B, 1, m), or (B, 0, m) at the episode start
             for j in range(horizon):
                 k = t0 + j
                 if cache is not None:
-                    tok = self._embed_steps(goal[:, None], R[-1][:, None], C[-1][:, None], S[-1][:, None], k)
-                    if j > 0:  # the previous generated action joins the cache together with this step's tokens
-                        tok = torch.cat([self._embed_actions(A[-1][:, None], k - 1), tok], dim=1)
+                    tok = self._embed_steps(goal[:, None], R[-1][:, None], C[-1][:, None], S[-1][:, None], prev, k)
                     a_norm = model.action_head(model.encode(tok, cache)[:, -1])  # (B, m)
                 else:
                     a_norm = self._full_recompute(S, A, R, C, goal)
                 a = self.stats.denormalize("actions", a_norm)
                 s_next = self.dynamics.step(S[-1], a, k).to(a.dtype)
                 A.append(a)
+                prev = a[:, None]
                 S.append(s_next)
                 R.append(R[-1] + stage_cost_torch(a, self.cost_norm))
                 C.append(C[-1] if clipped else C[-1] - self.dynamics.violations(s_next, k + 1).to(a.dtype))
@@ -234,7 +233,7 @@ class RolloutContext:
         tensors or arrays (converted to the model's dtype and device).
 
         Like the reference MPC context, rtg_{t+1} = rtg_t + c(a_t) and ctg_{t+1} = ctg_t − violations(s_{t+1})
-        (``clipped=True`` keeps ctg constant instead). The cached history is extended by the five tokens of step t.
+        (``clipped=True`` keeps ctg constant instead). The cached history is extended by the deciding tokens of step t.
         """
         t = self.t
         p = self.states
@@ -242,12 +241,8 @@ class RolloutContext:
         next_state = torch.as_tensor(next_state, dtype=p.dtype, device=p.device).reshape(self.batch, -1)
         goal = self.goals[:, -1] if goal is None else torch.as_tensor(goal, dtype=p.dtype, device=p.device)
         if self._cache is not None:
-            tok = torch.cat(
-                [
-                    self._embed_steps(self.goals[:, -1:], self.rtg[:, -1:], self.ctg[:, -1:], self.states[:, -1:], t),
-                    self._embed_actions(action[:, None], t),
-                ],
-                dim=1,
+            tok = self._embed_steps(
+                self.goals[:, -1:], self.rtg[:, -1:], self.ctg[:, -1:], self.states[:, -1:], self.actions[:, -1:], t
             )
             was_training = self.model.training
             self.model.eval()
