@@ -89,6 +89,13 @@ class ToyDataModule(L.LightningDataModule):
             self.train_set = ToyDataset({k: v[:split] for k, v in arrays.items()}, self.stats)
             self.val_set = ToyDataset({k: v[split:] for k, v in arrays.items()}, self.stats)
 
+    def use_stats(self, stats: NormStats) -> None:
+        self.stats = stats
+        split = self.n * 3 // 4
+        arrays = toy_arrays(self.n)
+        self.train_set = ToyDataset({k: v[:split] for k, v in arrays.items()}, stats)
+        self.val_set = ToyDataset({k: v[split:] for k, v in arrays.items()}, stats)
+
     def train_dataloader(self) -> DataLoader:
         return DataLoader(
             self.train_set,
@@ -172,6 +179,31 @@ def test_tiny_run_logs_resumes_and_exports(tmp_path: Path, wandb_offline: Path) 
     np.testing.assert_array_equal(Xa, Xb)
     np.testing.assert_array_equal(Ua, Ub)
     np.testing.assert_allclose(Xa[:, 0], np.stack([p.x0 for p in problems]))  # back in the optimisation frame
+
+
+def test_init_from_continues_published_weights(tmp_path: Path) -> None:
+    """A fresh run with init_from starts from the source's weights and statistics (a stacked model here), not from a
+    new initialisation; an architecture that differs from the source's is a one-line config error."""
+    from ttompc.config import ConfigError
+
+    common = ("logger.kind=none", "model.layout=stacked", "trainer.checkpoint_every_n_steps=100")
+    src = train(tiny_config(tmp_path / "src", "trainer.max_steps=4", *common), ToyDataModule(n=32))
+    assert src.planner_dir is not None
+    source = Planner.from_pretrained(src.planner_dir)
+    assert source.model.cfg.layout == "stacked"
+    # one step at a vanishing learning rate: the continued weights are the source's (a fresh init is far from them)
+    tiny_lr = ("trainer.max_steps=1", "optim.lr=1e-12", "optim.warmup_steps=0", *common)
+    cont = train(tiny_config(tmp_path / "cont", *tiny_lr, f"init_from={src.planner_dir}"), ToyDataModule(n=32))
+    fresh = train(tiny_config(tmp_path / "fresh", *tiny_lr), ToyDataModule(n=32))
+    want = source.model.state_dict()
+    got = Planner.from_pretrained(cont.planner_dir).model.state_dict()  # type: ignore[arg-type]
+    new = Planner.from_pretrained(fresh.planner_dir).model.state_dict()  # type: ignore[arg-type]
+    assert all(torch.allclose(got[k], want[k], atol=1e-7) for k in want)
+    assert max((new[k] - want[k]).abs().max().item() for k in want) > 1e-3
+    with pytest.raises(ConfigError, match=r"model\.n_embd=64 differs from init_from's 32"):
+        train(
+            tiny_config(tmp_path / "bad", *tiny_lr, "model.n_embd=64", f"init_from={src.planner_dir}"), ToyDataModule()
+        )
 
 
 class _CrashAt(L.Callback):

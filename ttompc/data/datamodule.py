@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from ttompc.config import from_container, to_container
 from ttompc.data.config import DataConfig
 from ttompc.data.distributed import rank_info
-from ttompc.data.generate import load_manifest
+from ttompc.data.generate import open_loop_manifests
 from ttompc.data.schema import SOURCE_CODES
 from ttompc.data.shards import SPLITS, ShardError, verify_shard
 from ttompc.policy.stats import NormStats
@@ -333,13 +333,9 @@ class TrajectoryDataModule(L.LightningDataModule):
         cfg = self.cfg
         if not cfg.paths:
             raise ValueError("DataConfig.paths must name at least one open-loop dataset folder")
-        manifests = [load_manifest(p) for p in cfg.paths]
-        names = {m["scenario"]["name"] for m in manifests}
-        steps = {m["scenario"]["n_steps"] for m in manifests}
-        if len(names) > 1 or len(steps) > 1:
-            raise ValueError(f"open-loop datasets mix scenarios/horizons: {sorted(names)}, {sorted(steps)}")
+        manifests = open_loop_manifests(cfg)
         self.manifest = manifests[0]
-        self.scenario_name, self.n_steps = names.pop(), steps.pop()
+        self.scenario_name, self.n_steps = self.manifest["scenario"]["name"], self.manifest["scenario"]["n_steps"]
         # load the scenario from its recorded spec, so that its name resolves in this process (user scenarios)
         find_scenario(self.scenario_name, self.manifest["scenario"].get("spec"))
         self.stats = NormStats.from_dict(self.manifest["norm_stats"])
@@ -355,6 +351,14 @@ class TrajectoryDataModule(L.LightningDataModule):
             s: sorted(str(p) for d in cfg.dagger_dirs for p in (Path(d) / s).glob("*.parquet")) for s in SPLITS
         }
         self._batcher = _Batcher(self.stats, self.n_steps, cfg.context_length)
+
+    def use_stats(self, stats: NormStats) -> None:
+        """Normalise with ``stats`` instead of the first dataset's own: a model continued on new data keeps the
+        input scaling its weights were trained with."""
+        if self.manifest is None or self.n_steps is None:
+            raise RuntimeError("TrajectoryDataModule.use_stats needs setup() first")
+        self.stats = stats
+        self._batcher = _Batcher(stats, self.n_steps, self.cfg.context_length)
 
     @property
     def _ranks(self) -> tuple[int, int]:

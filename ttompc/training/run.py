@@ -17,10 +17,14 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from ttompc.config import to_container
+from ttompc.config import ConfigError, to_container
+from ttompc.policy.config import ModelConfig
 from ttompc.training.config import OptimConfig, TrainConfig, TrainerConfig
+
+if TYPE_CHECKING:
+    from ttompc.policy import Planner
 
 
 @dataclass
@@ -110,6 +114,9 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     scenario = get_scenario(datamodule.scenario_name)
     # The data fixes the token dimensions; the recipe fixes everything else.
     model_cfg = replace(cfg.model, state_dim=scenario.state_dim, control_dim=scenario.control_dim)
+    source = _init_source(cfg.init_from, model_cfg, scenario.name) if cfg.init_from else None
+    if source is not None:  # the source's input scaling goes with its weights
+        datamodule.use_stats(source.stats)
     cfg = replace(cfg, model=model_cfg)
     recipe = to_container(cfg)
     module = build_module(
@@ -152,6 +159,10 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     resume_from, start_step = found if found else (None, 0)
     if resume_from is not None and trainer.is_global_zero:
         print(f"ttompc: resuming from {resume_from} (step {start_step})", file=sys.stderr)
+    elif source is not None:
+        module.model.load_state_dict(source.model.state_dict())
+        if trainer.is_global_zero:
+            print(f"ttompc: starting from the weights of {cfg.init_from} (fresh optimiser)", file=sys.stderr)
     fit(trainer, module, datamodule, resume_from)
     _finish_wandb(logger)
     exception_checkpoint(out).unlink(missing_ok=True)  # last.ckpt is newer; a stale one would only confuse
@@ -164,6 +175,27 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         planner_dir = planner.save(out / "planner")
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     return TrainResult(out, last_checkpoint(out), planner_dir, start_step, global_step, metrics)
+
+
+# the fields that shape the weights: a continued run must keep them
+_ARCHITECTURE = ("layout", "n_embd", "n_layer", "n_head", "mlp_ratio", "max_steps", "bias", "activation")
+
+
+def _init_source(init_from: str, model: ModelConfig, scenario: str) -> Planner:
+    """The planner a fresh run continues from; its scenario and architecture must be the recipe's."""
+    from ttompc.policy import Planner
+
+    source = Planner.from_pretrained(init_from)
+    if source.scenario.name != scenario:
+        raise ConfigError(f"init_from={init_from} is a {source.scenario.name} model, the data is {scenario}")
+    for name in _ARCHITECTURE:
+        mine, theirs = getattr(model, name), getattr(source.model.cfg, name)
+        if mine != theirs:
+            raise ConfigError(
+                f"model.{name}={mine} differs from init_from's {theirs}: the weights fix the architecture "
+                f"(use a recipe with model.{name}: {theirs})"
+            )
+    return source
 
 
 def fit(trainer: Any, module: Any, datamodule: Any, ckpt_path: Path | None) -> None:
