@@ -1,11 +1,14 @@
 """Training-step speed on CPU: tokens per second of one full step (forward + backward + clipping + AdamW) of the real
 ``TrajectoryTransformerModule`` loss, per model size, precision, compilation, thread count and batch size, with the
-validation loss reached at equal steps by the candidate default vs fp32.
+validation loss reached at equal steps by the candidate default vs fp32, and the token-layout axis: the paper's
+interleaved layout (5 tokens per step) against the stacked one (1 token per step) at equal width and depth, reported
+as trajectories per CPU-second (``layouts`` in the result; ``--layout-study`` runs only that comparison).
 
 Every case keeps its own model, optimiser and batch; the cases are timed round-robin (one step each per round,
 ``--reps`` rounds, median), so a load change on this shared machine hits all of them alike and the ratios against
 the baseline (fp32 eager, 2 threads, same size, batch 32; 8 for 11M) stay meaningful. Batches are synthetic tensors
-of the real shapes (100 steps × 5 tokens = 500 tokens per trajectory); step speed does not depend on the values.
+of the real shapes (100 steps: 500 tokens per trajectory interleaved, 100 stacked); step speed does not depend on the
+values.
 
 Modes: ``fp32`` eager; ``bf16`` = ``torch.autocast(bfloat16)`` as Lightning's ``precision: bf16-mixed``; ``bf16mm`` =
 fp32 with ``torch.set_float32_matmul_precision("medium")`` (oneDNN matmuls take bf16 inputs, everything else fp32);
@@ -17,6 +20,7 @@ fixed held-out set. Data: ``--data FOLDER`` (a generated dataset, read by ``Traj
 free-flyer trajectories generated here (sampled problems, smooth random thrust, exact dynamics; no solver).
 
     python bench/train_speed.py            # writes bench/results/train_speed.json and prints one JSON line
+    python bench/train_speed.py --layout-study --loss-steps 0    # the layout comparison only (a few CPU-minutes)
 """
 
 from __future__ import annotations
@@ -56,20 +60,28 @@ class Case:
     times: list[float] = field(default_factory=list)
     cpu_times: list[float] = field(default_factory=list)  # process CPU seconds (all threads): less load-sensitive
     compile_s: float | None = None
+    layout: str = "interleaved"
 
     @property
     def name(self) -> str:
-        return f"{self.size}/{self.mode}/t{self.threads}/b{self.batch}"
+        return f"{self.size}/{self.layout}/{self.mode}/t{self.threads}/b{self.batch}"
+
+    @property
+    def tokens(self) -> int:
+        """Tokens in one batch."""
+        return self.batch * N_STEPS * TOKENS_PER_STEP[self.layout]
 
 
-def build(size: str, seed: int, lr: float = 1e-3) -> tuple[TrajectoryTransformerModule, torch.optim.Optimizer]:
+def build(
+    size: str, seed: int, lr: float = 1e-3, layout: str = "interleaved"
+) -> tuple[TrajectoryTransformerModule, torch.optim.Optimizer]:
     """The real module (dropout 0.1, attention dropout 0 as the recipes) and its own AdamW."""
     d, n_layer, n_head = SIZES[size]
     sc = get_scenario("freeflyer")
     keys = {"states": sc.state_dim, "actions": sc.control_dim, "goals": sc.state_dim, "rtg": 1, "ctg": 1}
     stats = {"mean": {k: [0.0] * n for k, n in keys.items()}, "std": {k: [1.0] * n for k, n in keys.items()}}
     torch.manual_seed(seed)
-    model = {"n_embd": d, "n_layer": n_layer, "n_head": n_head, "dropout": 0.1, "attn_dropout": 0.0}
+    model = {"n_embd": d, "n_layer": n_layer, "n_head": n_head, "dropout": 0.1, "attn_dropout": 0.0, "layout": layout}
     mod = TrajectoryTransformerModule(model, {"lr": lr, "warmup_steps": 0}, "freeflyer", sc.version, stats)
     mod.train()
     return mod, mod.configure_optimizers()["optimizer"]
@@ -113,7 +125,7 @@ def speed(cases: list[Case], reps: int) -> None:
     state = {}
     for i, c in enumerate(cases):
         torch.set_num_threads(c.threads)
-        mod, opt = build(c.size, seed=0)
+        mod, opt = build(c.size, seed=0, layout=c.layout)
         if c.mode.startswith("compile"):
             mod.model = torch.compile(mod.model)
         batch = random_batch(c.batch, seed=i)
@@ -239,7 +251,38 @@ def default_cases(paper: bool, compile_: bool) -> list[Case]:
     cases += [Case("1.8M", m, 2, 32) for m in ("fp32", "bf16", "bf16mm")]
     if paper:  # batch 8: a paper-size step at 32 takes too long on a shared 2-core machine
         cases += [Case("11M", m, t, 8) for t in (2, 1) for m in ("fp32", "bf16")]
-    return cases
+    return cases + layout_cases()
+
+
+def layout_cases() -> list[Case]:
+    """Both layouts at equal width, depth, precision and batch, one thread (how the zoo trains: one run per core)."""
+    return [
+        Case(size, mode, 1, 32, layout=layout)
+        for size in ("0.6M", "1.8M")
+        for mode in ("fp32", "bf16")
+        for layout in ("interleaved", "stacked")
+    ]
+
+
+def layout_rows(cases: list[Case]) -> list[dict[str, Any]]:
+    """Stacked vs interleaved at equal (size, mode, threads, batch): trajectories per CPU-second and their ratio."""
+    per_cpu = {c.name: c.batch / statistics.median(c.cpu_times) for c in cases}
+    rows = []
+    for c in cases:
+        twin = Case(c.size, c.mode, c.threads, c.batch, layout="interleaved").name
+        if c.layout == "stacked" and twin in per_cpu:
+            rows.append(
+                {
+                    "size": c.size,
+                    "mode": c.mode,
+                    "threads": c.threads,
+                    "batch": c.batch,
+                    "interleaved_traj_per_cpu_s": round(per_cpu[twin], 2),
+                    "stacked_traj_per_cpu_s": round(per_cpu[c.name], 2),
+                    "stacked_over_interleaved": round(per_cpu[c.name] / per_cpu[twin], 2),
+                }
+            )
+    return rows
 
 
 def load() -> list[float]:
@@ -267,39 +310,43 @@ def main() -> None:
     ap.add_argument("--loss-every", type=int, default=25)
     ap.add_argument("--loss-batch", type=int, default=16)
     ap.add_argument("--data", help="dataset folder for the loss check (default: generated here)")
+    ap.add_argument("--layout-study", action="store_true", help="only the interleaved-vs-stacked cases")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
 
     load_start = load()
-    cases = default_cases(paper=not args.no_paper, compile_=not args.no_compile)
+    cases = layout_cases() if args.layout_study else default_cases(not args.no_paper, not args.no_compile)
     if args.sizes:
         cases = [c for c in cases if c.size in args.sizes.split(",")]
     t0 = time.perf_counter()
     speed(cases, args.reps)
     speed_s = time.perf_counter() - t0
     base: dict[str, Case] = {}
-    for c in cases:
-        if (c.mode, c.threads) == BASE and (c.size not in base or c.batch < base[c.size].batch):
+    for c in cases:  # the size's interleaved fp32 case with the most threads, then the smallest batch
+        b = base.get(c.size)
+        key = lambda x: (x.layout == "interleaved", x.mode == "fp32", x.threads == BASE[1], -x.batch)  # noqa: E731
+        if b is None or key(c) > key(b):
             base[c.size] = c
     rows = []
     for c in cases:
         med, cpu = statistics.median(c.times), statistics.median(c.cpu_times)
-        tok = c.batch * N_STEPS * TOKENS_PER_STEP / med
         b = base[c.size]
-        base_tok = b.batch * N_STEPS * TOKENS_PER_STEP / statistics.median(b.times)
-        base_cpu_tok = b.batch * N_STEPS * TOKENS_PER_STEP / statistics.median(b.cpu_times)
+        traj, base_traj = c.batch / med, b.batch / statistics.median(b.times)
         rows.append(
             {
                 "size": c.size,
+                "layout": c.layout,
                 "mode": c.mode,
                 "threads": c.threads,
                 "batch": c.batch,
                 "step_s": round(med, 4),
                 "step_s_all": [round(t, 4) for t in c.times],
                 "cpu_s": round(cpu, 4),
-                "tokens_per_s": round(tok, 1),
-                "speedup": round(tok / base_tok, 3),  # tokens/s vs the size's fp32 eager 2-thread baseline
-                "speedup_cpu": round(c.batch * N_STEPS * TOKENS_PER_STEP / cpu / base_cpu_tok, 3),
+                "tokens_per_s": round(c.tokens / med, 1),
+                "trajectories_per_cpu_s": round(c.batch / cpu, 2),
+                # trajectories/s vs the size's baseline (interleaved fp32 eager, 2 threads unless not run)
+                "speedup": round(traj / base_traj, 3),
+                "speedup_cpu": round(c.batch / cpu / (b.batch / statistics.median(b.cpu_times)), 3),
                 "compile_s": round(c.compile_s, 1) if c.compile_s is not None else None,
             }
         )
@@ -307,7 +354,7 @@ def main() -> None:
     t1 = time.perf_counter()
     runs = [("fp32", 0), (args.loss_mode, 0), ("fp32", 1)]
     losses = loss_check(runs, args.loss_steps, args.loss_every, args.loss_batch, args.data) if args.loss_steps else None
-    best = {size: max((r for r in rows if r["size"] == size), key=lambda r: r["tokens_per_s"]) for size in base}
+    best = {size: max((r for r in rows if r["size"] == size), key=lambda r: r["speedup"]) for size in base}
     result = {
         "bench": "train_speed",
         "machine": {
@@ -319,12 +366,16 @@ def main() -> None:
             "load_after_speed": load_mid,
             "load_end": load(),
         },
-        "tokens_per_trajectory": N_STEPS * TOKENS_PER_STEP,
+        "tokens_per_trajectory": {k: N_STEPS * v for k, v in TOKENS_PER_STEP.items()},
         "reps": args.reps,
         "speed_s": round(speed_s, 1),
         "loss_s": round(time.perf_counter() - t1, 1),
         "cases": rows,
-        "fastest_per_size": {k: f"{r['mode']}/t{r['threads']}/b{r['batch']} x{r['speedup']}" for k, r in best.items()},
+        "baseline_per_size": {k: b.name for k, b in base.items()},
+        "fastest_per_size": {
+            k: f"{r['layout']}/{r['mode']}/t{r['threads']}/b{r['batch']} x{r['speedup']}" for k, r in best.items()
+        },
+        "layouts": layout_rows(cases),
         "loss_check": losses,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
