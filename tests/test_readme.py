@@ -72,6 +72,22 @@ def test_every_readme_command_has_a_smoke_variant() -> None:
     assert set(SMOKE) <= set(keys), f"smoke rules for commands no longer in the README: {set(SMOKE) - set(keys)}"
 
 
+def test_readme_quickstart_puts_ttompc_on_the_path() -> None:
+    """``make demo`` installs into .venv; the commands below it need the venv's ``ttompc`` on PATH."""
+    lines = [line.split("#")[0].strip() for line in readme_block("bash", "## Quickstart").splitlines()]
+    assert "source .venv/bin/activate" in lines, lines
+
+
+def test_readme_publish_writes_into_a_user_zoo() -> None:
+    """The README's ``zoo publish`` must not edit the tracked ``zoo/`` (its card and ``index.json``): it names its
+    own zoo folder and destination, both in the git-ignored ``outputs/``."""
+    (argv,) = [a for a in readme_commands() if smoke_key(a) == "zoo publish"]
+    ignored = [line.strip() for line in (REPO / ".gitignore").read_text().splitlines()]
+    assert "/outputs/" in ignored
+    for option in ("--zoo-dir", "--to"):
+        assert option in argv and Path(argv[argv.index(option) + 1]).parts[0] == "outputs", (option, argv)
+
+
 @pytest.mark.slow
 def test_readme_commands_run_as_written(tmp_path: Path) -> None:
     (tmp_path / "recipes").symlink_to(REPO / "recipes")
@@ -96,7 +112,9 @@ def test_readme_commands_run_as_written(tmp_path: Path) -> None:
     assert (tmp_path / "runs" / "freeflyer-small" / "planner" / "model.safetensors").is_file()
     assert any((tmp_path / "outputs" / "evaluate" / "warmstart-freeflyer").iterdir())
     assert any((tmp_path / "outputs" / "evaluate" / "mpc-freeflyer").iterdir())
-    assert (tmp_path / "zoo" / "my-freeflyer.md").is_file()
+    assert (tmp_path / "outputs" / "my-zoo" / "my-freeflyer.md").is_file()
+    assert (tmp_path / "zoo" / "index.json").read_bytes() == (REPO / "zoo" / "index.json").read_bytes()
+    assert not (tmp_path / "zoo" / "my-freeflyer.md").exists()
 
 
 @pytest.mark.slow
@@ -107,3 +125,6 @@ def test_readme_python_example_runs(tmp_path: Path) -> None:
         [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
     )
     assert res.returncode == 0, res.stderr[-4000:]
+    lines = res.stdout.splitlines()  # the two results, one short line each, and the gap to the lower bound
+    assert len(lines) == 3 and all(line.startswith("SCPResult(") for line in lines[:2]), res.stdout
+    assert lines[2].startswith("SCP from the model: ") and lines[2].endswith("% above the lower bound"), lines[2]

@@ -70,6 +70,14 @@ def test_deterministic(ff) -> None:
     np.testing.assert_array_equal(a.U, b.U)
 
 
+def test_a_result_prints_as_one_short_line(solved) -> None:
+    scp = solved[0][2]
+    text = repr(scp)
+    assert text == str(scp) and "\n" not in text and len(text) < 160 and "array" not in text, text
+    assert text.startswith(f"SCPResult({scp.status.value}, cost={scp.cost:.6g}, iterations={scp.iterations},")
+    assert "X(101, 6), U(100, 3)" in text
+
+
 @pytest.mark.parametrize("name", ["freeflyer", "rpod"])  # PIQP's cached QP, Clarabel's cached conic problem
 def test_a_solve_does_not_depend_on_earlier_solves(name: str) -> None:
     """Solvers are cached per structure and process; a problem solved after another one (a pool worker's second

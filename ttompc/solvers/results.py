@@ -50,6 +50,13 @@ class SCPResult:
     def success(self) -> bool:
         return self.status in (SCPStatus.OPTIMAL, SCPStatus.FEASIBLE)
 
+    def __repr__(self) -> str:
+        """One line: ``print(result)`` in a session must not dump the trajectory and the history."""
+        return (
+            f"SCPResult({self.status.value}, cost={self.cost:.6g}, iterations={self.iterations}, "
+            f"violation={self.violation:.2g}, X{self.X.shape}, U{self.U.shape}, solve_time={self.solve_time:.3g}s)"
+        )
+
     def summary(self) -> dict[str, float | int | str]:
         return {
             "status": self.status.value,
