@@ -1,4 +1,4 @@
-"""Per-step MPC time of REL-MPC, DIST-MPC and TTO-MPC at H = 10 and H = 30, measured in the same run (paper Fig. 5
+"""Per-step MPC time of REL-MPC, DIST-MPC and TTO-MPC at H = 10 and H = 30, measured in the same run (paper Fig. 6
 and the "~7x" claim: REL-MPC needs H = 30 for the cost FT-TTO-MPC reaches at H = 10).
 
 Step time = warm start + windowed SCP (perf_counter; CUDA synchronised inside the TTO provider). Per episode we take

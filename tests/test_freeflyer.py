@@ -1,4 +1,4 @@
-"""Free-flyer physics and formulation properties (fact sheet §8)."""
+"""Free-flyer physics and formulation properties (paper §V-A)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Quadrotor physics (fact sheet §7): the Euler step against the continuous drag ODE, the drag linearisation's
+"""Quadrotor physics (paper §V-A): the Euler step against the continuous drag ODE, the drag linearisation's
 tangency (including v̄ = 0), sampling, constraint blocks and the REL/SCP solutions."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""RPOD physics (fact sheet §6): ROE/RTN maps, the STM and the control matrix against independent computations
+"""RPOD physics (paper §V-A): ROE/RTN maps, the STM and the control matrix against independent computations
 (numerically integrated two-body motion, secular J2 element rates, finite differences of impulses), sampling, and
 the REL/SCP solution's docking constraints."""
 

@@ -155,7 +155,7 @@ def test_backends_agree(ff) -> None:
 
 
 def test_reference_formulation_is_selectable_and_gives_up(ff) -> None:
-    """Seed 15: the reference's hard linearised constraints make a subproblem infeasible (fact sheet §8.9), the
+    """Seed 15: the reference's hard linearised constraints make a subproblem infeasible (docs/benchmarks.md), the
     penalized formulation solves the same problem."""
     p = ff.sample(np.random.default_rng(15))
     rel = solve_rel(ff, p)

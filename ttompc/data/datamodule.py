@@ -1,6 +1,6 @@
 """Streaming ``LightningDataModule`` over open-loop datasets and DAgger shard folders.
 
-Measured on our CPUs (docs: engineering notes), per-row streaming and ``datasets``' own shuffle/interleave run at
+Measured on our CPUs (``docs/benchmarks.md``), per-row streaming and ``datasets``' own shuffle/interleave run at
 1–5k rows/s, while ``IterableDataset.with_format("numpy").iter(batch)`` runs at ~25k rows/s. So each source is
 read in column batches, rows are shuffled in an in-memory pool per source, sources are mixed per batch
 (binomial open-loop count), shard order is permuted every pass, and shards are split by rank and DataLoader

@@ -1,4 +1,4 @@
-"""Closed-loop evaluation (paper §V-C, Fig. 4–5; fact sheet §5.5), the protocol of ``ttompc evaluate mpc``.
+"""Closed-loop evaluation (paper §V-C, Fig. 5–6; ``docs/evaluation.md``), the protocol of ``ttompc evaluate mpc``.
 
 For seeded held-out problems whose REL solution violates a keep-out zone, every planning horizon H and every plant
 (``nominal``: the exact dynamics; ``perturbed``: seeded actuation error and process noise, ``PlantNoise``, the same

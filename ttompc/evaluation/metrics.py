@@ -1,15 +1,15 @@
-"""Metrics of the evaluations (paper §V-B, §V-C; fact sheet §5.4, §5.5) and their JSON/CSV reports.
+"""Metrics of the evaluations (paper §V-B, §V-C; protocol: ``docs/evaluation.md``) and their JSON/CSV reports.
 
 * absolute: (J − J_REL)/J_REL per run, J_REL the open-loop REL cost (a lower bound of the full problem); means over
   feasible runs only, with standard error and bootstrap interval (``ttompc.mpc.metrics.interval``); infeasible runs
   are counted apart.
-* paper normalisation (Fig. 4): over the problems on which *every* method's run is feasible, mean(J_m − J_REL) per
+* paper normalisation (Fig. 5): over the problems on which *every* method's run is feasible, mean(J_m − J_REL) per
   method and horizon divided by the largest mean(J_DIST-MPC − J_REL) over the horizons (DIST-MPC = 1 at its worst
   horizon). Reported per problem as (J_m − J_REL)/D so that it gets an interval too.
 * share of the reachable gain: (mean J_base − mean J_m)/(mean J_base − mean J_oracle) over problems solved by base,
   model and oracle — 0 = no better than the baseline (SCP from REL open loop, REL-MPC closed loop), 1 = as good as
   the oracle — with a paired bootstrap interval.
-* warm-start improvement (Fig. 3): for each threshold c of the non-convexity factor (ctg0 / max ctg0), over problems
+* warm-start improvement (Fig. 4): for each threshold c of the non-convexity factor (ctg0 / max ctg0), over problems
   with factor ≥ c solved by every method: 100·(1 − mean(J_m − J_REL)/mean(J_SCP(REL) − J_REL)) for the suboptimality
   and 100·(1 − mean(iter_m)/mean(iter_SCP(REL))) for the SCP iterations.
 """
@@ -111,7 +111,7 @@ def aggregate(records: list[dict[str, Any]], keys: Sequence[str], fields: Sequen
 def improvement_by_threshold(
     problems: list[dict[str, Any]], methods: Sequence[str], baseline: str, thresholds: Sequence[float]
 ) -> list[dict[str, Any]]:
-    """Fig. 3 rows: per threshold c and method, % improvement of suboptimality and iterations over ``baseline``.
+    """Fig. 4 rows: per threshold c and method, % improvement of suboptimality and iterations over ``baseline``.
 
     ``problems`` rows hold ``nonconvexity`` (in [0, 1]), ``rel_cost`` and ``<method>_cost``/``<method>_iterations``/
     ``<method>_success`` for the baseline and every method; only problems solved by all of them count."""

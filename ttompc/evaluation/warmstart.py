@@ -1,4 +1,4 @@
-"""Open-loop warm-start evaluation (paper §V-B, Fig. 3; fact sheet §5.4), the protocol of ``ttompc evaluate
+"""Open-loop warm-start evaluation (paper §V-B, Fig. 4; ``docs/evaluation.md``), the protocol of ``ttompc evaluate
 warmstart`` and the demo.
 
 For seeded held-out problems (non-convex by default: the REL solution violates a keep-out zone): REL (timed) → SCP
@@ -8,7 +8,7 @@ ORACLE, is the best optimum the SCP reaches from several warm starts: REL, every
 ``oracle_detours`` seeded random detours around REL. Per problem: cost, suboptimality (J − J_REL)/J_REL, SCP
 iterations, runtime (warm start + SCP), success. Reported per method: failures counted apart, means with standard
 error and bootstrap interval over the solved problems, the share of the reachable gain (SCP(REL) → ORACLE) a model
-captures; per non-convexity bin, and Fig. 3's % improvement over the REL warm start.
+captures; per non-convexity bin, and Fig. 4's % improvement over the REL warm start.
 
 Our SCP returns its best feasible iterate, so "cost" is the reference's min(J_vect) and the returned trajectory at
 once; iteration counts are the number of convex subproblems solved.

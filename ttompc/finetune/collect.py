@@ -1,4 +1,4 @@
-"""DAgger data collection (paper Alg. 1, fact sheet §5.3): closed-loop rollouts labelled by the expert.
+"""DAgger data collection (paper Alg. 1, §IV-C): closed-loop rollouts labelled by the expert.
 
 A rollout runs one episode in which the exploration policy alternates between the learner (TTO-MPC with the current
 model, H drawn per rollout from ``exploration.horizons``) and the expert (full-horizon SCP over [t, N) from the true

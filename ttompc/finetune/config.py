@@ -24,7 +24,7 @@ from ttompc.training.config import LoggerConfig, OptimConfig, Precision, Trainer
 
 @dataclass
 class ExplorationConfig:
-    """Exploration policy of a rollout (paper Alg. 1, fact sheet §5.3): the learner is TTO-MPC with H drawn
+    """Exploration policy of a rollout (paper Alg. 1, §IV-C): the learner is TTO-MPC with H drawn
     uniformly from ``horizons``; the expert acts inside ``windows`` = U{min..max} windows of U{min..max} steps,
     one of them covering the end of the episode when ``end_window``."""
 

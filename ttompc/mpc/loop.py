@@ -1,4 +1,4 @@
-"""One receding-horizon loop for every scenario and warm-start method (paper §IV-C, fact sheet §5.2).
+"""One receding-horizon loop for every scenario and warm-start method (paper §III Eq. (2), §IV-C Eq. (8)).
 
 At each step t: the provider fills the window [t, min(t+H, N)) with a warm start and a terminal target; the
 windowed problem is solved by ``solve_scp`` (the scenario supplies the full problem's constraints inside the

@@ -1,4 +1,5 @@
-"""Warm-start and terminal-target providers of the receding-horizon loop (paper §V-C, fact sheet §5.2).
+"""Warm-start and terminal-target providers of the receding-horizon loop (paper §V-C; the terminal cost
+‖x_{t+H} − x̄‖_P of §V, Eq. (8)).
 
 A provider fills the window [t, t+H) with a warm start in the *optimisation* representation (states (H+1, n) whose
 first row is the measured state, controls (H, m)) and, for windows that stop before the end, the terminal cost:

@@ -1,6 +1,6 @@
-"""Normalisation statistics of a trajectory dataset: global per-dimension mean/std over all samples and steps
-(fact sheet §3.3, ``timestep_norm=False``), for the five modalities. Stored in dataset manifests and checkpoints
-as plain lists, so a checkpoint alone is enough to plan.
+"""Normalisation statistics of a trajectory dataset: global per-dimension mean/std over all samples and steps (the
+authors' research code's ``timestep_norm=False``), for the five modalities. Stored in dataset manifests and
+checkpoints as plain lists, so a checkpoint alone is enough to plan.
 
 They belong to the policy (a planner cannot normalise without them); the data package computes them and imports
 this module, which needs only NumPy, so data depends on the policy for statistics and never the reverse."""

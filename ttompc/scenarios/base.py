@@ -153,8 +153,9 @@ class ConstraintBlock:
 
 @dataclass(frozen=True)
 class SCPSettings:
-    """Trust-region SCP settings (fact sheet §5.1): Δ shrinks geometrically from ``tr_start`` to ``tr_end`` over
-    ``max_iters`` iterations; stop when the state step and the cost change are both below tolerance."""
+    """Trust-region SCP settings (the authors' schedule, ``docs/design.md``): Δ shrinks geometrically from
+    ``tr_start`` to ``tr_end`` over ``max_iters`` iterations; stop when the state step and the cost change are both
+    below tolerance."""
 
     tr_start: float
     tr_end: float
@@ -170,7 +171,7 @@ class SCPSettings:
 
 @dataclass(frozen=True)
 class MPCWeights:
-    """Soft-mode receding-horizon weights (fact sheet §6.6, §7.5, §8.5).
+    """Soft-mode receding-horizon weights (paper §V: terminal cost ‖x_{t+H} − x̄‖_P; values from the authors' code).
 
     cost = fuel·Σc(u) + end·‖x_N − goal‖₂ (window reaches the end) or ‖P (x_{t+H} − x̄)‖₂ otherwise, with
     P = terminal·I for warm-start targets (TTO, REL-MPC) and P = diag(dist) towards the goal for DIST-MPC.

@@ -1,4 +1,4 @@
-"""Free-flyer testbed (fact sheet §8): a planar air-bearing robot with four thruster clusters crossing a granite
+"""Free-flyer testbed (paper §V-A, Fig. 3): a planar air-bearing robot with four thruster clusters crossing a granite
 table with four circular obstacles.
 
 State x = [x, y, ψ, ẋ, ẏ, ψ̇] (m, rad, m/s, rad/s); control a = [Δv_x, Δv_y, a_ψ] is an impulse in the global
@@ -142,7 +142,7 @@ class FreeFlyer(Scenario):
 
     @staticmethod
     def _thruster_bound(X_ref: np.ndarray, U_ref: np.ndarray) -> ConstraintBlock:
-        """|B_bb(ψ̄) a + A_bb(ψ̄, ā)(ψ − ψ̄)| ≤ Δv_max, the first-order model of |Λ⁻¹R_BG(ψ)a| (fact sheet §8.4)."""
+        """|B_bb(ψ̄) a + A_bb(ψ̄, ā)(ψ − ψ̄)| ≤ Δv_max, the first-order model of |Λ⁻¹R_BG(ψ)a| (paper §V-A (v))."""
         H = len(U_ref)
         psi = X_ref[:H, 2]
         c, s = np.cos(psi), np.sin(psi)

@@ -1,4 +1,4 @@
-"""Relative orbital motion for the RPOD scenario (fact sheet §6.2–6.3): quasi-nonsingular relative orbital elements
+"""Relative orbital motion for the RPOD scenario (paper §V-A): quasi-nonsingular relative orbital elements
 (ROE) scaled by the chief semi-major axis, their map to the chief's RTN frame, the J2 secular state transition matrix
 of Koenig, Guffanti & D'Amico (JGCD 2017) and the Gauss-variational control input matrix.
 
@@ -15,7 +15,7 @@ J2 = 0.001082635819197
 R_EARTH = 6.3781363e6  # m
 MU_EARTH = 3.986004415e14  # m³/s²
 
-# ISS chief orbit at t_0 = 0 (fact sheet §6.2).
+# ISS chief orbit at t_0 = 0 (the authors' research code's).
 ISS_OE = np.array(
     [
         R_EARTH + 416e3,
@@ -86,8 +86,9 @@ def control_matrix(oe: np.ndarray) -> np.ndarray:
 def stm_j2(oe: np.ndarray, tau: float | np.ndarray, j2: float = J2) -> np.ndarray:
     """Φ(oe, τ) (..., 6, 6): J2 secular STM of the quasi-nonsingular ROE (Koenig, Guffanti & D'Amico 2017).
 
-    The entries are those of fact sheet §6.3 (1-based there, 0-based here). With ``j2=0`` it reduces to Keplerian
-    drift (only the δλ ← δa entry −1.5·n·τ), which the tests compare against integrated two-body motion.
+    The entries are Koenig et al.'s (0-based indices here), as in the authors' research code. With ``j2=0`` it
+    reduces to Keplerian drift (only the δλ ← δa entry −1.5·n·τ), which the tests compare against integrated
+    two-body motion.
     """
     oe = np.asarray(oe, dtype=np.float64)
     a, e, inc, omega = oe[..., 0], oe[..., 1], oe[..., 2], oe[..., 4]

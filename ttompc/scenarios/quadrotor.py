@@ -1,4 +1,4 @@
-"""Quadrotor crossing a forest of four spherical obstacles (fact sheet §7, 'random_target_forest').
+"""Quadrotor crossing a forest of four spherical obstacles (paper §V-A; the authors' 'random_target_forest' setting).
 
 State x = [p, v] (m, m/s), control u = thrust force (N). Continuous dynamics ṗ = v, v̇ = u/m − (c_d/m)‖v‖v are
 stepped with explicit Euler (the environment and the transformer's model are the same map). The convex model is the

@@ -1,4 +1,4 @@
-"""Spacecraft rendezvous, proximity operations and docking with the ISS (fact sheet §6).
+"""Spacecraft rendezvous, proximity operations and docking with the ISS (paper §V-A).
 
 The optimisation state is the scaled quasi-nonsingular ROE vector (metres); the control is an impulsive RTN Δv
 (m/s). Dynamics s_{k+1} = Φ(oe_k, dt)(s_k + B(oe_k) a_k) are linear and exact (the environment uses the same STM),
@@ -51,7 +51,8 @@ TARGET_T = 74.0  # m along ±T: docking target
 CONE_VERTEX_T = 69.0  # m: cone vertex 5 m inside the target
 WAYPOINT_T = 104.0  # m: pre-docking hold point 30 m out along the cone axis
 GRID = 100
-# Sampling grids (fact sheet §6.4); every grid value is reachable (the reference's randint(0, 99) never drew the last).
+# Sampling grids of the authors' research code; every grid value is reachable (their randint(0, 99) never drew the
+# last).
 HORIZON_GRID = np.linspace(1.0, 3.0, GRID)  # orbits
 DA_GRID = np.linspace(-5.0, 5.0, GRID)  # m
 DLAMBDA_GRID = np.linspace(-100.0, 100.0, GRID)
@@ -346,7 +347,7 @@ def waypoint_row_scale(problem: Problem) -> np.ndarray:
 
 def koz_block(psi: np.ndarray, X_ref: np.ndarray, steps: np.ndarray) -> ConstraintBlock:
     """Tangent half-space of the KOZ ellipsoid at the radial projection of the reference RTN position, mapped to
-    ROE: the shared ``keepout_block`` on r = DΨ_k s, composed with the position rows DΨ_k (fact sheet §6.5)."""
+    ROE: the shared ``keepout_block`` on r = DΨ_k s, composed with the position rows DΨ_k (paper Eq. (9c))."""
     D = psi[:, :3, :]  # (K, 3, 6)
     r_ref = np.einsum("kij,kj->ki", D, X_ref)
     rtn = keepout_block(r_ref, np.zeros((1, 3)), 1.0, steps=steps, n=3, scale=KOZ_SCALE)

@@ -8,7 +8,7 @@ on a numerical failure, or Clarabel alone where QOCO is not installed or the sce
 * ``clarabel``: interior-point conic solver shipped with cvxpy; handles the SOC trust region, the 2-norm costs
   (RPOD) and the approach cone. Data updates keep the KKT symbolic factorisation.
 * ``osqp``: ADMM QP solver for subproblems without cones, on the conic assembly; warm-started from the previous
-  primal/dual iterate, which matters when many bounds are active (engineering notes). Slow here; kept as a
+  primal/dual iterate, which matters when many bounds are active (``docs/design.md``). Slow here; kept as a
   comparison in ``bench/solver_speed.py``.
 """
 

@@ -12,7 +12,8 @@ structure and updated in place, see ``subproblem.py``) and moves the reference. 
   solve with status INFEASIBLE. Kept for comparisons (``bench/solver_speed.py``).
 
 The result keeps the whole iterate history and returns the best feasible iterate (lowest cost among iterates whose
-nonlinear violation is within tolerance), not merely the last one (fact sheet §11).
+nonlinear violation is within tolerance), not merely the last one (the authors' code returned the last:
+``docs/design.md``).
 """
 
 from __future__ import annotations
@@ -107,8 +108,8 @@ def solve_rel(
 
 
 def solve_problem(scenario: Scenario, problem: Problem, **kwargs) -> tuple[SCPResult, SCPResult | None]:
-    """REL, then SCP warm-started from the REL solution (the dataset pipeline, fact sheet §1). The SCP is skipped
-    (None) when REL fails."""
+    """REL, then SCP warm-started from the REL solution: the two solutions a dataset stores per problem (paper
+    §IV-B, §V). The SCP is skipped (None) when REL fails."""
     rel = solve_rel(scenario, problem, **kwargs)
     if not rel.success:
         return rel, None

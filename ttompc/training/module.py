@@ -1,4 +1,4 @@
-"""``TrajectoryTransformerModule``: teacher-forced training of ``TrajectoryGPT`` (fact sheet §2.5, §4).
+"""``TrajectoryTransformerModule``: teacher-forced training of ``TrajectoryGPT`` (paper §IV-B, the loss of Eq. (7)).
 
 Batch contract (from ``ttompc.data.datamodule.TrajectoryDataModule``; float32, already normalised)::
 
