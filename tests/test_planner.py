@@ -210,3 +210,24 @@ def test_the_policy_imports_nothing_above_it_and_data_stays_light() -> None:
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == (
         "False"
     )
+
+
+def test_the_conditioning_default_comes_from_the_bundle(tmp_path: Path, toy, toy_stats) -> None:
+    """rtg_0 = −κ·J_REL with κ from the model's bundle (``extra.rtg_scale``) unless the caller sets it: TTO-MPC and
+    the warm-start evaluation both read it; a bundle without it uses the paper's κ = 1."""
+    from ttompc.mpc.providers import TTOProvider
+    from ttompc.policy import ModelConfig, TrajectoryGPT
+
+    torch.manual_seed(0)
+    model = TrajectoryGPT(ModelConfig(n_embd=16, n_layer=1, n_head=2, max_steps=12, layout="stacked"))
+    plain = Planner(model, toy, toy_stats)
+    assert plain.rtg_scale == 1.0
+    Planner(model, toy, toy_stats, extra={"rtg_scale": 1.3}).save(tmp_path / "b")
+    tuned = Planner.from_pretrained(tmp_path / "b")
+    assert tuned.rtg_scale == 1.3
+    problem = toy.sample(np.random.default_rng(0))
+    for planner, scale, want in ((tuned, None, -2.6), (tuned, 1.0, -2.0), (plain, None, -2.0)):
+        provider = TTOProvider(planner, rtg_scale=scale)
+        provider.reset(toy, problem, rel_cost=2.0)
+        assert provider.context is not None
+        assert float(provider.context.rtg[0, 0]) == pytest.approx(want)

@@ -198,6 +198,23 @@ def test_publish_list_download_round_trip(env: Path, capsys: pytest.CaptureFixtu
     assert zoo.download("ff-tiny", progress=False) == bundle  # cached: same snapshot, nothing refetched
 
 
+def test_publish_records_the_conditioning(env: Path, toy, toy_stats) -> None:
+    """--rtg-scale writes the model's conditioning into the published bundle: from then on the planner's default."""
+    import torch
+
+    from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
+
+    torch.manual_seed(0)
+    src = Planner(TrajectoryGPT(ModelConfig(n_embd=16, n_layer=1, n_head=2, max_steps=12)), toy, toy_stats)
+    src.save(env / "real")
+    dest = env / "zoo" / "models" / "toy-k"
+    argv = ["zoo", "publish", str(env / "real"), "--name", "toy-k", "--to", str(dest), "--skip-eval"]
+    assert main([*argv, "--rtg-scale", "1.3"]) == 0
+    assert json.loads((dest / "config.json").read_text())["extra"]["rtg_scale"] == 1.3
+    assert (dest / "model.safetensors").read_bytes() == (env / "real" / "model.safetensors").read_bytes()
+    assert Planner.from_pretrained("toy-k").rtg_scale == 1.3
+
+
 def test_republish_keeps_hand_edits_and_makes_a_new_snapshot(env: Path) -> None:
     zoo.publish(make_bundle(env / "b1"), "m", str(env / "zoo" / "models" / "m"), metrics=METRICS)
     path = env / "zoo" / "m.md"

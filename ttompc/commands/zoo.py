@@ -12,6 +12,7 @@ import tempfile
 import textwrap
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from ttompc import zoo
 from ttompc.errors import UserError
@@ -45,6 +46,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--skip-eval", action="store_true", help="publish without metrics")
     p.add_argument("--base-url", help="card URLs become BASE_URL/<file> (when the files are uploaded there)")
     p.add_argument("--kind", choices=KINDS, help="override the kind read from config.json")
+    p.add_argument(
+        "--rtg-scale",
+        type=float,
+        help="record the model's conditioning rtg_0 = -RTG_SCALE*J_REL (what evaluation and MPC use by default)",
+    )
     p.add_argument("--license", help="licence of the weights (default: the existing card's, else MIT)")
     p.add_argument("--recipe", help="path of the training recipe, e.g. recipes/freeflyer/pretrain.yaml")
     p.add_argument("--data-card", help="path or name of the training data card")
@@ -136,16 +142,19 @@ def _download(args: argparse.Namespace) -> int:
 
 
 @contextlib.contextmanager
-def _as_bundle(source: Path) -> Iterator[Path]:
-    """A Lightning checkpoint as a temporary bundle (the zoo publishes bundles and never builds a model); anything
-    else as given. Checkpoints are pickles, read with ``weights_only=True``: publish only those you made yourself."""
-    if not (source.is_file() and source.suffix == ".ckpt"):
+def _as_bundle(source: Path, extra: dict[str, Any]) -> Iterator[Path]:
+    """A Lightning checkpoint, or a bundle whose metadata gains ``extra``, as a temporary bundle (the zoo publishes
+    bundles and never builds a model); anything else as given. Checkpoints are pickles, read with
+    ``weights_only=True``: publish only those you made yourself."""
+    if not (source.is_file() and source.suffix == ".ckpt") and not extra:
         yield source
         return
     from ttompc.policy import Planner
 
+    planner = Planner.from_pretrained(source)
+    planner.extra.update(extra)
     with tempfile.TemporaryDirectory(prefix="ttompc-publish-") as tmp:
-        yield Planner.from_pretrained(source).save(tmp)
+        yield planner.save(tmp)
 
 
 def _publish(args: argparse.Namespace) -> int:
@@ -159,7 +168,8 @@ def _publish(args: argparse.Namespace) -> int:
         "data_card": args.data_card,
     }
     fields = {k: v for k, v in given.items() if v is not None}
-    with _as_bundle(Path(args.source)) as source:
+    extra = {"rtg_scale": args.rtg_scale} if args.rtg_scale is not None else {}
+    with _as_bundle(Path(args.source), extra) as source:
         card = zoo.publish(
             source,
             args.name,

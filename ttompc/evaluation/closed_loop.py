@@ -20,13 +20,14 @@ Problems run in parallel in the spawn pool; each worker loads the model(s) once.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ttompc.evaluation.metrics import gain_share, paper_normalized, write_csv, write_json
+from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.warmstart import default_workers
 from ttompc.mpc.loop import Mode, run_mpc
@@ -43,6 +44,7 @@ from ttompc.mpc.providers import (
     full_horizon_plan,
 )
 from ttompc.parallel import pool_map
+from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario
 
@@ -50,6 +52,7 @@ if TYPE_CHECKING:
     from ttompc.policy import Planner
 
 BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"
+BASELINE_METHODS = 4  # REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC: the providers() of every problem, model or not
 PLANTS = ("nominal", "perturbed")
 
 
@@ -78,7 +81,7 @@ class ClosedLoopConfig:
     plants: list[str] = field(default_factory=lambda: list(PLANTS))
     plant: PlantConfig = field(default_factory=PlantConfig)
     robust_blend: float = 0.95  # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0 leaves them out
-    rtg_scale: float = 1.0  # rtg_0 = −rtg_scale·J_REL
+    rtg_scale: float | None = None  # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale)
     mode: Mode = "soft"
     max_steps: int | None = None  # truncated episodes (smoke runs)
     workers: int = 0  # processes; 0 = one per CPU core
@@ -100,7 +103,7 @@ def providers(
     models: dict[str, Planner],
     *,
     robust_blend: float = 0.95,
-    rtg_scale: float = 1.0,
+    rtg_scale: float | None = None,
     backend: str = "auto",
 ) -> list[Provider]:
     """Fresh providers of every method for one problem; ``plan`` is its open-loop SCP optimum (``full_horizon_plan``),
@@ -124,8 +127,10 @@ def run_problem(
     ep: EvalProblem,
     models: dict[str, Planner],
     cfg: ClosedLoopConfig,
+    on_episode: Callable[[], None] | None = None,
 ) -> tuple[list[dict[str, Any]], dict[tuple[str, str, int], np.ndarray]]:
-    """Every (plant, H, method) episode of one problem: records and executed trajectories."""
+    """Every (plant, H, method) episode of one problem: records and executed trajectories. ``on_episode`` is called
+    after each episode (a progress bar's ticker: one problem runs for minutes)."""
     records, trajectories = [], {}
     plan = full_horizon_plan(scenario, ep.problem, cfg.backend)
     for plant in cfg.plants:
@@ -148,17 +153,27 @@ def run_problem(
                 )
                 records.append({"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, **episode_record(e)})
                 trajectories[(plant, e.method, H)] = e.X
+                if on_episode is not None:
+                    on_episode()
     return records, trajectories
+
+
+def episodes_per_problem(cfg: ClosedLoopConfig, models: int) -> int:
+    """How many episodes ``run_problem`` runs with ``models`` models: every plant, horizon and method of
+    ``providers`` (the robust variant of each model unless ``robust_blend`` is 0)."""
+    methods = BASELINE_METHODS + models * (2 if cfg.robust_blend > 0 else 1)
+    return len(cfg.plants) * len(cfg.horizons) * methods
 
 
 _W: dict[str, Any] = {}
 
 
-def _init(cfg: dict[str, Any]) -> None:
+def _init(cfg: dict[str, Any], tick: Callable[[], None]) -> None:
     from ttompc.config import from_container
     from ttompc.policy import Planner
 
     _W["cfg"] = c = from_container(ClosedLoopConfig, cfg)
+    _W["tick"] = tick
     assert c.scenario is not None  # the caller resolved it before starting the workers
     _W["scenario"] = scenario = get_scenario(c.scenario)
     _W["models"] = {
@@ -172,7 +187,7 @@ def _run(index: int) -> list[dict[str, Any]]:
     cfg: ClosedLoopConfig = _W["cfg"]
     sc = _W["scenario"]
     ep = eval_problem(sc, cfg.seed, index, nonconvex_only=True, backend=cfg.backend)
-    return run_problem(sc, ep, _W["models"], cfg)[0]
+    return run_problem(sc, ep, _W["models"], cfg, _W["tick"])[0]
 
 
 def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
@@ -217,7 +232,7 @@ def format_table(summary: list[dict[str, Any]]) -> str:
     ]
     for r in summary:
         paper = format_interval(r["paper_norm"], 1, 2) if "paper_norm" in r else "–"
-        share = format_interval(r["gain_share"], 100) if "gain_share" in r else "–"
+        share = format_gain_share(r["gain_share"]) if "gain_share" in r else "–"
         lines.append(
             f"| {r['plant']} | {r['method']} | {r['horizon']} | {r['feasible']}/{r['runs']} "
             f"| {format_interval(r['rel_increment'], 100)} | {paper} | {share} "
@@ -234,7 +249,8 @@ def format_table(summary: list[dict[str, Any]]) -> str:
         )
     lines.append(
         "Costs average feasible runs only; infeasible runs (keep-out, path or goal tolerance violated) are counted "
-        "in 'feasible' and described by their goal miss. Share of reachable gain: REL-MPC = 0, ORACLE-MPC = 100."
+        "in 'feasible' and described by their goal miss. Share of reachable gain: REL-MPC = 0, ORACLE-MPC = 100; "
+        "undefined when the reachable gain (REL-MPC − ORACLE-MPC cost) is within noise."
     )
     return "\n".join(lines)
 
@@ -252,9 +268,11 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
     workers = default_workers(cfg.workers)
     t0 = time.perf_counter()
     records: list[dict[str, Any]] = []
-    tasks = range(cfg.problems)
-    for rs in pool_map(_run, tasks, workers, _init, (to_container(cfg),), scenarios=[scenario_spec(sc)]):
-        records.extend(rs)
+    models = sum(1 for source in (cfg.model, cfg.ft_model) if source)
+    with Bar(cfg.problems * episodes_per_problem(cfg, models), f"mpc {sc.name}", "episode") as bar:
+        init = (to_container(cfg), bar.ticker())
+        for rs in pool_map(_run, range(cfg.problems), workers, _init, init, scenarios=[scenario_spec(sc)]):
+            records.extend(rs)
     summary = summarize(records, cfg.seed)
     table = format_table(summary)
     report = {

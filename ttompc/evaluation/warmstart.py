@@ -24,10 +24,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ttompc.evaluation.metrics import aggregate, gain_share, improvement_by_threshold, write_csv, write_json
+from ttompc.evaluation.metrics import (
+    aggregate,
+    format_gain_share,
+    gain_share,
+    improvement_by_threshold,
+    write_csv,
+    write_json,
+)
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.mpc.metrics import format_interval, interval
 from ttompc.parallel import pool_map
+from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario, Window
 from ttompc.seeding import rng
@@ -52,7 +60,7 @@ class WarmStartConfig:
     problems: int = 100
     seed: int = 0  # root seed of the held-out evaluation stream
     nonconvex_only: bool = True  # keep problems whose REL solution violates a keep-out zone
-    rtg_scale: float = 1.0  # rtg_0 = −rtg_scale·J_REL
+    rtg_scale: float | None = None  # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale)
     oracle_detours: int = 4  # random detours tried by the oracle (besides REL, models and the straight line)
     workers: int = 0  # processes; 0 = one per CPU core
     thresholds: list[float] = field(default_factory=lambda: [round(0.1 * i, 1) for i in range(10)])
@@ -100,7 +108,7 @@ def evaluate_problem(
     ep: EvalProblem,
     models: dict[str, Planner],
     *,
-    rtg_scale: float = 1.0,
+    rtg_scale: float | None = None,
     oracle_detours: int = 4,
     backend: str = "auto",
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -114,7 +122,8 @@ def evaluate_problem(
     optima = [scp_rel]
     for name, planner in models.items():
         t0 = time.perf_counter()
-        X, U = planner.warm_start([p], rtg0=-rtg_scale * rel.cost, ctg0=0.0)
+        kappa = planner.rtg_scale if rtg_scale is None else rtg_scale
+        X, U = planner.warm_start([p], rtg0=-kappa * rel.cost, ctg0=0.0)
         ws_time = time.perf_counter() - t0
         res = solve_scp(scenario, p, X[0], U[0], backend=backend)
         _record(row, name, res, ws_time, rel.cost)
@@ -182,11 +191,11 @@ def format_table(summary: list[dict[str, Any]]) -> str:
     """A readable table of ``method_summary``."""
     lines = [
         "| method | solved | suboptimality vs J_REL, % (mean ± s.e. [95% CI]) | SCP iterations | time [s] "
-        "| share of reachable gain |",
+        "| share of reachable gain, % |",
         "|---|---|---|---|---|---|",
     ]
     for e in summary:
-        share = format_interval(e["gain_share"], 100) + " %" if "gain_share" in e else "–"
+        share = format_gain_share(e["gain_share"]) if "gain_share" in e else "–"
         lines.append(
             f"| {e['method']} | {e['runs'] - e['failures']}/{e['runs']} | {format_interval(e['suboptimality'], 100)} "
             f"| {format_interval(e['iterations'])} | {e['time']:.3f} | {share} |"
@@ -205,9 +214,10 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     out = Path(cfg.out or f"outputs/evaluate/warmstart-{sc.name}")
     t0 = time.perf_counter()
     workers = default_workers(cfg.workers)
-    rows = list(
-        pool_map(_run_problem, range(cfg.problems), workers, _init, (asdict(cfg),), scenarios=[scenario_spec(sc)])
-    )
+    with Bar(cfg.problems, f"warmstart {sc.name}", "problem") as bar:
+        tasks = range(cfg.problems)
+        done = pool_map(_run_problem, tasks, workers, _init, (asdict(cfg),), scenarios=[scenario_spec(sc)])
+        rows = list(bar.each(done))
     models = [m for m, key in (("TTO", cfg.model), ("FT-TTO", cfg.ft_model)) if key]
     cmax = max((r["ctg0"] for r in rows), default=0)
     for r in rows:

@@ -102,19 +102,25 @@ def closed_loop_metrics(
     backend: str = "auto",
     plant: PlantNoise | None = None,
     design: TerminalDesign | None = None,
-    rtg_scale: float = 1.0,
+    rtg_scale: float | None = None,
+    progress: str = "",
 ) -> tuple[dict[str, float], list[Episode]]:
     """TTO-MPC with ``planner`` on fixed problems (optionally on the perturbed ``plant``, seeded per problem):
     flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count), ``cost_increment`` and its ``_se`` (mean
     (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible runs), ``target_change``, step times and
-    ``fallbacks``."""
+    ``fallbacks``. ``progress``: the label of a progress bar over the episodes on stderr ("": none)."""
+    from ttompc.progress import Bar
+
     sc = planner.scenario
-    episodes = [
-        run_mpc(sc, ep.problem, TTOProvider(planner, name, rtg_scale=rtg_scale, design=design), horizon,
-                rel_cost=ep.rel_cost, mode=mode, max_steps=max_steps, backend=backend, plant=plant,
-                plant_seed=ep.seed)
-        for ep in problems
-    ]  # fmt: skip
+    episodes = []
+    with Bar(len(problems), progress, "episode", show=bool(progress)) as bar:
+        for ep in problems:
+            episodes.append(
+                run_mpc(sc, ep.problem, TTOProvider(planner, name, rtg_scale=rtg_scale, design=design), horizon,
+                        rel_cost=ep.rel_cost, mode=mode, max_steps=max_steps, backend=backend, plant=plant,
+                        plant_seed=ep.seed)
+            )  # fmt: skip
+            bar.update()
     s = summarize_episodes([episode_record(e) for e in episodes])
     times = np.concatenate([e.step_times for e in episodes])
     metrics = {

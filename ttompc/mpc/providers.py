@@ -190,7 +190,8 @@ class DISTProvider:
 
 class TTOProvider:
     """TTO-MPC: H-step rollout from a persistent rollout context (one per episode, KV cache reused), conditioned on
-    rtg_0 = −``rtg_scale``·J_REL (the paper: 1) and ctg_0 = 0; the target goes through ``design``."""
+    rtg_0 = −``rtg_scale``·J_REL (None: the model's own, ``Planner.rtg_scale``; the paper: 1) and ctg_0 = 0; the
+    target goes through ``design``."""
 
     def __init__(
         self,
@@ -199,11 +200,11 @@ class TTOProvider:
         *,
         use_cache: bool = True,
         clipped: bool = True,
-        rtg_scale: float = 1.0,
+        rtg_scale: float | None = None,
         design: TerminalDesign | None = None,
     ) -> None:
         self.planner, self.name, self.use_cache, self.clipped = planner, name, use_cache, clipped
-        self.rtg_scale = rtg_scale
+        self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
         self.target = TargetFilter(design)
         self.context: RolloutContext | None = None
 

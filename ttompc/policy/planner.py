@@ -85,6 +85,13 @@ class Planner:
         self.extra = dict(extra or {})
 
     @property
+    def rtg_scale(self) -> float:
+        """κ of the conditioning rtg_0 = −κ·J_REL that this model plans best with, as recorded in its bundle
+        (``extra["rtg_scale"]``, set when publishing from the protocol's measurements); the paper's 1 otherwise.
+        Callers that leave ``rtg_scale`` unset (evaluation, TTO-MPC) use it."""
+        return float(self.extra.get("rtg_scale", 1.0))
+
+    @property
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
 

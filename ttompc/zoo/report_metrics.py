@@ -24,7 +24,7 @@ def command_line(kind: str, config: dict[str, Any]) -> str:
         if config.get(key):
             parts.append(f"{flag} {config[key]}")
     for key in _WS_KEYS if kind == "warmstart" else _MPC_KEYS:
-        if key in config:
+        if config.get(key) is not None:  # None: the model's own default (e.g. rtg_scale), nothing to pass
             value = config[key]
             if isinstance(value, list):
                 value = "[" + ",".join(str(v) for v in value) + "]"
@@ -58,13 +58,13 @@ def warmstart_metrics(report: dict[str, Any], method: str) -> dict[str, dict[str
         _put(out, f"ws_iterations{tag}", row["iterations"]["mean"], f"{what} from {warm}: mean SCP iterations")
         _put(out, f"ws_failures{tag}", row["failures"], f"{what} from {warm}: SCP runs ending infeasible (of {n})")
     share = rows[method].get("gain_share")
-    if share is not None:
+    if share is not None:  # an undefined share (null: the reachable gain is within noise) is no metric
         _put(
             out,
             "ws_gain_share",
             share["mean"],
             f"{what}: share of the oracle-reachable gain over SCP-from-REL captured by the {method} warm start "
-            "(1 = the oracle, 0 = REL, negative = worse than REL)",
+            "(1 = the oracle, 0 = REL, negative = worse than REL; undefined when the reachable gain is within noise)",
         )
     return out
 
