@@ -33,6 +33,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("ttompc.commands.evaluate", "warm-start and MPC evaluations"),
     "zoo": ("ttompc.commands.zoo", "list, inspect, download and publish pretrained models"),
     "demo": ("ttompc.commands.demo", "the quickstart: plan seeded problems with a shipped zoo model"),
+    "check-scenario": (
+        "ttompc.commands.check_scenario",
+        "check your scenario against the interface (docs/scenarios.md)",
+    ),
 }
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130

@@ -1,0 +1,54 @@
+"""Scenarios with one planted mistake each, loaded by file spec in the ``check-scenario`` tests: subclasses of the
+worked example (examples/di2d.py) that a user could plausibly have written."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ttompc.scenarios import ConvexModel, Problem, Window, get_scenario
+
+EXAMPLE = f"{Path(__file__).resolve().parents[1] / 'examples' / 'di2d.py'}:DoubleIntegrator2D"
+DoubleIntegrator2D: Any = type(get_scenario(EXAMPLE))
+
+
+class WrongJacobian(DoubleIntegrator2D):
+    """A 'linearisation' whose slope ∂p_x+/∂v_x is 2·dt instead of dt, made exact at the reference through c: the
+    model reproduces step() where it was built, so only the finite-difference check sees the wrong derivative."""
+
+    name = "di2d-wrong-jacobian"
+    exact_linear_dynamics = False  # it is not: A and c now depend on the reference
+
+    def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
+        model = super().convex_model(problem, window, X_ref, U_ref)
+        model.A[:, 0, 2] *= 2.0
+        H = window.length
+        exact = self.step_window(problem, window.start, X_ref[:H], U_ref)
+        model.c = exact - np.einsum("jab,jb->ja", model.A, X_ref[:H]) - np.einsum("jab,jb->ja", model.B, U_ref)
+        return model
+
+
+class WrongBatchedModel(DoubleIntegrator2D):
+    """The torch model forgets the ½ of ½·dt²·u in the position update."""
+
+    name = "di2d-wrong-batched-model"
+
+    def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> Any:
+        model = super().batched_model(problems, device)
+        model._B = model._B.clone()
+        model._B[:2] *= 2.0
+        return model
+
+
+class UnsolvableSampler(DoubleIntegrator2D):
+    """Goals 60 m away: with |a| <= 1 m/s² for 10 s no trajectory gets further than 25 m, REL included."""
+
+    name = "di2d-unsolvable-sampler"
+
+    def sample(self, rng: np.random.Generator) -> Problem:
+        problem = super().sample(rng)
+        goal = problem.goal + np.array([60.0, 0.0, 0.0, 0.0])
+        return Problem(x0=problem.x0, goal=goal, dt=problem.dt, n_steps=problem.n_steps)
