@@ -79,9 +79,47 @@ def test_paper_normalisation_uses_problems_feasible_for_every_method() -> None:
 def test_share_of_reachable_gain() -> None:
     base, model, ceil = np.array([2.0, 3.0, 9.0]), np.array([1.5, 2.0, np.nan]), np.array([1.0, 1.0, 1.0])
     g = gain_share(base, model, ceil, seed=0)  # problem 2 (model unsolved) is dropped: (2.5 − 1.75)/(2.5 − 1)
-    assert g["n"] == 2 and g["mean"] == pytest.approx(0.5)
+    assert g["n"] == 2 and g["mean"] == pytest.approx(0.5) and g["undefined"] is None
+    base = np.array([2.0, 3.0, 4.0, 3.0])
+    ceil = base - np.array([1.0, 1.2, 0.9, 1.1])
     assert gain_share(base, ceil, ceil)["mean"] == pytest.approx(1.0)
     assert gain_share(base, base, ceil)["mean"] == pytest.approx(0.0)
+
+
+def _same_cost_rows(noise: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """REL, model and oracle at the same costs (12.3% above J_REL on average) up to solver noise."""
+    rng = np.random.default_rng(seed)
+    cost = 1.123 * (1 + 0.1 * rng.standard_normal(40))
+    return cost + noise * np.abs(rng.standard_normal(40)), cost + noise * rng.standard_normal(40), cost
+
+
+@pytest.mark.parametrize(
+    ("base", "model", "ceiling"),
+    [
+        _same_cost_rows(1e-9),  # everything at the same cost: the "gain" is solver noise (issue: 24.2 ± 50%)
+        (np.ones(40), np.ones(40), 1 - np.tile([0.011, -0.009], 20)),  # a mean gain well inside its noise
+        (np.full(40, 1.0), np.full(40, 3.0), np.r_[0.999, np.ones(39)]),  # one problem's 0.1%: −1.6e11% style
+    ],
+)
+def test_share_of_a_gain_within_noise_is_undefined_not_a_number(
+    base: np.ndarray, model: np.ndarray, ceiling: np.ndarray, tmp_path: Path
+) -> None:
+    from ttompc.evaluation.metrics import write_json
+    from ttompc.evaluation.warmstart import format_table, method_summary
+
+    g = gain_share(base, model, ceiling, seed=0)
+    assert np.isnan(g["mean"]) and np.isnan(g["se"]) and g["undefined"] == "reachable gain within noise", g
+    assert g["n"] == 40 and g["reachable_gain"]["n"] == 40  # what there was to gain is still reported
+    assert json.loads(write_json(tmp_path / "r.json", g).read_text())["mean"] is None
+    rows = [
+        {"problem": i, **{f"{m}_{k}": v for m, c in (("REL", base), ("TTO", model), (ORACLE, ceiling))
+                          for k, v in (("success", True), ("cost", c[i]), ("suboptimality", c[i] - 1),
+                                       ("iterations", 5), ("time", 0.1))}}
+        for i in range(40)
+    ]  # fmt: skip
+    table = format_table(method_summary(rows, ["REL", "TTO", ORACLE]))
+    assert "| undefined (reachable gain within noise) |" in table and "nan" not in table, table
+    assert gain_share(base[:1], model[:1], ceiling[:1])["undefined"] == "one problem: no standard error"
 
 
 def test_improvement_by_threshold() -> None:

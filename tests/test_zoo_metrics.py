@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -90,3 +91,18 @@ def test_cli_writes_publishable_metrics(tmp_path) -> None:
     assert validate_metrics(json.loads(out.read_text()))["ws_suboptimality"]["value"] == pytest.approx(0.35)
     bad = subprocess.run([*cmd[:-4], "--method", "TTO"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "needs a report" in bad.stderr
+
+
+def test_an_undefined_gain_share_is_left_off_the_card(tmp_path: Path) -> None:
+    """REL, TTO and the oracle at the same cost: no reachable gain to share, so no ws_gain_share (not a number)."""
+    import numpy as np
+
+    from ttompc.evaluation.metrics import gain_share, write_json
+
+    cost = np.full(10, 1.123)
+    methods = [dict(m, gain_share=gain_share(cost + 1e-9, cost, cost)) if m["method"] == "TTO" else m
+               for m in WS["methods"]]  # fmt: skip
+    report = json.loads(write_json(tmp_path / "warmstart.json", {**WS, "methods": methods}).read_text())
+    assert report["methods"][1]["gain_share"]["mean"] is None
+    m = validate_metrics(card_metrics("TTO", warmstart=report))
+    assert "ws_gain_share" not in m and m["ws_suboptimality"]["value"] == pytest.approx(0.35)

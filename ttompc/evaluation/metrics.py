@@ -8,7 +8,8 @@
   horizon). Reported per problem as (J_m − J_REL)/D so that it gets an interval too.
 * share of the reachable gain: (mean J_base − mean J_m)/(mean J_base − mean J_oracle) over problems solved by base,
   model and oracle — 0 = no better than the baseline (SCP from REL open loop, REL-MPC closed loop), 1 = as good as
-  the oracle — with a paired bootstrap interval.
+  the oracle — with a paired bootstrap interval; undefined (nan, null in JSON) when the reachable gain
+  mean(J_base − J_oracle) is within noise (``gain_share``).
 * warm-start improvement (Fig. 4): for each threshold c of the non-convexity factor (ctg0 / max ctg0), over problems
   with factor ≥ c solved by every method: 100·(1 − mean(J_m − J_REL)/mean(J_SCP(REL) − J_REL)) for the suboptimality
   and 100·(1 − mean(iter_m)/mean(iter_SCP(REL))) for the SCP iterations.
@@ -26,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from ttompc.mpc.metrics import BOOTSTRAP_SAMPLES, interval
+from ttompc.mpc.metrics import BOOTSTRAP_SAMPLES, format_interval, interval
 
 
 def paper_normalized(
@@ -62,29 +63,61 @@ def paper_normalized(
     ]
 
 
-def gain_share(base: np.ndarray, model: np.ndarray, ceiling: np.ndarray, *, seed: int = 0) -> dict[str, float]:
+# The smallest reachable gain that counts, relative to the baseline's mean cost: below 0.01% the costs agree to more
+# digits than any table shows, and the share is a ratio of rounding noise.
+GAIN_FLOOR = 1e-4
+GAIN_Z = 2.0  # the reachable gain must exceed GAIN_Z paired standard errors (about 95% one-sided) to be a gain
+
+
+def gain_share(base: np.ndarray, model: np.ndarray, ceiling: np.ndarray, *, seed: int = 0) -> dict[str, Any]:
     """Share of the reachable gain (mean(base) − mean(model))/(mean(base) − mean(ceiling)) over paired per-problem
     costs (rows with a nan anywhere are dropped), with a paired bootstrap 95% interval and, as s.e., half the width
-    of the central 68% of the bootstrap distribution (robust to resamples whose reachable gain is almost zero)."""
+    of the central 68% of the bootstrap distribution (robust to the ratio's heavy tails).
+
+    The share is undefined (nan: null in JSON, ``undefined`` in tables with the reason in ``undefined``) when its
+    denominator, the reachable gain G = mean(base − ceiling), is within noise: G ≤ ``GAIN_Z`` paired standard errors
+    of base − ceiling, or G ≤ ``GAIN_FLOOR``·|mean(base)|, or fewer than two problems (no standard error); dividing
+    by such a G turned three methods at the same cost into a share of 24 ± 50%. ``reachable_gain`` holds G's
+    interval either way. Bootstrap resamples whose gain is within noise are left out of the share's interval."""
     rows = np.column_stack([base, model, ceiling]).astype(np.float64)
     rows = rows[np.all(np.isfinite(rows), axis=1)]
-    out = {"mean": float("nan"), "se": float("nan"), "lo": float("nan"), "hi": float("nan"), "n": len(rows)}
-
-    def share(r: np.ndarray) -> float:
-        b, m, c = r.mean(axis=0)
-        return float((b - m) / (b - c)) if b - c > 1e-12 * max(abs(b), 1.0) else float("nan")
-
-    if len(rows) == 0:
+    n = len(rows)
+    out: dict[str, Any] = {"mean": float("nan"), "se": float("nan"), "lo": float("nan"), "hi": float("nan"), "n": n}
+    out["reachable_gain"] = interval(rows[:, 0] - rows[:, 2], seed=seed)
+    if n < 2:
+        out["undefined"] = "no problem solved by all three" if n == 0 else "one problem: no standard error"
         return out
-    out["mean"] = share(rows)
-    if len(rows) > 1:
-        idx = np.random.default_rng(seed).integers(0, len(rows), size=(BOOTSTRAP_SAMPLES, len(rows)))
-        boot = np.array([share(rows[i]) for i in idx])
-        boot = boot[np.isfinite(boot)]
-        if len(boot) > 1:  # a ratio: resamples with a tiny denominator explode, so the s.e. is the half-width of
-            q16, q84, lo, hi = np.quantile(boot, [0.16, 0.84, 0.025, 0.975])  # the central 68% (robust)
-            out["se"], out["lo"], out["hi"] = float((q84 - q16) / 2), float(lo), float(hi)
+    shares = _shares(rows[None])
+    if not np.isfinite(shares[0]):
+        out["undefined"] = "reachable gain within noise"
+        return out
+    out["mean"], out["undefined"] = float(shares[0]), None
+    idx = np.random.default_rng(seed).integers(0, n, size=(BOOTSTRAP_SAMPLES, n))
+    boot = _shares(rows[idx])
+    boot = boot[np.isfinite(boot)]
+    if len(boot) > 1:
+        q16, q84, lo, hi = np.quantile(boot, [0.16, 0.84, 0.025, 0.975])
+        out["se"], out["lo"], out["hi"] = float((q84 - q16) / 2), float(lo), float(hi)
     return out
+
+
+def _shares(samples: np.ndarray) -> np.ndarray:
+    """The gain share of each sample (S, n, 3) of paired (base, model, ceiling) rows; nan where the reachable gain
+    is within noise (see ``gain_share``)."""
+    b, m, _ = samples.mean(axis=1).T
+    d = samples[..., 0] - samples[..., 2]
+    gain = d.mean(axis=1)
+    se = d.std(axis=1, ddof=1) / np.sqrt(samples.shape[1])
+    clear = (gain > GAIN_Z * se) & (gain > GAIN_FLOOR * np.abs(b))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(clear, (b - m) / gain, np.nan)
+
+
+def format_gain_share(share: dict[str, Any]) -> str:
+    """'mean ± se [lo, hi]' in % of a ``gain_share`` for tables, or 'undefined (why)' when it has no value."""
+    if share.get("undefined"):
+        return f"undefined ({share['undefined']})"
+    return format_interval(share, 100)
 
 
 def _mean(values: Sequence[float]) -> float:
