@@ -55,12 +55,13 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
     checks.seed(cfg.seed)
-    from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_problem
+    from ttompc.evaluation.closed_loop import ClosedLoopConfig, episodes_per_problem, run_problem
     from ttompc.evaluation.plots import Panel, save_figure, trajectory_figure
     from ttompc.evaluation.problems import eval_problem
     from ttompc.evaluation.warmstart import evaluate_problem
     from ttompc.parallel import single_torch_thread
     from ttompc.policy import Planner
+    from ttompc.progress import Bar
 
     planner = Planner.from_pretrained(cfg.model)
     scenario = planner.scenario
@@ -71,10 +72,12 @@ def run(args: argparse.Namespace) -> int:
     loop = ClosedLoopConfig(scenario=scenario.name, horizons=[cfg.horizon], plants=["nominal"])
     rows: list[dict[str, Any]] = []
     open_panels, closed_panels = [], []
-    with single_torch_thread():
+    runs = cfg.problems * (1 + (episodes_per_problem(loop, models=1) if cfg.mpc else 0))  # open loop + episodes
+    with single_torch_thread(), Bar(runs, "demo", "run") as bar:
         for i in range(cfg.problems):
             ep = eval_problem(scenario, cfg.seed, i)
             ws, trajs = evaluate_problem(scenario, ep, {"TTO": planner})
+            bar.update()
             row: dict[str, Any] = {"problem": i, "seed": ep.seed, "ctg0": ep.ctg0, "J_REL": ep.rel_cost}
             for name, label in (("REL", "SCP(REL)"), ("TTO", "SCP(TTO)"), ("ORACLE", "ORACLE")):
                 row[label] = {
@@ -89,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             costs |= {f"SCP from {n}": ws[f"{n}_cost"] for n in ("REL", "TTO") if ws[f"{n}_success"]}
             open_panels.append(Panel(ep.problem, trajs, f"open loop: {title}", failed, costs))
             if cfg.mpc:
-                records, executed = run_problem(scenario, ep, {"TTO": planner}, loop)
+                records, executed = run_problem(scenario, ep, {"TTO": planner}, loop, bar.update)
                 for r in records:
                     row[f"{r['method']}@{cfg.horizon}"] = {
                         "cost": r["cost"],

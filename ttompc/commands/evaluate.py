@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
 from ttompc.errors import UserError
+from ttompc.progress import status
 
 if TYPE_CHECKING:
     from ttompc.evaluation.closed_loop import ClosedLoopConfig
@@ -75,6 +76,12 @@ def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
     checks.backend(cfg.backend)
 
 
+def _announce(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
+    """Loading the models and starting the workers takes a while before the progress bar appears: say so at once."""
+    models = " and ".join(source for source in (cfg.model, cfg.ft_model) if source) or "no model (baselines only)"
+    status(f"ttompc evaluate {kind}: {cfg.problems} problems; loading {models}")
+
+
 def run(args: argparse.Namespace) -> int:
     if args.evaluation == "warmstart":
         from ttompc.evaluation.warmstart import WarmStartConfig, run_warmstart
@@ -85,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if not cfg.model and not cfg.ft_model:
             raise UserError("evaluate warmstart needs a model", "pass --model NAME (zoo name, folder or .ckpt)")
+        _announce("warmstart", cfg)
         _resolve_scenario(cfg)
         report = run_warmstart(cfg)
     else:
@@ -94,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
         if args.print_config:
             print(json.dumps(to_container(cfg_m), indent=2))
             return 0
+        _announce("mpc", cfg_m)
         _resolve_scenario(cfg_m)
         report = run_closed_loop(cfg_m)
     print(report["table"])

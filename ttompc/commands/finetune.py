@@ -12,6 +12,7 @@ import json
 from ttompc.config import add_config_arguments, split_recipe, to_container
 from ttompc.errors import UserError
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
+from ttompc.progress import status
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.model is None:
         raise UserError("no model to fine-tune", "pass --model NAME (e.g. --model freeflyer-tto-small)")
+    status(f"ttompc finetune: loading {args.model} and Lightning")
     from ttompc.finetune import finetune
 
     result = finetune(cfg, args.model)

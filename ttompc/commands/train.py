@@ -7,15 +7,28 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from ttompc.config import add_config_arguments, split_recipe, to_container
 from ttompc.errors import UserError
+from ttompc.progress import status
 from ttompc.training.config import TrainConfig, load_train_config
+
+# Three keys of a recipe share the name max_steps (the bundles' config.json holds model.max_steps, so it stays):
+# --help and --print-config say which is which.
+MAX_STEPS_HELP = (
+    "Three settings are called max_steps and mean different things: model.max_steps is the longest trajectory the "
+    "model takes, in control steps (the size of its timestep embedding, fixed by the weights: at least the "
+    "scenario's horizon N); trainer.max_steps is how long to train, in optimiser steps; "
+    "callbacks.eval_mpc.max_steps cuts the closed-loop evaluation episodes to that many MPC steps (null: whole "
+    "episodes)."
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, "recipes/freeflyer/tiny.yaml data.paths=[data/freeflyer-v1] optim.lr=1e-4")
+    parser.epilog = MAX_STEPS_HELP
 
 
 def _config(args: argparse.Namespace) -> TrainConfig:
@@ -67,8 +80,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = _config(args)
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
+        print(f"# {MAX_STEPS_HELP}", file=sys.stderr)  # JSON has no comments; stdout stays the config alone
         return 0
     check_datasets(cfg.data.paths, cfg.data.dagger_dirs)
+    status("ttompc train: loading Lightning and the data")
     from ttompc.data.shards import ShardError
     from ttompc.training.run import train
 

@@ -229,8 +229,9 @@ def generate(
     on_shard: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any] | None:
     """Generate (or resume) the dataset of ``cfg``; returns the manifest, or None if other ranks' shards are
-    still missing. ``on_shard`` is called with each new shard's metadata."""
-    from tqdm.auto import tqdm
+    still missing. ``on_shard`` is called with each new shard's metadata. ``progress``: a bar on stderr (also
+    subject to ``TTOMPC_PROGRESS``/``CI``, ``ttompc.progress``)."""
+    from ttompc.progress import Bar
 
     if cfg.problems <= 0 or cfg.shard_size <= 0:
         raise ValueError(f"problems and shard_size must be positive, got {cfg.problems}, {cfg.shard_size}")
@@ -246,12 +247,10 @@ def generate(
     tasks = [(i, problem_seed(cfg.seed, i)) for i in folder.items(pending)]
     workers = cfg.workers or os.cpu_count() or 1
     init_args = (scenario.name, cfg.solver, cfg.backend)
-    bar = tqdm(total=len(tasks), unit="problem", disable=not progress, desc=f"{scenario.name} rank {ranks.rank}")
     skipped = len(mine) - len(pending)
-    bar.set_postfix(failures=0, skipped_shards=skipped)
     failures = 0
 
-    def counted(outcomes: Iterable[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+    def counted(outcomes: Iterable[dict[str, Any]], bar: Bar) -> Iterator[dict[str, Any]]:
         nonlocal failures
         for outcome in outcomes:
             failures += outcome["failure"] is not None
@@ -262,11 +261,12 @@ def generate(
     outcomes = pool_map(
         _solve_one, tasks, workers, _init_worker, init_args, scenarios=[scenario_spec(scenario)], pin_torch=False
     )
-    for k, batch, seconds in folder.group(pending, counted(outcomes)):
-        meta = _write_shard(folder, k, cfg, scenario, batch, seconds)
-        if on_shard is not None:
-            on_shard(meta)
-    bar.close()
+    with Bar(len(tasks), f"{scenario.name} rank {ranks.rank}", "problem", show=progress) as bar:
+        bar.set_postfix(failures=0, skipped_shards=skipped)
+        for k, batch, seconds in folder.group(pending, counted(outcomes, bar)):
+            meta = _write_shard(folder, k, cfg, scenario, batch, seconds)
+            if on_shard is not None:
+                on_shard(meta)
     if not ranks.is_main or not folder.wait(cfg.finalize_wait_s):
         return None
     return finalize(cfg)

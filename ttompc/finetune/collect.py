@@ -37,6 +37,7 @@ from ttompc.finetune.config import DaggerConfig, ExplorationConfig
 from ttompc.mpc.loop import Mode, MPCController
 from ttompc.mpc.providers import ShiftProvider, TTOProvider
 from ttompc.parallel import pool_map
+from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Problem, Scenario
 from ttompc.seeding import rollout_seed
@@ -197,16 +198,17 @@ def collect_iteration(
     splits = SplitConfig(train=1.0 - cfg.collect.val_fraction, val=cfg.collect.val_fraction, test=0.0, salt=iteration)
     init = (scenario.name, str(planner_dir), cfg)
     rows = pool_map(_collect_one, tasks, workers, _init_collector, init, scenarios=[scenario_spec(scenario)])
-    for k, shard_rows, seconds in folder.group(todo, rows):
-        by_split: dict[str, list[dict[str, Any]]] = {"train": [], "val": []}
-        for row in shard_rows:
-            by_split[split_of(row["problem_id"] % ITERATION_IDS, splits)].append(row)
-        folder.write(
-            k,
-            by_split,
-            iteration=iteration,
-            rollouts=len(shard_rows),
-            mean_cost=float(np.mean([r["cost"] for r in shard_rows])),
-            seconds=seconds,
-        )
+    with Bar(len(tasks), f"collect iteration {iteration}", "rollout") as bar:
+        for k, shard_rows, seconds in folder.group(todo, bar.each(rows)):
+            by_split: dict[str, list[dict[str, Any]]] = {"train": [], "val": []}
+            for row in shard_rows:
+                by_split[split_of(row["problem_id"] % ITERATION_IDS, splits)].append(row)
+            folder.write(
+                k,
+                by_split,
+                iteration=iteration,
+                rollouts=len(shard_rows),
+                mean_cost=float(np.mean([r["cost"] for r in shard_rows])),
+                seconds=seconds,
+            )
     return todo

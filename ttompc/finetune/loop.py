@@ -42,6 +42,7 @@ from ttompc.data.shards import atomic_write_json
 from ttompc.errors import UserError
 from ttompc.finetune.collect import collect_iteration, rollout_folder
 from ttompc.finetune.config import FinetuneConfig
+from ttompc.progress import Bar, status
 
 if TYPE_CHECKING:
     from ttompc.evaluation.problems import EvalProblem
@@ -118,7 +119,12 @@ def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[EvalProblem]
     from ttompc.evaluation.problems import eval_problem
 
     e = cfg.dagger.eval
-    return [eval_problem(scenario, e.seed, i, nonconvex_only=True) for i in range(e.problems)]
+    problems = []
+    with Bar(e.problems, "held-out problems (REL)", "problem") as bar:
+        for i in range(e.problems):
+            problems.append(eval_problem(scenario, e.seed, i, nonconvex_only=True))
+            bar.update()
+    return problems
 
 
 def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) -> dict[str, float]:
@@ -129,9 +135,14 @@ def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) 
     e, c = cfg.dagger.eval, cfg.dagger.collect
     with single_torch_thread():
         metrics, _ = closed_loop_metrics(
-            planner, problems, e.horizon, max_steps=e.max_steps, mode=c.mode, backend=c.backend
+            planner, problems, e.horizon, max_steps=e.max_steps, mode=c.mode, backend=c.backend, progress="measure"
         )
     return metrics
+
+
+def _model_name(iteration: int) -> str:
+    """How messages name a DAgger model: iteration -1 of the state file is the pretrained model."""
+    return "the pretrained model" if iteration < 0 else f"iteration {iteration}"
 
 
 def _check_data(dm: Any, planner: Planner, paths: list[str]) -> None:
@@ -246,6 +257,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     logger = build_logger(cfg.logger, run, to_container(cfg)) if ranks.is_main else None
     problems = _eval_problems(cfg, scenario) if ranks.is_main else []
     if state is None and ranks.is_main:
+        status(f"ttompc finetune: measuring the pretrained model (closed-loop TTO-MPC, {len(problems)} problems)")
         measured = measure(cfg, source_planner, problems)
         _log(logger, measured, -1, 0)
         baseline = _json_safe(measured)
@@ -260,6 +272,10 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     c = cfg.dagger.collect
     for i in range(len(state["completed"]), cfg.dagger.iterations):
         parent = state["best"]
+        status(
+            f"ttompc finetune: iteration {i} ({i + 1} of {cfg.dagger.iterations}): {c.rollouts} rollouts with "
+            f"{_model_name(parent['iteration'])}, then {cfg.dagger.steps_per_iteration} training steps"
+        )
         folder = rollout_folder(run / "dagger" / f"iter-{i:03d}", scenario, c.rollouts, c.shard_size)
         collect_iteration(cfg.dagger, scenario, i, Path(parent["planner"]), folder, ranks)
         if not folder.wait(wait_s):
@@ -271,6 +287,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
             candidate = Planner.from_pretrained(ckpt, scenario)
             candidate.extra.update(source="ttompc finetune", dagger_iteration=i, finetuned_from=str(source))
             out = candidate.save(run / f"iter-{i:03d}" / "planner")
+            status(f"ttompc finetune: measuring iteration {i} against {_model_name(parent['iteration'])}")
             measured = measure(cfg, candidate, problems)
             metrics = _json_safe(measured)
             kept, reason = improves(metrics, parent["metrics"])
@@ -283,8 +300,8 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
                 logger, {**measured, "kept": float(kept), "best_iteration": float(state["best"]["iteration"])}, i, step
             )
             print(
-                f"ttompc finetune: iteration {i} {'kept' if kept else 'rejected'} against iteration "
-                f"{parent['iteration']} ({reason})",
+                f"ttompc finetune: iteration {i} {'kept' if kept else 'rejected'} against "
+                f"{_model_name(parent['iteration'])} ({reason})",
                 file=sys.stderr,
             )
             atomic_write_json(run / STATE_FILE, state)

@@ -44,6 +44,9 @@ def build_logger(cfg: LoggerConfig, out_dir: Path, config: dict[str, Any]) -> An
             id=run_id,
             resume="allow",
         )
+        # Lightning always hands wandb.init an `anonymous` value (None when not asked for), and wandb >= 0.19 warns
+        # "The anonymous setting has no effect" for any value: leave the key out so every run starts quietly
+        logger._wandb_init.pop("anonymous", None)
         if run_id is None and getattr(rank_zero_only, "rank", 0) == 0:  # set by Lightning at import
             id_file.write_text(str(logger.version) + "\n")
     logger.log_hyperparams(config)

@@ -1,0 +1,130 @@
+"""How every long command shows progress: on stderr, so that stdout carries only the command's result (JSON, a
+table) and stays parseable.
+
+* ``status(line)`` names a phase that starts and cannot be counted (importing Lightning, loading a model), so a
+  command says something within seconds of its start;
+* ``Bar`` counts work (problems, episodes, rollouts) with rate and ETA. It redraws its elapsed time every second, so
+  an item that takes minutes (one closed-loop problem) still shows the command is alive, and ``Bar.ticker()``
+  lets pool workers advance it from their processes at a finer grain than the pool's tasks;
+* training's step bar (``ttompc.training.progress.StepProgressBar``) draws through Lightning, on stderr too.
+
+On by default; ``TTOMPC_PROGRESS=0`` turns it off, and it is off when ``CI`` is set (CI logs do not redraw lines)
+unless ``TTOMPC_PROGRESS=1``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import sys
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from tqdm import tqdm
+
+T = TypeVar("T")
+HEARTBEAT_S = 1.0  # how often a bar redraws its elapsed time when nothing finishes
+
+
+def progress_enabled() -> bool:
+    """Whether progress is shown: ``TTOMPC_PROGRESS`` if set, else off under ``CI``."""
+    setting = os.environ.get("TTOMPC_PROGRESS", "").strip().lower()
+    if setting:
+        return setting not in ("0", "false", "no", "off")
+    return not os.environ.get("CI")
+
+
+def status(line: str) -> None:
+    """One line on stderr naming a phase that has started (nothing when progress is off)."""
+    if progress_enabled():
+        print(line, file=sys.stderr, flush=True)
+
+
+@dataclass(frozen=True)
+class Ticker:
+    """Advances a ``Bar`` by one from any process. Pass it to pool workers in their initializer's arguments (it can
+    be pickled while the pool starts its workers); a no-op when the bar is hidden."""
+
+    queue: Any = None
+
+    def __call__(self) -> None:
+        if self.queue is not None:
+            self.queue.put(1)
+
+
+class Bar:
+    """A progress bar on stderr for ``total`` units of work (None: unknown), used as a context manager. Hidden, and
+    every method a no-op, when ``show`` is false or progress is off."""
+
+    def __init__(self, total: float | None, desc: str, unit: str = "it", *, show: bool = True) -> None:
+        self.enabled = show and progress_enabled()
+        self._bar = tqdm(
+            total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, disable=not self.enabled
+        )
+        self._lock = threading.Lock()  # tqdm's counters are not thread-safe: the heartbeat and ticks share them
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._queue: Any = None
+        if self.enabled:
+            self._start(self._heartbeat)
+
+    def __enter__(self) -> Bar:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def update(self, n: float = 1) -> None:
+        if self.enabled:
+            with self._lock:
+                self._bar.update(n)
+
+    def set_postfix(self, **values: Any) -> None:
+        if self.enabled:
+            with self._lock:
+                self._bar.set_postfix(values)
+
+    def each(self, results: Iterable[T]) -> Iterator[T]:
+        """``results`` (e.g. of a pool), each counted as it arrives: its work is done."""
+        for result in results:
+            self.update()
+            yield result
+
+    def ticker(self) -> Callable[[], None]:
+        """A picklable callable that advances this bar by one from this or a worker process."""
+        if not self.enabled:
+            return Ticker()
+        if self._queue is None:
+            # a SimpleQueue writes before put() returns: a worker's ticks are in the pipe before its task's result
+            self._queue = mp.get_context("spawn").SimpleQueue()
+            self._start(self._listen)
+        return Ticker(self._queue)
+
+    def close(self) -> None:
+        """Stop redrawing, count the ticks still queued, and leave the bar's last state on screen."""
+        self._stop.set()
+        for thread in self._threads:
+            thread.join()
+        self._threads.clear()
+        self._bar.close()
+
+    def _start(self, target: Callable[[], None]) -> None:
+        thread = threading.Thread(target=target, name=f"ttompc-progress-{target.__name__}", daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def _heartbeat(self) -> None:
+        while not self._stop.wait(HEARTBEAT_S):
+            with self._lock:
+                self._bar.refresh()
+
+    def _listen(self) -> None:
+        while True:
+            if not self._queue.empty():
+                self.update(self._queue.get())
+            elif self._stop.is_set():
+                return
+            else:
+                self._stop.wait(0.05)
