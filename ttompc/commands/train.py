@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from ttompc.config import add_config_arguments, split_recipe, to_container
+from ttompc.data.config import DataConfig
 from ttompc.errors import UserError
 from ttompc.progress import status
 from ttompc.training.config import TrainConfig, load_train_config
@@ -36,8 +37,10 @@ def _config(args: argparse.Namespace) -> TrainConfig:
     return load_train_config(recipe, overrides)
 
 
-def check_datasets(paths: list[str], dagger_dirs: list[str]) -> None:
-    """Every dataset folder must exist before anything is created or imported (Lightning takes 10 s)."""
+def check_datasets(data: DataConfig) -> None:
+    """Every dataset folder must exist and fit the recipe (``open_loop_manifests``) before anything is created or
+    imported (Lightning takes 10 s)."""
+    paths, dagger_dirs = data.paths, data.dagger_dirs
     if not paths and not dagger_dirs:
         raise UserError("no training data: data.paths is empty", "pass data.paths=[data/freeflyer-v1]")
     for key, folders in (("data.paths", paths), ("data.dagger_dirs", dagger_dirs)):
@@ -47,7 +50,7 @@ def check_datasets(paths: list[str], dagger_dirs: list[str]) -> None:
                 f"{key}: dataset folder {missing[0]} does not exist",
                 f"make it with `ttompc generate out={missing[0]} ...` or point {key}=[...] at existing folders",
             )
-    from ttompc.data.generate import MANIFEST
+    from ttompc.data.generate import MANIFEST, open_loop_manifests
     from ttompc.data.resumable import META_DIR
 
     for folder in map(Path, paths):
@@ -62,6 +65,8 @@ def check_datasets(paths: list[str], dagger_dirs: list[str]) -> None:
             f"data.paths: {folder} is not a dataset made by `ttompc generate` (no {MANIFEST})",
             "point data.paths=[...] at a folder written by `ttompc generate`",
         )
+    if paths:
+        open_loop_manifests(data)
 
 
 def output_dir(args: argparse.Namespace) -> str:
@@ -82,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(to_container(cfg), indent=2))
         print(f"# {MAX_STEPS_HELP}", file=sys.stderr)  # JSON has no comments; stdout stays the config alone
         return 0
-    check_datasets(cfg.data.paths, cfg.data.dagger_dirs)
+    check_datasets(cfg.data)
     status("ttompc train: loading Lightning and the data")
     from ttompc.data.shards import ShardError
     from ttompc.training.run import train

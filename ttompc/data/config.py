@@ -45,6 +45,10 @@ class GenerateConfig:
     name: str | None = None  # dataset name for the card (default: the output folder name)
     card_dir: str | None = None  # the card is <out>/README.md; set this to also copy it to <card_dir>/<name>.md
 
+    def __post_init__(self) -> None:
+        if self.problems < 1 or self.shard_size < 1:
+            raise ValueError(f"problems and shard_size must be at least 1, got {self.problems} and {self.shard_size}")
+
 
 @dataclass
 class DataConfig:
@@ -56,6 +60,9 @@ class DataConfig:
     """
 
     paths: list[str] = field(default_factory=list)  # open-loop dataset folders (one manifest each)
+    # the scenario the recipe is written for (recipes/<scenario>/ set it): every dataset must hold its trajectories,
+    # or a quadrotor recipe would train on free-flyer data without a word; None accepts any one scenario
+    scenario: str | None = None
     dagger_dirs: list[str] = field(default_factory=list)  # DAgger shard folders (``train/*.parquet``)
     sources: Sources = "both"
     open_loop_fraction: float = 0.9

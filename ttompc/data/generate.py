@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from ttompc.config import to_container
-from ttompc.data.config import GenerateConfig, SplitConfig
+from ttompc.config import ConfigError, to_container
+from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
 from ttompc.data.distributed import RankInfo, rank_info
 from ttompc.data.resumable import META_DIR, ShardedFolder
 from ttompc.data.schema import SCHEMA_VERSION, make_row, trajectory_features
@@ -233,8 +233,6 @@ def generate(
     subject to ``TTOMPC_PROGRESS``/``CI``, ``ttompc.progress``)."""
     from ttompc.progress import Bar
 
-    if cfg.problems <= 0 or cfg.shard_size <= 0:
-        raise ValueError(f"problems and shard_size must be positive, got {cfg.problems}, {cfg.shard_size}")
     check_splits(cfg)
     ranks = ranks or rank_info()
     scenario = get_scenario(cfg.scenario)
@@ -364,3 +362,32 @@ def load_manifest(root: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise ShardError(f"{path} not found: not a finalised dataset (run `ttompc generate ... --finalize`)")
     return json.loads(path.read_text())
+
+
+def open_loop_manifests(cfg: DataConfig) -> list[dict[str, Any]]:
+    """The manifests of ``cfg.paths``, checked against each other and against the recipe before anything trains on
+    them: one scenario and horizon in every folder, the recipe's ``data.scenario`` when it names one, and a
+    ``data.context_length`` within the horizon. Raises ``ConfigError`` (one line, naming the folders)."""
+    manifests = [load_manifest(p) for p in cfg.paths]
+    first = manifests[0]["scenario"]
+    name, steps = first["name"], first["n_steps"]
+    for path, manifest in zip(cfg.paths[1:], manifests[1:], strict=True):
+        other = manifest["scenario"]
+        if (other["name"], other["n_steps"]) != (name, steps):
+            raise ConfigError(
+                f"data.paths mixes scenarios: {cfg.paths[0]} holds {name} trajectories of {steps} steps, {path} "
+                f"{other['name']} trajectories of {other['n_steps']} steps",
+                "train on datasets of one scenario",
+            )
+    if cfg.scenario is not None and cfg.scenario != name:
+        raise ConfigError(
+            f"the recipe is for {cfg.scenario} (data.scenario) but {cfg.paths[0]} holds {name} trajectories",
+            f"train a recipe of recipes/{name}/ on it, or point data.paths at {cfg.scenario} data",
+        )
+    if cfg.context_length is not None and not 1 <= cfg.context_length <= steps:
+        raise ConfigError(
+            f"data.context_length={cfg.context_length} does not fit the {steps}-step {name} trajectories of "
+            f"{cfg.paths[0]}",
+            f"set data.context_length between 1 and {steps}",
+        )
+    return manifests
