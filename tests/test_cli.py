@@ -60,6 +60,9 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
         (["generate", "--seed", "-3", "--out", "out"], ["seed must be a non-negative integer"]),
         (["generate", "--backend", "nope", "--out", "out"], ["unknown solver backend 'nope'"]),
         (["generate", "missing.yaml", "out=out"], ["recipe not found: missing.yaml"]),
+        (["generate", "problems=0", "out=out"], ["problems and shard_size must be at least 1, got 0 and 500"]),
+        (["generate", "--problems", "-3", "--out", "out"], ["problems and shard_size must be at least 1, got -3"]),
+        (["generate", "shard_size=0", "out=out"], ["problems and shard_size must be at least 1"]),
         (
             ["train", TINY, "data.paths=[no/such/data]", "trainer.out_dir=out"],
             ["dataset folder no/such/data does not exist", "ttompc generate"],
@@ -91,7 +94,11 @@ def test_debug_shows_the_traceback(tmp_path: Path) -> None:
         ttompc("solve", "--scenario", "nope", "--debug", cwd=tmp_path),
         ttompc("solve", "--scenario", "nope", cwd=tmp_path, TTOMPC_DEBUG="1"),
     ):
-        assert res.returncode == 1 and "Traceback" in res.stderr and "ScenarioNotFoundError: unknown scenario" in res.stderr
+        assert (
+            res.returncode == 1
+            and "Traceback" in res.stderr
+            and "ScenarioNotFoundError: unknown scenario" in res.stderr
+        )
 
 
 def test_settings_may_follow_options(tmp_path: Path) -> None:
@@ -312,3 +319,102 @@ def test_a_script_that_runs_a_pool_command_without_a_main_guard_ends_with_one_li
         [sys.executable, str(script)], cwd=tmp_path, env=cli_env(), capture_output=True, text=True, timeout=240
     )
     assert_user_error(res, "ttompc generate: error: a worker process exited", 'if __name__ == "__main__":')
+
+
+@pytest.fixture(scope="module")
+def two_scenarios(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A tiny free-flyer and quadrotor dataset, made as a user makes them."""
+    root = tmp_path_factory.mktemp("datasets")
+    out = {}
+    for scenario in ("freeflyer", "quadrotor"):
+        out[scenario] = root / f"{scenario}-v1"
+        res = ttompc(
+            "generate", f"scenario={scenario}", "problems=4", "shard_size=2", "workers=1", "splits.train=0.5",
+            "splits.val=0.5", "splits.test=0", f"out={out[scenario]}", "--no-progress", cwd=root, timeout=300,
+        )  # fmt: skip
+        assert res.returncode == 0, res.stderr
+    return out
+
+
+@pytest.mark.parametrize(
+    ("recipe", "paths", "extra", "needles"),
+    [
+        (  # before: trained silently on the free-flyer data under the quadrotor recipe's name
+            "quadrotor/tiny.yaml", ["freeflyer"], [],
+            ["the recipe is for quadrotor (data.scenario) but", "freeflyer-v1 holds freeflyer trajectories",
+             "recipes/freeflyer/"],
+        ),
+        (  # before: ValueError: open-loop datasets mix scenarios
+            "freeflyer/tiny.yaml", ["freeflyer", "quadrotor"], [],
+            ["data.paths mixes scenarios:", "freeflyer-v1 holds freeflyer", "quadrotor-v1 quadrotor"],
+        ),
+        (  # before: ValueError from the batcher, after Lightning had started
+            "freeflyer/tiny.yaml", ["freeflyer"], ["data.context_length=500"],
+            ["data.context_length=500 does not fit the 100-step freeflyer trajectories", "between 1 and 100"],
+        ),
+    ],
+)  # fmt: skip
+def test_train_on_data_that_does_not_fit_the_recipe_is_one_line(
+    tmp_path: Path, two_scenarios: dict[str, Path], recipe: str, paths: list[str], extra: list[str], needles: list[str]
+) -> None:
+    data = ",".join(str(two_scenarios[p]) for p in paths)
+    smoke = ["trainer.max_steps=1", "trainer.val_check_interval=1", "trainer.limit_val_batches=1", "logger.kind=none"]
+    res = ttompc(
+        "train", str(REPO / "recipes" / recipe), f"data.paths=[{data}]", "trainer.out_dir=run", *smoke, *extra,
+        cwd=tmp_path, timeout=300,
+    )  # fmt: skip
+    assert_user_error(res, "ttompc train: error: ", *needles)
+    assert list(tmp_path.iterdir()) == []
+
+
+def _unusable_output(tmp_path: Path, kind: str) -> Path:
+    """An output path the command may not write: inside a read-only folder, or below a file."""
+    if kind == "read-only folder":
+        if os.geteuid() == 0:
+            pytest.skip("root writes into read-only folders")
+        folder = tmp_path / "read-only"
+        folder.mkdir()
+        folder.chmod(0o555)
+    else:
+        folder = tmp_path / "a-file"
+        folder.write_text("")
+    return folder / "out"
+
+
+@pytest.mark.parametrize("kind", ["read-only folder", "file in the way"])
+@pytest.mark.parametrize(
+    "command",
+    [
+        "generate",
+        "solve --plot",
+        "zoo publish",
+        pytest.param("evaluate", marks=pytest.mark.slow),
+        pytest.param("train", marks=pytest.mark.slow),
+    ],
+)
+def test_an_output_the_command_may_not_write_is_one_line(
+    tmp_path: Path, kind: str, command: str, request: pytest.FixtureRequest
+) -> None:
+    """Before: PermissionError / NotADirectoryError tracebacks, exit 1."""
+    out = _unusable_output(tmp_path, kind)
+    bundle = str(REPO / "zoo" / "models" / "freeflyer-tto-small")
+    argv = {
+        "generate": ["generate", "problems=4", "shard_size=2", "workers=1", "splits.train=0.5", "splits.val=0.5",
+                     "splits.test=0", f"out={out}", "--no-progress"],
+        "solve --plot": ["solve", "--plot", str(out / "solve.png")],
+        "zoo publish": ["zoo", "publish", bundle, "--name", "m", "--to", str(out), "--skip-eval", "--zoo-dir",
+                        str(tmp_path / "zoo")],
+        "evaluate": ["evaluate", "warmstart", "--model", bundle, "problems=1", "workers=1", "oracle_detours=0",
+                     f"out={out}"],
+    }.get(command)  # fmt: skip
+    if argv is None:
+        data = request.getfixturevalue("two_scenarios")["freeflyer"]
+        argv = ["train", TINY, f"data.paths=[{data}]", f"trainer.out_dir={out}", "trainer.max_steps=1",
+                "logger.kind=none"]  # fmt: skip
+    try:
+        res = ttompc(*argv, cwd=tmp_path, timeout=300)
+    finally:
+        if kind == "read-only folder":
+            out.parent.chmod(0o755)
+    line = assert_user_error(res, f"ttompc {argv[0]}: error: cannot use {out.parent}", "choose a location you can")
+    assert "not a directory" in line or "file exists" in line or "permission denied" in line, line

@@ -6,8 +6,9 @@ Ctrl-C or a full disk) and ``output_dir(args) -> str`` (where it writes), import
 ``ttompc solve`` stays fast (no Lightning).
 
 One error path for every command: a ``UserError`` (bad settings, unknown names, missing or damaged files) prints
-one line naming the problem and what to do and exits with 2; Ctrl-C says how to resume and exits with 130; a full
-disk says which path is full and that completed work is kept. ``--debug`` (anywhere on the command line) or
+one line naming the problem and what to do and exits with 2, and so does a path the command may not use (no
+permission, a read-only file system, a file where a folder should be); Ctrl-C says how to resume and exits with 130;
+a full disk says which path is full and that completed work is kept. ``--debug`` (anywhere on the command line) or
 ``TTOMPC_DEBUG=1`` re-raises instead, with the traceback.
 """
 
@@ -40,6 +41,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
+# OSErrors about a path the user chose (permissions, read-only file system, a file where a folder should be)
+_UNUSABLE_PATH = (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EISDIR, errno.EEXIST)
 
 _EPILOG = (
     "Every command takes `ttompc COMMAND [RECIPE.yaml] key=value ...`; flags are shortcuts for keys. "
@@ -93,9 +96,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         _silence_stdout()
         return 128 + signal.SIGPIPE if hasattr(signal, "SIGPIPE") else 1
     except OSError as err:
-        if debug or not is_disk_full(err):
+        if debug or not (is_disk_full(err) or err.errno in _UNUSABLE_PATH):
             raise
         target = err.filename or _output_dir(module, args)
+        if err.errno in _UNUSABLE_PATH:
+            _say(
+                f"{prog}: error: cannot use {target or 'a path'} ({(err.strerror or str(err)).lower()}); choose a "
+                "location you can write to, or fix its permissions"
+            )
+            return EXIT_USER_ERROR
         where = f" while writing {target}" if target else ""
         _say(f"{prog}: error: no space left on device{where}. Free some space, then {_resume_hint(module, args)}")
         return 1
