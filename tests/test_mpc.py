@@ -139,15 +139,16 @@ def test_tto_context_is_advanced_not_recomputed(setup: tuple) -> None:
         b = full.warm_start(w, x)
         np.testing.assert_allclose(a.X, b.X, atol=1e-5)
         np.testing.assert_allclose(a.U, b.U, atol=1e-6)
-        assert cached_tokens == 4 + 5 * (H - 1)  # this window's tokens only, whatever t
+        # this window's tokens only, whatever t: a_{t-1} (none at t = 0) and g R C s, then a g R C s per step
+        assert cached_tokens == (4 if t == 0 else 5) + 5 * (H - 1)
         u = 0.5 * a.U[0]
         x_next = sc.step(problem, t, x, u)
         counts.clear()
         cached.observe(u, x_next, a.X, a.U)
         full.observe(u, x_next, b.X, b.U)
-        assert sum(counts) == 5  # the executed step joins the cache: five tokens
+        assert sum(counts) == (4 if t == 0 else 5)  # the executed step's deciding tokens join the cache
         x = x_next
-    assert cached.context.t == 8 and cached.context._cache.length == 5 * 8
+    assert cached.context.t == 8 and cached.context._cache.length == 5 * 8 - 1
 
 
 def test_failed_step_falls_back_to_the_shifted_plan(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
