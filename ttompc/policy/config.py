@@ -1,4 +1,4 @@
-"""Architecture hyper-parameters of the trajectory transformer (fact sheet §2.1). Plain dataclass so that it can be
+"""Architecture hyper-parameters of the trajectory transformer (paper §IV-A). Plain dataclass so that it can be
 a section of the OmegaConf training recipe and be stored as a primitive dict in checkpoints and planner bundles."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Model-based autoregressive rollout of the trajectory transformer (paper §IV-B, fact sheet §2.6 "dyn" mode).
+"""Model-based autoregressive rollout of the trajectory transformer (paper §IV-A: model-based generation).
 
 At every step k the transformer reads (goal_k, rtg_k, ctg_k, state_k) after the history and emits a normalised
 control; it is de-normalised and propagated with the scenario's approximate model (``Scenario.batched_model``) to
