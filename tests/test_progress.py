@@ -92,6 +92,30 @@ def test_bar_redraws_its_elapsed_time_while_an_item_runs(
     assert any("0/1 [00:02" in f for f in shown), shown
 
 
+def test_a_broken_stderr_never_stops_or_hangs_the_command(tmp_path: Path) -> None:
+    """`ttompc ... 2>&1 | head` closes stderr: tqdm drawing into the broken pipe raised while it held its global
+    lock, the heartbeat thread died holding it and the next update waited forever."""
+    script = textwrap.dedent(
+        """
+        import time
+        from ttompc.progress import Bar, status
+        status("starting")
+        with Bar(3, "x") as bar:
+            for _ in range(3):
+                time.sleep(1.2)  # the heartbeat draws into the broken pipe meanwhile
+                bar.update()
+        print("done")
+        """
+    )
+    read, write = os.pipe()
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=tmp_path, env={**cli_env(), "TTOMPC_PROGRESS": "1"},
+                            stdout=subprocess.PIPE, stderr=write, text=True)  # fmt: skip
+    os.close(write)
+    os.close(read)  # the reader has gone before the first line
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and out == "done\n"
+
+
 @pytest.mark.parametrize("env", [{"TTOMPC_PROGRESS": "0"}, {"CI": "true"}])
 def test_switches_turn_bars_status_lines_and_tickers_off(
     env: dict[str, str], monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]

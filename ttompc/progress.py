@@ -9,11 +9,13 @@ table) and stays parseable.
 * training's step bar (``ttompc.training.progress.StepProgressBar``) draws through Lightning, on stderr too.
 
 On by default; ``TTOMPC_PROGRESS=0`` turns it off, and it is off when ``CI`` is set (CI logs do not redraw lines)
-unless ``TTOMPC_PROGRESS=1``.
+unless ``TTOMPC_PROGRESS=1``. Progress never stops a command: when stderr is closed or broken (``2>&1 | head``) it
+is dropped (``STDERR``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 import sys
@@ -28,6 +30,28 @@ T = TypeVar("T")
 HEARTBEAT_S = 1.0  # how often a bar redraws its elapsed time when nothing finishes
 
 
+class _Stderr:
+    """``sys.stderr`` (looked up at each write, so captured streams work) that drops what it cannot write. tqdm
+    draws while holding its global lock and does not release it when the write raises: a broken pipe in the
+    heartbeat thread would leave the lock held and hang the next bar, or the command."""
+
+    def write(self, text: str) -> int:
+        try:
+            return sys.stderr.write(text)
+        except (OSError, ValueError):  # broken pipe, closed file
+            return 0
+
+    def flush(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            sys.stderr.flush()
+
+    def __getattr__(self, name: str) -> Any:  # encoding, fileno, isatty: what tqdm asks of its file
+        return getattr(sys.stderr, name)
+
+
+STDERR: Any = _Stderr()  # where all progress goes
+
+
 def progress_enabled() -> bool:
     """Whether progress is shown: ``TTOMPC_PROGRESS`` if set, else off under ``CI``."""
     setting = os.environ.get("TTOMPC_PROGRESS", "").strip().lower()
@@ -39,7 +63,7 @@ def progress_enabled() -> bool:
 def status(line: str) -> None:
     """One line on stderr naming a phase that has started (nothing when progress is off)."""
     if progress_enabled():
-        print(line, file=sys.stderr, flush=True)
+        print(line, file=STDERR, flush=True)
 
 
 @dataclass(frozen=True)
@@ -60,9 +84,7 @@ class Bar:
 
     def __init__(self, total: float | None, desc: str, unit: str = "it", *, show: bool = True) -> None:
         self.enabled = show and progress_enabled()
-        self._bar = tqdm(
-            total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, disable=not self.enabled
-        )
+        self._bar = tqdm(total=total, desc=desc, unit=unit, file=STDERR, dynamic_ncols=True, disable=not self.enabled)
         self._lock = threading.Lock()  # tqdm's counters are not thread-safe: the heartbeat and ticks share them
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []

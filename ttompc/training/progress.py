@@ -8,14 +8,13 @@ The bar follows ``ttompc.progress``: on stderr like every command's progress, so
 from __future__ import annotations
 
 import logging
-import sys
 import warnings
 from typing import Any
 
 from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 
-from ttompc.progress import progress_enabled
+from ttompc.progress import STDERR, progress_enabled
 
 __all__ = ["StepProgressBar", "progress_enabled", "quiet_lightning"]  # build_trainer takes the switch from here
 
@@ -51,7 +50,7 @@ class StepProgressBar(TQDMProgressBar):
             disable=self.is_disabled,
             leave=True,
             dynamic_ncols=True,
-            file=sys.stderr,
+            file=STDERR,
             smoothing=0,
             bar_format=self.BAR_FORMAT,
         )
