@@ -88,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"# {MAX_STEPS_HELP}", file=sys.stderr)  # JSON has no comments; stdout stays the config alone
         return 0
     check_datasets(cfg.data)
+    # an out_dir the user may not write fails here, in one line, not after Lightning and the shard checksums
+    Path(cfg.trainer.out_dir).mkdir(parents=True, exist_ok=True)
     status("ttompc train: loading Lightning and the data")
     from ttompc.data.shards import ShardError
     from ttompc.training.run import train

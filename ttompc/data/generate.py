@@ -388,6 +388,6 @@ def open_loop_manifests(cfg: DataConfig) -> list[dict[str, Any]]:
         raise ConfigError(
             f"data.context_length={cfg.context_length} does not fit the {steps}-step {name} trajectories of "
             f"{cfg.paths[0]}",
-            f"set data.context_length between 1 and {steps}",
+            f"set data.context_length within [1, {steps}]",
         )
     return manifests
