@@ -187,8 +187,15 @@ def test_warmstart_command_default_folder_and_report(tmp_path: Path, bundle: Pat
     assert tto["runs"] == 2 and {"mean", "se", "lo", "hi", "n"} <= set(tto["suboptimality"]) and "gain_share" in tto
     for p in report["problems"]:
         assert p["ctg0"] > 0 and p["REL_success"] and p["REL_suboptimality"] >= -1e-6
+    # the paired difference to REL is the mean of the per-problem differences where both runs solved
+    both = [p for p in report["problems"] if p["TTO_success"] and p["REL_success"]]
+    diffs = [p["TTO_suboptimality"] - p["REL_suboptimality"] for p in both]
+    assert tto["vs_rel"]["suboptimality"]["n"] == len(both) and "vs_rel" not in report["methods"][0]
+    if both:
+        assert tto["vs_rel"]["suboptimality"]["mean"] == pytest.approx(sum(diffs) / len(diffs))
     assert [r["threshold"] for r in report["thresholds"]] == [0.0, 0.5]
     assert "share of reachable gain" in (out / "warmstart.md").read_text()
+    assert "paired vs REL" in (out / "warmstart.md").read_text()
     assert (out / "warmstart_improvement.png").is_file() and (out / "warmstart_problems.csv").is_file()
 
 

@@ -23,7 +23,7 @@ WS = {
     "methods": [
         {"method": "REL", "runs": 10, "failures": 0, "suboptimality": _iv(0.40), "iterations": _iv(5.8)},
         {"method": "TTO", "runs": 10, "failures": 1, "suboptimality": _iv(0.35), "iterations": _iv(5.0),
-         "gain_share": _iv(0.5)},
+         "gain_share": _iv(0.5), "vs_rel": {"suboptimality": _iv(-0.04, 0.02), "iterations": _iv(-0.5, 0.3)}},
         {"method": "FT-TTO", "runs": 10, "failures": 0, "suboptimality": _iv(0.45), "iterations": _iv(7.0),
          "gain_share": _iv(-0.5)},
         {"method": "ORACLE", "runs": 10, "failures": 0, "suboptimality": _iv(0.30), "iterations": _iv(6.0)},
@@ -54,6 +54,9 @@ def test_metrics_are_the_reports_numbers_with_their_command() -> None:
     assert m["ws_suboptimality_rel"]["value"] == pytest.approx(0.40)
     assert m["ws_suboptimality_oracle"]["value"] == pytest.approx(0.30)
     assert m["ws_gain_share"]["value"] == pytest.approx(0.5)
+    assert m["ws_suboptimality_vs_rel"]["value"] == pytest.approx(-0.04)
+    assert m["ws_suboptimality_vs_rel_se"]["value"] == pytest.approx(0.02)
+    assert m["ws_iterations_vs_rel"]["value"] == pytest.approx(-0.5)
     assert m["ws_failures"]["value"] == 1
     assert m["mpc10_nominal_model_feasible_rate"]["value"] == pytest.approx(0.5)
     assert m["mpc10_nominal_rel_paper_norm"]["value"] == pytest.approx(0.7)

@@ -57,6 +57,12 @@ def warmstart_metrics(report: dict[str, Any], method: str) -> dict[str, dict[str
         _put(out, f"ws_suboptimality{tag}_se", sub["se"], f"{what} from {warm}: standard error of that mean")
         _put(out, f"ws_iterations{tag}", row["iterations"]["mean"], f"{what} from {warm}: mean SCP iterations")
         _put(out, f"ws_failures{tag}", row["failures"], f"{what} from {warm}: SCP runs ending infeasible (of {n})")
+    for key, label in (("suboptimality", "suboptimality, (J - J_REL)/J_REL"), ("iterations", "SCP iterations")):
+        d = rows[method].get("vs_rel", {}).get(key)
+        if d is not None:
+            how = f"{what}: paired difference {method} - REL in {label}, on the problems both solved (negative: better)"
+            _put(out, f"ws_{key}_vs_rel", d["mean"], how)
+            _put(out, f"ws_{key}_vs_rel_se", d["se"], f"{how}: standard error")
     share = rows[method].get("gain_share")
     if share is not None:  # an undefined share (null: the reachable gain is within noise) is no metric
         _put(
