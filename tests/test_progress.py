@@ -82,6 +82,16 @@ def test_bar_counts_ticks_sent_from_pool_workers(
     assert frames(captured.err)[-1].startswith("ticks: 100%") and "6/6" in frames(captured.err)[-1], captured.err
 
 
+def test_fractions_add_up_to_whole_units(monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]) -> None:
+    """Episodes in lockstep advance by a share of each step: the bar shows whole episodes, not 0.6666666666666666."""
+    monkeypatch.setenv("TTOMPC_PROGRESS", "1")
+    with Bar(2, "lockstep", "episode") as bar:
+        for _ in range(3):
+            bar.update(2 / 3)
+    counts = [f.split("| ")[-1].split(" [")[0] for f in frames(capfd.readouterr().err)]
+    assert counts[0] == "0/2" and counts[-1] == "2/2" and set(counts) <= {"0/2", "1/2", "2/2"}, counts
+
+
 def test_bar_redraws_its_elapsed_time_while_an_item_runs(
     monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
 ) -> None:

@@ -89,6 +89,7 @@ class Bar:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._queue: Any = None
+        self._fraction = 0.0  # counted but not yet shown: less than one unit
         if self.enabled:
             self._start(self._heartbeat)
 
@@ -99,9 +100,15 @@ class Bar:
         self.close()
 
     def update(self, n: float = 1) -> None:
+        """Count ``n`` more units; fractions (a share of a batch of episodes run in lockstep) add up until they make
+        whole units, which the bar shows (it would print 0.6666666666666666/2)."""
         if self.enabled:
             with self._lock:
-                self._bar.update(n)
+                self._fraction += n
+                whole = int(self._fraction + 1e-9)  # 3 x 1/3 is one unit, not 0.9999999999999999
+                if whole:
+                    self._fraction -= whole
+                    self._bar.update(whole)
 
     def set_postfix(self, **values: Any) -> None:
         if self.enabled:
