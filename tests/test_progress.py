@@ -150,6 +150,14 @@ def test_generate_honours_the_progress_switch(tmp_path: Path) -> None:
     assert "2/2" in frames(err)[-1] and json.loads(out)["rows"]["total"] == 4
 
 
+def test_zoo_download_honours_the_progress_switch(tmp_path: Path) -> None:
+    argv = ["-m", "ttompc.cli", "zoo", "download", "freeflyer-tto-small", "--cache-dir"]
+    out, err, _ = run_watching_stderr([*argv, str(tmp_path / "off")], tmp_path, TTOMPC_PROGRESS="0")
+    assert err == "" and Path(out.strip(), "config.json").is_file()
+    out, err, _ = run_watching_stderr([*argv, str(tmp_path / "on")], tmp_path, TTOMPC_PROGRESS="1")
+    assert "model.safetensors" in err and Path(out.strip(), "config.json").is_file()
+
+
 # ------------------------------------------------------------------------------------------------ long commands
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -183,7 +191,7 @@ def test_evaluate_shows_progress_on_stderr_at_once(tmp_path: Path, bundle: Path)
     assert "\r" not in out and out.startswith("| method | solved |")
 
 
-@pytest.mark.slow  # one DAgger iteration in a subprocess (~1-2 min on the loaded machine)
+@pytest.mark.slow  # one DAgger iteration (one rollout) in a subprocess: ~1 min, far more when the cores are taken
 def test_finetune_shows_every_phase_on_stderr_and_names_the_pretrained_model(tmp_path: Path) -> None:
     """Measuring and collecting printed nothing for about 2 of 2.5 minutes, and the decision said "against iteration
     -1". Now each phase has a line and a bar on stderr, the decision names the pretrained model, stdout is JSON."""
@@ -203,8 +211,8 @@ def test_finetune_shows_every_phase_on_stderr_and_names_the_pretrained_model(tmp
     argv = [
         "finetune", "--model", str(source), "dagger.iterations=1", "dagger.steps_per_iteration=2",
         "dagger.exploration.horizons=[10]", "dagger.exploration.windows=[1,1]",
-        "dagger.exploration.window_length=[5,8]", "dagger.collect.rollouts=2", "dagger.collect.shard_size=1",
-        "dagger.collect.workers=1", "dagger.collect.val_fraction=0.0", "dagger.eval.problems=2",
+        "dagger.exploration.window_length=[5,8]", "dagger.collect.rollouts=1", "dagger.collect.shard_size=1",
+        "dagger.collect.workers=1", "dagger.collect.val_fraction=0.0", "dagger.eval.problems=1",
         "dagger.eval.horizon=5", "dagger.eval.max_steps=3", f"data.paths=[{data}]", "data.batch_size=4",
         "data.shuffle_pool=8", "data.context_length=10", "data.open_loop_fraction=0.5",
         f"trainer.out_dir={tmp_path / 'run'}", "trainer.val_check_interval=2", "trainer.limit_val_batches=1",
@@ -221,11 +229,11 @@ def test_finetune_shows_every_phase_on_stderr_and_names_the_pretrained_model(tmp
     def last(prefix: str) -> str:
         return [f for f in shown if f.startswith(prefix)][-1]
 
-    assert "2/2" in last("held-out problems (REL):")
-    assert "2/2" in last("measure:")  # the pretrained model, then the candidate
-    assert "2/2" in last("collect iteration 0:")
-    assert "2/2" in last("train:")
-    assert "ttompc finetune: measuring the pretrained model (closed-loop TTO-MPC, 2 problems)" in shown
+    assert "1/1" in last("held-out problems (REL):")
+    assert "1/1" in last("measure:")  # the pretrained model, then the candidate
+    assert "1/1" in last("collect iteration 0:")
+    assert "2/2" in last("train:")  # optimiser steps
+    assert "ttompc finetune: measuring the pretrained model (closed-loop TTO-MPC, 1 problem)" in shown
     decision = re.compile(r"ttompc finetune: iteration 0 (kept|rejected) against the pretrained model \(")
     assert any(decision.match(f) for f in shown), shown
     assert "iteration -1" not in err

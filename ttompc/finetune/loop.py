@@ -257,7 +257,8 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     logger = build_logger(cfg.logger, run, to_container(cfg)) if ranks.is_main else None
     problems = _eval_problems(cfg, scenario) if ranks.is_main else []
     if state is None and ranks.is_main:
-        status(f"ttompc finetune: measuring the pretrained model (closed-loop TTO-MPC, {len(problems)} problems)")
+        n = len(problems)
+        status(f"ttompc finetune: measuring the pretrained model (closed-loop TTO-MPC, {n} problem{'s' * (n != 1)})")
         measured = measure(cfg, source_planner, problems)
         _log(logger, measured, -1, 0)
         baseline = _json_safe(measured)

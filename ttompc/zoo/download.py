@@ -23,6 +23,7 @@ from typing import BinaryIO
 from tqdm.auto import tqdm
 
 from ttompc.errors import UserError
+from ttompc.progress import STDERR, progress_enabled
 from ttompc.version import code_version
 from ttompc.zoo.cache import assemble_bundle, blob_path, cache_root, inside, sha256_file
 from ttompc.zoo.cards import FileEntry, ModelCard
@@ -80,7 +81,8 @@ def fetch(entry: FileEntry, dest: Path, base_dir: Path | None = None, progress: 
                 unit_scale=True,
                 unit_divisor=1024,
                 desc=entry.filename,
-                disable=not progress,
+                file=STDERR,
+                disable=not (progress and progress_enabled()),  # also TTOMPC_PROGRESS / CI (ttompc.progress)
                 leave=False,
             ) as bar:
                 for chunk in iter(lambda: stream.read(CHUNK), b""):
