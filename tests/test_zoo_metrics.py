@@ -37,7 +37,15 @@ def _row(plant: str, method: str, feasible: int, inc: float, **extra: object) ->
 
 
 MPC = {
-    "config": {"model": "m-tto", "problems": 4, "seed": 4242, "horizons": [10], "plants": ["nominal", "perturbed"]},
+    "config": {
+        "model": "m-tto",
+        "problems": 4,
+        "seed": 4242,
+        "horizons": [10],
+        "plants": ["nominal", "perturbed"],
+        "end_horizon": 30,
+        "track": None,
+    },
     "summary": [
         _row("nominal", "REL-MPC", 4, 0.9, paper_norm=_iv(0.7)),
         _row("nominal", "TTO-MPC", 2, 0.5),
@@ -67,7 +75,8 @@ def test_metrics_are_the_reports_numbers_with_their_command() -> None:
     assert "DIST" not in json.dumps(list(m))  # only the model, its robust variant, REL, oracle and plan-once
     assert all(math.isfinite(v["value"]) for v in m.values())
     assert "`ttompc evaluate warmstart --model m-tto --ft-model m-ft problems=10 seed=4242" in m["ws_iterations"]["how"]
-    assert "horizons=[10] plants=[nominal,perturbed]" in m["mpc10_nominal_model_step_time_s"]["how"]
+    assert "horizons=[10] plants=[nominal,perturbed] end_horizon=30" in m["mpc10_nominal_model_step_time_s"]["how"]
+    assert "track=" not in m["mpc10_nominal_model_step_time_s"]["how"]  # None: the default, not on the command line
 
 
 def test_ft_metrics_pick_the_ft_rows() -> None:

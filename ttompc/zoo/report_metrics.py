@@ -14,7 +14,9 @@ from ttompc.zoo.cards import is_metric_value
 
 # config keys that are part of the protocol's command line (others are defaults or output locations)
 _WS_KEYS = ("problems", "seed", "nonconvex_only", "rtg_scale", "oracle_detours")
-_MPC_KEYS = ("problems", "seed", "horizons", "plants", "robust_blend", "rtg_scale", "mode")
+_MPC_KEYS = (
+    "problems", "seed", "horizons", "plants", "robust_blend", "rtg_scale", "rtg_mode", "track", "end_horizon", "mode",
+)  # fmt: skip
 
 
 def command_line(kind: str, config: dict[str, Any]) -> str:
