@@ -37,7 +37,7 @@ _FLAGS = {
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, "scenario=quadrotor problems=2000 out=data/quadrotor-v1")
-    parser.add_argument("--scenario", help="registered scenario name (default freeflyer)")
+    parser.add_argument("--scenario", help="a name, module:Class or path/to/file.py:Class (default freeflyer)")
     parser.add_argument("--problems", type=int, help="number of problems (default 20000)")
     parser.add_argument("--out", help="output folder (default data/freeflyer-v1)")
     parser.add_argument("--seed", type=int, help="root seed (default 0)")

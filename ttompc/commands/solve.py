@@ -30,13 +30,15 @@ _FLAGS = {"scenario": "scenario", "seed": "seed", "backend": "backend", "formula
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_config_arguments(p, "scenario=quadrotor seed=3")
-    p.add_argument("--scenario", help="scenario name (see `ttompc solve --list`; default freeflyer)")
+    p.add_argument(
+        "--scenario", help="a name (`ttompc solve --list`), module:Class or path/to/file.py:Class (default freeflyer)"
+    )
     p.add_argument("--seed", type=int, help="problem seed (default 0)")
     p.add_argument("--backend", help="auto|clarabel|osqp|piqp|qoco|cvxpy-naive (default auto)")
     p.add_argument("--formulation", choices=["penalized", "reference"])
     p.add_argument("--plot", metavar="PNG", help="save a plot of the REL and SCP trajectories")
     p.add_argument("--json", action="store_true", help="print the results as JSON")
-    p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
+    p.add_argument("--list", action="store_true", help="list the built-in and installed scenarios and exit")
 
 
 def run(args: argparse.Namespace) -> int:

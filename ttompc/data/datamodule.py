@@ -317,7 +317,9 @@ class TrajectoryDataModule(L.LightningDataModule):
     def __init__(self, cfg: DataConfig | dict[str, Any]) -> None:
         super().__init__()
         self.cfg = cfg if isinstance(cfg, DataConfig) else from_container(DataConfig, cfg)
-        self.save_hyperparameters(to_container(self.cfg))
+        # kept in checkpoints, not logged: the module logs the whole recipe, data section included, and Lightning
+        # refuses to log two hparams of one name (this config's ``scenario`` None, "any", vs the module's data scenario)
+        self.save_hyperparameters(to_container(self.cfg), logger=False)
         self.stats: NormStats | None = None
         self.scenario_name: str | None = None
         self.n_steps: int | None = None
