@@ -11,7 +11,17 @@ Threads: a batch-1 rollout is a chain of tiny matmuls; with 2 OpenMP threads on 
 a 10-step rollout of a 0.6M-parameter model at 4.2 s against 46 ms with one thread (spin-waiting under
 oversubscription), so the default is one torch thread.
 
-Ends with one JSON line, also written to bench/results/mpc_speed.json.
+``--episode-cost``: the CPU-seconds per closed-loop episode of ``ttompc evaluate mpc`` (every method of the protocol,
+both plants, the first horizon) on the same problems, measured in the same run two ways: *before*, one problem at a
+time (each episode alone, as the evaluation ran before issue 18) and *after*, all problems in lockstep
+(``run_problems``: one batched rollout per step for each TTO method, the solver structures of the first problem
+serving the others). Each way starts with an empty solver-structure cache, so neither inherits what the other built.
+CPU-seconds are this process's (``time.process_time``), so a loaded machine changes them less than the wall time.
+
+``--quick``: a smoke run (tiny random model, 2 problems, 3 MPC steps, H = 10, with ``--episode-cost``; no result
+file).
+
+Ends with one JSON line, also written to bench/results/mpc_speed.json (not with ``--quick``).
 """
 
 from __future__ import annotations
@@ -26,10 +36,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ttompc.evaluation.problems import eval_problem
+from ttompc.evaluation.closed_loop import ClosedLoopConfig, episodes_per_problem, run_problems
+from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.mpc import DISTProvider, RELProvider, TTOProvider, run_mpc
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
-from ttompc.scenarios import get_scenario
+from ttompc.scenarios import Scenario, get_scenario
+from ttompc.solvers.engine import clear_solver_cache
 
 SIZES = {
     "paper": {},
@@ -54,6 +66,26 @@ def random_planner(scenario_name: str, size: str, device: str) -> Planner:
     return Planner(model.to(device), sc, stats)
 
 
+def episode_cost(
+    scenario: Scenario, problems: list[EvalProblem], planner: Planner, horizon: int, max_steps: int | None
+) -> dict[str, float]:
+    """CPU- and wall-seconds per closed-loop episode of the protocol, one problem at a time vs batched (module
+    doc)."""
+    cfg = ClosedLoopConfig(scenario=scenario.name, horizons=[horizon], max_steps=max_steps, batch=len(problems))
+    models = {"TTO": planner}
+    episodes = len(problems) * episodes_per_problem(cfg, len(models))
+    out: dict[str, float] = {"episodes": episodes}
+    for label, tasks in (("before", [[ep] for ep in problems]), ("after", [problems])):
+        clear_solver_cache()
+        cpu, wall = time.process_time(), time.perf_counter()
+        for task in tasks:
+            run_problems(scenario, task, models, cfg)
+        out[f"{label}_cpu_s_per_episode"] = (time.process_time() - cpu) / episodes
+        out[f"{label}_wall_s_per_episode"] = (time.perf_counter() - wall) / episodes
+    out["cpu_ratio_after_over_before"] = out["after_cpu_s_per_episode"] / out["before_cpu_s_per_episode"]
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="freeflyer")
@@ -67,8 +99,12 @@ def main() -> None:
     ap.add_argument(
         "--threads", type=int, default=1, help="torch threads (batch-1 rollouts gain nothing from more; see below)"
     )
+    ap.add_argument("--episode-cost", action="store_true", help="CPU-seconds per protocol episode, before/after")
+    ap.add_argument("--quick", action="store_true", help="smoke run: tiny model, 2 problems, 3 steps, no result file")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "mpc_speed.json"))
     args = ap.parse_args()
+    if args.quick:
+        args.size, args.problems, args.max_steps, args.horizons, args.episode_cost = "tiny", 2, 3, "10", True
     torch.set_num_threads(args.threads)
 
     sc = get_scenario(args.scenario)
@@ -123,6 +159,12 @@ def main() -> None:
     if f"REL-MPC[conic]@{h0}" in results:
         speedup = results[f"REL-MPC[conic]@{h0}"]["mean_step_s"] / results[f"REL-MPC@{h0}"]["mean_step_s"]
         print(f"REL-MPC@{h0}: previous conic solver path / default, mean step time {speedup:.2f}x")
+    cost = None
+    if args.episode_cost:
+        cost = episode_cost(sc, problems, planner, h0, args.max_steps)
+        before, after = cost["before_cpu_s_per_episode"], cost["after_cpu_s_per_episode"]
+        print(f"closed-loop episode of the protocol (H = {h0}, {cost['episodes']:.0f} episodes): {before:.2f} CPU-s "
+              f"one problem at a time, {after:.2f} CPU-s batched ({after / before:.2f}x)")  # fmt: skip
     summary = {
         "load_average": os.getloadavg(),
         f"rel_mpc{h0}_speedup_vs_conic": speedup,
@@ -135,12 +177,14 @@ def main() -> None:
         "max_steps": args.max_steps,
         "results": results,
         f"ratio_rel30_over_{name.lower().replace('-', '_')}10": ratio,
+        "episode_cost": cost,
         "wall_s": time.perf_counter() - t0,
         "host": platform.node(),
         "torch_threads": torch.get_num_threads(),
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(summary, indent=2) + "\n")
+    if not args.quick:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(summary, indent=2) + "\n")
     print(json.dumps(summary))
 
 

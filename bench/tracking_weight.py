@@ -101,13 +101,13 @@ def main() -> None:
             row = {"problem": i, "max": float(nu[k]), "at": ts[k], "median": float(np.nanmedian(nu)),
                    "failed": int(np.sum(np.isnan(nu)))}  # fmt: skip
             per_problem.append(row)
-            print(f"{name:>10} {i:>7} {row['max']:>8.3f} {row['at']:>5} {row['median']:>7.3f} "
+            print(f"{name:>10} {i:>7} {row['max']:>8.3g} {row['at']:>5} {row['median']:>7.3g} "
                   f"{sc.mpc.tracking:>8.3g}")  # fmt: skip
         largest = max(r["max"] for r in per_problem)
         results[name] = {"max": largest, "tracking": sc.mpc.tracking, "terminal": sc.mpc.terminal,
                          "exact": bool(sc.mpc.tracking > largest), "problems": per_problem}  # fmt: skip
         verdict = "exceeds" if results[name]["exact"] else "does NOT exceed"
-        print(f"{name}: tracking weight {sc.mpc.tracking:g} {verdict} the largest multiplier {largest:.3f}")
+        print(f"{name}: tracking weight {sc.mpc.tracking:g} {verdict} the largest multiplier {largest:.3g}")
     summary = {
         "bench": "tracking_weight",
         "horizon": H,

@@ -13,14 +13,21 @@ disturbances for every method of a problem), run in soft mode:
 Reported per (plant, method, H): runs, feasible and infeasible counts (infeasible or goal-missing runs are never
 averaged into a cost), (J − J_REL)/J_REL over feasible runs with standard error and bootstrap interval, the paper's
 normalisation (problems feasible for every method, DIST-MPC's worst horizon = 1), the share of the reachable gain
-REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between steps) and step times.
-Problems run in parallel in the spawn pool; each worker loads the model(s) once.
+REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between steps) and step times. The
+settings that depart from the paper (``departures``) are listed under the table.
+
+Problems run in parallel in the spawn pool in tasks of ``batch`` problems; each worker loads the model(s) once.
+Within a task the episodes of one method run in lockstep (``run_mpc_batch``): a TTO method plans the windows of all
+its problems with one batched rollout per step, and the solver structures built for the first problem serve the
+others (one per window shape, cached per process). Step times are then each episode's share of the batched rollout
+plus its own solves (CPU cost per episode, not one robot's latency: ``bench/mpc_speed.py`` measures that at B = 1).
+Tasks are fixed by ``batch``, not by ``workers``, so the report does not depend on the number of workers.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -30,15 +37,18 @@ import numpy as np
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.warmstart import default_workers
-from ttompc.mpc.loop import Mode, run_mpc
+from ttompc.mpc.loop import Mode, run_mpc_batch
 from ttompc.mpc.metrics import episode_record, format_interval, summarize_episodes
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import (
+    RTG_MODES,
     DISTProvider,
     OracleProvider,
     PlanProvider,
     Provider,
     RELProvider,
+    RolloutGroup,
+    RTGMode,
     TerminalDesign,
     TTOProvider,
     full_horizon_plan,
@@ -82,8 +92,12 @@ class ClosedLoopConfig:
     plant: PlantConfig = field(default_factory=PlantConfig)
     robust_blend: float = 0.95  # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0 leaves them out
     rtg_scale: float | None = None  # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale)
+    rtg_mode: RTGMode = "running"  # the rtg fed in closed loop: running (the paper) | floor | reanchor (TTOProvider)
+    track: float | None = None  # terminal weight of TTO-MPC, PLAN-ONCE, ORACLE-MPC; None: the scenario's mpc.tracking
+    end_horizon: int = 0  # departure from the paper: windows run to N once N − t <= end_horizon (0: fixed H)
     mode: Mode = "soft"
     max_steps: int | None = None  # truncated episodes (smoke runs)
+    batch: int = 10  # problems per pool task, their episodes in lockstep (one batched rollout per step)
     workers: int = 0  # processes; 0 = one per CPU core
     backend: str = "auto"
     device: str = "cpu"
@@ -96,30 +110,86 @@ class ClosedLoopConfig:
         if bad or not self.plants:
             raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")
         TerminalDesign(self.robust_blend)  # validates the blend
+        if self.rtg_mode not in RTG_MODES:
+            raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
+        if self.end_horizon < 0 or self.batch < 1 or (self.track is not None and not self.track > 0):
+            raise ValueError(
+                f"end_horizon must be >= 0, batch >= 1 and track > 0, got {self.end_horizon}, {self.batch}, "
+                f"{self.track}"
+            )
 
 
 def providers(
-    plan: tuple[np.ndarray, np.ndarray],
+    plans: Sequence[tuple[np.ndarray, np.ndarray]],
     models: dict[str, Planner],
     *,
     robust_blend: float = 0.95,
     rtg_scale: float | None = None,
+    rtg_mode: RTGMode = "running",
+    track: float | None = None,
     backend: str = "auto",
-) -> list[Provider]:
-    """Fresh providers of every method for one problem; ``plan`` is its open-loop SCP optimum (``full_horizon_plan``),
-    shared by PLAN-ONCE and ORACLE-MPC."""
-    out: list[Provider] = [
-        RELProvider(backend),
-        DISTProvider(backend),
-        PlanProvider(plan, backend=backend),
-        OracleProvider(plan, backend=backend),
+) -> list[list[Provider]]:
+    """Fresh providers of every method, one per problem: ``plans`` are the problems' open-loop SCP optima
+    (``full_horizon_plan``), shared by PLAN-ONCE and ORACLE-MPC. The TTO providers of one method share a
+    ``RolloutGroup`` (one batched rollout per lockstep step). ``track`` overrides the plan-tracking weight."""
+    weights = None if track is None else (track,)
+    plain = TerminalDesign(weights=weights)
+    out: list[list[Provider]] = [
+        [RELProvider(backend) for _ in plans],
+        [DISTProvider(backend) for _ in plans],
+        [PlanProvider(plan, backend=backend, design=plain) for plan in plans],
+        [OracleProvider(plan, backend=backend, design=plain) for plan in plans],
     ]
+    designs = {"": plain} | ({"R-": TerminalDesign(robust_blend, weights)} if robust_blend > 0 else {})
     for name, planner in models.items():
-        out.append(TTOProvider(planner, f"{name}-MPC", rtg_scale=rtg_scale))
-        if robust_blend > 0:
-            design = TerminalDesign(blend=robust_blend)
-            out.append(TTOProvider(planner, f"R-{name}-MPC", rtg_scale=rtg_scale, design=design))
+        for prefix, design in designs.items():
+            group = RolloutGroup(planner)
+            out.append([
+                TTOProvider(planner, f"{prefix}{name}-MPC", rtg_scale=rtg_scale, design=design, rtg_mode=rtg_mode,
+                            group=group, backend=backend)
+                for _ in plans
+            ])  # fmt: skip
     return out
+
+
+def run_problems(
+    scenario: Scenario,
+    eps: Sequence[EvalProblem],
+    models: dict[str, Planner],
+    cfg: ClosedLoopConfig,
+    on_episode: Callable[[], None] | None = None,
+) -> tuple[list[dict[str, Any]], dict[tuple[str, str, int, int], np.ndarray]]:
+    """Every (plant, H, method) episode of the problems ``eps``, the episodes of one method in lockstep: records
+    (per problem, then plant, H and method) and executed trajectories by (plant, method, H, problem index).
+    ``on_episode`` is called after each episode (a progress bar's ticker)."""
+    records: list[dict[str, Any]] = []
+    trajectories = {}
+    plans = [full_horizon_plan(scenario, ep.problem, cfg.backend) for ep in eps]
+    for plant in cfg.plants:
+        noise = cfg.plant.noise() if plant == "perturbed" else None
+        for H in cfg.horizons:
+            for method in providers(plans, models, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale,
+                                    rtg_mode=cfg.rtg_mode, track=cfg.track, backend=cfg.backend):  # fmt: skip
+                episodes = run_mpc_batch(
+                    scenario,
+                    [ep.problem for ep in eps],
+                    method,
+                    H,
+                    rel_costs=[ep.rel_cost for ep in eps],
+                    mode=cfg.mode,
+                    max_steps=cfg.max_steps,
+                    backend=cfg.backend,
+                    plant=noise,
+                    plant_seeds=[ep.seed for ep in eps],
+                    end_horizon=cfg.end_horizon,
+                )
+                for ep, e in zip(eps, episodes, strict=True):
+                    records.append({"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, **episode_record(e)})
+                    trajectories[(plant, e.method, H, ep.index)] = e.X
+                    if on_episode is not None:
+                        on_episode()
+    records.sort(key=lambda r: r["problem"])  # stable: plant, H and method order within a problem
+    return records, trajectories
 
 
 def run_problem(
@@ -129,33 +199,9 @@ def run_problem(
     cfg: ClosedLoopConfig,
     on_episode: Callable[[], None] | None = None,
 ) -> tuple[list[dict[str, Any]], dict[tuple[str, str, int], np.ndarray]]:
-    """Every (plant, H, method) episode of one problem: records and executed trajectories. ``on_episode`` is called
-    after each episode (a progress bar's ticker: one problem runs for minutes)."""
-    records, trajectories = [], {}
-    plan = full_horizon_plan(scenario, ep.problem, cfg.backend)
-    for plant in cfg.plants:
-        noise = cfg.plant.noise() if plant == "perturbed" else None
-        for H in cfg.horizons:
-            for provider in providers(
-                plan, models, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale, backend=cfg.backend
-            ):
-                e = run_mpc(
-                    scenario,
-                    ep.problem,
-                    provider,
-                    H,
-                    rel_cost=ep.rel_cost,
-                    mode=cfg.mode,
-                    max_steps=cfg.max_steps,
-                    backend=cfg.backend,
-                    plant=noise,
-                    plant_seed=ep.seed,
-                )
-                records.append({"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, **episode_record(e)})
-                trajectories[(plant, e.method, H)] = e.X
-                if on_episode is not None:
-                    on_episode()
-    return records, trajectories
+    """``run_problems`` for one problem: records and executed trajectories by (plant, method, H)."""
+    records, trajectories = run_problems(scenario, [ep], models, cfg, on_episode)
+    return records, {key[:3]: X for key, X in trajectories.items()}
 
 
 def episodes_per_problem(cfg: ClosedLoopConfig, models: int) -> int:
@@ -183,11 +229,35 @@ def _init(cfg: dict[str, Any], tick: Callable[[], None]) -> None:
     }
 
 
-def _run(index: int) -> list[dict[str, Any]]:
+def _run(indices: tuple[int, ...]) -> list[dict[str, Any]]:
     cfg: ClosedLoopConfig = _W["cfg"]
     sc = _W["scenario"]
-    ep = eval_problem(sc, cfg.seed, index, nonconvex_only=True, backend=cfg.backend)
-    return run_problem(sc, ep, _W["models"], cfg, _W["tick"])[0]
+    eps = [eval_problem(sc, cfg.seed, i, nonconvex_only=True, backend=cfg.backend) for i in indices]
+    return run_problems(sc, eps, _W["models"], cfg, _W["tick"])[0]
+
+
+def tasks(problems: int, batch: int) -> list[tuple[int, ...]]:
+    """Problem indices 0..problems-1 in pool tasks of ``batch`` (the last one shorter)."""
+    return [tuple(range(i, min(i + batch, problems))) for i in range(0, problems, batch)]
+
+
+def departures(cfg: ClosedLoopConfig, scenario: Scenario) -> list[str]:
+    """The settings of this run that depart from the paper (and from the authors' code), one sentence each."""
+    out = []
+    track = scenario.mpc.tracking if cfg.track is None else cfg.track
+    if track != scenario.mpc.terminal:
+        out.append(
+            f"plan-tracking terminal weight {track:g} for TTO-MPC, PLAN-ONCE and ORACLE-MPC (the paper: "
+            f"{scenario.mpc.terminal:g}, below the terminal multipliers of optimal plans; docs/evaluation.md)"
+        )
+    if cfg.end_horizon > 0:
+        out.append(
+            f"shrinking end horizon: windows run to N once N − t <= {cfg.end_horizon} (the paper keeps H and "
+            "truncates the windows at N)"
+        )
+    if cfg.rtg_mode != "running":
+        out.append(f"reward-to-go fed in closed loop: {cfg.rtg_mode} (the paper: the running rtg_0 + executed cost)")
+    return out
 
 
 def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
@@ -271,14 +341,19 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
     models = sum(1 for source in (cfg.model, cfg.ft_model) if source)
     with Bar(cfg.problems * episodes_per_problem(cfg, models), f"mpc {sc.name}", "episode") as bar:
         init = (to_container(cfg), bar.ticker())
-        for rs in pool_map(_run, range(cfg.problems), workers, _init, init, scenarios=[scenario_spec(sc)]):
+        chunks = tasks(cfg.problems, cfg.batch)
+        for rs in pool_map(_run, chunks, workers, _init, init, scenarios=[scenario_spec(sc)]):
             records.extend(rs)
     summary = summarize(records, cfg.seed)
+    notes = departures(cfg, sc)
     table = format_table(summary)
+    if notes:
+        table += "\nDepartures from the paper: " + "; ".join(notes) + "."
     report = {
         "config": {**asdict(cfg), "out": str(out), "workers": workers},
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
         "wall_time_s": time.perf_counter() - t0,
+        "departures": notes,
         "summary": summary,
         "table": table,
         "runs": records,

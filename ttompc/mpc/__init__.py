@@ -2,7 +2,7 @@
 and terminal-target providers (REL-MPC, DIST-MPC, TTO-MPC, PLAN-ONCE, ORACLE-MPC) and the closed-loop metrics
 (``metrics``). Importing this package does not import Lightning (nor torch until TTO is used)."""
 
-from ttompc.mpc.loop import Episode, MPCController, StepPlan, episode_metrics, run_mpc
+from ttompc.mpc.loop import Episode, MPCController, StepPlan, episode_metrics, run_mpc, run_mpc_batch
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import (
     DISTProvider,
@@ -11,6 +11,8 @@ from ttompc.mpc.providers import (
     PlanProvider,
     Provider,
     RELProvider,
+    RemainingREL,
+    RolloutGroup,
     ShiftProvider,
     TerminalDesign,
     TTOProvider,
@@ -28,6 +30,8 @@ __all__ = [
     "PlantNoise",
     "Provider",
     "RELProvider",
+    "RemainingREL",
+    "RolloutGroup",
     "ShiftProvider",
     "StepPlan",
     "TTOProvider",
@@ -35,4 +39,5 @@ __all__ = [
     "WarmStart",
     "episode_metrics",
     "run_mpc",
+    "run_mpc_batch",
 ]

@@ -4,11 +4,21 @@ At each step t: the provider fills the window [t, min(t+H, N)) with a warm start
 windowed problem is solved by ``solve_scp`` (the scenario supplies the full problem's constraints inside the
 window); the first control is applied with the *exact* dynamics ``scenario.step``. Soft mode (all paper analyses):
 fuel weight ``mpc.fuel``, soft equalities, the provider's terminal cost when the window stops early and
-‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the end. Hard mode keeps x_N = goal at the end.
+‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the end. Hard mode keeps x_N = goal at the end while the goal
+is reachable from the window; where it is not (the penalised solve misses it by more than the SCP's feasibility
+tolerance), that window is solved as in soft mode (the soft end term) instead of discarding its plan (counted in
+``soft_ends``).
+
+``end_horizon`` (default 0: the paper's fixed H, windows truncated at N) is a departure from the paper and the
+reference: once N − t ≤ end_horizon the window runs to N (a shrinking horizon at the end), so the goal enters the
+plan while it is still reachable under the control bounds.
 
 A failed SCP step is not an exception: the loop applies the next control of the previous plan shifted by one step
 (or the warm start's first control at t = 0), counts it in ``fallbacks`` and goes on. Programming errors propagate.
-Each step is timed with ``perf_counter`` (warm start + solve; a CUDA model synchronises inside its provider).
+Each step is timed with ``perf_counter`` (warm start + solve; a CUDA model synchronises inside its provider); a
+provider that shares work between episodes (a batched rollout) reports this episode's share itself
+(``WarmStart.seconds``). ``run_mpc_batch`` runs the episodes of B problems in lockstep, which lets the TTO providers
+of one ``RolloutGroup`` plan all B windows of a step in one batched rollout; ``run_mpc`` is its B = 1 case.
 
 The plant is ``ttompc.mpc.plant.Plant``: the exact dynamics, optionally with seeded actuation error and process
 noise (``PlantNoise``). Plan consistency is recorded per episode: ``target_change`` is the mean over consecutive
@@ -21,6 +31,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -32,8 +43,10 @@ from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import SCPResult, TerminalCost, solve_scp
 
 Mode = Literal["soft", "hard"]
-# Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol: the soft end penalty cannot cancel
-# a residual velocity below one step's thrust (free-flyer: 0.01 m/s per step; REL-MPC at H = 10 ends ~0.0105 away).
+# Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol. A goal miss is not the soft end
+# penalty's: tracking an exact plan ends on the goal once the tracking weight exceeds the multiplier of the window's
+# terminal constraint (``MPCWeights.track``); a plan that lags (REL-MPC at H = 10 ended ~0.0105 away) brings the goal
+# into the window when the control bound no longer lets it be reached (``end_horizon``).
 
 
 @dataclass
@@ -48,6 +61,7 @@ class StepPlan:
     iterations: int
     fallback: bool
     target: np.ndarray | None = None  # the window's terminal target (None when the window reaches the end)
+    soft_end: bool = False  # hard mode: the goal was out of reach, the window used the soft end term
 
 
 @dataclass
@@ -72,6 +86,7 @@ class Episode:
     feasible: bool  # no keep-out violation, path violation ≤ tol and (if complete) terminal error ≤ tol
     target_change: float = float("nan")  # plan consistency (module doc); nan without two consecutive targets
     plant: str = "nominal"  # "nominal" or "perturbed"
+    soft_ends: int = 0  # hard mode: steps whose end window fell back to the soft end term (goal out of reach)
 
     def summary(self) -> dict[str, float | int | str | bool]:
         return {
@@ -91,6 +106,7 @@ class Episode:
             "feasible": self.feasible,
             "target_change": self.target_change,
             "plant": self.plant,
+            "soft_ends": self.soft_ends,
         }
 
 
@@ -106,37 +122,47 @@ class MPCController:
         *,
         mode: Mode = "soft",
         backend: str = "auto",
+        end_horizon: int = 0,
     ) -> None:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         if mode not in ("soft", "hard"):
             raise ValueError(f"mode must be 'soft' or 'hard', got {mode!r}")
+        if end_horizon < 0:
+            raise ValueError(f"end_horizon must be >= 0, got {end_horizon}")
         self.scenario, self.problem, self.provider = scenario, problem, provider
-        self.horizon, self.mode, self.backend = horizon, mode, backend
+        self.horizon, self.mode, self.backend, self.end_horizon = horizon, mode, backend, end_horizon
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
 
     def window(self, t: int) -> Window:
+        """[t, t + H) truncated at N; the whole rest [t, N) once N − t <= ``end_horizon`` (module doc)."""
         N = self.problem.n_steps
-        return Window(t, min(self.horizon, N - t), N)
+        rest = N - t
+        return Window(t, rest if rest <= self.end_horizon else min(self.horizon, rest), N)
 
-    def _terminal(self, window: Window, provided: TerminalCost | None) -> TerminalCost | None:
+    def _terminal(self, window: Window, provided: TerminalCost | None, mode: Mode) -> TerminalCost | None:
         if not window.reaches_end:
             if provided is None:
                 raise ValueError(f"provider {self.provider.name!r} gave no terminal cost for window {window}")
             return provided
-        if self.mode == "soft":
+        if mode == "soft":
             return TerminalCost(self.problem.goal, self.scenario.mpc.end)
         return None  # hard: x_N = goal
 
-    def solve(self, window: Window, X: np.ndarray, U: np.ndarray, terminal: TerminalCost | None) -> SCPResult:
-        soft = self.mode == "soft"
+    def solve(
+        self, window: Window, X: np.ndarray, U: np.ndarray, terminal: TerminalCost | None, mode: Mode | None = None
+    ) -> SCPResult:
+        """The window's SCP in this controller's mode, or in ``mode`` (hard mode solves a window whose goal is out
+        of reach as soft mode does)."""
+        mode = mode or self.mode
+        soft = mode == "soft"
         return solve_scp(
             self.scenario,
             self.problem,
             X,
             U,
             window=window,
-            terminal=self._terminal(window, terminal),
+            terminal=self._terminal(window, terminal, mode),
             fuel_weight=self.scenario.mpc.fuel if soft else 1.0,
             soft_equalities=soft,
             backend=self.backend,
@@ -153,6 +179,12 @@ class MPCController:
                 f"{self.provider.name}: warm start shapes {ws.X.shape}, {ws.U.shape} do not fit window {window}"
             )
         res = self.solve(window, ws.X, ws.U, ws.terminal)
+        iterations, soft_end = res.iterations, False
+        if not res.success and self.mode == "hard" and window.reaches_end:
+            # x_N = goal is out of reach (the penalised solve misses it): plan this window as soft mode does (the
+            # soft end term) rather than replay the previous plan, which misses it too and is one step staler
+            res = self.solve(window, res.X, res.U, None, mode="soft")
+            iterations, soft_end = iterations + res.iterations, True
         t2 = time.perf_counter()
         if res.success:
             X, U, fallback = res.X, res.U, False
@@ -163,8 +195,9 @@ class MPCController:
         X = np.array(X, dtype=np.float64)
         X[0] = x
         target = None if ws.terminal is None else ws.terminal.target
+        warm = t1 - t0 if ws.seconds is None else ws.seconds
         return StepPlan(
-            U[0].copy(), X, np.array(U, dtype=np.float64), t1 - t0, t2 - t1, res.iterations, fallback, target
+            U[0].copy(), X, np.array(U, dtype=np.float64), warm, t2 - t1, iterations, fallback, target, soft_end
         )
 
     def observe(self, plan: StepPlan, u: np.ndarray, x_next: np.ndarray) -> None:
@@ -223,60 +256,121 @@ def run_mpc(
     terminal_tol: float | None = None,
     plant: PlantNoise | None = None,
     plant_seed: int = 0,
+    end_horizon: int = 0,
 ) -> Episode:
     """Run receding-horizon control from x0 for N steps (or ``max_steps``) on the exact dynamics, or on a perturbed
     plant (``plant``, disturbances seeded by ``plant_seed``: same seed, same disturbances).
 
     ``rel_cost`` is J_REL of the open-loop REL solution: the lower bound of the metrics and the TTO conditioning
-    (rtg_0 = −J_REL)."""
-    N = problem.n_steps
-    T = N if max_steps is None else min(max_steps, N)
-    provider.reset(scenario, problem, rel_cost)
-    ctrl = MPCController(scenario, problem, provider, horizon, mode=mode, backend=backend)
-    sim = Plant(scenario, plant)
-    sim.reset(plant_seed)
-    x = problem.x0.copy()
-    X, U = [x], []
-    warm, solve, iters = np.zeros(T), np.zeros(T), np.zeros(T, dtype=int)
-    targets: list[np.ndarray | None] = []
-    fallbacks = 0
-    for t in range(T):
-        plan = ctrl.plan(t, x)
-        x = sim.step(problem, t, x, plan.u)
-        ctrl.observe(plan, plan.u, x)
-        X.append(x)
-        U.append(plan.u)
-        warm[t], solve[t], iters[t] = plan.warm_time, plan.solve_time, plan.iterations
-        targets.append(plan.target)
-        fallbacks += plan.fallback
-    Xa, Ua = np.stack(X), np.stack(U) if U else np.zeros((0, scenario.control_dim))
-    perturbed = plant is not None and not plant.nominal
-    m = episode_metrics(
+    (rtg_0 = −J_REL). ``end_horizon``: the shrinking end horizon (module doc; 0 = the paper's)."""
+    return run_mpc_batch(
         scenario,
-        problem,
-        Xa,
-        Ua,
+        [problem],
+        [provider],
+        horizon,
+        rel_costs=[rel_cost],
+        mode=mode,
+        max_steps=max_steps,
+        backend=backend,
         terminal_tol=terminal_tol,
-        path_tol=plant.path_tol(scenario) if plant is not None and perturbed else 1e-3,
-        strict_keepout=not perturbed,
-    )
-    return Episode(
-        method=provider.name,
-        horizon=horizon,
-        X=Xa,
-        U=Ua,
-        cost=scenario.cost(Ua),
-        rel_cost=float(rel_cost),
-        step_times=warm + solve,
-        warm_times=warm,
-        solve_times=solve,
-        iterations=iters,
-        fallbacks=fallbacks,
-        terminal_error=float(m["terminal_error"]),
-        keepout_violations=int(m["keepout_violations"]),
-        path_violation=float(m["path_violation"]),
-        complete=bool(m["complete"]),
-        feasible=bool(m["feasible"]),
-        target_change=target_change(scenario, targets),
-        plant="perturbed" if perturbed else "nominal",
-    )
+        plant=plant,
+        plant_seeds=[plant_seed],
+        end_horizon=end_horizon,
+    )[0]
+
+
+def run_mpc_batch(
+    scenario: Scenario,
+    problems: Sequence[Problem],
+    providers: Sequence[Provider],
+    horizon: int,
+    *,
+    rel_costs: Sequence[float],
+    mode: Mode = "soft",
+    max_steps: int | None = None,
+    backend: str = "auto",
+    terminal_tol: float | None = None,
+    plant: PlantNoise | None = None,
+    plant_seeds: Sequence[int] | None = None,
+    end_horizon: int = 0,
+    on_step: Callable[[], None] | None = None,
+) -> list[Episode]:
+    """``run_mpc`` for B problems (one provider each) in lockstep: at every step all B episodes plan, then all B
+    act. Each episode is what ``run_mpc`` gives for it alone (for TTO up to the rounding of a batched rollout);
+    stepping together lets providers share work across episodes (the TTO providers of one ``RolloutGroup``: one
+    batched rollout per step). ``on_step`` is called after every step (progress)."""
+    B = len(problems)
+    seeds = list(plant_seeds) if plant_seeds is not None else [0] * B
+    if len(providers) != B or len(rel_costs) != B or len(seeds) != B:
+        raise ValueError(f"{B} problems need as many providers, rel_costs and plant_seeds")
+    if len({p.n_steps for p in problems}) > 1:
+        raise ValueError("episodes run in lockstep need problems of one length N")
+    if B == 0:
+        return []
+    N = problems[0].n_steps
+    T = N if max_steps is None else min(max_steps, N)
+    ctrls, sims = [], []
+    for problem, provider, rel_cost, seed in zip(problems, providers, rel_costs, seeds, strict=True):
+        provider.reset(scenario, problem, rel_cost)
+        ctrls.append(MPCController(scenario, problem, provider, horizon, mode=mode, backend=backend,
+                                   end_horizon=end_horizon))  # fmt: skip
+        sim = Plant(scenario, plant)
+        sim.reset(seed)
+        sims.append(sim)
+    xs = [p.x0.copy() for p in problems]
+    X: list[list[np.ndarray]] = [[x] for x in xs]
+    U: list[list[np.ndarray]] = [[] for _ in range(B)]
+    warm, solve, iters = np.zeros((B, T)), np.zeros((B, T)), np.zeros((B, T), dtype=int)
+    targets: list[list[np.ndarray | None]] = [[] for _ in range(B)]
+    fallbacks, soft_ends = [0] * B, [0] * B
+    for t in range(T):
+        plans = [ctrl.plan(t, x) for ctrl, x in zip(ctrls, xs, strict=True)]
+        for b, plan in enumerate(plans):
+            xs[b] = sims[b].step(problems[b], t, xs[b], plan.u)
+            ctrls[b].observe(plan, plan.u, xs[b])
+            X[b].append(xs[b])
+            U[b].append(plan.u)
+            warm[b, t], solve[b, t], iters[b, t] = plan.warm_time, plan.solve_time, plan.iterations
+            targets[b].append(plan.target)
+            fallbacks[b] += plan.fallback
+            soft_ends[b] += plan.soft_end
+        if on_step is not None:
+            on_step()
+    perturbed = plant is not None and not plant.nominal
+    episodes = []
+    for b, problem in enumerate(problems):
+        Xa = np.stack(X[b])
+        Ua = np.stack(U[b]) if U[b] else np.zeros((0, scenario.control_dim))
+        m = episode_metrics(
+            scenario,
+            problem,
+            Xa,
+            Ua,
+            terminal_tol=terminal_tol,
+            path_tol=plant.path_tol(scenario) if plant is not None and perturbed else 1e-3,
+            strict_keepout=not perturbed,
+        )
+        episodes.append(
+            Episode(
+                method=providers[b].name,
+                horizon=horizon,
+                X=Xa,
+                U=Ua,
+                cost=scenario.cost(Ua),
+                rel_cost=float(rel_costs[b]),
+                step_times=warm[b] + solve[b],
+                warm_times=warm[b],
+                solve_times=solve[b],
+                iterations=iters[b],
+                fallbacks=fallbacks[b],
+                terminal_error=float(m["terminal_error"]),
+                keepout_violations=int(m["keepout_violations"]),
+                path_violation=float(m["path_violation"]),
+                complete=bool(m["complete"]),
+                feasible=bool(m["feasible"]),
+                target_change=target_change(scenario, targets[b]),
+                plant="perturbed" if perturbed else "nominal",
+                soft_ends=soft_ends[b],
+            )
+        )
+    return episodes

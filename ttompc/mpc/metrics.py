@@ -15,9 +15,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from ttompc.mpc.loop import Episode, Mode, run_mpc
+from ttompc.mpc.loop import Episode, Mode, run_mpc_batch
 from ttompc.mpc.plant import PlantNoise
-from ttompc.mpc.providers import TerminalDesign, TTOProvider
+from ttompc.mpc.providers import RolloutGroup, RTGMode, TerminalDesign, TTOProvider
 from ttompc.scenarios.base import Problem
 
 if TYPE_CHECKING:
@@ -104,23 +104,29 @@ def closed_loop_metrics(
     design: TerminalDesign | None = None,
     rtg_scale: float | None = None,
     progress: str = "",
+    rtg_mode: RTGMode = "running",
+    end_horizon: int = 0,
 ) -> tuple[dict[str, float], list[Episode]]:
-    """TTO-MPC with ``planner`` on fixed problems (optionally on the perturbed ``plant``, seeded per problem):
-    flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count), ``cost_increment`` and its ``_se`` (mean
-    (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible runs), ``target_change``, step times and
-    ``fallbacks``. ``progress``: the label of a progress bar over the episodes on stderr ("": none)."""
+    """TTO-MPC with ``planner`` on fixed problems (optionally on the perturbed ``plant``, seeded per problem), all
+    episodes in lockstep with one batched rollout per step (``RolloutGroup``): flat metrics for loggers —
+    ``feasible_rate``, ``infeasible`` (count), ``cost_increment`` and its ``_se`` (mean (J − J_REL)/J_REL over
+    feasible runs, nan if none), ``cost`` (feasible runs), ``target_change``, step times (each episode's share of
+    the batched rollout plus its own solves) and ``fallbacks``. ``progress``: the label of a progress bar over the
+    episodes on stderr ("": none)."""
     from ttompc.progress import Bar
 
     sc = planner.scenario
-    episodes = []
+    group = RolloutGroup(planner)
+    provs = [
+        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design, rtg_mode=rtg_mode, group=group, backend=backend)
+        for _ in problems
+    ]
+    steps = min(max_steps or sc.n_steps, sc.n_steps)
     with Bar(len(problems), progress, "episode", show=bool(progress)) as bar:
-        for ep in problems:
-            episodes.append(
-                run_mpc(sc, ep.problem, TTOProvider(planner, name, rtg_scale=rtg_scale, design=design), horizon,
-                        rel_cost=ep.rel_cost, mode=mode, max_steps=max_steps, backend=backend, plant=plant,
-                        plant_seed=ep.seed)
-            )  # fmt: skip
-            bar.update()
+        episodes = run_mpc_batch(sc, [ep.problem for ep in problems], provs, horizon,
+                                 rel_costs=[ep.rel_cost for ep in problems], mode=mode, max_steps=max_steps,
+                                 backend=backend, plant=plant, plant_seeds=[ep.seed for ep in problems],
+                                 end_horizon=end_horizon, on_step=lambda: bar.update(len(provs) / steps))  # fmt: skip
     s = summarize_episodes([episode_record(e) for e in episodes])
     times = np.concatenate([e.step_times for e in episodes])
     metrics = {

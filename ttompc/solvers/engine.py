@@ -74,6 +74,11 @@ _CACHE: OrderedDict[tuple[SubproblemSpec, tuple[str, ...]], SubproblemSolver] = 
 _CACHE_SIZE = 256  # receding-horizon REL uses one structure per remaining length (up to N = 100)
 
 
+def clear_solver_cache() -> None:
+    """Forget every built solver structure (benchmarks that time building them)."""
+    _CACHE.clear()
+
+
 def get_solver(spec: SubproblemSpec, backend: str, scenario: Scenario | None = None) -> SubproblemSolver:
     """One solver per (structure, backends), least-recently-used cache (a receding-horizon REL needs one per
     remaining length, its windows a handful more)."""
