@@ -151,6 +151,7 @@ class QOCOBackend:
         self.n_zero, self.n_nonneg = cones["zero"], cones["nonneg"]
         self.soc_dims = np.array([d for k, d in sub.cones if k == "soc"], dtype=np.int64)
         self.P = sp.triu(sub.P, format="csc")
+        self.blocks = sub.row_blocks(self.n_zero)  # QOCO's A (zero-cone rows) and G (the others)
 
     def restart(self) -> None:
         """Nothing to forget: QOCO is set up afresh for every solve."""
@@ -158,7 +159,7 @@ class QOCOBackend:
     def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
         t0 = time.perf_counter()
         nz, sub = self.n_zero, self.sub
-        A_full = sub.matrix(a_values).tocsr()
+        A, G = (sp.csc_matrix((a_values[take], rows, ptr), shape=(m, sub.n_var)) for take, rows, ptr, m in self.blocks)
         solver = self._qoco.QOCO()
         solver.setup(
             sub.n_var,
@@ -166,9 +167,9 @@ class QOCOBackend:
             nz,
             self.P,
             sub.q,
-            A_full[:nz].tocsc(),
+            A,
             b[:nz],
-            A_full[nz:].tocsc(),
+            G,
             b[nz:],
             self.n_nonneg,
             len(self.soc_dims),

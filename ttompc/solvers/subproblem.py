@@ -357,6 +357,18 @@ class AssembledSubproblem:
     def matrix(self, values: np.ndarray) -> sp.csc_matrix:
         return sp.csc_matrix((values, self._indices, self._indptr), shape=(self.n_con, self.n_var))
 
+    def row_blocks(self, k: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
+        """The CSC patterns of rows [0, k) and [k, n_con) of ``matrix``, each as (positions in ``values``, row
+        indices, column pointers, rows): built once per structure, so a backend that takes the two blocks apart
+        (QOCO: equalities and cones) gathers their values instead of converting and slicing a matrix per solve."""
+        cols = np.repeat(np.arange(self.n_var), np.diff(self._indptr))
+        out = []
+        for top in (True, False):
+            take = np.flatnonzero(self._indices < k if top else self._indices >= k)
+            ptr = np.concatenate([[0], np.cumsum(np.bincount(cols[take], minlength=self.n_var))]).astype(np.int64)
+            out.append((take, self._indices[take] - (0 if top else k), ptr, k if top else self.n_con - k))
+        return out
+
     def _sources(self, data: SubproblemData) -> dict[str, np.ndarray]:
         src: dict[str, np.ndarray] = {
             "x_start": data.x_start,
