@@ -210,7 +210,8 @@ class BatchedModel(Protocol):
 
 
 class Scenario(abc.ABC):
-    """A family of optimal-control problems. Subclasses are registered with ``@register``."""
+    """A family of optimal-control problems. Subclasses are found by name (``@register``), entry point or spec
+    (``ttompc.scenarios.get_scenario``); docs/scenarios.md is the contract on one page."""
 
     name: ClassVar[str]
     version: ClassVar[str]
