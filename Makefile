@@ -32,8 +32,8 @@ test-all: $(VENV)/.installed lint
 	$(BIN)/python -m pytest -q
 
 lint: $(VENV)/.installed
-	$(BIN)/ruff check ttompc tests bench
-	$(BIN)/ruff format --check ttompc tests bench
+	$(BIN)/ruff check ttompc tests bench examples
+	$(BIN)/ruff format --check ttompc tests bench examples
 	$(BIN)/mypy  # the package, configured in pyproject.toml [tool.mypy]
 
 bench: $(VENV)/.installed
