@@ -194,7 +194,9 @@ def test_card_header_is_valid_and_folder_loads_by_name(dataset: tuple[Path, dict
         "## Splits",
         "## Normalisation",
         "## Known limitations",
-        "ttompc generate --scenario data-fake --problems 60 --seed 7 --shard-size 16 --splits 0.6,0.2,0.2",
+        # the scenario as a later process loads it again: its spec (a test scenario is module:Class, not a name)
+        f"ttompc generate --scenario {manifest['scenario'].get('spec', 'data-fake')} --problems 60 --seed 7 "
+        "--shard-size 16 --splits 0.6,0.2,0.2",
         "x [m]",
         "Δvx [m/s]",
     ):
