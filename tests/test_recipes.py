@@ -52,8 +52,8 @@ def test_recipe_loads_and_matches_its_scenario(path: Path) -> None:
     cfg = load(path)
     scenario = get_scenario(path.parent.name)
     assert cfg.data.paths, "a recipe names its dataset"
-    # the recipe's scenario, checked against every dataset's manifest before training (None: not checked)
-    assert cfg.data.scenario in (scenario.name, None)
+    # every scenario recipe names its scenario, checked against every dataset's manifest before training
+    assert cfg.data.scenario == scenario.name
     for data in cfg.data.paths:
         assert Path(data).name.startswith(f"{scenario.name}-"), f"{data} is not a {scenario.name} dataset"
     assert scenario.name in Path(cfg.trainer.out_dir).name
