@@ -291,3 +291,48 @@ def test_run_folder_of_another_fine_tuning_is_refused(tmp_path: Path, dataset: P
     (run / "dagger_state.json").write_text(json.dumps({"source": "a", "seed": 0, "completed": []}))
     with pytest.raises(FinetuneError, match="older ttompc"):
         finetune(cfg, "a")
+
+
+def test_expert_labels_with_plan_reuse_are_the_re_solved_optimum(monkeypatch: pytest.MonkeyPatch) -> None:
+    """After every step the expert acted in, the visited state is the expert's own prediction and its plan's tail is
+    the label of the next state (plan reuse, when that plan met the SCP's stopping rule): at every such state a
+    re-solve (what the expert did before) reaches the same objective, and each reuse saves a solve. The controls
+    themselves may move within the optimal face of the L1 fuel cost (an interior-point re-solve returns another
+    point of equal cost)."""
+    import ttompc.mpc.loop as loop_module
+    from ttompc.finetune.collect import collect_rollout
+    from ttompc.mpc.loop import REUSE_TOL
+
+    sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
+    exploration = ExplorationConfig(horizons=[10], windows=[2, 2], window_length=[8, 8])
+    checked, solves = [], []
+    real_plan, real_solve = loop_module.MPCController.plan, loop_module.solve_scp
+
+    def objective(X: np.ndarray, U: np.ndarray) -> float:
+        return sc.mpc.fuel * sc.cost(U) + sc.mpc.end * float(np.linalg.norm(X[-1] - ctrl_problem[0].goal))
+
+    ctrl_problem: list = []
+
+    def plan(self, t, x):
+        step = real_plan(self, t, x)
+        if step.reused:
+            ctrl_problem[:] = [self.problem]
+            again = self.solve(self.window(t), step.X, step.U, None)
+            assert again.success
+            checked.append((objective(step.X, step.U), objective(again.X, again.U)))
+        return step
+
+    def count(*args, **kw):
+        solves.append(1)
+        return real_solve(*args, **kw)
+
+    monkeypatch.setattr(loop_module.MPCController, "plan", plan)
+    monkeypatch.setattr(loop_module, "solve_scp", count)
+    counts = {}
+    for name, tol in (("cold", None), ("reuse", REUSE_TOL)):
+        solves.clear()
+        collect_rollout(sc, planner, 0, 1, 5, exploration, reuse_tol=tol)
+        counts[name] = len(solves) - len(checked)
+    assert len(checked) >= 5  # after the expert steps whose plan met the stopping rule
+    np.testing.assert_allclose([a for a, _ in checked], [b for _, b in checked], rtol=1e-5)
+    assert counts["cold"] - counts["reuse"] >= len(checked)

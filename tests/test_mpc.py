@@ -435,3 +435,71 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
         with pytest.raises(ValueError):
             ClosedLoopConfig(scenario=sc.name, **bad)  # type: ignore[arg-type]
     assert tasks(23, 10) == [tuple(range(10)), tuple(range(10, 20)), (20, 21, 22)]
+
+
+def test_plan_reuse_applies_the_own_plan_tail_and_keeps_the_results(setup: tuple) -> None:
+    """Windows that reach the end pose the tail of the previous window's problem: on the exact plant each reuses its
+    own plan's tail (no provider call, no solve) and the episode equals the one that re-solves every step; a
+    perturbed plant moves the state off the plan, so nothing is reused there."""
+    sc, problem, rel, _ = setup
+    kw = {"rel_cost": rel.cost, "end_horizon": 15}
+    warm = run_mpc(sc, problem, RELProvider(), 10, **kw)
+    cold = run_mpc(sc, problem, RELProvider(), 10, reuse_tol=None, **kw)
+    assert cold.reuses == 0 and warm.reuses == 14  # every end window after the first
+    assert np.all(warm.iterations[-14:] == 0) and np.all(cold.iterations[-14:] >= 1)
+    assert warm.feasible == cold.feasible and warm.terminal_error == pytest.approx(cold.terminal_error, abs=1e-6)
+    np.testing.assert_allclose(warm.X, cold.X, atol=1e-4)  # the heading's L1 optimum is flat: 1e-5 rad apart
+    assert warm.cost == pytest.approx(cold.cost, rel=1e-5)
+    noisy = run_mpc(sc, problem, RELProvider(), 10, plant=PlantNoise(0.05, 0.02, 0.002), plant_seed=3, **kw)
+    assert noisy.reuses == 0
+
+
+def test_remaining_rel_shifts_its_last_plan_over_skipped_steps(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A controller that reused its plan did not ask its provider: the next remaining-horizon REL still starts from
+    the last REL plan, shifted by the steps in between."""
+    import ttompc.mpc.providers as providers_module
+    from ttompc.mpc import RemainingREL
+
+    sc, problem, _, _ = setup
+    guesses = []
+    real = providers_module.solve_rel
+
+    def spy(*args, guess=None, **kw):
+        guesses.append(guess)
+        return real(*args, guess=guess, **kw)
+
+    monkeypatch.setattr(providers_module, "solve_rel", spy)
+    remaining = RemainingREL()
+    first = remaining(sc, problem, 0, problem.x0)
+    remaining(sc, problem, 3, first.X[3])
+    assert guesses[0] is None
+    np.testing.assert_array_equal(guesses[1][1], first.U[3:])
+
+
+def test_rti_solves_one_subproblem_per_step_from_the_shifted_solution(
+    setup: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Real-time iteration: the first window converges, every later one is a single subproblem linearised at the
+    previous solution shifted by one step, and its solution is applied (no fallback). Its closed-loop cost against
+    convergence is measured in docs/evaluation.md, not asserted."""
+    sc, problem, rel, _ = setup
+    calls = []
+    real = loop_module.solve_scp
+
+    def spy(scenario, prob, X, U, **kw):
+        res = real(scenario, prob, X, U, **kw)
+        calls.append((X.copy(), U.copy(), kw["settings"], res))
+        return res
+
+    monkeypatch.setattr(loop_module, "solve_scp", spy)
+    rti = run_mpc(sc, problem, RELProvider(), 10, rel_cost=rel.cost, rti=True, reuse_tol=None)
+    assert rti.rti and rti.fallbacks == 0 and len(calls) == problem.n_steps
+    assert calls[0][2] is None and all(c[2].max_iters == 1 for c in calls[1:])
+    assert np.all(rti.iterations[1:] == 1)
+    for t in (1, 20, problem.n_steps - 1):
+        X, U, _, _ = calls[t]
+        prev = calls[t - 1][3]
+        k = min(len(prev.U) - 1, len(U))
+        np.testing.assert_array_equal(X[1 : k + 1], prev.X[2 : k + 2])
+        np.testing.assert_array_equal(U[:k], prev.U[1 : k + 1])
+    np.testing.assert_allclose(sc.rollout(problem, rti.U), rti.X, atol=1e-9)  # the applied controls, executed

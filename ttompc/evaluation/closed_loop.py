@@ -37,7 +37,7 @@ import numpy as np
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.warmstart import default_workers
-from ttompc.mpc.loop import Mode, run_mpc_batch
+from ttompc.mpc.loop import REUSE_TOL, Mode, run_mpc_batch
 from ttompc.mpc.metrics import episode_record, format_interval, summarize_episodes
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import (
@@ -95,6 +95,8 @@ class ClosedLoopConfig:
     rtg_mode: RTGMode = "running"  # the rtg fed in closed loop: running (the paper) | floor | reanchor (TTOProvider)
     track: float | None = None  # terminal weight of TTO-MPC, PLAN-ONCE, ORACLE-MPC; None: the scenario's mpc.tracking
     end_horizon: int = 0  # departure from the paper: windows run to N once N − t <= end_horizon (0: fixed H)
+    rti: bool = False  # departure from the paper: real-time iteration, one SCP subproblem per MPC step
+    reuse: bool = True  # plan reuse in windows that reach the end (same results; False: re-solve every step)
     mode: Mode = "soft"
     max_steps: int | None = None  # truncated episodes (smoke runs)
     batch: int = 10  # problems per pool task, their episodes in lockstep (one batched rollout per step)
@@ -182,6 +184,8 @@ def run_problems(
                     plant=noise,
                     plant_seeds=[ep.seed for ep in eps],
                     end_horizon=cfg.end_horizon,
+                    rti=cfg.rti,
+                    reuse_tol=REUSE_TOL if cfg.reuse else None,
                 )
                 for ep, e in zip(eps, episodes, strict=True):
                     records.append({"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, **episode_record(e)})
@@ -257,6 +261,11 @@ def departures(cfg: ClosedLoopConfig, scenario: Scenario) -> list[str]:
         )
     if cfg.rtg_mode != "running":
         out.append(f"reward-to-go fed in closed loop: {cfg.rtg_mode} (the paper: the running rtg_0 + executed cost)")
+    if cfg.rti:
+        out.append(
+            "real-time iteration: one SCP subproblem per MPC step from the previous solution shifted (the paper "
+            "solves every window to convergence)"
+        )
     return out
 
 

@@ -34,7 +34,7 @@ from ttompc.data.resumable import ShardedFolder
 from ttompc.data.schema import make_row, trajectory_features
 from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig
-from ttompc.mpc.loop import Mode, MPCController
+from ttompc.mpc.loop import REUSE_TOL, Mode, MPCController
 from ttompc.mpc.providers import ShiftProvider, TTOProvider
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
@@ -89,8 +89,10 @@ def collect_rollout(
     *,
     mode: Mode = "soft",
     backend: str = "auto",
+    reuse_tol: float | None = REUSE_TOL,
 ) -> dict[str, Any]:
-    """One DAgger rollout -> one schema row (see the module docstring for the labels)."""
+    """One DAgger rollout -> one schema row (see the module docstring for the labels). ``reuse_tol``: plan reuse of
+    both controllers (``ttompc.mpc.loop``; None re-solves every step, the labels are the same)."""
     seed = rollout_seed(root_seed, iteration, index)
     rng = np.random.default_rng(seed)
     problem, rel = _sample_problem(scenario, rng)
@@ -98,9 +100,9 @@ def collect_rollout(
     H = min(int(rng.choice(exploration.horizons)), N)
     expert_steps = expert_schedule(rng, N, exploration)
     learner_provider = TTOProvider(planner)
-    learner = MPCController(scenario, problem, learner_provider, H, mode=mode, backend=backend)
+    learner = MPCController(scenario, problem, learner_provider, H, mode=mode, backend=backend, reuse_tol=reuse_tol)
     shift = ShiftProvider()
-    expert = MPCController(scenario, problem, shift, N, mode=mode, backend=backend)
+    expert = MPCController(scenario, problem, shift, N, mode=mode, backend=backend, reuse_tol=reuse_tol)
     learner_provider.reset(scenario, problem, rel.cost)
     shift.reset(scenario, problem, rel.cost)
     shift.reset_plan(rel.X, rel.U)

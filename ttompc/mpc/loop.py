@@ -20,6 +20,23 @@ provider that shares work between episodes (a batched rollout) reports this epis
 (``WarmStart.seconds``). ``run_mpc_batch`` runs the episodes of B problems in lockstep, which lets the TTO providers
 of one ``RolloutGroup`` plan all B windows of a step in one batched rollout; ``run_mpc`` is its B = 1 case.
 
+Two ways a step does less than SCP to convergence from the provider's warm start:
+
+* *Plan reuse* (on unless ``reuse_tol=None``, results unchanged): a window that reaches the end poses the same
+  problem at t + 1 as at t, minus its first step (the same end term and constraints). When the measured state is
+  the state this controller's own plan predicted for t + 1 (within ``reuse_tol`` in units of ``state_scale``,
+  ∞-norm) and that plan met the SCP's stopping rule (a fixed point, not the best iterate of a solve that ran out of
+  iterations), the plan's tail is optimal for it (principle of optimality; a re-solve from it returns it after one
+  subproblem), so the step applies it without calling the provider or the solver (``StepPlan.reused``). This
+  happens on an exact plant in the last windows (all of them with ``end_horizon``) and for the DAgger expert after
+  the steps it acted in.
+* *Real-time iteration* (``rti=True``, opt-in, a departure from the paper, which solves every window to
+  convergence): as acados' RTI, one SCP subproblem per step, linearised at this controller's previous solution
+  shifted by one step (its missing last step from the provider's warm start; X[0] = the measured state), with the
+  provider's terminal target. The first step is solved to convergence. The subproblem's solution is applied even
+  when its nonlinear violation exceeds the SCP's tolerance (the next step corrects it); only a solver failure falls
+  back. Measured against convergence in docs/evaluation.md.
+
 The plant is ``ttompc.mpc.plant.Plant``: the exact dynamics, optionally with seeded actuation error and process
 noise (``PlantNoise``). Plan consistency is recorded per episode: ``target_change`` is the mean over consecutive
 steps of ‖(x̄_t − x̄_{t−1}) / state_scale‖₂, the change of the terminal target between MPC steps in units of the
@@ -29,6 +46,7 @@ much more).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import time
 from collections.abc import Callable, Sequence
@@ -39,10 +57,13 @@ import numpy as np
 
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
-from ttompc.scenarios.base import Problem, Scenario, Window
-from ttompc.solvers.scp import SCPResult, TerminalCost, solve_scp
+from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
+from ttompc.solvers.scp import SCPResult, SCPStatus, TerminalCost, solve_scp
 
 Mode = Literal["soft", "hard"]
+# plan reuse: the measured state is the own plan's prediction within this many state_scale units (∞-norm). On an
+# exact plant the two differ by the subproblem solver's residual of the dynamics rows (about 1e-9 here).
+REUSE_TOL = 1e-6
 # Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol. A goal miss is not the soft end
 # penalty's: tracking an exact plan ends on the goal once the tracking weight exceeds the multiplier of the window's
 # terminal constraint (``MPCWeights.track``); a plan that lags (REL-MPC at H = 10 ended ~0.0105 away) brings the goal
@@ -62,6 +83,8 @@ class StepPlan:
     fallback: bool
     target: np.ndarray | None = None  # the window's terminal target (None when the window reaches the end)
     soft_end: bool = False  # hard mode: the goal was out of reach, the window used the soft end term
+    reused: bool = False  # the previous plan's tail, neither provider nor solver called (module doc)
+    converged: bool = False  # the SCP met its stopping rule (a fixed point), or the tail of such a plan: reusable
 
 
 @dataclass
@@ -87,6 +110,8 @@ class Episode:
     target_change: float = float("nan")  # plan consistency (module doc); nan without two consecutive targets
     plant: str = "nominal"  # "nominal" or "perturbed"
     soft_ends: int = 0  # hard mode: steps whose end window fell back to the soft end term (goal out of reach)
+    reuses: int = 0  # steps that applied the previous plan's tail (plan reuse, module doc)
+    rti: bool = False  # real-time iteration: one subproblem per step (module doc)
 
     def summary(self) -> dict[str, float | int | str | bool]:
         return {
@@ -107,11 +132,14 @@ class Episode:
             "target_change": self.target_change,
             "plant": self.plant,
             "soft_ends": self.soft_ends,
+            "reuses": self.reuses,
+            "rti": self.rti,
         }
 
 
 class MPCController:
-    """Solves one window per step from a provider's warm start; remembers its last plan for the fallback."""
+    """Solves one window per step from a provider's warm start; remembers its last plan for the fallback, plan reuse
+    and real-time iteration (module doc)."""
 
     def __init__(
         self,
@@ -123,6 +151,8 @@ class MPCController:
         mode: Mode = "soft",
         backend: str = "auto",
         end_horizon: int = 0,
+        rti: bool = False,
+        reuse_tol: float | None = REUSE_TOL,
     ) -> None:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
@@ -130,9 +160,16 @@ class MPCController:
             raise ValueError(f"mode must be 'soft' or 'hard', got {mode!r}")
         if end_horizon < 0:
             raise ValueError(f"end_horizon must be >= 0, got {end_horizon}")
+        if reuse_tol is not None and reuse_tol < 0:
+            raise ValueError(f"reuse_tol must be >= 0 or None, got {reuse_tol}")
         self.scenario, self.problem, self.provider = scenario, problem, provider
         self.horizon, self.mode, self.backend, self.end_horizon = horizon, mode, backend, end_horizon
+        self.rti, self.reuse_tol = rti, reuse_tol
+        n = scenario.state_dim
+        self._scale = np.asarray(scenario.state_scale, float) if len(scenario.state_scale) == n else np.ones(n)
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
+        self._last: StepPlan | None = None  # the plan this controller made at the previous step
+        self._own: StepPlan | None = None  # ... if it was solved (no fallback) and executed: reuse / RTI start
 
     def window(self, t: int) -> Window:
         """[t, t + H) truncated at N; the whole rest [t, N) once N − t <= ``end_horizon`` (module doc)."""
@@ -150,10 +187,16 @@ class MPCController:
         return None  # hard: x_N = goal
 
     def solve(
-        self, window: Window, X: np.ndarray, U: np.ndarray, terminal: TerminalCost | None, mode: Mode | None = None
+        self,
+        window: Window,
+        X: np.ndarray,
+        U: np.ndarray,
+        terminal: TerminalCost | None,
+        mode: Mode | None = None,
+        settings: SCPSettings | None = None,
     ) -> SCPResult:
         """The window's SCP in this controller's mode, or in ``mode`` (hard mode solves a window whose goal is out
-        of reach as soft mode does)."""
+        of reach as soft mode does); ``settings`` replace the scenario's (RTI: one iteration)."""
         mode = mode or self.mode
         soft = mode == "soft"
         return solve_scp(
@@ -165,28 +208,60 @@ class MPCController:
             terminal=self._terminal(window, terminal, mode),
             fuel_weight=self.scenario.mpc.fuel if soft else 1.0,
             soft_equalities=soft,
+            settings=settings,
             backend=self.backend,
         )
+
+    def _reuse(self, window: Window, x: np.ndarray) -> StepPlan | None:
+        """The own previous plan's tail when it is this window's optimum (plan reuse, module doc), else None."""
+        prev = self._own
+        if self.reuse_tol is None or prev is None or not prev.converged or not window.reaches_end:
+            return None
+        if len(prev.U) != window.length + 1:
+            return None
+        if np.max(np.abs(x - prev.X[1]) / self._scale) > self.reuse_tol:
+            return None
+        X, U = prev.X[1:].copy(), prev.U[1:].copy()
+        X[0] = x
+        return StepPlan(U[0].copy(), X, U, 0.0, 0.0, 0, False, None, prev.soft_end, reused=True, converged=True)
+
+    def _rti_start(self, window: Window, X: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The own previous solution shifted by one step over the window, its missing tail from the warm start."""
+        assert self._own is not None
+        k = min(len(self._own.U) - 1, window.length)
+        X, U = X.copy(), U.copy()
+        X[1 : k + 1], U[:k] = self._own.X[2 : k + 2], self._own.U[1 : k + 1]
+        return X, U
 
     def plan(self, t: int, x: np.ndarray) -> StepPlan:
         """Warm start + SCP for the window at step t from the measured state x."""
         window = self.window(t)
         t0 = time.perf_counter()
+        reused = self._reuse(window, x)
+        if reused is not None:
+            reused.solve_time = time.perf_counter() - t0
+            self._last = reused
+            return reused
         ws = self.provider.warm_start(window, x)
         t1 = time.perf_counter()
         if ws.X.shape != (window.length + 1, len(x)) or ws.U.shape[0] != window.length:
             raise ValueError(
                 f"{self.provider.name}: warm start shapes {ws.X.shape}, {ws.U.shape} do not fit window {window}"
             )
-        res = self.solve(window, ws.X, ws.U, ws.terminal)
+        X0, U0, settings = ws.X, ws.U, None
+        rti = self.rti and self._own is not None
+        if rti:
+            X0, U0 = self._rti_start(window, ws.X, ws.U)
+            settings = dataclasses.replace(self.scenario.scp, max_iters=1)
+        res = self.solve(window, X0, U0, ws.terminal, settings=settings)
         iterations, soft_end = res.iterations, False
-        if not res.success and self.mode == "hard" and window.reaches_end:
+        if not self._usable(res, rti) and self.mode == "hard" and window.reaches_end:
             # x_N = goal is out of reach (the penalised solve misses it): plan this window as soft mode does (the
             # soft end term) rather than replay the previous plan, which misses it too and is one step staler
-            res = self.solve(window, res.X, res.U, None, mode="soft")
+            res = self.solve(window, res.X, res.U, None, mode="soft", settings=settings)
             iterations, soft_end = iterations + res.iterations, True
         t2 = time.perf_counter()
-        if res.success:
+        if self._usable(res, rti):
             X, U, fallback = res.X, res.U, False
         elif self._plan is not None and len(self._plan[1]) > 1:
             X, U, fallback = self._plan[0][1:], self._plan[1][1:], True
@@ -196,13 +271,22 @@ class MPCController:
         X[0] = x
         target = None if ws.terminal is None else ws.terminal.target
         warm = t1 - t0 if ws.seconds is None else ws.seconds
-        return StepPlan(
-            U[0].copy(), X, np.array(U, dtype=np.float64), warm, t2 - t1, iterations, fallback, target, soft_end
-        )
+        self._last = StepPlan(
+            U[0].copy(), X, np.array(U, dtype=np.float64), warm, t2 - t1, iterations, fallback, target, soft_end,
+            converged=not fallback and res.status is SCPStatus.OPTIMAL,
+        )  # fmt: skip
+        return self._last
+
+    @staticmethod
+    def _usable(res: SCPResult, rti: bool) -> bool:
+        """A converged (or feasible) solve; in RTI any subproblem solution (its violation is corrected later)."""
+        return res.success or (rti and res.best_iteration >= 0)
 
     def observe(self, plan: StepPlan, u: np.ndarray, x_next: np.ndarray) -> None:
         """Record the executed control (which may differ from the plan's, e.g. in DAgger) and the next state."""
         self._plan = (plan.X, plan.U)
+        own = plan is self._last and not plan.fallback and np.array_equal(u, plan.u)
+        self._own = plan if own else None
         self.provider.observe(u, x_next, plan.X, plan.U)
 
 
@@ -257,12 +341,15 @@ def run_mpc(
     plant: PlantNoise | None = None,
     plant_seed: int = 0,
     end_horizon: int = 0,
+    rti: bool = False,
+    reuse_tol: float | None = REUSE_TOL,
 ) -> Episode:
     """Run receding-horizon control from x0 for N steps (or ``max_steps``) on the exact dynamics, or on a perturbed
     plant (``plant``, disturbances seeded by ``plant_seed``: same seed, same disturbances).
 
     ``rel_cost`` is J_REL of the open-loop REL solution: the lower bound of the metrics and the TTO conditioning
-    (rtg_0 = −J_REL). ``end_horizon``: the shrinking end horizon (module doc; 0 = the paper's)."""
+    (rtg_0 = −J_REL). ``end_horizon``: the shrinking end horizon (module doc; 0 = the paper's). ``rti``: real-time
+    iteration; ``reuse_tol``: plan reuse, None = re-solve every step (module doc)."""
     return run_mpc_batch(
         scenario,
         [problem],
@@ -276,6 +363,8 @@ def run_mpc(
         plant=plant,
         plant_seeds=[plant_seed],
         end_horizon=end_horizon,
+        rti=rti,
+        reuse_tol=reuse_tol,
     )[0]
 
 
@@ -293,6 +382,8 @@ def run_mpc_batch(
     plant: PlantNoise | None = None,
     plant_seeds: Sequence[int] | None = None,
     end_horizon: int = 0,
+    rti: bool = False,
+    reuse_tol: float | None = REUSE_TOL,
     on_step: Callable[[], None] | None = None,
 ) -> list[Episode]:
     """``run_mpc`` for B problems (one provider each) in lockstep: at every step all B episodes plan, then all B
@@ -313,7 +404,7 @@ def run_mpc_batch(
     for problem, provider, rel_cost, seed in zip(problems, providers, rel_costs, seeds, strict=True):
         provider.reset(scenario, problem, rel_cost)
         ctrls.append(MPCController(scenario, problem, provider, horizon, mode=mode, backend=backend,
-                                   end_horizon=end_horizon))  # fmt: skip
+                                   end_horizon=end_horizon, rti=rti, reuse_tol=reuse_tol))  # fmt: skip
         sim = Plant(scenario, plant)
         sim.reset(seed)
         sims.append(sim)
@@ -322,7 +413,7 @@ def run_mpc_batch(
     U: list[list[np.ndarray]] = [[] for _ in range(B)]
     warm, solve, iters = np.zeros((B, T)), np.zeros((B, T)), np.zeros((B, T), dtype=int)
     targets: list[list[np.ndarray | None]] = [[] for _ in range(B)]
-    fallbacks, soft_ends = [0] * B, [0] * B
+    fallbacks, soft_ends, reuses = [0] * B, [0] * B, [0] * B
     for t in range(T):
         plans = [ctrl.plan(t, x) for ctrl, x in zip(ctrls, xs, strict=True)]
         for b, plan in enumerate(plans):
@@ -334,6 +425,7 @@ def run_mpc_batch(
             targets[b].append(plan.target)
             fallbacks[b] += plan.fallback
             soft_ends[b] += plan.soft_end
+            reuses[b] += plan.reused
         if on_step is not None:
             on_step()
     perturbed = plant is not None and not plant.nominal
@@ -371,6 +463,8 @@ def run_mpc_batch(
                 target_change=target_change(scenario, targets[b]),
                 plant="perturbed" if perturbed else "nominal",
                 soft_ends=soft_ends[b],
+                reuses=reuses[b],
+                rti=rti,
             )
         )
     return episodes

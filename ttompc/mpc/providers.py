@@ -127,23 +127,27 @@ class TargetFilter:
 
 
 class RemainingREL:
-    """REL over the whole remaining horizon [t, N) from the measured state, each solve started from the previous
-    one's plan shifted by one step (``solve_rel(guess=...)``) instead of the straight line: the same relaxation from
-    a nearby start, about half the time (measured in docs/benchmarks.md, MPC section). ``warm=False`` restarts from
-    the straight line every step. REL-MPC plans with it; TTO-MPC's ``rtg_mode="reanchor"`` reads its cost."""
+    """REL over the whole remaining horizon [t, N) from the measured state, each solve started from the last one's
+    plan shifted to t (``solve_rel(guess=...)``) instead of the straight line: the same relaxation from a nearby
+    start, about half the time (measured in docs/benchmarks.md, MPC section). The shift spans the steps it was not
+    asked for (a controller that reused its plan skips its provider). ``warm=False`` restarts from the straight
+    line every step. REL-MPC plans with it; TTO-MPC's ``rtg_mode="reanchor"`` reads its cost."""
 
     def __init__(self, backend: str = "auto", *, warm: bool = True) -> None:
         self.backend, self.warm = backend, warm
-        self._rel: tuple[np.ndarray, np.ndarray] | None = None
+        self._rel: tuple[int, np.ndarray, np.ndarray] | None = None  # (start step, X, U) of the last solve
 
     def reset(self) -> None:
         self._rel = None
 
     def __call__(self, scenario: Scenario, problem: Problem, t: int, x: np.ndarray) -> SCPResult:
         rest = Window(t, problem.n_steps - t, problem.n_steps)
-        guess = self._rel if self.warm and self._rel is not None and len(self._rel[1]) == rest.length else None
+        guess = None
+        if self.warm and self._rel is not None and 0 < t - self._rel[0] < len(self._rel[2]):
+            start, X, U = self._rel
+            guess = (X[t - start :], U[t - start :])
         rel = solve_rel(scenario, problem, window=rest, x_start=x, guess=guess, backend=self.backend)
-        self._rel = (rel.X[1:], rel.U[1:]) if rel.success and rest.length > 1 else None
+        self._rel = (t, rel.X, rel.U) if rel.success else None
         return rel
 
 
