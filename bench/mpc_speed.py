@@ -18,6 +18,15 @@ time (each episode alone, as the evaluation ran before issue 18) and *after*, al
 serving the others). Each way starts with an empty solver-structure cache, so neither inherits what the other built.
 CPU-seconds are this process's (``time.process_time``), so a loaded machine changes them less than the wall time.
 
+Issue 21 rows, at the first horizon, in the same run: ``REL-MPC[today]`` is REL-MPC re-solving every step (no plan
+reuse, the path before issue 21); ``REL-MPC[rti]`` and ``<TTO>[rti]`` are real-time iteration (one subproblem per step
+from the previous solution shifted; a departure from the paper), beside their converged rows. ``--episode-cost``
+then also runs the batched protocol with ``rti=true``, and its *before* re-solves every step (``reuse=false``).
+
+``--dagger R``: CPU-seconds per DAgger rollout with labels (``collect_rollout``: 100 steps, the learner the
+model, default exploration) for R rollouts, each collected twice in the same run, alternating: the expert
+re-solving every step (before issue 21) and with plan reuse; plus the largest label difference between the two.
+
 ``--quick``: a smoke run (tiny random model, 2 problems, 3 MPC steps, H = 10, with ``--episode-cost``; no result
 file).
 
@@ -27,6 +36,7 @@ Ends with one JSON line, also written to bench/results/mpc_speed.json (not with 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -38,7 +48,10 @@ import torch
 
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, episodes_per_problem, run_problems
 from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.finetune.collect import collect_rollout
+from ttompc.finetune.config import ExplorationConfig
 from ttompc.mpc import DISTProvider, RELProvider, TTOProvider, run_mpc
+from ttompc.mpc.loop import REUSE_TOL
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import Scenario, get_scenario
 from ttompc.solvers.engine import clear_solver_cache
@@ -67,23 +80,58 @@ def random_planner(scenario_name: str, size: str, device: str) -> Planner:
 
 
 def episode_cost(
-    scenario: Scenario, problems: list[EvalProblem], planner: Planner, horizon: int, max_steps: int | None
+    scenario: Scenario,
+    problems: list[EvalProblem],
+    planner: Planner,
+    horizon: int,
+    max_steps: int | None,
+    end_horizon: int = 0,
 ) -> dict[str, float]:
-    """CPU- and wall-seconds per closed-loop episode of the protocol, one problem at a time vs batched (module
-    doc)."""
-    cfg = ClosedLoopConfig(scenario=scenario.name, horizons=[horizon], max_steps=max_steps, batch=len(problems))
+    """CPU- and wall-seconds per closed-loop episode of the protocol: one problem at a time re-solving every step
+    (before issues 18 and 21) vs batched with plan reuse, and batched with real-time iteration (module doc)."""
+    cfg = ClosedLoopConfig(scenario=scenario.name, horizons=[horizon], max_steps=max_steps, batch=len(problems),
+                           end_horizon=end_horizon)  # fmt: skip
     models = {"TTO": planner}
     episodes = len(problems) * episodes_per_problem(cfg, len(models))
-    out: dict[str, float] = {"episodes": episodes}
-    for label, tasks in (("before", [[ep] for ep in problems]), ("after", [problems])):
+    out: dict[str, float] = {"episodes": episodes, "end_horizon": end_horizon}
+    runs = (
+        ("before", [[ep] for ep in problems], dataclasses.replace(cfg, reuse=False)),
+        ("after", [problems], cfg),
+        ("after_rti", [problems], dataclasses.replace(cfg, rti=True)),
+    )
+    for label, tasks, c in runs:
         clear_solver_cache()
         cpu, wall = time.process_time(), time.perf_counter()
         for task in tasks:
-            run_problems(scenario, task, models, cfg)
+            run_problems(scenario, task, models, c)
         out[f"{label}_cpu_s_per_episode"] = (time.process_time() - cpu) / episodes
         out[f"{label}_wall_s_per_episode"] = (time.perf_counter() - wall) / episodes
-    out["cpu_ratio_after_over_before"] = out["after_cpu_s_per_episode"] / out["before_cpu_s_per_episode"]
+    for label in ("after", "after_rti"):
+        out[f"cpu_ratio_{label}_over_before"] = out[f"{label}_cpu_s_per_episode"] / out["before_cpu_s_per_episode"]
     return out
+
+
+def dagger_cost(scenario: Scenario, planner: Planner, rollouts: int, seed: int) -> dict[str, float]:
+    """CPU-seconds per DAgger rollout with labels, the expert re-solving every step vs with plan reuse, alternating
+    per rollout (module doc), and the largest difference between their labels."""
+    cpu = {"before": 0.0, "after": 0.0}
+    diff = 0.0
+    for r in range(rollouts):
+        rows = {}
+        for label, tol in (
+            (("before", None), ("after", REUSE_TOL)) if r % 2 == 0 else (("after", REUSE_TOL), ("before", None))
+        ):
+            t0 = time.process_time()
+            rows[label] = collect_rollout(scenario, planner, 0, r, seed, ExplorationConfig(), reuse_tol=tol)
+            cpu[label] += time.process_time() - t0
+        diff = max(diff, float(np.max(np.abs(rows["after"]["target_actions"] - rows["before"]["target_actions"]))))
+    return {
+        "rollouts": rollouts,
+        "before_cpu_s_per_rollout": cpu["before"] / rollouts,
+        "after_cpu_s_per_rollout": cpu["after"] / rollouts,
+        "cpu_ratio_after_over_before": cpu["after"] / cpu["before"],
+        "max_label_difference": diff,
+    }
 
 
 def main() -> None:
@@ -100,6 +148,8 @@ def main() -> None:
         "--threads", type=int, default=1, help="torch threads (batch-1 rollouts gain nothing from more; see below)"
     )
     ap.add_argument("--episode-cost", action="store_true", help="CPU-seconds per protocol episode, before/after")
+    ap.add_argument("--end-horizon", type=int, default=0, help="end_horizon of the --episode-cost protocol")
+    ap.add_argument("--dagger", type=int, default=0, help="DAgger rollouts to time, before/after (0: none)")
     ap.add_argument("--quick", action="store_true", help="smoke run: tiny model, 2 problems, 3 steps, no result file")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "mpc_speed.json"))
     args = ap.parse_args()
@@ -117,25 +167,31 @@ def main() -> None:
     n_params = sum(p.numel() for p in planner.model.parameters())
     horizons = [int(h) for h in args.horizons.split(",")]
     problems = [eval_problem(sc, args.seed, i, nonconvex_only=True) for i in range(args.problems)]
-    # (provider factory, solver backend); "REL-MPC[conic]" is REL-MPC on the previous default solver path (QOCO/
-    # Clarabel, 2-norm trust region), at the first horizon only, for a same-run speed-up of the solver change
-    providers = {"REL-MPC": (lambda: RELProvider(), "auto"), "DIST-MPC": (lambda: DISTProvider(), "auto"),
-                 name: (lambda: TTOProvider(planner, name), "auto"),
-                 "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic")}  # fmt: skip
+    # (provider factory, solver backend, loop options); the bracketed variants run at the first horizon only:
+    # "[conic]" the previous default solver path (QOCO/Clarabel, 2-norm trust region), "[today]" re-solving every
+    # step (no plan reuse), "[rti]" real-time iteration
+    providers = {"REL-MPC": (lambda: RELProvider(), "auto", {}), "DIST-MPC": (lambda: DISTProvider(), "auto", {}),
+                 name: (lambda: TTOProvider(planner, name), "auto", {}),
+                 "REL-MPC[today]": (lambda: RELProvider(), "auto", {"reuse_tol": None}),
+                 "REL-MPC[rti]": (lambda: RELProvider(), "auto", {"rti": True}),
+                 f"{name}[rti]": (lambda: TTOProvider(planner, name), "auto", {"rti": True}),
+                 "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic", {})}  # fmt: skip
     # warm-up (imports, solver structure caches, torch kernels) outside the timing
-    for make, backend in providers.values():
+    for make, backend, opts in providers.values():
         run_mpc(sc, problems[0].problem, make(), horizons[0], rel_cost=problems[0].rel.cost, max_steps=2,
-                backend=backend)  # fmt: skip
+                backend=backend, **opts)  # fmt: skip
     results: dict[str, dict[str, float]] = {}
     print(f"{sc.name}: {len(problems)} problems, model {model_desc} ({n_params / 1e6:.2f}M params, {args.device})")
     print(f"{'method':>11} {'H':>4} {'mean step [ms]':>15} {'max step [ms]':>14} {'warm [ms]':>10} {'cost':>9}")
     t0 = time.perf_counter()
     for H in horizons:
-        for method, (make, backend) in providers.items():
-            if method.endswith("[conic]") and H != horizons[0]:
+        for method, (make, backend, opts) in providers.items():
+            if method.endswith("]") and H != horizons[0]:
                 continue
             eps = [
-                run_mpc(sc, ep.problem, make(), H, rel_cost=ep.rel.cost, max_steps=args.max_steps, backend=backend)
+                run_mpc(
+                    sc, ep.problem, make(), H, rel_cost=ep.rel.cost, max_steps=args.max_steps, backend=backend, **opts
+                )
                 for ep in problems
             ]
             r = {
@@ -144,6 +200,7 @@ def main() -> None:
                 "mean_warm_s": float(np.mean([e.warm_times.mean() for e in eps])),
                 "cost": float(np.mean([e.cost for e in eps])),
                 "feasible_rate": float(np.mean([e.feasible for e in eps])),
+                "mean_iterations": float(np.mean([e.iterations.mean() for e in eps])),
             }
             results[f"{method}@{H}"] = r
             print(f"{method:>11} {H:>4} {r['mean_step_s'] * 1e3:>15.1f} {r['max_step_s'] * 1e3:>14.1f} "
@@ -159,12 +216,29 @@ def main() -> None:
     if f"REL-MPC[conic]@{h0}" in results:
         speedup = results[f"REL-MPC[conic]@{h0}"]["mean_step_s"] / results[f"REL-MPC@{h0}"]["mean_step_s"]
         print(f"REL-MPC@{h0}: previous conic solver path / default, mean step time {speedup:.2f}x")
+    today = {}
+    for variant in ("REL-MPC", "REL-MPC[rti]", f"{name}[rti]"):
+        ref = results.get(f"{name if variant.startswith(name) else 'REL-MPC[today]'}@{h0}")
+        if ref and f"{variant}@{h0}" in results:
+            today[variant] = results[f"{variant}@{h0}"]["mean_step_s"] / ref["mean_step_s"]
+            print(f"{variant}@{h0} mean step / {'converged' if variant.startswith(name) else 'today'}: "
+                  f"{today[variant]:.2f}x")  # fmt: skip
     cost = None
     if args.episode_cost:
-        cost = episode_cost(sc, problems, planner, h0, args.max_steps)
-        before, after = cost["before_cpu_s_per_episode"], cost["after_cpu_s_per_episode"]
-        print(f"closed-loop episode of the protocol (H = {h0}, {cost['episodes']:.0f} episodes): {before:.2f} CPU-s "
-              f"one problem at a time, {after:.2f} CPU-s batched ({after / before:.2f}x)")  # fmt: skip
+        cost = episode_cost(sc, problems, planner, h0, args.max_steps, args.end_horizon)
+        before = cost["before_cpu_s_per_episode"]
+        print(f"closed-loop episode of the protocol (H = {h0}, end_horizon {args.end_horizon}, "
+              f"{cost['episodes']:.0f} episodes): {before:.2f} CPU-s one problem at a time re-solving every step, "
+              f"{cost['after_cpu_s_per_episode']:.2f} batched with reuse ({cost['cpu_ratio_after_over_before']:.2f}x), "
+              f"{cost['after_rti_cpu_s_per_episode']:.2f} batched RTI "
+              f"({cost['cpu_ratio_after_rti_over_before']:.2f}x)")  # fmt: skip
+    dagger = None
+    if args.dagger:
+        dagger = dagger_cost(sc, planner, args.dagger, args.seed)
+        print(f"DAgger rollout with labels ({args.dagger} rollouts): {dagger['before_cpu_s_per_rollout']:.2f} CPU-s "
+              f"re-solving every step, {dagger['after_cpu_s_per_rollout']:.2f} with plan reuse "
+              f"({dagger['cpu_ratio_after_over_before']:.2f}x; labels differ by <= "
+              f"{dagger['max_label_difference']:.1e})")  # fmt: skip
     summary = {
         "load_average": os.getloadavg(),
         f"rel_mpc{h0}_speedup_vs_conic": speedup,
@@ -177,7 +251,10 @@ def main() -> None:
         "max_steps": args.max_steps,
         "results": results,
         f"ratio_rel30_over_{name.lower().replace('-', '_')}10": ratio,
+        f"ratios_at_h{h0}": today,
         "episode_cost": cost,
+        "dagger": dagger,
+        "load_average_end": os.getloadavg(),
         "wall_s": time.perf_counter() - t0,
         "host": platform.node(),
         "torch_threads": torch.get_num_threads(),
