@@ -32,11 +32,32 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
         assert cfg.dagger.iterations >= 1 and 0 < cfg.data.open_loop_fraction <= 1
         # issue 11: >= 200 rollouts per iteration, >= 3 iterations, the paper's mix (tiny: smoke runs; small: the
         # record of the v1 zoo models)
-        if path.stem in ("finetune", "finetune-zoo-v2"):
+        if path.stem in ("finetune", "finetune-zoo-v2", "finetune-zoo-v3"):
             d = cfg.dagger
             assert d.collect.rollouts >= 200 and d.iterations >= 3, path
             assert cfg.data.closed_loop_share == "grow" and cfg.data.open_loop_fraction == 0.9, path
             assert d.eval.problems >= 8, path  # the keep/reject decision needs more than a handful of problems
+        if path.stem == "finetune-zoo-v3":  # the keep/reject decision under the settings the zoo's cards report
+            assert cfg.dagger.eval.end_horizon == 30 and cfg.dagger.collect.workers == 1, path
+
+
+def test_eval_end_horizon_reaches_the_closed_loop_measurement(monkeypatch: pytest.MonkeyPatch) -> None:
+    """dagger.eval.end_horizon is what the keep/reject measurement runs with; a negative one is a config error."""
+    import ttompc.mpc.metrics as metrics
+    from ttompc.finetune.loop import measure
+
+    seen: dict[str, object] = {}
+
+    def fake(planner, problems, horizon, **kwargs):  # type: ignore[no-untyped-def]
+        seen.update(kwargs, horizon=horizon)
+        return {"feasible_rate": 1.0}, []
+
+    monkeypatch.setattr(metrics, "closed_loop_metrics", fake)
+    cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml")
+    assert measure(cfg, object(), []) == {"feasible_rate": 1.0}  # type: ignore[arg-type]
+    assert seen["end_horizon"] == 30 and seen["horizon"] == 10
+    with pytest.raises((ConfigError, ValueError), match="end_horizon"):
+        load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml", ["dagger.eval.end_horizon=-1"])
 
 
 @pytest.mark.parametrize(

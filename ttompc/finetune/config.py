@@ -69,10 +69,15 @@ class EvalConfig:
     horizon: int = 10
     max_steps: int | None = None  # MPC steps per episode (None: whole episodes)
     seed: int = 0  # root seed of the evaluation problems (the evaluation stream: disjoint from rollouts and data)
+    # windows run to N once N - t <= end_horizon (0: the paper's fixed H); the zoo's closed-loop protocol uses 30, so
+    # the keep-only-if-better decision can be made under the settings the cards report (docs/evaluation.md)
+    end_horizon: int = 0
 
     def __post_init__(self) -> None:
         if self.problems < 1 or self.horizon < 1:
             raise ValueError("dagger.eval.problems and dagger.eval.horizon must be >= 1")
+        if self.end_horizon < 0:
+            raise ValueError(f"dagger.eval.end_horizon must be >= 0, got {self.end_horizon}")
 
 
 @dataclass

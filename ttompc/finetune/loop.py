@@ -135,7 +135,14 @@ def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) 
     e, c = cfg.dagger.eval, cfg.dagger.collect
     with single_torch_thread():
         metrics, _ = closed_loop_metrics(
-            planner, problems, e.horizon, max_steps=e.max_steps, mode=c.mode, backend=c.backend, progress="measure"
+            planner,
+            problems,
+            e.horizon,
+            max_steps=e.max_steps,
+            mode=c.mode,
+            backend=c.backend,
+            progress="measure",
+            end_horizon=e.end_horizon,
         )
     return metrics
 
