@@ -92,7 +92,7 @@ def detours(scenario: Scenario, ep: EvalProblem, count: int) -> list[tuple[np.nd
     random direction z per detour), REL's controls; drawn from the problem's seed, so they are reproducible."""
     X, U = ep.rel.X, ep.rel.U
     n = X.shape[1]
-    scale = np.asarray(scenario.state_scale, float) if len(scenario.state_scale) == n else np.ones(n)
+    scale = scenario.state_units()
     bump = np.sin(np.pi * np.arange(len(X)) / (len(X) - 1))[:, None]
     g = rng(ep.seed, ORACLE_STREAM)
     out = []

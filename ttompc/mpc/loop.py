@@ -165,8 +165,7 @@ class MPCController:
         self.scenario, self.problem, self.provider = scenario, problem, provider
         self.horizon, self.mode, self.backend, self.end_horizon = horizon, mode, backend, end_horizon
         self.rti, self.reuse_tol = rti, reuse_tol
-        n = scenario.state_dim
-        self._scale = np.asarray(scenario.state_scale, float) if len(scenario.state_scale) == n else np.ones(n)
+        self._scale = scenario.state_units()
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
         self._last: StepPlan | None = None  # the plan this controller made at the previous step
         self._own: StepPlan | None = None  # ... if it was solved (no fallback) and executed: reuse / RTI start
@@ -321,8 +320,7 @@ def episode_metrics(
 
 def target_change(scenario: Scenario, targets: list[np.ndarray | None]) -> float:
     """Mean ‖(x̄_t − x̄_{t−1}) / state_scale‖₂ over consecutive steps that both have a terminal target."""
-    n = scenario.state_dim
-    scale = np.asarray(scenario.state_scale, dtype=np.float64) if len(scenario.state_scale) == n else np.ones(n)
+    scale = scenario.state_units()
     d = [np.linalg.norm((b - a) / scale) for a, b in itertools.pairwise(targets) if a is not None and b is not None]
     return float(np.mean(d)) if d else float("nan")
 

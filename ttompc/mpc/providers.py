@@ -534,8 +534,7 @@ class OracleProvider:
         self.scenario, self.problem = scenario, problem
         X, U = self._given if self._given is not None else full_horizon_plan(scenario, problem, self.backend)
         self.X, self.U = np.array(X, dtype=np.float64), np.array(U, dtype=np.float64)
-        n = scenario.state_dim
-        self._scale = np.asarray(scenario.state_scale, float) if len(scenario.state_scale) == n else np.ones(n)
+        self._scale = scenario.state_units()
         self.replans = 0
         self.target.reset()
 

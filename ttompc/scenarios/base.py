@@ -296,6 +296,12 @@ class Scenario(abc.ABC):
         """Window states under the trust region: all free states (1..H−1, plus H when the terminal is soft)."""
         return np.arange(1, window.length + (0 if hard_terminal else 1))
 
+    def state_units(self) -> np.ndarray:
+        """``state_scale`` as an array (ones where the scenario gives none): the per-state units in which distances
+        between states are measured (plan reuse, target change, oracle detours)."""
+        n = self.state_dim
+        return np.asarray(self.state_scale, dtype=np.float64) if len(self.state_scale) == n else np.ones(n)
+
     @abc.abstractmethod
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
         """Number of violated keep-out constraints at each state of X (T, n) whose first index is ``start``: (T,)
