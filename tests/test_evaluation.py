@@ -76,6 +76,27 @@ def test_paper_normalisation_uses_problems_feasible_for_every_method() -> None:
     assert rows[("REL-MPC", 10)]["problems"] == 2 and rows[("REL-MPC", 10)]["paper_norm"]["n"] == 2
 
 
+def test_closed_loop_rows_pair_each_method_with_rel_mpc_on_the_problems_both_ran_feasibly() -> None:
+    """The per-method means average different feasible sets; the paired column does not (issue 17's comparison)."""
+    from ttompc.evaluation.closed_loop import format_table, summarize
+
+    common = {"mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0, "target_change": 0.1,
+              "terminal_error": 0.0, "plant": "perturbed"}  # fmt: skip
+    costs = {"REL-MPC": [2.0, 2.0, None, 3.0], "TTO-MPC": [1.5, 2.5, 9.0, 2.0], "ORACLE-MPC": [1.2, 1.4, 1.5, 1.3]}
+    recs = [
+        {**common, **_rec(p, m, c if c is not None else 0.5, feasible=c is not None),
+         "rel_increment": (c - 1.0) if c is not None else float("nan")}
+        for m, cs in costs.items() for p, c in enumerate(cs)
+    ]  # fmt: skip
+    rows = {r["method"]: r for r in summarize(recs)}
+    # TTO's own mean (3.75 - 1) counts problem 2, which REL-MPC missed; paired: (-0.5 + 0.5 - 1) / 3 on 0, 1, 3
+    assert rows["TTO-MPC"]["rel_increment"]["mean"] == pytest.approx(2.75)
+    assert rows["TTO-MPC"]["vs_rel_mpc"]["n"] == 3
+    assert rows["TTO-MPC"]["vs_rel_mpc"]["mean"] == pytest.approx(-1 / 3)
+    assert "vs_rel_mpc" not in rows["REL-MPC"]
+    assert "-33.3 ± " in format_table(list(rows.values())) and "(3)" in format_table(list(rows.values()))
+
+
 def test_share_of_reachable_gain() -> None:
     base, model, ceil = np.array([2.0, 3.0, 9.0]), np.array([1.5, 2.0, np.nan]), np.array([1.0, 1.0, 1.0])
     g = gain_share(base, model, ceil, seed=0)  # problem 2 (model unsolved) is dropped: (2.5 − 1.75)/(2.5 − 1)

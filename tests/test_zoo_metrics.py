@@ -50,7 +50,7 @@ MPC = {
         _row("nominal", "REL-MPC", 4, 0.9, paper_norm=_iv(0.7)),
         _row("nominal", "TTO-MPC", 2, 0.5),
         _row("nominal", "R-TTO-MPC", 0, float("nan")),
-        _row("perturbed", "TTO-MPC", 3, 0.6),
+        _row("perturbed", "TTO-MPC", 3, 0.6, vs_rel_mpc=_iv(-0.06, 0.3)),
         _row("nominal", "DIST-MPC", 4, 1.2),
     ],
 }
@@ -69,6 +69,9 @@ def test_metrics_are_the_reports_numbers_with_their_command() -> None:
     assert m["mpc10_nominal_model_feasible_rate"]["value"] == pytest.approx(0.5)
     assert m["mpc10_nominal_rel_paper_norm"]["value"] == pytest.approx(0.7)
     assert m["mpc10_perturbed_model_rel_increment"]["value"] == pytest.approx(0.6)
+    assert m["mpc10_perturbed_model_vs_rel_mpc"]["value"] == pytest.approx(-0.06)
+    assert m["mpc10_perturbed_model_vs_rel_mpc_se"]["value"] == pytest.approx(0.3)
+    assert "paired difference to REL-MPC" in m["mpc10_perturbed_model_vs_rel_mpc"]["how"]
     # an undefined mean (no feasible run) is not a value; its feasible rate (0) is
     assert "mpc10_nominal_robust_rel_increment" not in m
     assert m["mpc10_nominal_robust_feasible_rate"]["value"] == 0
