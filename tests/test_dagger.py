@@ -38,7 +38,8 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
             assert cfg.data.closed_loop_share == "grow" and cfg.data.open_loop_fraction == 0.9, path
             assert d.eval.problems >= 8, path  # the keep/reject decision needs more than a handful of problems
         if path.stem == "finetune-zoo-v3":  # the keep/reject decision under the settings the zoo's cards report
-            assert cfg.dagger.eval.end_horizon == 30 and cfg.dagger.collect.workers == 1, path
+            card_end_horizon = {"freeflyer": 30, "quadrotor": 30, "rpod": 0}[path.parent.name]
+            assert cfg.dagger.eval.end_horizon == card_end_horizon and cfg.dagger.collect.workers == 1, path
 
 
 def test_eval_end_horizon_reaches_the_closed_loop_measurement(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -162,6 +163,7 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
 
     planner = mpc_fakes.tiny_planner()
     planner = Planner(planner.model, planner.scenario, NormStats.from_dict(load_manifest(dataset)["norm_stats"]))
+    planner.extra["rtg_scale"] = 1.2  # the source's conditioning, as a published zoo model records it
     source = str(planner.save(tmp_path / "pretrained"))
     run = tmp_path / "run"
     cfg = _config(dataset, run)
@@ -175,6 +177,7 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
         metrics = real_measure(cfg, planner, problems)
         it = planner.extra.get("dagger_iteration", -1)
         measured.append(it)
+        assert planner.rtg_scale == 1.2, it  # every candidate is measured at its source's conditioning
         if it >= 0:
             metrics.update(infeasible=0.0, cost_increment=increments[it])
         else:
@@ -244,6 +247,7 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     # the exported model is the kept iteration 0, not the rejected last one
     exported, kept = Planner.from_pretrained(run / "planner"), Planner.from_pretrained(state["best"]["planner"])
     assert exported.extra["dagger_iteration"] == 0 and exported.extra["dagger_kept"] == [0]
+    assert exported.rtg_scale == 1.2
     for (name, a), b in zip(exported.model.state_dict().items(), kept.model.state_dict().values(), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0, msg=name)
     rejected = Planner.from_pretrained(it1["planner"])

@@ -52,6 +52,7 @@ if TYPE_CHECKING:
 STATE_FILE = "dagger_state.json"
 SOURCE_PLANNER = "source-planner"
 PLANNER = "planner"  # the exported, selected model
+INHERITED_EXTRA = ("rtg_scale",)  # bundle metadata a fine-tuned model keeps from its source
 
 
 class FinetuneError(UserError, ValueError):
@@ -293,7 +294,13 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
         step = _train_iteration(cfg, i, source_planner, parent, dirs, logger, ckpt)
         if ranks.is_main:
             candidate = Planner.from_pretrained(ckpt, scenario)
-            candidate.extra.update(source="ttompc finetune", dagger_iteration=i, finetuned_from=str(source))
+            # the candidate plans with its source's conditioning (rtg_0 = -rtg_scale * J_REL, chosen for the
+            # source and recorded in its bundle): measured against the source at the same rtg_scale, and exported
+            # with it; without this a candidate of a model shipped at rtg_scale 1.15 was measured at 1.0
+            inherited = {k: source_planner.extra[k] for k in INHERITED_EXTRA if k in source_planner.extra}
+            candidate.extra.update(
+                source="ttompc finetune", dagger_iteration=i, finetuned_from=str(source), **inherited
+            )
             out = candidate.save(run / f"iter-{i:03d}" / "planner")
             status(f"ttompc finetune: measuring iteration {i} against {_model_name(parent['iteration'])}")
             measured = measure(cfg, candidate, problems)
