@@ -7,7 +7,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ttompc.policy.stats import NormStats
-from ttompc.scenarios import get_scenario
+from ttompc.scenarios import Window, get_scenario
+from ttompc.solvers import solve_rel
+from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -42,3 +44,38 @@ def tiny_toy_planner(seed: int = 0) -> Planner:
     torch.manual_seed(seed)
     cfg = ModelConfig(n_embd=32, n_layer=2, n_head=2, max_steps=12, dropout=0.0)
     return Planner(TrajectoryGPT(cfg).eval(), get_scenario("toy"), toy_stats(seed))
+
+
+def qp_subproblem(name: str, seed: int, window: Window, obstacles: bool, penalized: bool, delta: float):
+    """(scenario, spec, data) of a subproblem linearised about a perturbed REL solution (so that linearisations,
+    slacks and the trust region all matter), with the structure the engine would build."""
+    sc = get_scenario(name)
+    p = sc.sample(np.random.default_rng(seed))
+    rel = solve_rel(sc, p, backend="clarabel")
+    rng = np.random.default_rng(seed + 100)
+    X = rel.X[window.start : window.stop + 1] + rng.normal(scale=0.02, size=(window.length + 1, sc.state_dim))
+    U = rel.U[window.start : window.stop]
+    X[0] = rel.X[window.start]
+    model = sc.convex_model(p, window, X, U)
+    blocks = sc.constraints(p, window, X, U, obstacles=obstacles)
+    spec = SubproblemSpec(
+        H=window.length,
+        n=sc.state_dim,
+        m=sc.control_dim,
+        cost_norm=sc.cost_norm,
+        fuel_weight=1.0,
+        penalized=penalized,
+        virtual_control=penalized and not sc.exact_linear_dynamics,
+        vc_rows=tuple(sc.approximate_rows),
+        trust="linf",
+        terminal="hard",
+        soft_equalities=False,
+        penalty=sc.scp.penalty,
+        blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+        tr_states=tuple(range(1, window.length)),
+        state_scale=sc.state_scale,
+        control_scale=sc.control_scale,
+        model_masks=SubproblemSpec.model_signature(model),
+    )
+    data = SubproblemData(X[0], model, blocks, X, delta, p.goal, None, None)
+    return sc, spec, data

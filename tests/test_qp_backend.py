@@ -7,50 +7,16 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import qp_subproblem
 
 from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
 from ttompc.solvers import TerminalCost, solve_rel, solve_scp
 from ttompc.solvers.engine import AssembledSolver, get_solver
 from ttompc.solvers.naive import NaiveCvxpySolver
 from ttompc.solvers.qp import PIQPSolver, is_qp
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+from ttompc.solvers.subproblem import SubproblemSpec
 
 pytest.importorskip("piqp")  # the optional fast extra
-
-
-def _subproblem(name: str, seed: int, window: Window, obstacles: bool, penalized: bool, delta: float):
-    """A subproblem linearised about a perturbed REL solution (so that linearisations, slacks and the trust region
-    all matter), with the structure the engine would build."""
-    sc = get_scenario(name)
-    p = sc.sample(np.random.default_rng(seed))
-    rel = solve_rel(sc, p, backend="clarabel")
-    rng = np.random.default_rng(seed + 100)
-    X = rel.X[window.start : window.stop + 1] + rng.normal(scale=0.02, size=(window.length + 1, sc.state_dim))
-    U = rel.U[window.start : window.stop]
-    X[0] = rel.X[window.start]
-    model = sc.convex_model(p, window, X, U)
-    blocks = sc.constraints(p, window, X, U, obstacles=obstacles)
-    spec = SubproblemSpec(
-        H=window.length,
-        n=sc.state_dim,
-        m=sc.control_dim,
-        cost_norm=sc.cost_norm,
-        fuel_weight=1.0,
-        penalized=penalized,
-        virtual_control=penalized and not sc.exact_linear_dynamics,
-        vc_rows=tuple(sc.approximate_rows),
-        trust="linf",
-        terminal="hard",
-        soft_equalities=False,
-        penalty=sc.scp.penalty,
-        blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
-        tr_states=tuple(range(1, window.length)),
-        state_scale=sc.state_scale,
-        control_scale=sc.control_scale,
-        model_masks=SubproblemSpec.model_signature(model),
-    )
-    data = SubproblemData(X[0], model, blocks, X, delta, p.goal, None, None)
-    return sc, spec, data
 
 
 CASES = [
@@ -66,7 +32,7 @@ CASES = [
 
 @pytest.mark.parametrize(("name", "window", "obstacles", "penalized"), CASES)
 def test_qp_matches_conic_and_cvxpy(name, window, obstacles, penalized) -> None:
-    sc, spec, data = _subproblem(name, 3, window, obstacles, penalized, delta=0.3)
+    sc, spec, data = qp_subproblem(name, 3, window, obstacles, penalized, delta=0.3)
     assert is_qp(spec)
     X, U, qp = PIQPSolver(spec).solve(data)
     _, Uc, conic = AssembledSolver(spec, ["clarabel"]).solve(data)
@@ -94,8 +60,8 @@ def test_qp_matches_conic_and_cvxpy(name, window, obstacles, penalized) -> None:
 
 def test_in_place_updates_give_the_fresh_optimum() -> None:
     """One solver reused across different data (as inside SCP) gives the optimum of a freshly built one."""
-    _, spec, d1 = _subproblem("freeflyer", 5, Window(0, 100, 100), True, True, delta=0.5)
-    _, spec2, d2 = _subproblem("freeflyer", 8, Window(0, 100, 100), True, True, delta=0.1)
+    _, spec, d1 = qp_subproblem("freeflyer", 5, Window(0, 100, 100), True, True, delta=0.5)
+    _, spec2, d2 = qp_subproblem("freeflyer", 8, Window(0, 100, 100), True, True, delta=0.1)
     assert spec == spec2
     reused = PIQPSolver(spec)
     reused.solve(d1)
@@ -106,7 +72,7 @@ def test_in_place_updates_give_the_fresh_optimum() -> None:
 
 
 def test_fallback_on_numerical_failure() -> None:
-    _, spec, data = _subproblem("quadrotor", 2, Window(0, 100, 100), True, True, delta=0.3)
+    _, spec, data = qp_subproblem("quadrotor", 2, Window(0, 100, 100), True, True, delta=0.3)
     solver = PIQPSolver(spec, fallback=lambda: AssembledSolver(spec, ["clarabel"]))
     solver.solve(data)
     solver.solver.settings.max_iter = 1  # PIQP now stops unsolved: the conic solver takes over
@@ -171,7 +137,7 @@ def test_piqp_alone_rejects_cones() -> None:
 @pytest.mark.parametrize("penalized", [True, False])
 def test_equality_blocks_match_conic(penalized) -> None:
     """Waypoint-type equality rows (hard, or with e± slacks when penalised) give the conic assembly's optimum."""
-    _, spec, data = _subproblem("freeflyer", 4, Window(0, 100, 100), True, penalized, delta=0.5)
+    _, spec, data = qp_subproblem("freeflyer", 4, Window(0, 100, 100), True, penalized, delta=0.5)
     Gx = np.zeros((1, 2, 6))
     Gx[0, 0, 0] = Gx[0, 1, 1] = 1.0
     wp = ConstraintBlock("wp", BlockKind.EQ, np.array([40]), Gx, None, data.X_ref[40:41, :2] + 0.02)

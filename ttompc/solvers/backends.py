@@ -186,14 +186,14 @@ class QOCOBackend:
 
 
 BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "qoco": QOCOBackend}
-QP_BACKENDS = ("piqp", "osqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
+QP_BACKENDS = ("riccati", "piqp", "osqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
 
 
 def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPBackend | QOCOBackend:
     try:
         cls = BACKENDS[name]
     except KeyError:
-        known = sorted([*BACKENDS, "piqp", "auto", "conic", "cvxpy-naive"])
+        known = sorted([*BACKENDS, "piqp", "riccati", "auto", "conic", "cvxpy-naive"])
         raise ValueError(f"unknown solver backend {name!r}; choose from {known}") from None
     return cls(sub)
 

@@ -15,6 +15,8 @@ from ttompc.scenarios.base import BlockKind, ConstraintBlock, Problem, Scenario,
 from ttompc.solvers.backends import QP_BACKENDS, BackendSolution, make_backend
 from ttompc.solvers.qp import PIQPSolver, SubproblemSolver, is_qp
 from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
+from ttompc.solvers.riccati import RiccatiSolver
+from ttompc.solvers.riccati import supports as riccati_supports
 from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
 
 
@@ -49,7 +51,13 @@ def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
     """``auto`` = the scenario's ``auto_backends`` (default: PIQP on the compact QP wherever the subproblem has
     no cone, else QOCO, with Clarabel as the fallback on a numerical failure); ``conic`` = QOCO then Clarabel on
     every subproblem (the default before the QP path, kept for comparisons); both restricted to installed solvers.
-    Other names alone."""
+    ``riccati`` = the stage-wise interior-point kernel (``riccati.py``) ahead of the ``auto`` chain where that chain
+    starts with PIQP, the ``auto`` chain elsewhere. Other names alone."""
+    if name == "riccati":
+        if not _installed("numba"):
+            raise ValueError("backend 'riccati' needs numba: pip install 'ttompc[fast]'")
+        chain = backend_chain("auto", scenario)
+        return ["riccati", *chain] if chain[0] == "piqp" else chain
     if name == "auto":
         chain = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
     elif name == "conic":
@@ -86,22 +94,29 @@ def get_solver(spec: SubproblemSpec, backend: str, scenario: Scenario | None = N
     key = (spec, chain)
     solver = _CACHE.get(key)
     if solver is None:
-        conic = tuple(b for b in chain if b != "piqp") or ("clarabel",)
-        if chain == ("cvxpy-naive",):
-            from ttompc.solvers.naive import NaiveCvxpySolver
-
-            solver = NaiveCvxpySolver(spec)
-        elif chain[0] == "piqp" and (is_qp(spec) or len(chain) == 1):  # a lone "piqp" rejects cones itself
-            fallback = (lambda: AssembledSolver(spec, conic)) if len(chain) > 1 else None
-            solver = PIQPSolver(spec, fallback)
+        if chain[0] == "riccati" and riccati_supports(spec):
+            rest = chain[1:]
+            solver = RiccatiSolver(spec, lambda: _build(spec, rest))
         else:
-            solver = AssembledSolver(spec, conic)
+            solver = _build(spec, tuple(b for b in chain if b != "riccati"))
         _CACHE[key] = solver
         if len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)
     else:
         _CACHE.move_to_end(key)
     return solver
+
+
+def _build(spec: SubproblemSpec, chain: tuple[str, ...]) -> SubproblemSolver:
+    conic = tuple(b for b in chain if b != "piqp") or ("clarabel",)
+    if chain == ("cvxpy-naive",):
+        from ttompc.solvers.naive import NaiveCvxpySolver
+
+        return NaiveCvxpySolver(spec)
+    if chain[0] == "piqp" and (is_qp(spec) or len(chain) == 1):  # a lone "piqp" rejects cones itself
+        fallback = (lambda: AssembledSolver(spec, conic)) if len(chain) > 1 else None
+        return PIQPSolver(spec, fallback)
+    return AssembledSolver(spec, conic)
 
 
 def run_scp(

@@ -1,0 +1,196 @@
+"""The Riccati interior-point backend (``backend="riccati"``): its kernel against a dense KKT solve and Clarabel on
+small stage QPs, its stage-wise form against PIQP on the engine's subproblems, whole REL + SCP solves against the
+default path, the fallback, and where the chain takes it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cvxpy as cp
+import numpy as np
+import pytest
+from helpers import qp_subproblem
+
+from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
+from ttompc.solvers import TerminalCost, solve_problem, solve_scp
+from ttompc.solvers import engine as engine_module
+from ttompc.solvers import riccati as riccati_module
+from ttompc.solvers.engine import backend_chain, get_solver
+from ttompc.solvers.qp import PIQPSolver
+from ttompc.solvers.riccati import RiccatiSolver, supports
+from ttompc.solvers.subproblem import SubproblemSpec
+
+pytest.importorskip("numba")  # the optional fast extra
+pytest.importorskip("piqp")
+
+
+def _random_stage_qp(seed: int, N: int = 6, n: int = 3, nu: int = 2):
+    rng = np.random.default_rng(seed)
+    A = np.eye(n) + 0.1 * rng.normal(size=(N, n, n))
+    B = rng.normal(size=(N, n, nu))
+    c = 0.1 * rng.normal(size=(N, n))
+    Qd = rng.uniform(0.5, 2.0, size=(N + 1, n + nu))
+    q = rng.normal(size=(N + 1, n + nu))
+    return A, B, c, rng.normal(size=n), Qd, q
+
+
+def _kernel(args, boxes, rows, n, nu):
+    from ttompc.solvers.riccati_kernel import compiled
+
+    A, B, c, x0, Qd, q = args
+    N = A.shape[0]
+    y, pi = np.zeros((N + 1, n + nu)), np.zeros((N, n))
+    full = (A, B, c, x0, Qd, q, *boxes, *rows, y, pi, 1e-10, 1e-11, 100, n, nu)
+    code = compiled(n, nu, full)(*full)[0]
+    return code, y
+
+
+def _no_rows(width: int = 1):
+    return np.zeros(0, np.int64), np.zeros((0, width), np.int64), np.zeros((0, width)), np.zeros(0), np.zeros(0)
+
+
+def test_kernel_without_constraints_is_the_kkt_solution() -> None:
+    """No inequalities: one Newton step; the dense KKT system of the equality-constrained QP gives the same y."""
+    n, nu, N = 3, 2, 6
+    args = _random_stage_qp(0, N, n, nu)
+    A, B, c, x0, Qd, q = args
+    boxes = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0))
+    code, y = _kernel(args, boxes, _no_rows(), n, nu)
+    assert code == 0
+    # dense KKT over z = [y_0 .. y_N] (the last stage's u is the kernel's dummy: fixed to 0 here too)
+    ny, nz = n + nu, (N + 1) * (n + nu)
+    H, g = np.diag(Qd.ravel()), q.ravel().copy()
+    E, e = [], []
+    for k in range(N):  # x_{k+1} − A x_k − B u_k = c_k
+        row = np.zeros((n, nz))
+        row[:, k * ny : k * ny + n] = -A[k]
+        row[:, k * ny + n : (k + 1) * ny] = -B[k]
+        row[:, (k + 1) * ny : (k + 1) * ny + n] = np.eye(n)
+        E.append(row)
+        e.append(c[k])
+    fix = np.zeros((n + nu, nz))
+    fix[:n, :n] = np.eye(n)
+    fix[n:, N * ny + n :] = np.eye(nu)
+    E.append(fix)
+    e.append(np.concatenate([x0, np.zeros(nu)]))
+    E, e = np.vstack(E), np.concatenate(e)
+    kkt = np.block([[H, E.T], [E, np.zeros((len(e), len(e)))]])
+    z = np.linalg.solve(kkt, np.concatenate([-g, e]))[:nz]
+    np.testing.assert_allclose(y.ravel(), z, atol=1e-8)
+
+
+def test_kernel_with_boxes_and_soft_rows_matches_clarabel() -> None:
+    """Hard boxes, soft boxes (an L1 term) and soft two-variable rows: the optimum of an independent cvxpy model."""
+    n, nu, N = 3, 2, 6
+    args = _random_stage_qp(1, N, n, nu)
+    A, B, c, x0, Qd, q = args
+    rng = np.random.default_rng(2)
+    ks = np.repeat(np.arange(1, N + 1), 2)
+    bk = np.concatenate([ks, np.arange(N), np.arange(N)])
+    bj = np.concatenate([np.zeros(2 * N, np.int64), np.full(N, n), np.full(N, n)])
+    bs = np.concatenate([np.tile([1.0, -1.0], N), np.ones(N), -np.ones(N)])
+    bd = np.concatenate([np.full(2 * N, 0.4), np.zeros(2 * N)])
+    brho = np.concatenate([np.zeros(2 * N), np.full(2 * N, 0.7)])  # hard |x[0]| ≤ 0.4, then 0.7·|u[0]|
+    rk = np.arange(1, N)
+    ri = np.tile([1, 2], (N - 1, 1))
+    rg = rng.normal(size=(N - 1, 2))
+    rd = rng.uniform(-0.2, 0.2, size=N - 1)
+    rrho = np.full(N - 1, 3.0)
+    code, y = _kernel(args, (bk, bj, bs, bd, brho), (rk, ri, rg, rd, rrho), n, nu)
+    assert code == 0
+    Y = cp.Variable((N + 1, n + nu))
+    cons = [Y[0, :n] == x0, Y[N, n:] == 0]
+    cons += [Y[k + 1, :n] == A[k] @ Y[k, :n] + B[k] @ Y[k, n:] + c[k] for k in range(N)]
+    cons += [bs[i] * Y[bk[i], bj[i]] <= bd[i] for i in range(len(bk)) if brho[i] == 0]
+    soft = sum(brho[i] * cp.pos(bs[i] * Y[bk[i], bj[i]] - bd[i]) for i in range(len(bk)) if brho[i] > 0)
+    soft += sum(rrho[i] * cp.pos(rg[i] @ Y[rk[i], ri[i]] - rd[i]) for i in range(len(rk)))
+    obj = 0.5 * cp.sum(cp.multiply(Qd, cp.square(Y))) + cp.sum(cp.multiply(q, Y)) + soft
+    cp.Problem(cp.Minimize(obj), cons).solve(solver=cp.CLARABEL)
+    np.testing.assert_allclose(y, Y.value, atol=1e-5)
+    assert np.max(np.abs(y[1:, 0])) <= 0.4 + 1e-9  # the hard boxes hold
+    assert np.isclose(np.max(np.abs(y[1:, 0])), 0.4)  # and one of them is active
+
+
+CASES = [
+    ("freeflyer", Window(0, 100, 100), True),
+    ("freeflyer", Window(0, 100, 100), False),
+    ("freeflyer", Window(60, 40, 100), True),
+    ("quadrotor", Window(0, 100, 100), True),
+    ("quadrotor", Window(0, 100, 100), False),
+]
+
+
+@pytest.mark.parametrize(("name", "window", "obstacles"), CASES)
+def test_stage_form_matches_piqp(name, window, obstacles) -> None:
+    sc, spec, data = qp_subproblem(name, 3, window, obstacles, True, delta=0.3)
+    assert supports(spec)
+    X, U, sol = RiccatiSolver(spec).solve(data)
+    _, Up, ref = PIQPSolver(spec).solve(data)
+    assert sol.ok and sol.status.startswith("RICCATI_SOLVED"), sol.status
+    assert sol.objective == pytest.approx(ref.objective, rel=1e-6, abs=1e-9)
+    assert sc.cost(U) == pytest.approx(sc.cost(Up), rel=1e-5, abs=1e-8)
+    # a solution of the subproblem: initial state, dynamics on the rows without virtual control, trust region
+    np.testing.assert_allclose(X[0], data.x_start, atol=1e-12)
+    m = data.model
+    exact = np.setdiff1d(np.arange(6), spec.virtual_rows()) if spec.virtual_control else np.arange(6)
+    pred = np.einsum("hij,hj->hi", m.A, X[:-1]) + np.einsum("hij,hj->hi", m.B, U) + m.c
+    np.testing.assert_allclose(X[1:, exact], pred[:, exact], atol=1e-7)
+    assert np.max(np.abs(X[1:-1] - data.X_ref[1:-1])) <= data.delta + 1e-7
+
+
+def test_penalised_equality_rows_match_piqp() -> None:
+    _, spec, data = qp_subproblem("freeflyer", 4, Window(0, 100, 100), True, True, delta=0.5)
+    Gx = np.zeros((1, 2, 6))
+    Gx[0, 0, 0] = Gx[0, 1, 1] = 1.0
+    wp = ConstraintBlock("wp", BlockKind.EQ, np.array([40]), Gx, None, data.X_ref[40:41, :2] + 0.02)
+    data = dataclasses.replace(data, blocks=[*data.blocks, wp])
+    spec = dataclasses.replace(spec, blocks=(*spec.blocks, SubproblemSpec.block_signature(wp)))
+    _, _, sol = RiccatiSolver(spec).solve(data)
+    _, _, ref = PIQPSolver(spec).solve(data)
+    assert sol.ok and sol.objective == pytest.approx(ref.objective, rel=1e-6)
+
+
+@pytest.mark.parametrize("name", ["freeflyer", "quadrotor"])
+def test_rel_and_scp_take_the_default_paths_iterates(name) -> None:
+    """Whole solves: the same number of subproblems and the same costs as the default (PIQP) path, feasible."""
+    sc = get_scenario(name)
+    for seed in (1, 2):
+        p = sc.sample(np.random.default_rng(seed))
+        rel_a, scp_a = solve_problem(sc, p)
+        rel_r, scp_r = solve_problem(sc, p, backend="riccati")
+        assert scp_a is not None and scp_r is not None and scp_r.success
+        assert all("RICCATI" in h.solver_status for h in rel_r.history + scp_r.history)
+        assert (rel_r.iterations, scp_r.iterations) == (rel_a.iterations, scp_a.iterations)
+        assert scp_r.cost == pytest.approx(scp_a.cost, rel=1e-6)
+        assert scp_r.violation <= sc.scp.feas_tol  # (L1 optima need not be unique: states are not compared)
+
+
+def test_fallback_when_the_kernel_does_not_converge(monkeypatch) -> None:
+    _, spec, data = qp_subproblem("freeflyer", 2, Window(0, 100, 100), True, True, delta=0.3)
+    monkeypatch.setattr(riccati_module, "MAX_ITER", 3)
+    solver = RiccatiSolver(spec, fallback=lambda: PIQPSolver(spec))
+    X, _, sol = solver.solve(data)
+    assert X is not None and sol.ok
+    assert sol.status.startswith("RICCATI_MAX_ITER") and sol.status.endswith("-> Status.PIQP_SOLVED")
+    ref = PIQPSolver(spec).solve(data)[2]
+    assert sol.objective == pytest.approx(ref.objective, rel=1e-9)
+
+
+def test_where_the_chain_takes_it(monkeypatch) -> None:
+    ff, rp = get_scenario("freeflyer"), get_scenario("rpod")
+    assert backend_chain("riccati", ff)[:2] == ["riccati", "piqp"]
+    assert backend_chain("riccati", rp) == backend_chain("auto", rp)  # RPOD's subproblems have cones
+    # the reference formulation (hard terminal equality) is not a stage-wise QP here: PIQP takes it
+    _, spec, _ = qp_subproblem("freeflyer", 3, Window(0, 100, 100), True, False, delta=0.3)
+    assert not supports(spec)
+    assert isinstance(get_solver(spec, "riccati", ff), PIQPSolver)
+    p = ff.sample(np.random.default_rng(0))
+    rel, scp = solve_problem(ff, p, backend="riccati", formulation="reference")
+    assert scp is not None and scp.success and not any("RICCATI" in h.solver_status for h in scp.history)
+    # an MPC window's soft terminal term is a cone: the conic chain
+    w = Window(0, 10, 100)
+    res = solve_scp(ff, p, rel.X[:11], rel.U[:10], window=w, terminal=TerminalCost(rel.X[10], 1.0), backend="riccati")
+    assert res.success and not any("RICCATI" in h.solver_status for h in res.history)
+    monkeypatch.setattr(engine_module, "_installed", lambda module: module != "numba")
+    with pytest.raises(ValueError, match="needs numba"):
+        backend_chain("riccati", ff)

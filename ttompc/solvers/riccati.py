@@ -1,0 +1,243 @@
+"""The penalised SCP subproblem in stage-wise form, solved by a Riccati interior-point method (``riccati_kernel``):
+backend ``"riccati"``, opt-in, needs numba (the ``fast`` extra).
+
+It poses the optimisation problem of ``qp.QPSubproblem`` stage by stage instead of as one sparse QP, in the same
+non-dimensionalised variables (x/state_scale, u/control_scale), so the two backends reach the same optima:
+
+* stage k holds y_k = [x_k, u_k, ν_k] (ν: virtual control on ``spec.vc_rows``, a column of B equal to 1);
+* the L1 fuel cost, the virtual control and the penalised terminal condition are soft boxes with zero width
+  (ρ·|v| = ρ·dist(v, [0, 0])), the quadratic cost a diagonal stage Hessian;
+* the ∞-norm trust region and hard rows on one variable are boxes, other rows dense per stage (normalised so
+  every row's penalty reads in its own units); a two-sided row is two one-sided rows, each with its own slack, as
+  the QP's e⁺/e⁻ pair; penalised equality rows are two-sided with lower = upper;
+* x_0 is fixed, so rows on x_0 alone are constants and dropped.
+
+Where the kernel does not converge the same data goes to ``fallback`` (the PIQP chain), so the backend never
+returns less than PIQP would.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ttompc.scenarios.base import BlockKind
+from ttompc.solvers.backends import BackendSolution
+from ttompc.solvers.qp import SubproblemSolver, is_qp
+from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec, structural_mask
+
+TOL = 1e-8  # residuals of the scaled problem (PIQP's eps_abs)
+GAP_TOL = 1e-9  # total complementarity = duality gap: the SCP's stopping rule compares merits to 1e-6
+MAX_ITER = 100
+
+
+def supports(spec: SubproblemSpec) -> bool:
+    """The stage-wise form needs soft (penalised) equalities and terminal condition: the kernel has no equality
+    rows besides the dynamics."""
+    return is_qp(spec) and spec.penalized
+
+
+@dataclass
+class _BlockMap:
+    """Where one scenario block's rows go: rows touching one variable become boxes, the rest sparse rows."""
+
+    is_eq: bool
+    two_sided: bool
+    rho: float  # exact-penalty weight (0: hard)
+    steps: np.ndarray  # (K,)
+    live: np.ndarray  # (K, M) rows kept (not on x_0 alone)
+    single: np.ndarray  # (M,) rows with one structural nonzero
+    col: np.ndarray  # (M,) that nonzero's column in [x, u]
+    mask: np.ndarray  # (M, n + m) structural nonzeros
+    cols: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.int64))  # (M, width) sparse row columns
+    valid: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), bool))  # (M, width) real (not padding)
+
+
+class StageQP:
+    """Index maps from ``SubproblemData`` to the kernel's arrays for one structure (see the module docstring)."""
+
+    def __init__(self, spec: SubproblemSpec) -> None:
+        if not supports(spec):
+            raise ValueError("the riccati backend solves penalised QP subproblems only (no cones, formulation "
+                             "'penalized'); use backend='piqp' or 'auto'")  # fmt: skip
+        self.spec = spec
+        H, n, m = spec.H, spec.n, spec.m
+        self.sx = np.asarray(spec.state_scale or np.ones(n), dtype=np.float64)
+        self.su = np.asarray(spec.control_scale or np.ones(m), dtype=np.float64)
+        self.vr = spec.virtual_rows() if spec.virtual_control else np.zeros(0, np.int64)
+        self.nu = m + len(self.vr)
+        ny = n + self.nu
+        self.a_scale = self.sx[None, :] / self.sx[:, None]  # A in scaled variables: diag(1/sx) A diag(sx)
+        self.b_scale = self.su[None, :] / self.sx[:, None]
+        self.B = np.zeros((H, n, self.nu))
+        self.B[:, self.vr, m + np.arange(len(self.vr))] = 1.0
+        self.Qd = np.zeros((H + 1, ny))
+        self.Qd[H, n:] = 1.0  # the last stage's dummy control
+        if spec.cost_norm == "quad":
+            self.Qd[:H, n : n + m] = spec.fuel_weight * self.su**2
+        self.q = np.zeros((H + 1, ny))
+        # constant soft zero boxes: the L1 fuel cost and the virtual control
+        ks, js, rho = [], [], []
+        if spec.cost_norm == "l1":
+            ks.append(np.repeat(np.arange(H), m))
+            js.append(np.tile(n + np.arange(m), H))
+            rho.append(np.tile(spec.fuel_weight * self.su, H))
+        if len(self.vr):
+            ks.append(np.repeat(np.arange(H), len(self.vr)))
+            js.append(np.tile(n + m + np.arange(len(self.vr)), H))
+            rho.append(np.tile(spec.penalty * self.sx[self.vr], H))
+        k0 = np.concatenate(ks) if ks else np.zeros(0, np.int64)
+        j0 = np.concatenate(js) if js else np.zeros(0, np.int64)
+        r0 = np.concatenate(rho) if rho else np.zeros(0)
+        self.n_zero = 2 * len(k0)
+        # boxes whose places are fixed: zero boxes (±v ≤ 0), the terminal condition (±x_H ≤ ±goal), the trust
+        # region (±x_k ≤ ±x̄_k + δ, hard); only their right-hand sides change (``arrays``)
+        self.tr_steps = np.asarray(spec.tr_states if spec.trust == "linf" else (), dtype=np.int64)
+        T = len(self.tr_steps)
+        both = np.array([1.0, -1.0])
+        self._box_k = np.concatenate([np.tile(k0, 2), np.full(2 * n, H), np.repeat(np.tile(self.tr_steps, 2), n)])
+        self._box_j = np.concatenate([np.tile(j0, 2), np.tile(np.arange(n), 2), np.tile(np.arange(n), 2 * T)])
+        self._box_s = np.concatenate([np.repeat(both, len(k0)), np.repeat(both, n), np.repeat(both, T * n)])
+        self._box_rho = np.concatenate([np.tile(r0, 2), np.tile(spec.penalty * self.sx, 2), np.zeros(2 * T * n)])
+        self.blocks = [self._block_map(sig) for sig in spec.blocks]
+        # general rows are stored sparse: the structural columns of each row, padded to the widest row
+        self.width = max([1] + [int(b.mask.sum(axis=1).max()) for b in self.blocks if len(b.mask)])
+        for b in self.blocks:
+            order = np.argsort(~b.mask, axis=1, kind="stable")[:, : self.width]  # structural columns first
+            b.cols = order
+            b.valid = np.take_along_axis(b.mask, order, axis=1)
+
+    def _block_map(self, sig: tuple) -> _BlockMap:
+        spec, n, m = self.spec, self.spec.n, self.spec.m
+        name, kind, steps, M, has_u, soft, _, two_sided, gx_mask, gu_mask = sig
+        steps = np.asarray(steps, dtype=np.int64)
+        if has_u and len(steps) and steps.max() >= spec.H:
+            raise ValueError(f"block {name!r} puts control rows on step {steps.max()} >= window length {spec.H}")
+        mask = np.hstack([structural_mask(gx_mask, (M, n)),
+                          structural_mask(gu_mask, (M, m)) if has_u else np.zeros((M, m), bool)])  # fmt: skip
+        is_eq = BlockKind(kind) is BlockKind.EQ
+        live = np.ones((len(steps), M), bool)
+        live[steps == 0] = mask[:, n:].any(axis=1)  # rows on x_0 alone are constants (x_0 is fixed): dropped
+        return _BlockMap(
+            is_eq=is_eq,
+            two_sided=bool(two_sided) or is_eq,
+            rho=spec.penalty if (spec.penalized and (soft or is_eq)) else 0.0,
+            steps=steps,
+            live=live,
+            single=mask.sum(axis=1) == 1,
+            col=np.argmax(mask, axis=1),
+            mask=mask,
+        )
+
+    def arrays(self, data: SubproblemData) -> tuple:
+        """The kernel's problem arrays for one iteration's data."""
+        n, m, sx, su = self.spec.n, self.spec.m, self.sx, self.su
+        A = np.ascontiguousarray(data.model.A * self.a_scale)
+        B = self.B.copy()
+        B[:, :, :m] = data.model.B * self.b_scale
+        c = data.model.c / sx
+        goal = data.goal / sx
+        ref = data.X_ref[self.tr_steps] / sx  # (T, n); an infinite δ gives infinite bounds, dropped below
+        half = data.delta / sx
+        d = np.concatenate([np.zeros(self.n_zero), goal, -goal, (ref + half).ravel(), (half - ref).ravel()])
+        boxes = [(self._box_k, self._box_j, self._box_s, d, self._box_rho)]
+        rows = []
+        for b, block in zip(self.blocks, data.blocks, strict=True):
+            K, M = block.h.shape
+            G = np.zeros((K, M, n + m))
+            G[:, :, :n] = block.Gx * sx
+            if block.Gu is not None:
+                G[:, :, n:] = block.Gu * su
+            upper = block.h
+            lower = block.h if b.is_eq or block.lower is None else block.lower  # (used where two-sided)
+            kk = np.broadcast_to(b.steps[:, None], (K, M))
+            # boxes: the row's one variable, scaled by its coefficient g (sign and size may change per iteration)
+            sel = b.live & b.single[None, :]
+            if sel.any():
+                g = np.take_along_axis(G, np.broadcast_to(b.col[None, :, None], (K, M, 1)), axis=2)[..., 0][sel]
+                ok = g != 0.0
+                g, ag = g[ok], np.abs(g[ok])
+                kb, jb = kk[sel][ok], np.broadcast_to(b.col[None, :], (K, M))[sel][ok]
+                boxes.append((kb, jb, np.sign(g), upper[sel][ok] / ag, b.rho * ag))
+                if b.two_sided:
+                    boxes.append((kb, jb, -np.sign(g), -lower[sel][ok] / ag, b.rho * ag))
+            sel = b.live & ~b.single[None, :]
+            if sel.any():
+                g = np.take_along_axis(G, np.broadcast_to(b.cols[None], (K, M, self.width)), axis=2)
+                g = (g * b.valid[None])[sel]  # (R, width)
+                cols = np.broadcast_to(b.cols[None], (K, M, self.width))[sel]
+                norm = np.linalg.norm(g, axis=1)
+                norm[norm == 0.0] = 1.0
+                g /= norm[:, None]
+                rows.append((kk[sel], cols, g, upper[sel] / norm, b.rho * norm))
+                if b.two_sided:
+                    rows.append((kk[sel], cols, -g, -lower[sel] / norm, b.rho * norm))
+        bk, bj, bs, bd, brho = (np.concatenate(parts) for parts in zip(*boxes, strict=True))
+        keep = np.isfinite(bd)
+        bk, bj, bs, bd, brho = bk[keep].astype(np.int64), bj[keep].astype(np.int64), bs[keep], bd[keep], brho[keep]
+        if rows:
+            rk, ri, rg, rd, rrho = (np.concatenate(parts) for parts in zip(*rows, strict=True))
+            keep = np.isfinite(rd)
+            rk, ri, rg, rd, rrho = (rk[keep].astype(np.int64), np.ascontiguousarray(ri[keep], dtype=np.int64),
+                                    np.ascontiguousarray(rg[keep]), rd[keep], rrho[keep])  # fmt: skip
+        else:
+            rk, ri, rg = np.zeros(0, np.int64), np.zeros((0, self.width), np.int64), np.zeros((0, self.width))
+            rd, rrho = np.zeros(0), np.zeros(0)
+        return A, B, c, data.x_start / sx, self.Qd, self.q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho
+
+    def objective(self, y: np.ndarray, arrays: tuple) -> float:
+        """The subproblem's objective at y (the QP's, up to the constant penalties of rows on x_0 alone)."""
+        *_, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho = arrays
+        value = float(np.sum(0.5 * Qd * y**2 + q * y))
+        value += float(brho @ np.maximum(bs * y[bk, bj] - bd, 0.0))
+        value += float(rrho @ np.maximum(np.sum(rg * y[rk[:, None], ri], axis=1) - rd, 0.0))
+        return value
+
+
+class RiccatiSolver:
+    """``StageQP`` + the compiled kernel; a solve that does not converge goes to ``fallback`` (if given)."""
+
+    name = "riccati"
+
+    def __init__(self, spec: SubproblemSpec, fallback: Callable[[], SubproblemSolver] | None = None) -> None:
+        self._kernel: Callable | None = None  # the compiled kernel for this structure's sizes, on the first solve
+        self.stage = StageQP(spec)
+        self._make_fallback = fallback
+        self._fallback: SubproblemSolver | None = None
+
+    def restart(self) -> None:
+        """Nothing to forget: every solve starts from the data's trust-region centre."""
+        if self._fallback is not None:
+            self._fallback.restart()
+
+    def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
+        t0 = time.perf_counter()
+        st, spec = self.stage, self.stage.spec
+        arrays = st.arrays(data)
+        y = np.zeros((spec.H + 1, spec.n + st.nu))
+        y[:, : spec.n] = data.X_ref / st.sx
+        pi = np.zeros((spec.H, spec.n))
+        args = (*arrays, y, pi, TOL, GAP_TOL, MAX_ITER, spec.n, st.nu)
+        if self._kernel is None:
+            from ttompc.solvers.riccati_kernel import compiled
+
+            self._kernel = compiled(spec.n, st.nu, tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args))
+        code, iters, res, gap = self._kernel(*args)
+        name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[code]
+        status = f"{name} ({iters} it, residual {res:.1e}, gap {gap:.1e})"
+        ok = code in (0, 3)
+        sol = BackendSolution(None, st.objective(y, arrays) if ok else np.nan, ok, False, status,
+                              time.perf_counter() - t0)  # fmt: skip
+        if ok:
+            return y[:, : spec.n] * st.sx, y[: spec.H, spec.n : spec.n + spec.m] * st.su, sol
+        if self._make_fallback is None:
+            return None, None, sol
+        if self._fallback is None:
+            self._fallback = self._make_fallback()
+        X_fb, U_fb, fb = self._fallback.solve(data)
+        fb.solve_time += sol.solve_time
+        fb.status = f"{status} -> {fb.status}"
+        return X_fb, U_fb, fb
