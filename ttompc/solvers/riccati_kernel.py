@@ -63,8 +63,8 @@ def solve_stage_qp(
     """Solve in place from the primal guess ``y`` (N+1, NX+NU) and multipliers ``pi`` (N, NX) of the dynamics.
 
     Returns (status, iterations, max residual, duality gap): status 0 converged (residuals ≤ tol, total
-    complementarity ≤ gap_tol), 1 iteration limit, 2 numerical breakdown (a non-finite step), 3 breakdown within
-    100× both tolerances (the last finite iterate is returned: accurate enough for the SCP's 1e-6 merit test)."""
+    complementarity ≤ gap_tol), 1 iteration limit, 2 numerical breakdown (a non-finite step), 3 stalled or broke
+    down within 100× both tolerances (the best iterate is returned: accurate enough for the SCP's 1e-6 merit test)."""
     NX = literally(NX)
     NU = literally(NU)
     return _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, tol, gap_tol, max_iter, NX, NU)
@@ -117,8 +117,9 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
     dpi = np.zeros((N, n))
     PA, PB, Ruu = np.zeros((n, n)), np.zeros((n, nu)), np.zeros((nu, nu))
     tmp, tu = np.zeros(n), np.zeros(nu)
-    res = gap = last_res = last_gap = np.inf
-    y_last, pi_last = y.copy(), pi.copy()  # the last finite iterate
+    res = gap = best_res = best_gap = best = np.inf
+    y_best, pi_best = y.copy(), pi.copy()  # the iterate closest to the tolerances, by max(res/tol, gap/gap_tol)
+    stale = 0  # iterations since it last improved
     for it in range(max_iter):
         # ---------------------------------------------------------------------------------------------- residuals
         for k in range(N + 1):
@@ -167,15 +168,22 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
             res = max(res, np.max(np.abs(rs_b)), np.max(np.abs(re_b)))
         if nr:
             res = max(res, np.max(np.abs(rs_r)), np.max(np.abs(re_r)))
-        if not np.isfinite(res + mu):  # breakdown (near the optimum: the Newton system's conditioning)
-            y[:, :] = y_last
-            pi[:, :] = pi_last
-            return (3 if last_res <= 100 * tol and last_gap <= 100 * gap_tol else 2), it, last_res, last_gap
         if res <= tol and gap <= gap_tol:
             return 0, it, res, gap
-        y_last[:, :] = y
-        pi_last[:, :] = pi
-        last_res, last_gap = res, gap
+        # Near the optimum the Newton systems lose accuracy (weights λ/s → 0 or ∞): the residual can stall or grow
+        # while the gap falls, up to a non-finite step. Keep the best iterate; stop with it once it is within 100×
+        # both tolerances and has not improved for 3 iterations, or on a breakdown.
+        score = max(res / tol, gap / gap_tol)
+        if score < best:
+            best, best_res, best_gap, stale = score, res, gap, 0
+            y_best[:, :] = y
+            pi_best[:, :] = pi
+        else:
+            stale += 1
+        if not np.isfinite(score) or (stale >= 3 and best <= 100.0):
+            y[:, :] = y_best
+            pi[:, :] = pi_best
+            return (3 if best <= 100.0 else 2), it, best_res, best_gap
         # ---------------------------------------------------------------------------------------------- factorise
         for i in range(nb):
             il_b[i] = 1.0 / l_b[i]
@@ -327,8 +335,10 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
             e_r[i] += alpha * de_r[i]
             m_r[i] += alpha * dm_r[i]
         _values(y, bk, bj, bs, rk, ri, rg, a_b, a_r)
-    if last_res <= 100 * tol and last_gap <= 100 * gap_tol:
-        return 3, max_iter, last_res, last_gap
+    if best <= 100.0:
+        y[:, :] = y_best
+        pi[:, :] = pi_best
+        return 3, max_iter, best_res, best_gap
     return 1, max_iter, res, gap
 
 
