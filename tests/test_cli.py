@@ -50,7 +50,7 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
     [
         (["solve", "--scenario", "nope"], ["unknown scenario 'nope'", "freeflyer, quadrotor, rpod"]),
         (["solve", "scenario=nope"], ["unknown scenario 'nope'"]),
-        (["solve", "--backend", "gurobi"], ["unknown solver backend 'gurobi'", "clarabel"]),
+        (["solve", "--backend", "gurobi"], ["unknown solver backend 'gurobi'", "clarabel", "riccati", "piqp"]),
         (["solve", "--seed", "-1"], ["seed must be a non-negative integer"]),
         (["solve", "sead=3"], ["unknown setting 'sead'", "valid keys: scenario, seed"]),
         (["generate", "--scenario", "nope", "--out", "out"], ["unknown scenario 'nope'"]),

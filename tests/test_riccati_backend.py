@@ -194,3 +194,17 @@ def test_where_the_chain_takes_it(monkeypatch) -> None:
     monkeypatch.setattr(engine_module, "_installed", lambda module: module != "numba")
     with pytest.raises(ValueError, match="needs numba"):
         backend_chain("riccati", ff)
+
+
+def test_cli_solve_with_the_riccati_backend(tmp_path) -> None:
+    """`ttompc solve --backend riccati` as a user runs it: the default path's optimum."""
+    import json
+
+    from test_cli import ttompc
+
+    res = ttompc("solve", "--scenario", "quadrotor", "--backend", "riccati", "--json", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    scp = json.loads(res.stdout)["results"]["SCP"]
+    sc = get_scenario("quadrotor")
+    _, ref = solve_problem(sc, sc.sample(np.random.default_rng(0)))
+    assert ref is not None and scp["status"] == "optimal" and scp["cost"] == pytest.approx(ref.cost, rel=1e-6)

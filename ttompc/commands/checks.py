@@ -20,12 +20,16 @@ def scenario(spec: str) -> Scenario:
 
 
 def backend(name: str | None) -> None:
-    """``name`` must be ``auto``, a convex backend of ``ttompc.solvers.backends`` or the naive cvxpy baseline."""
-    from ttompc.solvers.backends import BACKENDS
+    """``name`` must be one of ``ttompc.solvers.backends.BACKEND_NAMES``, with its solver installed."""
+    import importlib.util
 
-    valid = ["auto", *sorted(BACKENDS), "cvxpy-naive"]
-    if name is not None and name not in valid:
-        raise UserError(f"unknown solver backend {name!r}", f"choose one of: {', '.join(valid)}")
+    from ttompc.solvers.backends import BACKEND_NAMES
+
+    if name is not None and name not in BACKEND_NAMES:
+        raise UserError(f"unknown solver backend {name!r}", f"choose one of: {', '.join(BACKEND_NAMES)}")
+    for needs, module in (("riccati", "numba"), ("piqp", "piqp"), ("qoco", "qoco")):
+        if name == needs and importlib.util.find_spec(module) is None:
+            raise UserError(f"solver backend {name!r} needs {module}, which is not installed", "install ttompc[fast]")
 
 
 def seed(value: int, key: str = "seed") -> None:

@@ -34,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--scenario", help="a name (`ttompc solve --list`), module:Class or path/to/file.py:Class (default freeflyer)"
     )
     p.add_argument("--seed", type=int, help="problem seed (default 0)")
-    p.add_argument("--backend", help="auto|clarabel|osqp|piqp|qoco|cvxpy-naive (default auto)")
+    p.add_argument("--backend", help="auto|conic|riccati|piqp|clarabel|osqp|qoco|cvxpy-naive (default auto)")
     p.add_argument("--formulation", choices=["penalized", "reference"])
     p.add_argument("--plot", metavar="PNG", help="save a plot of the REL and SCP trajectories")
     p.add_argument("--json", action="store_true", help="print the results as JSON")

@@ -187,14 +187,15 @@ class QOCOBackend:
 
 BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "qoco": QOCOBackend}
 QP_BACKENDS = ("riccati", "piqp", "osqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
+# every name ``backend=`` takes: the chains (``engine.backend_chain``), the solvers, and the naive cvxpy baseline
+BACKEND_NAMES = ("auto", "conic", "riccati", "piqp", *BACKENDS, "cvxpy-naive")
 
 
 def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPBackend | QOCOBackend:
     try:
         cls = BACKENDS[name]
     except KeyError:
-        known = sorted([*BACKENDS, "piqp", "riccati", "auto", "conic", "cvxpy-naive"])
-        raise ValueError(f"unknown solver backend {name!r}; choose from {known}") from None
+        raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}") from None
     return cls(sub)
 
 
