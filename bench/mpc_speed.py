@@ -27,6 +27,9 @@ then also runs the batched protocol with ``rti=true``, and its *before* re-solve
 model, default exploration) for R rollouts, each collected twice in the same run, alternating: the expert
 re-solving every step (before issue 21) and with plan reuse; plus the largest label difference between the two.
 
+With numba installed, ``REL-MPC[riccati]`` (and a third DAgger timing) run the opt-in Riccati interior-point
+backend (``backend="riccati"``) on the same problems.
+
 ``--quick``: a smoke run (tiny random model, 2 problems, 3 MPC steps, H = 10, with ``--episode-cost``; no result
 file).
 
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import json
 import os
 import platform
@@ -55,6 +59,8 @@ from ttompc.mpc.loop import REUSE_TOL
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import Scenario, get_scenario
 from ttompc.solvers.engine import clear_solver_cache
+
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 SIZES = {
     "paper": {},
@@ -114,24 +120,34 @@ def episode_cost(
 def dagger_cost(scenario: Scenario, planner: Planner, rollouts: int, seed: int) -> dict[str, float]:
     """CPU-seconds per DAgger rollout with labels, the expert re-solving every step vs with plan reuse, alternating
     per rollout (module doc), and the largest difference between their labels."""
-    cpu = {"before": 0.0, "after": 0.0}
-    diff = 0.0
+    runs = [("before", None, "auto"), ("after", REUSE_TOL, "auto")]
+    if HAVE_NUMBA:
+        runs.append(("riccati", REUSE_TOL, "riccati"))
+    cpu = {label: 0.0 for label, _, _ in runs}
+    diff = {label: 0.0 for label, _, _ in runs[1:]}
     for r in range(rollouts):
         rows = {}
-        for label, tol in (
-            (("before", None), ("after", REUSE_TOL)) if r % 2 == 0 else (("after", REUSE_TOL), ("before", None))
-        ):
+        for label, tol, backend in runs[r % len(runs) :] + runs[: r % len(runs)]:  # rotate who goes first
             t0 = time.process_time()
-            rows[label] = collect_rollout(scenario, planner, 0, r, seed, ExplorationConfig(), reuse_tol=tol)
+            rows[label] = collect_rollout(
+                scenario, planner, 0, r, seed, ExplorationConfig(), reuse_tol=tol, backend=backend
+            )
             cpu[label] += time.process_time() - t0
-        diff = max(diff, float(np.max(np.abs(rows["after"]["target_actions"] - rows["before"]["target_actions"]))))
-    return {
+        for label in diff:
+            d = np.max(np.abs(rows[label]["target_actions"] - rows["before"]["target_actions"]))
+            diff[label] = max(diff[label], float(d))
+    out = {
         "rollouts": rollouts,
         "before_cpu_s_per_rollout": cpu["before"] / rollouts,
         "after_cpu_s_per_rollout": cpu["after"] / rollouts,
         "cpu_ratio_after_over_before": cpu["after"] / cpu["before"],
-        "max_label_difference": diff,
+        "max_label_difference": diff["after"],
     }
+    if "riccati" in cpu:
+        out["riccati_cpu_s_per_rollout"] = cpu["riccati"] / rollouts
+        out["cpu_ratio_riccati_over_before"] = cpu["riccati"] / cpu["before"]
+        out["max_label_difference_riccati"] = diff["riccati"]
+    return out
 
 
 def main() -> None:
@@ -176,6 +192,8 @@ def main() -> None:
                  "REL-MPC[rti]": (lambda: RELProvider(), "auto", {"rti": True}),
                  f"{name}[rti]": (lambda: TTOProvider(planner, name), "auto", {"rti": True}),
                  "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic", {})}  # fmt: skip
+    if HAVE_NUMBA:  # "[riccati]": the Riccati interior-point backend wherever the subproblem is a penalised QP
+        providers["REL-MPC[riccati]"] = (lambda: RELProvider(backend="riccati"), "riccati", {})
     # warm-up (imports, solver structure caches, torch kernels) outside the timing
     for make, backend, opts in providers.values():
         run_mpc(sc, problems[0].problem, make(), horizons[0], rel_cost=problems[0].rel.cost, max_steps=2,
@@ -220,7 +238,7 @@ def main() -> None:
         speedup = results[f"REL-MPC[conic]@{h0}"]["mean_step_s"] / results[f"REL-MPC@{h0}"]["mean_step_s"]
         print(f"REL-MPC@{h0}: previous conic solver path / default, mean step time {speedup:.2f}x")
     today = {}
-    for variant in ("REL-MPC", "REL-MPC[rti]", f"{name}[rti]"):
+    for variant in ("REL-MPC", "REL-MPC[rti]", "REL-MPC[riccati]", f"{name}[rti]"):
         ref = results.get(f"{name if variant.startswith(name) else 'REL-MPC[today]'}@{h0}")
         if ref and f"{variant}@{h0}" in results:
             today[variant] = results[f"{variant}@{h0}"]["cpu_s_per_step"] / ref["cpu_s_per_step"]
@@ -242,6 +260,10 @@ def main() -> None:
               f"re-solving every step, {dagger['after_cpu_s_per_rollout']:.2f} with plan reuse "
               f"({dagger['cpu_ratio_after_over_before']:.2f}x; labels differ by <= "
               f"{dagger['max_label_difference']:.1e})")  # fmt: skip
+        if "riccati_cpu_s_per_rollout" in dagger:
+            print(f"  with backend riccati: {dagger['riccati_cpu_s_per_rollout']:.2f} CPU-s "
+                  f"({dagger['cpu_ratio_riccati_over_before']:.2f}x; labels differ by <= "
+                  f"{dagger['max_label_difference_riccati']:.1e})")  # fmt: skip
     summary = {
         "load_average": os.getloadavg(),
         f"rel_mpc{h0}_speedup_vs_conic": speedup,

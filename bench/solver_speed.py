@@ -1,13 +1,19 @@
 """SCP engine speed and robustness, measured against baselines and a peer in the same run.
 
 1. Peer (free-flyer, quadrotor; the same seeded problems, interleaved): REL + SCP with the default backend (PIQP on
-   the compact QP, ∞-norm trust region), the previous default (``backend="conic"``: QOCO/Clarabel, 2-norm trust
+   the compact QP, ∞-norm trust region), the opt-in Riccati interior-point backend (``backend="riccati"``, where
+   numba is installed), the previous default (``backend="conic"``: QOCO/Clarabel, 2-norm trust
    region) and IPOPT through CasADi, built once as parametric NLPs with ``expand=True`` (REL, then the full problem
    from the REL solution; ``bench/ipopt_peer.py``, needs the ``peer`` extra). Median time per problem, iterations
    (SCP subproblems / IPOPT iterations), costs relative to IPOPT's.
-2. Robustness (free-flyer and quadrotor, 200 seeded problems each): failures of the default; for the free-flyer also
-   the reference formulation (hard linearised constraints) and its costs where both succeed.
-3. Naive baseline (every scenario, a few problems): time per SCP iteration of the default vs rebuilding a cvxpy
+2. Robustness (free-flyer and quadrotor, 200 seeded problems each): failures of the default and of the Riccati
+   backend; for the free-flyer also the reference formulation (hard linearised constraints) and its costs where both
+   succeed.
+3. Subproblems (free-flyer, quadrotor; ``--only subproblems``): every subproblem of REL + SCP on a few seeded
+   problems, recorded from the default path and re-solved in the same order by PIQP (as the engine calls it: one
+   solver per structure, updated in place) and by the Riccati backend: CPU-ms per subproblem, interior-point
+   iterations, the largest objective difference.
+4. Naive baseline (every scenario, a few problems): time per SCP iteration of the default vs rebuilding a cvxpy
    problem from per-timestep constraint lists every iteration (the reference's approach), and the cost difference.
 
 Ends with one JSON line of headline figures, also written to bench/results/solver_speed.json.
@@ -16,6 +22,7 @@ Ends with one JSON line of headline figures, also written to bench/results/solve
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import platform
@@ -32,6 +39,7 @@ from ttompc.solvers.engine import backend_chain, default_trust_norm
 sys.path.insert(0, str(Path(__file__).parent))  # bench/ipopt_peer.py
 
 PEER_SCENARIOS = ("freeflyer", "quadrotor")
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 
 def run_set(scenario, seeds, **kw) -> dict:
@@ -86,8 +94,8 @@ def speed(name: str, n_problems: int, n_naive: int) -> dict:
     return row
 
 
-def robustness(name: str, n: int, reference: bool) -> dict:
-    """Failures of the default (penalized formulation, default backend) on seeds 0..n−1; with ``reference`` also the
+def robustness(name: str, n: int, reference: bool, backend: str = "auto") -> dict:
+    """Failures of the penalized formulation with ``backend`` on seeds 0..n−1; with ``reference`` also the
     hard-constraint formulation and the costs where both succeed."""
     scenario = get_scenario(name)
     out: dict = {}
@@ -95,7 +103,7 @@ def robustness(name: str, n: int, reference: bool) -> dict:
         costs, fails, its = [], [], []
         for seed in range(n):
             p = scenario.sample(np.random.default_rng(seed))
-            rel, scp = solve_problem(scenario, p, formulation=form)
+            rel, scp = solve_problem(scenario, p, formulation=form, backend=backend)
             good = scp is not None and scp.success
             costs.append(scp.cost if good else np.nan)
             its.append(rel.iterations + (scp.iterations if scp else 0))
@@ -109,7 +117,7 @@ def robustness(name: str, n: int, reference: bool) -> dict:
             "costs": np.array(costs),
         }
     a = out["penalized"].pop("costs")
-    msg = f"[robustness, {name}, {n} problems] failures: penalized {out['penalized']['failures']}"
+    msg = f"[robustness, {name}, {backend}, {n} problems] failures: penalized {out['penalized']['failures']}"
     if reference:
         b = out["reference"].pop("costs")
         both = np.isfinite(a) & np.isfinite(b)
@@ -134,6 +142,8 @@ def peer(name: str, n: int) -> dict:
         "conic": lambda p: _ours(scenario, p, "conic"),
         "ipopt": lambda p: _ipopt(ipopt, scenario, p),
     }
+    if HAVE_NUMBA:
+        runners["riccati"] = lambda p: _ours(scenario, p, "riccati")
     warm = scenario.sample(np.random.default_rng(10_000))
     for run in runners.values():  # imports, structure caches, CasADi code generation outside the timing
         run(warm)
@@ -141,7 +151,7 @@ def peer(name: str, n: int) -> dict:
     order = list(runners)
     for i in range(n):
         p = scenario.sample(np.random.default_rng(i))
-        for k in order[i % 3 :] + order[: i % 3]:  # rotate who goes first
+        for k in order[i % len(order) :] + order[: i % len(order)]:  # rotate who goes first
             rows[k].append(runners[k](p))
     out: dict = {"scenario": name, "problems": n, "backend": "+".join(backend_chain("auto", scenario))}
     cost = {}
@@ -154,16 +164,14 @@ def peer(name: str, n: int) -> dict:
             "mean_iterations": float(its.mean()),
             "failures": int((~ok).sum()),
         }
-    both = np.isfinite(cost["ours"]) & np.isfinite(cost["ipopt"])
-    rel = (cost["ours"][both] - cost["ipopt"][both]) / cost["ipopt"][both]
     out["speedup_vs_ipopt"] = out["ipopt"]["median_s"] / out["ours"]["median_s"]
     out["speedup_vs_conic"] = out["conic"]["median_s"] / out["ours"]["median_s"]
-    out["cost_vs_ipopt"] = {
-        "median_rel_diff": float(np.median(rel)),
-        "rel_diff_of_medians": float(np.median(cost["ours"][both]) / np.median(cost["ipopt"][both]) - 1),
-        "worse_by_1pct": int(np.sum(rel > 0.01)),
-        "better_by_1pct": int(np.sum(rel < -0.01)),
-    }
+    out["cost_vs_ipopt"] = _cost_vs(cost["ours"], cost["ipopt"])
+    if "riccati" in rows:
+        out["riccati_speedup_vs_ipopt"] = out["ipopt"]["median_s"] / out["riccati"]["median_s"]
+        out["riccati_speedup_vs_ours"] = out["ours"]["median_s"] / out["riccati"]["median_s"]
+        out["riccati_cost_vs_ipopt"] = _cost_vs(cost["riccati"], cost["ipopt"])
+        out["riccati_cost_vs_ours"] = _cost_vs(cost["riccati"], cost["ours"])
     conic_both = np.isfinite(cost["ours"]) & np.isfinite(cost["conic"])
     out["max_rel_cost_diff_vs_conic"] = float(
         np.max(np.abs(cost["ours"][conic_both] - cost["conic"][conic_both]) / cost["conic"][conic_both])
@@ -176,7 +184,80 @@ def peer(name: str, n: int) -> dict:
         f"{out['cost_vs_ipopt']['median_rel_diff']:.1e}",
         flush=True,
     )
+    if "riccati" in rows:
+        print(
+            f"[peer {name}] riccati {out['riccati']['median_s'] * 1e3:.1f} ms ({out['riccati']['mean_iterations']:.1f}"
+            f" SCP it.) | x{out['riccati_speedup_vs_ipopt']:.2f} vs IPOPT, x{out['riccati_speedup_vs_ours']:.2f} vs "
+            f"ours | cost vs ours median {out['riccati_cost_vs_ours']['median_rel_diff']:.1e}",
+            flush=True,
+        )
     return out
+
+
+def subproblems(name: str, n: int) -> dict:
+    """PIQP and the Riccati backend on the same recorded subproblems, in the order the engine solves them."""
+    import re
+
+    from ttompc.solvers import qp as qp_module
+    from ttompc.solvers.riccati import RiccatiSolver
+
+    scenario = get_scenario(name)
+    recorded: list = []
+    original = qp_module.PIQPSolver.solve
+
+    def record(self, data):
+        recorded.append((self.qp.spec, data))
+        return original(self, data)
+
+    qp_module.PIQPSolver.solve = record  # type: ignore[method-assign]
+    try:
+        for seed in range(n):
+            solve_problem(scenario, scenario.sample(np.random.default_rng(seed)))
+    finally:
+        qp_module.PIQPSolver.solve = original  # type: ignore[method-assign]
+    out: dict = {"scenario": name, "problems": n, "subproblems": len(recorded)}
+    RiccatiSolver(recorded[0][0]).solve(recorded[0][1])  # compile or load the kernel outside the timing
+    objectives = {}
+    for label, make in (("piqp", qp_module.PIQPSolver), ("riccati", RiccatiSolver)):
+        solvers: dict = {}
+        cpu, iters, objs = 0.0, [], []
+        for spec, data in recorded:
+            if spec not in solvers:
+                solvers[spec] = make(spec)
+            solver = solvers[spec]
+            t0 = time.process_time()
+            _, _, sol = solver.solve(data)
+            cpu += time.process_time() - t0
+            objs.append(sol.objective)
+            if label == "piqp":
+                iters.append(solver.solver.result.info.iter)
+            else:
+                iters.append(int(re.search(r"\((\d+) it", sol.status).group(1)))
+        objectives[label] = np.array(objs)
+        out[label] = {"cpu_ms_per_subproblem": 1e3 * cpu / len(recorded), "mean_iterations": float(np.mean(iters))}
+    out["speedup"] = out["piqp"]["cpu_ms_per_subproblem"] / out["riccati"]["cpu_ms_per_subproblem"]
+    a, b = objectives["riccati"], objectives["piqp"]
+    out["max_rel_objective_diff"] = float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-9)))
+    print(
+        f"[subproblems {name}, {len(recorded)} from {n} problems] CPU per subproblem: PIQP "
+        f"{out['piqp']['cpu_ms_per_subproblem']:.2f} ms ({out['piqp']['mean_iterations']:.1f} it.), riccati "
+        f"{out['riccati']['cpu_ms_per_subproblem']:.2f} ms ({out['riccati']['mean_iterations']:.1f} it.): "
+        f"x{out['speedup']:.2f}; objectives within {out['max_rel_objective_diff']:.1e}",
+        flush=True,
+    )
+    return out
+
+
+def _cost_vs(a: np.ndarray, b: np.ndarray) -> dict:
+    """Relative cost differences of a against b on the problems both solved."""
+    both = np.isfinite(a) & np.isfinite(b)
+    rel = (a[both] - b[both]) / b[both]
+    return {
+        "median_rel_diff": float(np.median(rel)),
+        "rel_diff_of_medians": float(np.median(a[both]) / np.median(b[both]) - 1),
+        "worse_by_1pct": int(np.sum(rel > 0.01)),
+        "better_by_1pct": int(np.sum(rel < -0.01)),
+    }
 
 
 def _ours(scenario, problem, backend: str) -> tuple[float, int, float, bool]:
@@ -199,7 +280,10 @@ def main() -> None:
     ap.add_argument("--peer-problems", type=int, default=30, help="problems per scenario in the IPOPT comparison")
     ap.add_argument("--naive-problems", type=int, default=2, help="problems for the (slow) naive baseline")
     ap.add_argument("--robustness", type=int, default=200)
-    ap.add_argument("--only", choices=["peer", "robustness", "naive"], help="run one part (merged into --out)")
+    ap.add_argument("--subproblem-problems", type=int, default=6, help="problems whose subproblems are re-solved")
+    ap.add_argument(
+        "--only", choices=["peer", "robustness", "subproblems", "naive"], help="run one part (merged into --out)"
+    )
     ap.add_argument("--scenarios", default=",".join(list_scenarios()))
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "solver_speed.json"))
     args = ap.parse_args()
@@ -226,7 +310,19 @@ def main() -> None:
             for name in scenarios
             if name in PEER_SCENARIOS
         }
+        if HAVE_NUMBA:
+            result["robustness_riccati"] = {
+                name: robustness(name, args.robustness, reference=False, backend="riccati")
+                for name in scenarios
+                if name in PEER_SCENARIOS
+            }
         loads["robustness"] = (start, os.getloadavg())
+    if args.only in (None, "subproblems") and HAVE_NUMBA:
+        start = os.getloadavg()
+        result["subproblems"] = {
+            name: subproblems(name, args.subproblem_problems) for name in scenarios if name in PEER_SCENARIOS
+        }
+        loads["subproblems"] = (start, os.getloadavg())
     if args.only in (None, "naive"):
         start = os.getloadavg()
         result["naive"] = {name: speed(name, args.naive_problems, args.naive_problems) for name in scenarios}
@@ -240,8 +336,16 @@ def main() -> None:
         headline[f"{key}_iterations"] = row["ours"]["mean_iterations"]
         headline[f"{key}_ipopt_iterations"] = row["ipopt"]["mean_iterations"]
         headline[f"{key}_cost_vs_ipopt_median_rel"] = row["cost_vs_ipopt"]["median_rel_diff"]
+        if "riccati" in row:
+            headline[f"{key}_riccati_speedup_vs_ipopt"] = row["riccati_speedup_vs_ipopt"]
+            headline[f"{key}_riccati_median_s"] = row["riccati"]["median_s"]
+            headline[f"{key}_riccati_cost_vs_ipopt_median_rel"] = row["riccati_cost_vs_ipopt"]["median_rel_diff"]
     for name, row in result.get("robustness", {}).items():
         headline[f"{name}_failures_of_{args.robustness}"] = row["penalized"]["failures"]
+    for name, row in result.get("robustness_riccati", {}).items():
+        headline[f"{name}_riccati_failures_of_{args.robustness}"] = row["penalized"]["failures"]
+    for name, row in result.get("subproblems", {}).items():
+        headline[f"{name}_riccati_subproblem_speedup"] = row["speedup"]
     for name, row in result.get("naive", {}).items():
         headline[f"{name}_speedup_per_iter_vs_naive"] = row["speedup_per_iter"]
     result["headline"] = headline
