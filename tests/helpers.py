@@ -79,3 +79,18 @@ def qp_subproblem(name: str, seed: int, window: Window, obstacles: bool, penaliz
     )
     data = SubproblemData(X[0], model, blocks, X, delta, p.goal, None, None)
     return sc, spec, data
+
+
+def waypoint_subproblem(penalized: bool):
+    """(spec, data, block) of a free-flyer subproblem with a waypoint-type equality block (x, y at step 40) added."""
+    import dataclasses
+
+    from ttompc.scenarios import BlockKind, ConstraintBlock
+
+    _, spec, data = qp_subproblem("freeflyer", 4, Window(0, 100, 100), True, penalized, delta=0.5)
+    Gx = np.zeros((1, 2, 6))
+    Gx[0, 0, 0] = Gx[0, 1, 1] = 1.0
+    wp = ConstraintBlock("wp", BlockKind.EQ, np.array([40]), Gx, None, data.X_ref[40:41, :2] + 0.02)
+    data = dataclasses.replace(data, blocks=[*data.blocks, wp])
+    spec = dataclasses.replace(spec, blocks=(*spec.blocks, SubproblemSpec.block_signature(wp)))
+    return spec, data, wp

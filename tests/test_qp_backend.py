@@ -7,9 +7,9 @@ import dataclasses
 
 import numpy as np
 import pytest
-from helpers import qp_subproblem
+from helpers import qp_subproblem, waypoint_subproblem
 
-from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
+from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import TerminalCost, solve_rel, solve_scp
 from ttompc.solvers.engine import AssembledSolver, get_solver
 from ttompc.solvers.naive import NaiveCvxpySolver
@@ -137,12 +137,7 @@ def test_piqp_alone_rejects_cones() -> None:
 @pytest.mark.parametrize("penalized", [True, False])
 def test_equality_blocks_match_conic(penalized) -> None:
     """Waypoint-type equality rows (hard, or with e± slacks when penalised) give the conic assembly's optimum."""
-    _, spec, data = qp_subproblem("freeflyer", 4, Window(0, 100, 100), True, penalized, delta=0.5)
-    Gx = np.zeros((1, 2, 6))
-    Gx[0, 0, 0] = Gx[0, 1, 1] = 1.0
-    wp = ConstraintBlock("wp", BlockKind.EQ, np.array([40]), Gx, None, data.X_ref[40:41, :2] + 0.02)
-    data = dataclasses.replace(data, blocks=[*data.blocks, wp])
-    spec = dataclasses.replace(spec, blocks=(*spec.blocks, SubproblemSpec.block_signature(wp)))
+    spec, data, wp = waypoint_subproblem(penalized)
     X, _, qp = PIQPSolver(spec).solve(data)
     _, _, conic = AssembledSolver(spec, ["clarabel"]).solve(data)
     assert qp.ok and conic.ok

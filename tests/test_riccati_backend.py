@@ -4,21 +4,18 @@ default path, the fallback, and where the chain takes it."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import cvxpy as cp
 import numpy as np
 import pytest
-from helpers import qp_subproblem
+from helpers import qp_subproblem, waypoint_subproblem
 
-from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
+from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import TerminalCost, solve_problem, solve_scp
 from ttompc.solvers import engine as engine_module
 from ttompc.solvers import riccati as riccati_module
 from ttompc.solvers.engine import backend_chain, get_solver
 from ttompc.solvers.qp import PIQPSolver
 from ttompc.solvers.riccati import RiccatiSolver, supports
-from ttompc.solvers.subproblem import SubproblemSpec
 
 pytest.importorskip("numba")  # the optional fast extra
 pytest.importorskip("piqp")
@@ -139,12 +136,7 @@ def test_stage_form_matches_piqp(name, window, obstacles) -> None:
 
 
 def test_penalised_equality_rows_match_piqp() -> None:
-    _, spec, data = qp_subproblem("freeflyer", 4, Window(0, 100, 100), True, True, delta=0.5)
-    Gx = np.zeros((1, 2, 6))
-    Gx[0, 0, 0] = Gx[0, 1, 1] = 1.0
-    wp = ConstraintBlock("wp", BlockKind.EQ, np.array([40]), Gx, None, data.X_ref[40:41, :2] + 0.02)
-    data = dataclasses.replace(data, blocks=[*data.blocks, wp])
-    spec = dataclasses.replace(spec, blocks=(*spec.blocks, SubproblemSpec.block_signature(wp)))
+    spec, data, _ = waypoint_subproblem(penalized=True)
     _, _, sol = RiccatiSolver(spec).solve(data)
     _, _, ref = PIQPSolver(spec).solve(data)
     assert sol.ok and sol.objective == pytest.approx(ref.objective, rel=1e-6)

@@ -376,6 +376,32 @@ def _vector(base: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray, np.ndarr
     return vec
 
 
+class Fallback:
+    """The solver, built on first need, that takes the subproblems the primary backend could not solve."""
+
+    def __init__(self, make: Callable[[], SubproblemSolver] | None) -> None:
+        self._make = make
+        self._solver: SubproblemSolver | None = None
+
+    def restart(self) -> None:
+        if self._solver is not None:
+            self._solver.restart()
+
+    def take(
+        self, data: SubproblemData, failed: BackendSolution
+    ) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
+        """The fallback's solution of ``data`` (status and time include the failed attempt); without a fallback,
+        the failure itself."""
+        if self._make is None:
+            return None, None, failed
+        if self._solver is None:
+            self._solver = self._make()
+        X, U, sol = self._solver.solve(data)
+        sol.solve_time += failed.solve_time
+        sol.status = f"{failed.status} -> {sol.status}"
+        return X, U, sol
+
+
 class PIQPSolver:
     """The compact QP solved by PIQP (sparse LDLᵀ): set up once per structure, then ``update`` in place. On a
     numerical failure the same subproblem goes to ``fallback`` (a conic solver), if given."""
@@ -388,16 +414,14 @@ class PIQPSolver:
         self._piqp = piqp
         self.qp = QPSubproblem(spec)
         self.solver: Any = None  # piqp.SparseSolver, set up on the first solve
-        self._make_fallback = fallback
-        self._fallback: SubproblemSolver | None = None
+        self.fallback = Fallback(fallback)
         self._rescale = False  # the next update recomputes the equilibration (set by ``restart``)
 
     def restart(self) -> None:
         """The next solve equilibrates its own data instead of reusing the first data's scaling, which would make
         its optimum depend (at solver tolerance) on whatever this cached solver solved before."""
         self._rescale = True
-        if self._fallback is not None:
-            self._fallback.restart()
+        self.fallback.restart()
 
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         t0 = time.perf_counter()
@@ -433,11 +457,4 @@ class PIQPSolver:
             assert sol.z is not None  # PIQP returns its iterate whenever it reports SOLVED
             X, U = qp.split(sol.z)
             return X, U, sol
-        if self._make_fallback is None:
-            return None, None, sol
-        if self._fallback is None:
-            self._fallback = self._make_fallback()
-        X_fb, U_fb, fb = self._fallback.solve(data)
-        fb.solve_time += sol.solve_time
-        fb.status = f"{status} -> {fb.status}"
-        return X_fb, U_fb, fb
+        return self.fallback.take(data, sol)

@@ -26,7 +26,7 @@ import numpy as np
 
 from ttompc.scenarios.base import BlockKind
 from ttompc.solvers.backends import BackendSolution
-from ttompc.solvers.qp import SubproblemSolver, is_qp
+from ttompc.solvers.qp import Fallback, SubproblemSolver, is_qp
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec, structural_mask
 
 TOL = 1e-8  # residuals of the scaled problem (PIQP's eps_abs)
@@ -205,13 +205,12 @@ class RiccatiSolver:
     def __init__(self, spec: SubproblemSpec, fallback: Callable[[], SubproblemSolver] | None = None) -> None:
         self._kernel: Callable | None = None  # the compiled kernel for this structure's sizes, on the first solve
         self.stage = StageQP(spec)
-        self._make_fallback = fallback
-        self._fallback: SubproblemSolver | None = None
+        self.fallback = Fallback(fallback)
 
     def restart(self) -> None:
-        """Nothing to forget: every solve starts from the data's trust-region centre."""
-        if self._fallback is not None:
-            self._fallback.restart()
+        """The kernel keeps nothing between solves (each starts from the data's trust-region centre); the fallback
+        restarts."""
+        self.fallback.restart()
 
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         t0 = time.perf_counter()
@@ -233,11 +232,4 @@ class RiccatiSolver:
                               time.perf_counter() - t0)  # fmt: skip
         if ok:
             return y[:, : spec.n] * st.sx, y[: spec.H, spec.n : spec.n + spec.m] * st.su, sol
-        if self._make_fallback is None:
-            return None, None, sol
-        if self._fallback is None:
-            self._fallback = self._make_fallback()
-        X_fb, U_fb, fb = self._fallback.solve(data)
-        fb.solve_time += sol.solve_time
-        fb.status = f"{status} -> {fb.status}"
-        return X_fb, U_fb, fb
+        return self.fallback.take(data, sol)
