@@ -84,28 +84,19 @@ def compiled(n: int, nu: int, example: tuple):
 @_jit
 def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, tol, gap_tol, max_iter, n, nu):
     N = A.shape[0]
-    W = ri.shape[1]
-    bj2, bs2 = bj.reshape(-1, 1), bs.reshape(-1, 1)  # boxes as rows of width 1 for ``_steps``
     ny = n + nu
     nb, nr = bk.shape[0], rk.shape[0]
-    # per constraint: slack s, multiplier lam, penalty slack e and its multiplier mu (soft only), value a = gᵀy
-    s_b, l_b, e_b, m_b, a_b = np.empty(nb), np.empty(nb), np.zeros(nb), np.zeros(nb), np.empty(nb)
-    s_r, l_r, e_r, m_r, a_r = np.empty(nr), np.empty(nr), np.zeros(nr), np.zeros(nr), np.empty(nr)
+    bj2, bs2 = bj.reshape(-1, 1), bs.reshape(-1, 1)  # boxes are rows of width 1: one code path for both
+    # per constraint: slack s, multiplier λ, penalty slack e and its multiplier μ (soft only), residuals of the slack
+    # definition (rs) and of e's stationarity (re), 1/λ, 1/μ, the Newton weight w, ξ, and the step (Δs, Δλ, Δe, Δμ)
+    cb, cr = np.zeros((14, nb)), np.zeros((14, nr))
     for j in range(n):
         y[0, j] = x0[j]
     for j in range(nu):
         y[N, n + j] = 0.0
-    _values(y, bk, bj, bs, rk, ri, rg, a_b, a_r)
-    n_comp = _start(bd, brho, a_b, s_b, l_b, e_b, m_b) + _start(rd, rrho, a_r, s_r, l_r, e_r, m_r)
-    # residuals, Newton weights and directions
+    n_comp = _start(y, bk, bj2, bs2, bd, brho, cb) + _start(y, rk, ri, rg, rd, rrho, cr)
     ry = np.zeros((N + 1, ny))  # stationarity
     rdyn = np.zeros((N, n))  # A x + B u + c − x⁺
-    # per constraint: residuals (slack definition, e's stationarity), Newton weight w, ξ, 1/λ, 1/μ, the step
-    wb, wr = np.zeros((10, nb)), np.zeros((10, nr))
-    rs_b, re_b, w_b, xi_b, il_b, im_b, dl_b, ds_b, dm_b, de_b = (wb[0], wb[1], wb[2], wb[3], wb[4], wb[5], wb[6], wb[7],
-                                                                   wb[8], wb[9])  # fmt: skip
-    rs_r, re_r, w_r, xi_r, il_r, im_r, dl_r, ds_r, dm_r, de_r = (wr[0], wr[1], wr[2], wr[3], wr[4], wr[5], wr[6], wr[7],
-                                                                   wr[8], wr[9])  # fmt: skip
     Qt = np.zeros((N + 1, ny, ny))  # stage Hessian + Σ w g gᵀ
     P = np.zeros((N + 1, n, n))  # Riccati cost-to-go Hessians
     S = np.zeros((N, nu, n))
@@ -125,6 +116,7 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
         for k in range(N + 1):
             for j in range(ny):
                 ry[k, j] = Qd[k, j] * y[k, j] + q[k, j]
+        res = probe = 0.0  # probe: the sum of every residual, non-finite iff one of them is (max() skips NaN)
         for k in range(N):
             for a in range(n):
                 t = c[k, a] - y[k + 1, a]
@@ -133,6 +125,8 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
                 for b in range(nu):
                     t += B[k, a, b] * y[k, n + b]
                 rdyn[k, a] = t
+                res = max(res, abs(t))
+                probe += t
             for b in range(n):
                 t = 0.0
                 for a in range(n):
@@ -144,68 +138,43 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
                 for a in range(n):
                     t += B[k, a, b] * pi[k, a]
                 ry[k, n + b] += t
-        for i in range(nb):
-            ry[bk[i], bj[i]] += bs[i] * l_b[i]
-            rs_b[i] = s_b[i] - bd[i] + a_b[i] - e_b[i]
-            re_b[i] = brho[i] - l_b[i] - m_b[i] if brho[i] > 0 else 0.0
-        for i in range(nr):
-            for w in range(W):
-                ry[rk[i], ri[i, w]] += rg[i, w] * l_r[i]
-            rs_r[i] = s_r[i] - rd[i] + a_r[i] - e_r[i]
-            re_r[i] = rrho[i] - l_r[i] - m_r[i] if rrho[i] > 0 else 0.0
+        gap_b, res_b = _residuals(y, ry, bk, bj2, bs2, bd, brho, cb)
+        gap_r, res_r = _residuals(y, ry, rk, ri, rg, rd, rrho, cr)
+        gap, res = gap_b + gap_r, max(res, res_b, res_r)
         for j in range(n):
             ry[0, j] = 0.0  # x_0 is fixed
         for j in range(nu):
             ry[N, n + j] = 0.0  # the dummy control of the last stage
-        gap = 0.0
-        for i in range(nb):
-            gap += s_b[i] * l_b[i] + e_b[i] * m_b[i]
-        for i in range(nr):
-            gap += s_r[i] * l_r[i] + e_r[i] * m_r[i]
+        for k in range(N + 1):
+            for j in range(ny):
+                res = max(res, abs(ry[k, j]))
+                probe += ry[k, j]
+        res += 0.0 * probe
         mu = gap / max(n_comp, 1)
-        res = max(np.max(np.abs(ry)), np.max(np.abs(rdyn)) if N else 0.0)
-        if nb:
-            res = max(res, np.max(np.abs(rs_b)), np.max(np.abs(re_b)))
-        if nr:
-            res = max(res, np.max(np.abs(rs_r)), np.max(np.abs(re_r)))
         if res <= tol and gap <= gap_tol:
             return 0, it, res, gap
         # Near the optimum the Newton systems lose accuracy (weights λ/s → 0 or ∞): the residual can stall or grow
         # while the gap falls, up to a non-finite step. Keep the best iterate; stop with it once it is within 100×
         # both tolerances and has not improved for 3 iterations, or on a breakdown.
         score = max(res / tol, gap / gap_tol)
-        if score < best:
+        if score < best:  # (False for NaN: a breakdown never becomes the best iterate)
             best, best_res, best_gap, stale = score, res, gap, 0
             y_best[:, :] = y
             pi_best[:, :] = pi
         else:
             stale += 1
-        if not np.isfinite(score) or (stale >= 3 and best <= 100.0):
+        if not np.isfinite(res + gap) or (stale >= 3 and best <= 100.0):
             y[:, :] = y_best
             pi[:, :] = pi_best
             return (3 if best <= 100.0 else 2), it, best_res, best_gap
         # ---------------------------------------------------------------------------------------------- factorise
-        for i in range(nb):
-            il_b[i] = 1.0 / l_b[i]
-            im_b[i] = 1.0 / m_b[i] if brho[i] > 0 else 0.0
-            w_b[i] = 1.0 / (s_b[i] * il_b[i] + e_b[i] * im_b[i])
-        for i in range(nr):
-            il_r[i] = 1.0 / l_r[i]
-            im_r[i] = 1.0 / m_r[i] if rrho[i] > 0 else 0.0
-            w_r[i] = 1.0 / (s_r[i] * il_r[i] + e_r[i] * im_r[i])
         for k in range(N + 1):
             for a in range(ny):
                 for b in range(ny):
                     Qt[k, a, b] = 0.0
                 Qt[k, a, a] = Qd[k, a] + 1e-10
-        for i in range(nb):
-            Qt[bk[i], bj[i], bj[i]] += w_b[i]
-        for i in range(nr):
-            k = rk[i]
-            for a in range(W):
-                ga = w_r[i] * rg[i, a]
-                for b in range(W):
-                    Qt[k, ri[i, a], ri[i, b]] += ga * rg[i, b]
+        _weights(Qt, bk, bj2, bs2, brho, cb)
+        _weights(Qt, rk, ri, rg, rrho, cr)
         for a in range(n):
             for b in range(n):
                 P[N, a, b] = Qt[N, a, b]
@@ -252,17 +221,11 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
         sigma_mu = 0.0
         alpha = 1.0
         for corrector in range(2):
-            _rhs(corrector, sigma_mu, s_b, l_b, e_b, m_b, rs_b, re_b, il_b, im_b, ds_b, dl_b, de_b, dm_b, xi_b)
-            _rhs(corrector, sigma_mu, s_r, l_r, e_r, m_r, rs_r, re_r, il_r, im_r, ds_r, dl_r, de_r, dm_r, xi_r)
             for k in range(N + 1):
                 for j in range(ny):
                     rt[k, j] = ry[k, j]
-            for i in range(nb):
-                rt[bk[i], bj[i]] += bs[i] * w_b[i] * xi_b[i]
-            for i in range(nr):
-                f = w_r[i] * xi_r[i]
-                for w in range(W):
-                    rt[rk[i], ri[i, w]] += rg[i, w] * f
+            _rhs(corrector, sigma_mu, rt, bk, bj2, bs2, cb)
+            _rhs(corrector, sigma_mu, rt, rk, ri, rg, cr)
             for a in range(n):  # backward pass: feedforward terms
                 p[N, a] = rt[N, a]
             for k in range(N - 1, -1, -1):
@@ -301,13 +264,10 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
                     for b in range(nu):
                         t += B[k, a, b] * dy[k, n + b]
                     dy[k + 1, a] = t
-            amax = _steps(1.0, bk, bj2, bs2, dy, w_b, xi_b, s_b, l_b, e_b, m_b, re_b, brho, il_b, im_b,
-                          ds_b, dl_b, de_b, dm_b)  # fmt: skip
-            amax = _steps(amax, rk, ri, rg, dy, w_r, xi_r, s_r, l_r, e_r, m_r, re_r, rrho, il_r, im_r,
-                          ds_r, dl_r, de_r, dm_r)  # fmt: skip
+            amax = _steps(1.0, dy, bk, bj2, bs2, brho, cb)
+            amax = _steps(amax, dy, rk, ri, rg, rrho, cr)
             if corrector == 0:  # Mehrotra's centring from the affine step's complementarity
-                gap_aff = _gap(amax, s_b, l_b, e_b, m_b, ds_b, dl_b, de_b, dm_b)
-                gap_aff += _gap(amax, s_r, l_r, e_r, m_r, ds_r, dl_r, de_r, dm_r)
+                gap_aff = _gap(amax, cb) + _gap(amax, cr)
                 sigma_mu = (gap_aff / max(n_comp, 1) / mu) ** 3 * mu
             else:
                 alpha = min(1.0, 0.995 * amax)
@@ -324,17 +284,8 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
         for k in range(N):
             for a in range(n):
                 pi[k, a] += alpha * dpi[k, a]
-        for i in range(nb):
-            s_b[i] += alpha * ds_b[i]
-            l_b[i] += alpha * dl_b[i]
-            e_b[i] += alpha * de_b[i]
-            m_b[i] += alpha * dm_b[i]
-        for i in range(nr):
-            s_r[i] += alpha * ds_r[i]
-            l_r[i] += alpha * dl_r[i]
-            e_r[i] += alpha * de_r[i]
-            m_r[i] += alpha * dm_r[i]
-        _values(y, bk, bj, bs, rk, ri, rg, a_b, a_r)
+        _update(alpha, cb)
+        _update(alpha, cr)
     if best <= 100.0:
         y[:, :] = y_best
         pi[:, :] = pi_best
@@ -342,82 +293,128 @@ def _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, 
     return 1, max_iter, res, gap
 
 
-@_jit
-def _values(y, bk, bj, bs, rk, ri, rg, a_b, a_r):
-    for i in range(bk.shape[0]):
-        a_b[i] = bs[i] * y[bk[i], bj[i]]
-    for i in range(rk.shape[0]):
-        t = 0.0
-        for w in range(ri.shape[1]):
-            t += rg[i, w] * y[rk[i], ri[i, w]]
-        a_r[i] = t
+# Constraint families (boxes, rows): g_iᵀy = Σ_v coef[i, v]·y[k_of[i], cols[i, v]] ≤ d_i (+ e_i if ρ_i > 0); the
+# per-constraint state lives in the rows of one (14, m) array ``z``, named below. Each helper is one pass.
+_S, _LAM, _E, _MU, _RS, _RE, _IL, _IM, _W, _XI, _DS, _DL, _DE, _DM = range(14)
 
 
 @_jit
-def _start(d, rho, a, s, lam, e, mu):
-    """A strictly interior start: s, e ≥ 0.1 with s − e = d − a for soft rows (primal residual 0), λ = μ = ρ/2, and
-    s ≥ 0.1, λ = 1 for hard rows. (Measured on the 89 subproblems of REL + SCP on free-flyer and quadrotor seeds
-    0–5: 0.1 takes 20.1 and 9.7 iterations on average, 1.0 21.1 and 11.4 with 3 breakdowns near the optimum, 10.0
-    23.0 and 13.6.)"""
+def _start(y, k_of, cols, coef, d, rho, z):
+    """A strictly interior start: s, e ≥ 0.1 with s − e = d − gᵀy for soft rows (primal residual 0), λ = μ = ρ/2, and
+    s ≥ 0.1, λ = 1 for hard rows. Returns the number of complementarity pairs. (Measured on the 89 subproblems of
+    REL + SCP on free-flyer and quadrotor seeds 0–5: 0.1 takes 20.1 and 9.7 iterations on average, 1.0 21.1 and 11.4
+    with 3 breakdowns near the optimum, 10.0 23.0 and 13.6.)"""
     count = 0
     for i in range(d.shape[0]):
-        v = d[i] - a[i]
+        a = 0.0
+        for v in range(cols.shape[1]):
+            a += coef[i, v] * y[k_of[i], cols[i, v]]
+        gap = d[i] - a
         if rho[i] > 0:
-            s[i] = max(v, 0.0) + 0.1
-            e[i] = s[i] - v
-            lam[i] = 0.5 * rho[i]
-            mu[i] = 0.5 * rho[i]
+            z[_S, i] = max(gap, 0.0) + 0.1
+            z[_E, i] = z[_S, i] - gap
+            z[_LAM, i] = 0.5 * rho[i]
+            z[_MU, i] = 0.5 * rho[i]
             count += 2
         else:
-            s[i] = max(v, 0.1)
-            lam[i] = 1.0
+            z[_S, i] = max(gap, 0.1)
+            z[_LAM, i] = 1.0
             count += 1
     return count
 
 
 @_jit
-def _rhs(corrector, sigma_mu, s, lam, e, mu, rs, re, il, im, ds, dl, de, dm, xi):
-    """Complementarity right-hand sides (stored in dl, dm until ``_steps``) and ξ, with Δλ = w (gᵀΔy + ξ)."""
-    for i in range(s.shape[0]):
-        rl = s[i] * lam[i]
-        rm = e[i] * mu[i]
-        if corrector:
-            rl += ds[i] * dl[i] - sigma_mu
-            rm += de[i] * dm[i] - sigma_mu
-        xi[i] = rs[i] - rl * il[i] + (rm + e[i] * re[i]) * im[i]
-        dl[i] = rl
-        dm[i] = rm
+def _residuals(y, ry, k_of, cols, coef, d, rho, z):
+    """Add g·λ to the stationarity residual, set rs = s − d + gᵀy − e and re = ρ − λ − μ; return the
+    complementarity Σ sλ + eμ and the largest |rs|, |re| (NaN if any is not finite)."""
+    gap = res = probe = 0.0
+    for i in range(d.shape[0]):
+        k, lam = k_of[i], z[_LAM, i]
+        a = 0.0
+        for v in range(cols.shape[1]):
+            a += coef[i, v] * y[k, cols[i, v]]
+            ry[k, cols[i, v]] += coef[i, v] * lam
+        rs = z[_S, i] - d[i] + a - z[_E, i]
+        re = rho[i] - lam - z[_MU, i] if rho[i] > 0 else 0.0
+        z[_RS, i], z[_RE, i] = rs, re
+        gap += z[_S, i] * lam + z[_E, i] * z[_MU, i]
+        res = max(res, abs(rs), abs(re))
+        probe += rs + re
+    return gap, res + 0.0 * probe  # non-finite if any residual is
 
 
 @_jit
-def _steps(amax, k_of, cols, coef, dy, w, xi, s, lam, e, mu, re, rho, il, im, ds, dl, de, dm):
-    """Recover (Δs, Δλ, Δe, Δμ) of every constraint from gᵀΔy = Σ_v coef[i, v]·Δy[k_of[i], cols[i, v]] (a box is a
-    row of width 1); return the largest step ≤ amax that keeps them ≥ 0."""
-    for i in range(s.shape[0]):
+def _weights(Qt, k_of, cols, coef, rho, z):
+    """w = 1/(s/λ + e/μ) and Qt += w g gᵀ."""
+    for i in range(rho.shape[0]):
+        il = 1.0 / z[_LAM, i]
+        im = 1.0 / z[_MU, i] if rho[i] > 0 else 0.0
+        w = 1.0 / (z[_S, i] * il + z[_E, i] * im)
+        z[_IL, i], z[_IM, i], z[_W, i] = il, im, w
+        k = k_of[i]
+        for a in range(cols.shape[1]):
+            ga = w * coef[i, a]
+            for b in range(cols.shape[1]):
+                Qt[k, cols[i, a], cols[i, b]] += ga * coef[i, b]
+
+
+@_jit
+def _rhs(corrector, sigma_mu, rt, k_of, cols, coef, z):
+    """The complementarity right-hand sides (kept in the Δλ, Δμ rows until ``_steps``), ξ with Δλ = w (gᵀΔy + ξ),
+    and rt += g w ξ. The corrector adds Mehrotra's second-order term and centring."""
+    for i in range(z.shape[1]):
+        rl = z[_S, i] * z[_LAM, i]
+        rm = z[_E, i] * z[_MU, i]
+        if corrector:
+            rl += z[_DS, i] * z[_DL, i] - sigma_mu
+            rm += z[_DE, i] * z[_DM, i] - sigma_mu
+        xi = z[_RS, i] - rl * z[_IL, i] + (rm + z[_E, i] * z[_RE, i]) * z[_IM, i]
+        z[_XI, i], z[_DL, i], z[_DM, i] = xi, rl, rm
+        f = z[_W, i] * xi
+        for v in range(cols.shape[1]):
+            rt[k_of[i], cols[i, v]] += coef[i, v] * f
+
+
+@_jit
+def _steps(amax, dy, k_of, cols, coef, rho, z):
+    """Recover (Δs, Δλ, Δe, Δμ) of every constraint from gᵀΔy; return the largest step ≤ amax that keeps s, λ, e, μ
+    ≥ 0."""
+    for i in range(z.shape[1]):
         g = 0.0
         for v in range(cols.shape[1]):
             g += coef[i, v] * dy[k_of[i], cols[i, v]]
-        dli = w[i] * (g + xi[i])
-        dsi = (-dl[i] - s[i] * dli) * il[i]
-        if amax * dsi < -s[i]:
-            amax = -s[i] / dsi
-        if amax * dli < -lam[i]:
-            amax = -lam[i] / dli
-        dmi = dei = 0.0
+        s, lam, e, mu = z[_S, i], z[_LAM, i], z[_E, i], z[_MU, i]
+        dl = z[_W, i] * (g + z[_XI, i])
+        ds = (-z[_DL, i] - s * dl) * z[_IL, i]
+        if amax * ds < -s:
+            amax = -s / ds
+        if amax * dl < -lam:
+            amax = -lam / dl
+        dm = de = 0.0
         if rho[i] > 0:
-            dmi = re[i] - dli
-            dei = (-dm[i] - e[i] * dmi) * im[i]
-            if amax * dei < -e[i]:
-                amax = -e[i] / dei
-            if amax * dmi < -mu[i]:
-                amax = -mu[i] / dmi
-        dl[i], ds[i], dm[i], de[i] = dli, dsi, dmi, dei
+            dm = z[_RE, i] - dl
+            de = (-z[_DM, i] - e * dm) * z[_IM, i]
+            if amax * de < -e:
+                amax = -e / de
+            if amax * dm < -mu:
+                amax = -mu / dm
+        z[_DL, i], z[_DS, i], z[_DM, i], z[_DE, i] = dl, ds, dm, de
     return amax
 
 
 @_jit
-def _gap(alpha, s, lam, e, mu, ds, dl, de, dm):
+def _gap(alpha, z):
     total = 0.0
-    for i in range(s.shape[0]):
-        total += (s[i] + alpha * ds[i]) * (lam[i] + alpha * dl[i]) + (e[i] + alpha * de[i]) * (mu[i] + alpha * dm[i])
+    for i in range(z.shape[1]):
+        total += (z[_S, i] + alpha * z[_DS, i]) * (z[_LAM, i] + alpha * z[_DL, i])
+        total += (z[_E, i] + alpha * z[_DE, i]) * (z[_MU, i] + alpha * z[_DM, i])
     return total
+
+
+@_jit
+def _update(alpha, z):
+    for i in range(z.shape[1]):
+        z[_S, i] += alpha * z[_DS, i]
+        z[_LAM, i] += alpha * z[_DL, i]
+        z[_E, i] += alpha * z[_DE, i]
+        z[_MU, i] += alpha * z[_DM, i]
