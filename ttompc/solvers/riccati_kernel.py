@@ -77,6 +77,9 @@ def compiled(n: int, nu: int, example: tuple):
     for sig, result in solve_stage_qp.overloads.items():
         if getattr(sig[-2], "literal_value", None) == n and getattr(sig[-1], "literal_value", None) == nu:
             return result.entry_point  # type: ignore[attr-defined]  # (numba's stubs lack it)
+    from ttompc.progress import status
+
+    status(f"riccati backend: loading its kernel for {n} states and {nu} controls (compiled once per machine, ~20 s)")
     solve_stage_qp(*example)
     return compiled(n, nu, example)
 
