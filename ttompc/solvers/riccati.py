@@ -7,9 +7,10 @@ non-dimensionalised variables (x/state_scale, u/control_scale), so the two backe
 * stage k holds y_k = [x_k, u_k, ν_k] (ν: virtual control on ``spec.vc_rows``, a column of B equal to 1);
 * the L1 fuel cost, the virtual control and the penalised terminal condition are soft boxes with zero width
   (ρ·|v| = ρ·dist(v, [0, 0])), the quadratic cost a diagonal stage Hessian;
-* the ∞-norm trust region and hard rows on one variable are boxes, other rows dense per stage (normalised so
-  every row's penalty reads in its own units); a two-sided row is two one-sided rows, each with its own slack, as
-  the QP's e⁺/e⁻ pair; penalised equality rows are two-sided with lower = upper;
+* the ∞-norm trust region and rows on one variable are boxes, other rows sparse over their structural columns
+  (normalised, with the penalty scaled so that it still reads in the row's own units); a two-sided row is two
+  one-sided rows, each with its own slack, as the QP's e⁺/e⁻ pair; penalised equality rows are two-sided with
+  lower = upper;
 * x_0 is fixed, so rows on x_0 alone are constants and dropped.
 
 Where the kernel does not converge the same data goes to ``fallback`` (the PIQP chain), so the backend never
