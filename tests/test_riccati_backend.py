@@ -32,13 +32,13 @@ def _random_stage_qp(seed: int, N: int = 6, n: int = 3, nu: int = 2):
 
 
 def _kernel(args, boxes, rows, n, nu):
-    from ttompc.solvers.riccati_kernel import compiled
+    from ttompc.solvers.riccati_kernel import solve
 
     A, B, c, x0, Qd, q = args
     N = A.shape[0]
     y, pi = np.zeros((N + 1, n + nu)), np.zeros((N, n))
     full = (A, B, c, x0, Qd, q, *boxes, *rows, y, pi, 1e-10, 1e-11, 100, n, nu)
-    code = compiled(n, nu, full)(*full)[0]
+    code = solve(*full)[0]
     return code, y
 
 

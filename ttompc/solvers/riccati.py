@@ -50,10 +50,9 @@ class _BlockMap:
     rho: float  # exact-penalty weight (0: hard)
     steps: np.ndarray  # (K,)
     live: np.ndarray  # (K, M) rows kept (not on x_0 alone)
-    single: np.ndarray  # (M,) rows with one structural nonzero
-    col: np.ndarray  # (M,) that nonzero's column in [x, u]
+    single: np.ndarray  # (M,) rows with one structural nonzero (a box on column cols[:, 0])
     mask: np.ndarray  # (M, n + m) structural nonzeros
-    cols: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.int64))  # (M, width) sparse row columns
+    cols: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.int64))  # (M, width) structural columns first
     valid: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), bool))  # (M, width) real (not padding)
 
 
@@ -129,7 +128,6 @@ class StageQP:
             steps=steps,
             live=live,
             single=mask.sum(axis=1) == 1,
-            col=np.argmax(mask, axis=1),
             mask=mask,
         )
 
@@ -158,10 +156,11 @@ class StageQP:
             # boxes: the row's one variable, scaled by its coefficient g (sign and size may change per iteration)
             sel = b.live & b.single[None, :]
             if sel.any():
-                g = np.take_along_axis(G, np.broadcast_to(b.col[None, :, None], (K, M, 1)), axis=2)[..., 0][sel]
+                col = b.cols[:, 0]  # a box row's one variable
+                g = np.take_along_axis(G, np.broadcast_to(col[None, :, None], (K, M, 1)), axis=2)[..., 0][sel]
                 ok = g != 0.0
                 g, ag = g[ok], np.abs(g[ok])
-                kb, jb = kk[sel][ok], np.broadcast_to(b.col[None, :], (K, M))[sel][ok]
+                kb, jb = kk[sel][ok], np.broadcast_to(col[None, :], (K, M))[sel][ok]
                 boxes.append((kb, jb, np.sign(g), upper[sel][ok] / ag, b.rho * ag))
                 if b.two_sided:
                     boxes.append((kb, jb, -np.sign(g), -lower[sel][ok] / ag, b.rho * ag))
@@ -204,7 +203,6 @@ class RiccatiSolver:
     name = "riccati"
 
     def __init__(self, spec: SubproblemSpec, fallback: Callable[[], SubproblemSolver] | None = None) -> None:
-        self._kernel: Callable | None = None  # the compiled kernel for this structure's sizes, on the first solve
         self.stage = StageQP(spec)
         self.fallback = Fallback(fallback)
 
@@ -220,12 +218,9 @@ class RiccatiSolver:
         y = np.zeros((spec.H + 1, spec.n + st.nu))
         y[:, : spec.n] = data.X_ref / st.sx
         pi = np.zeros((spec.H, spec.n))
-        args = (*arrays, y, pi, TOL, GAP_TOL, MAX_ITER, spec.n, st.nu)
-        if self._kernel is None:
-            from ttompc.solvers.riccati_kernel import compiled
+        from ttompc.solvers.riccati_kernel import solve  # numba: imported when the backend is used, not with the engine
 
-            self._kernel = compiled(spec.n, st.nu, tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args))
-        code, iters, res, gap = self._kernel(*args)
+        code, iters, res, gap = solve(*arrays, y, pi, TOL, GAP_TOL, MAX_ITER, spec.n, st.nu)
         name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[code]
         status = f"{name} ({iters} it, residual {res:.1e}, gap {gap:.1e})"
         ok = code in (0, 3)

@@ -20,6 +20,8 @@ NX and NU are compile-time constants (``numba.literally``) so the small dense lo
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numba import literally, njit
 
@@ -70,18 +72,25 @@ def solve_stage_qp(
     return _ipm(A, B, c, x0, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, y, pi, tol, gap_tol, max_iter, NX, NU)
 
 
-def compiled(n: int, nu: int, example: tuple):
-    """The kernel specialised to (n, nu), as a direct entry point: calling ``solve_stage_qp`` from Python goes
-    through numba's literal dispatch every time (measured: +4 ms per call, as much as the solve). ``example``
-    (arguments of one solve) compiles it, or loads it from the disk cache, if needed."""
-    for sig, result in solve_stage_qp.overloads.items():
-        if getattr(sig[-2], "literal_value", None) == n and getattr(sig[-1], "literal_value", None) == nu:
-            return result.entry_point  # type: ignore[attr-defined]  # (numba's stubs lack it)
+_ENTRY: dict[tuple[int, int], Callable] = {}  # (NX, NU) -> the compiled specialisation, called directly
+
+
+def solve(*args):
+    """``solve_stage_qp(*args)`` without numba's literal dispatch, which calling it from Python re-enters every time
+    (measured: +4 ms per call, as much as the solve): the first call per (NX, NU) in a process goes through the
+    dispatcher (compiling the kernel or loading it from the disk cache), later ones through its entry point."""
+    n, nu = args[-2], args[-1]
+    entry = _ENTRY.get((n, nu))
+    if entry is not None:
+        return entry(*args)
     from ttompc.progress import status
 
     status(f"riccati backend: loading its kernel for {n} states and {nu} controls (compiled once per machine, ~20 s)")
-    solve_stage_qp(*example)
-    return compiled(n, nu, example)
+    out = solve_stage_qp(*args)
+    for sig, result in solve_stage_qp.overloads.items():
+        if getattr(sig[-2], "literal_value", None) == n and getattr(sig[-1], "literal_value", None) == nu:
+            _ENTRY[(n, nu)] = result.entry_point  # type: ignore[attr-defined]  # (numba's stubs lack it)
+    return out
 
 
 @_jit
