@@ -123,7 +123,9 @@ def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[EvalProblem]
     problems = []
     with Bar(e.problems, "held-out problems (REL)", "problem") as bar:
         for i in range(e.problems):
-            problems.append(eval_problem(scenario, e.seed, i, nonconvex_only=True))
+            problems.append(
+                eval_problem(scenario, e.seed, i, nonconvex_only=True, backend=cfg.dagger.settings().backend)
+            )
             bar.update()
     return problems
 
@@ -133,17 +135,10 @@ def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) 
     from ttompc.mpc.metrics import closed_loop_metrics
     from ttompc.parallel import single_torch_thread
 
-    e, c = cfg.dagger.eval, cfg.dagger.collect
+    e = cfg.dagger.eval
     with single_torch_thread():
         metrics, _ = closed_loop_metrics(
-            planner,
-            problems,
-            e.horizon,
-            max_steps=e.max_steps,
-            mode=c.mode,
-            backend=c.backend,
-            progress="measure",
-            end_horizon=e.end_horizon,
+            planner, problems, e.horizon, settings=cfg.dagger.settings(), max_steps=e.max_steps, progress="measure"
         )
     return metrics
 
@@ -203,7 +198,7 @@ def _train_iteration(
         module.model.load_state_dict(source.model.state_dict())
     t = cfg.trainer
     trainer = build_trainer(
-        t.lightning(target),
+        replace(t, max_steps=target),
         cfg.optim,
         Path(t.out_dir),
         logger,

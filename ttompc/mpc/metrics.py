@@ -15,9 +15,10 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from ttompc.mpc.loop import Episode, Mode, run_mpc_batch
+from ttompc.mpc.loop import Episode, run_mpc_batch
 from ttompc.mpc.plant import PlantNoise
-from ttompc.mpc.providers import RolloutGroup, RTGMode, TerminalDesign, TTOProvider
+from ttompc.mpc.providers import RolloutGroup, TerminalDesign, TTOProvider
+from ttompc.mpc.settings import MPCSettings
 from ttompc.scenarios.base import Problem
 
 if TYPE_CHECKING:
@@ -96,48 +97,47 @@ def closed_loop_metrics(
     problems: Sequence[ProblemWithRel],
     horizon: int,
     *,
+    settings: MPCSettings | None = None,
     name: str = "TTO-MPC",
-    mode: Mode = "soft",
     max_steps: int | None = None,
-    backend: str = "auto",
     plant: PlantNoise | None = None,
-    design: TerminalDesign | None = None,
     rtg_scale: float | None = None,
     progress: str = "",
-    rtg_mode: RTGMode = "running",
-    end_horizon: int = 0,
 ) -> tuple[dict[str, float], list[Episode]]:
-    """TTO-MPC with ``planner`` on fixed problems (optionally on the perturbed ``plant``, seeded per problem), all
-    episodes in lockstep with one batched rollout per step (``RolloutGroup``): flat metrics for loggers —
-    ``feasible_rate``, ``infeasible`` (count), ``cost_increment`` and its ``_se`` (mean (J − J_REL)/J_REL over
-    feasible runs, nan if none), ``cost`` (feasible runs), ``target_change``, step times (each episode's share of
-    the batched rollout plus its own solves) and ``fallbacks``. ``progress``: the label of a progress bar over the
-    episodes on stderr ("": none)."""
+    """TTO-MPC with ``planner`` and ``settings`` (default: the paper's) on fixed problems (optionally on the
+    perturbed ``plant``, seeded per problem), all episodes in lockstep with one batched rollout per step
+    (``RolloutGroup``): flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count), ``cost_increment`` and
+    its ``_se`` (mean (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible runs),
+    ``target_change``, step times (each episode's share of the batched rollout plus its own solves) and
+    ``fallbacks``. ``progress``: the label of a progress bar over the episodes on stderr ("": none)."""
     from ttompc.progress import Bar
 
     sc = planner.scenario
+    s = settings or MPCSettings()
     group = RolloutGroup(planner)
+    design = TerminalDesign(weights=None if s.track is None else (s.track,))
     provs = [
-        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design, rtg_mode=rtg_mode, group=group, backend=backend)
+        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design, rtg_mode=s.rtg_mode, group=group,
+                    backend=s.backend)
         for _ in problems
-    ]
+    ]  # fmt: skip
     steps = min(max_steps or sc.n_steps, sc.n_steps)
     with Bar(len(problems), progress, "episode", show=bool(progress)) as bar:
         episodes = run_mpc_batch(sc, [ep.problem for ep in problems], provs, horizon,
-                                 rel_costs=[ep.rel_cost for ep in problems], mode=mode, max_steps=max_steps,
-                                 backend=backend, plant=plant, plant_seeds=[ep.seed for ep in problems],
-                                 end_horizon=end_horizon, on_step=lambda: bar.update(len(provs) / steps))  # fmt: skip
-    s = summarize_episodes([episode_record(e) for e in episodes])
+                                 rel_costs=[ep.rel_cost for ep in problems], settings=s, max_steps=max_steps,
+                                 plant=plant, plant_seeds=[ep.seed for ep in problems],
+                                 on_step=lambda: bar.update(len(provs) / steps))  # fmt: skip
+    summary = summarize_episodes([episode_record(e) for e in episodes])
     times = np.concatenate([e.step_times for e in episodes])
     metrics = {
-        "feasible_rate": s["feasible"] / max(s["runs"], 1),
-        "infeasible": float(s["infeasible"]),
-        "cost_increment": s["rel_increment"]["mean"],
-        "cost_increment_se": s["rel_increment"]["se"],
-        "cost": s["cost"]["mean"],
-        "target_change": s["target_change"]["mean"],
+        "feasible_rate": summary["feasible"] / max(summary["runs"], 1),
+        "infeasible": float(summary["infeasible"]),
+        "cost_increment": summary["rel_increment"]["mean"],
+        "cost_increment_se": summary["rel_increment"]["se"],
+        "cost": summary["cost"]["mean"],
+        "target_change": summary["target_change"]["mean"],
         "step_time_mean": float(np.mean(times)),
         "step_time_max": float(np.max(times)),
-        "fallbacks": float(s["fallbacks"]),
+        "fallbacks": float(summary["fallbacks"]),
     }
     return metrics, episodes

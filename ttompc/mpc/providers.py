@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Literal, Protocol
 
 import numpy as np
 
+from ttompc.mpc.settings import RTG_MODES, RTGMode
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import SCPResult, TerminalCost, solve_problem, solve_rel, solve_scp
 
@@ -215,9 +216,8 @@ class DISTProvider:
         return None
 
 
-RTGMode = Literal["running", "floor", "reanchor"]
-RTG_MODES: tuple[str, ...] = ("running", "floor", "reanchor")
 RTG_SIGMAS = 3.0  # the training range's lower end: mean − 3 std of the model's rtg statistics
+RTG_FLOOR = 0.05  # ... and its upper end: −RTG_FLOOR·|rtg_0|, a budget of at least that fraction of rtg_0 left
 
 
 class TTOProvider:
@@ -229,11 +229,10 @@ class TTOProvider:
 
     * ``running`` (the paper, the default): rtg_t = rtg_0 + the cost executed so far. Closed loop the executed cost
       soon exceeds J_REL and rtg_t turns positive, where no training row lives.
-    * ``floor``: the running rtg clipped to [μ − 3σ, −``rtg_floor``·|rtg_0|] (μ, σ: the model's rtg statistics), so
-      a budget of at least a fraction ``rtg_floor`` of rtg_0 remains.
     * ``reanchor``: rtg_t = −κ·J_REL(t), the REL cost of the remaining horizon [t, N) from the measured state (one
-      ``RemainingREL`` per step, as REL-MPC solves; its time counts in the warm start), clipped to the same range;
-      the floor value where that REL fails.
+      ``RemainingREL`` per step, as REL-MPC solves; its time counts in the warm start), clipped to
+      [μ − 3σ, −``RTG_FLOOR``·|rtg_0|] (μ, σ: the model's rtg statistics); the running value, clipped, where that
+      REL fails.
 
     Inside a window the rollout still adds the model's own planned costs to the fed value (the rollout's rule).
     ``use_cache`` and ``clipped`` configure the provider's own group; a given ``group`` has its own."""
@@ -248,17 +247,14 @@ class TTOProvider:
         rtg_scale: float | None = None,
         design: TerminalDesign | None = None,
         rtg_mode: RTGMode = "running",
-        rtg_floor: float = 0.05,
         group: RolloutGroup | None = None,
         backend: str = "auto",
     ) -> None:
         if rtg_mode not in RTG_MODES:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {rtg_mode!r}")
-        if not 0.0 <= rtg_floor < 1.0:
-            raise ValueError(f"rtg_floor must be in [0, 1), got {rtg_floor}")
         self.planner, self.name = planner, name
         self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
-        self.rtg_mode, self.rtg_floor = rtg_mode, rtg_floor
+        self.rtg_mode = rtg_mode
         self.target = TargetFilter(design)
         self.group = group or RolloutGroup(planner, use_cache=use_cache, clipped=clipped)
         if self.group.planner is not planner:
@@ -283,10 +279,10 @@ class TTOProvider:
         self.group.join(self.slot)
 
     def rtg_range(self) -> tuple[float, float]:
-        """[μ − 3σ of the model's rtg statistics, −rtg_floor·|rtg_0|]: where training rows' rtg lie."""
+        """[μ − 3σ of the model's rtg statistics, −RTG_FLOOR·|rtg_0|]: where training rows' rtg lie."""
         stats = self.planner.stats
         lo = float(stats.mean["rtg"][0] - RTG_SIGMAS * stats.std["rtg"][0])
-        hi = -self.rtg_floor * abs(self.rtg0)
+        hi = -RTG_FLOOR * abs(self.rtg0)
         return min(lo, hi), hi
 
     def conditioning(self, t: int) -> float | None:
@@ -294,7 +290,7 @@ class TTOProvider:
         if self.rtg_mode == "running":
             return None
         value = self.rtg0 + self.spent  # at t = 0 also reanchor's: rtg_0 = −κ·J_REL(0)
-        if self.rtg_mode == "reanchor" and t > 0:
+        if t > 0:
             rel = self.rel(self.scenario, self.problem, t, self.x)
             if rel.success:
                 value = -self.rtg_scale * rel.cost
