@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("settings", nargs="*", metavar="key=value", help="CheckConfig overrides, e.g. problems=5")
     p.add_argument("--problems", type=int, help="sampled problems to check and solve (default 3)")
     p.add_argument("--seed", type=int, help="root seed of the sampled problems (default 0)")
-    p.add_argument("--backend", help="auto|conic|riccati|piqp|clarabel|osqp|qoco|cvxpy-naive (default auto)")
+    p.add_argument("--backend", help="auto|conic|riccati|piqp|clarabel|qoco|cvxpy-naive (default auto)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
 
 

@@ -8,7 +8,6 @@ from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import (
     DISTProvider,
     OracleProvider,
-    PlanNoise,
     PlanProvider,
     Provider,
     RELProvider,
@@ -27,7 +26,6 @@ __all__ = [
     "MPCController",
     "MPCSettings",
     "OracleProvider",
-    "PlanNoise",
     "PlanProvider",
     "Plant",
     "PlantNoise",

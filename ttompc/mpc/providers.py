@@ -15,7 +15,7 @@ first row is the measured state, controls (H, m)) and, for windows that stop bef
 * ``ShiftProvider`` (the DAgger expert): the previous plan shifted by one step (first row replaced by the measured
   state), starting from a given plan; it makes the full-horizon expert cheap.
 * ``PlanProvider`` (PLAN-ONCE): one full-horizon plan (the open-loop SCP optimum, solved at t = 0) as warm start and
-  terminal target of every window: "plan once, then track", no model, no re-planning. With ``PlanNoise`` it is the
+  terminal target of every window: "plan once, then track", no model, no re-planning. Perturbed, it is the
   noisy oracle of ``bench/tto_mpc_robustness.py`` (a stand-in for a model whose plans are off by a known amount).
 * ``OracleProvider`` (ORACLE-MPC, the ceiling): the full remaining-horizon SCP optimum from the measured state
   (re-solved, warm-started from its own previous plan, whenever the state leaves the plan), as warm start and
@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -131,11 +131,11 @@ class RemainingREL:
     """REL over the whole remaining horizon [t, N) from the measured state, each solve started from the last one's
     plan shifted to t (``solve_rel(guess=...)``) instead of the straight line: the same relaxation from a nearby
     start, about half the time (measured in docs/benchmarks.md, MPC section). The shift spans the steps it was not
-    asked for (a controller that reused its plan skips its provider). ``warm=False`` restarts from the straight
-    line every step. REL-MPC plans with it; TTO-MPC's ``rtg_mode="reanchor"`` reads its cost."""
+    asked for (a controller that reused its plan skips its provider). REL-MPC plans with it; TTO-MPC's
+    ``rtg_mode="reanchor"`` reads its cost."""
 
-    def __init__(self, backend: str = "auto", *, warm: bool = True) -> None:
-        self.backend, self.warm = backend, warm
+    def __init__(self, backend: str = "auto") -> None:
+        self.backend = backend
         self._rel: tuple[int, np.ndarray, np.ndarray] | None = None  # (start step, X, U) of the last solve
 
     def reset(self) -> None:
@@ -144,7 +144,7 @@ class RemainingREL:
     def __call__(self, scenario: Scenario, problem: Problem, t: int, x: np.ndarray) -> SCPResult:
         rest = Window(t, problem.n_steps - t, problem.n_steps)
         guess = None
-        if self.warm and self._rel is not None and 0 < t - self._rel[0] < len(self._rel[2]):
+        if self._rel is not None and 0 < t - self._rel[0] < len(self._rel[2]):
             start, X, U = self._rel
             guess = (X[t - start :], U[t - start :])
         rel = solve_rel(scenario, problem, window=rest, x_start=x, guess=guess, backend=self.backend)
@@ -154,13 +154,13 @@ class RemainingREL:
 
 class RELProvider:
     """REL-MPC: full remaining-horizon REL (``RemainingREL``), truncated; terminal target = REL state at t+H
-    (weight ``mpc.terminal``, the paper's). ``warm_rel=False`` restarts each REL from the straight line."""
+    (weight ``mpc.terminal``, the paper's)."""
 
     name = "REL-MPC"
 
-    def __init__(self, backend: str = "auto", *, warm_rel: bool = True) -> None:
+    def __init__(self, backend: str = "auto") -> None:
         self.backend = backend
-        self.rel = RemainingREL(backend, warm=warm_rel)
+        self.rel = RemainingREL(backend)
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         self.scenario, self.problem = scenario, problem
@@ -235,7 +235,7 @@ class TTOProvider:
       REL fails.
 
     Inside a window the rollout still adds the model's own planned costs to the fed value (the rollout's rule).
-    ``use_cache`` and ``clipped`` configure the provider's own group; a given ``group`` has its own."""
+    ``use_cache`` configures the provider's own group; a given ``group`` has its own."""
 
     def __init__(
         self,
@@ -243,7 +243,6 @@ class TTOProvider:
         name: str = "TTO-MPC",
         *,
         use_cache: bool = True,
-        clipped: bool = True,
         rtg_scale: float | None = None,
         design: TerminalDesign | None = None,
         rtg_mode: RTGMode = "running",
@@ -256,7 +255,7 @@ class TTOProvider:
         self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
         self.rtg_mode = rtg_mode
         self.target = TargetFilter(design)
-        self.group = group or RolloutGroup(planner, use_cache=use_cache, clipped=clipped)
+        self.group = group or RolloutGroup(planner, use_cache=use_cache)
         if self.group.planner is not planner:
             raise ValueError("the providers of a RolloutGroup must share its planner")
         self.slot = self.group.add(self)
@@ -322,8 +321,8 @@ class RolloutGroup:
     Lifecycle: providers join at construction (``add``: their slot is their row), the context is built when all of
     them have been ``reset`` for an episode, and every member plans and observes once per step."""
 
-    def __init__(self, planner: Planner, *, use_cache: bool = True, clipped: bool = True) -> None:
-        self.planner, self.use_cache, self.clipped = planner, use_cache, clipped
+    def __init__(self, planner: Planner, *, use_cache: bool = True) -> None:
+        self.planner, self.use_cache = planner, use_cache
         self.members: list[TTOProvider] = []
         self.context: RolloutContext | None = None
         self._joined: set[int] = set()
@@ -375,7 +374,7 @@ class RolloutGroup:
                     ctx.rtg[m.slot, -1] = value
                 own.append(time.perf_counter() - t1)
             t1 = time.perf_counter()
-            res = ctx.rollout(window.length, clipped=self.clipped)
+            res = ctx.rollout(window.length)
             self._sync()
             S, A = res.states.double().cpu().numpy(), res.actions.double().cpu().numpy()
             rollout_time = time.perf_counter() - t1
@@ -435,38 +434,20 @@ class ShiftProvider:
         self.X, self.U = plan_X[1:], plan_U[1:]
 
 
-@dataclass(frozen=True)
-class PlanNoise:
-    """Seeded error added to a plan, per MPC step, as a rigid offset ε_t of the window's states X[1:] along the
-    components ``dims`` (positions): ``independent``: ε_t ~ N(0, std²) drawn afresh every step; ``drift``: an AR(1)
-    process ε_t = ρ·ε_{t−1} + √(1 − ρ²)·N(0, std²) with the same stationary std (a slowly wandering, consistent
-    error; ρ = ``correlation``). ``std`` is per component, in the optimisation representation (metres)."""
-
-    std: float
-    kind: Literal["independent", "drift"] = "independent"
-    dims: tuple[int, ...] = (0, 1)
-    correlation: float = 0.9
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.std < 0 or self.kind not in ("independent", "drift") or not 0 <= self.correlation < 1:
-            raise ValueError(f"invalid PlanNoise {self}")
-
-
 class PlanProvider:
     """PLAN-ONCE: a fixed full-horizon plan (given, or the open-loop SCP optimum solved at t = 0) as warm start and
-    terminal target of every window; optional ``noise`` on the plan (the noisy oracle)."""
+    terminal target of every window. ``window_plan`` is the plan a window gets (``bench/tto_mpc_robustness.py``
+    perturbs it: the noisy oracle)."""
 
     def __init__(
         self,
         plan: tuple[np.ndarray, np.ndarray] | None = None,
         *,
         name: str = "PLAN-ONCE",
-        noise: PlanNoise | None = None,
         design: TerminalDesign | None = None,
         backend: str = "auto",
     ) -> None:
-        self.name, self.noise, self.backend = name, noise, backend
+        self.name, self.backend = name, backend
         self._given = plan
         self.target = TargetFilter(design)
 
@@ -474,24 +455,14 @@ class PlanProvider:
         self.scenario, self.problem = scenario, problem
         self.X, self.U = self._given if self._given is not None else full_horizon_plan(scenario, problem, self.backend)
         self.target.reset()
-        self._rng = np.random.default_rng(self.noise.seed if self.noise else 0)
-        self._eps = np.zeros(len(self.noise.dims)) if self.noise else None
 
-    def _offset(self) -> np.ndarray:
-        assert self.noise is not None and self._eps is not None
-        draw = self.noise.std * self._rng.standard_normal(len(self.noise.dims))
-        if self.noise.kind == "independent":
-            self._eps = draw
-        else:
-            rho = self.noise.correlation
-            self._eps = rho * self._eps + np.sqrt(1 - rho**2) * draw
-        return self._eps
+    def window_plan(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the plan's states (H+1, n) and controls (H, m) over ``window``."""
+        t, H = window.start, window.length
+        return self.X[t : t + H + 1].copy(), self.U[t : t + H].copy()
 
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
-        t, H = window.start, window.length
-        X, U = self.X[t : t + H + 1].copy(), self.U[t : t + H].copy()
-        if self.noise is not None:
-            X[1:, list(self.noise.dims)] += self._offset()
+        X, U = self.window_plan(window)
         X[0] = x
         return WarmStart(X, U, self.target(self.scenario, window, X))
 

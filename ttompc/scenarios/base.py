@@ -155,12 +155,7 @@ class ConstraintBlock:
 class SCPSettings:
     """Trust-region SCP settings (the authors' schedule, ``docs/design.md``): Δ shrinks geometrically from
     ``tr_start`` to ``tr_end`` over ``max_iters`` iterations; stop when the state step and the cost change are both
-    below tolerance.
-
-    ``stall_iters`` > 0 departs from the paper's stopping rule (0, the default, keeps it): also stop once the iterate
-    is feasible and the merit has changed by at most ``cost_tol`` for that many consecutive subproblems, whatever
-    the step. With an L1 cost the iterates can wander among equal-cost plans (the optimal face) until the shrinking
-    trust region forces the step below ``tr_end``; those subproblems do not improve the plan."""
+    below tolerance."""
 
     tr_start: float
     tr_end: float
@@ -168,7 +163,6 @@ class SCPSettings:
     cost_tol: float = 1e-6
     penalty: float = 1e3  # exact-penalty weight on slacks (virtual control, linearised constraints)
     feas_tol: float = 1e-4  # max nonlinear constraint violation accepted as feasible
-    stall_iters: int = 0  # 0: the paper's rule; k > 0: also stop after k flat-merit subproblems at a feasible iterate
 
     @property
     def shrink(self) -> float:

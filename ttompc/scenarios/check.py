@@ -159,12 +159,9 @@ def _interface(ctx: _Context) -> str:
     scp = getattr(sc, "scp", None)
     if not isinstance(scp, SCPSettings):
         _fail("scp must be an SCPSettings (trust region, iterations, penalty, feasibility tolerance)")
-    ok = scp.max_iters >= 1 and scp.penalty > 0 and scp.feas_tol > 0 and scp.stall_iters >= 0
+    ok = scp.max_iters >= 1 and scp.penalty > 0 and scp.feas_tol > 0
     if not (0 < scp.tr_end <= scp.tr_start and ok):
-        _fail(
-            "scp needs 0 < tr_end <= tr_start, max_iters >= 1, penalty > 0, feas_tol > 0 and stall_iters >= 0, "
-            f"got {scp}"
-        )
+        _fail(f"scp needs 0 < tr_end <= tr_start, max_iters >= 1, penalty > 0 and feas_tol > 0, got {scp}")
     mpc = getattr(sc, "mpc", None)
     if not isinstance(mpc, MPCWeights):
         _fail("mpc must be an MPCWeights (fuel, end, terminal, dist)")

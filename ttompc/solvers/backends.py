@@ -7,9 +7,6 @@ on a numerical failure, or Clarabel alone where QOCO is not installed or the sce
 * ``qoco``: interior-point conic solver, the fastest measured here on our SOCPs; set up afresh per solve (below).
 * ``clarabel``: interior-point conic solver shipped with cvxpy; handles the SOC trust region, the 2-norm costs
   (RPOD) and the approach cone. Data updates keep the KKT symbolic factorisation.
-* ``osqp``: ADMM QP solver for subproblems without cones, on the conic assembly; warm-started from the previous
-  primal/dual iterate, which matters when many bounds are active (``docs/design.md``). Slow here; kept as a
-  comparison in ``bench/solver_speed.py``.
 """
 
 from __future__ import annotations
@@ -80,57 +77,6 @@ class ClarabelBackend:
         return BackendSolution(np.asarray(sol.x) if ok else None, float(sol.obj_val), ok, infeasible, status, elapsed)
 
 
-class OSQPBackend:
-    """OSQP on l ≤ Az ≤ u; the zero cone gives l = u = b, the nonnegative cone l = −∞, u = b."""
-
-    name = "osqp"
-    supports_cones = False
-
-    def __init__(self, sub: AssembledSubproblem, eps: float = 1e-4, max_iter: int = 20000) -> None:
-        import osqp
-
-        _reject_cones(sub, self.name)
-        self._osqp = osqp
-        self.sub = sub
-        self.n_zero = dict(sub.cones)["zero"]
-        self.eps, self.max_iter = eps, max_iter
-        self.solver: Any = None  # osqp.OSQP, set up on the first solve
-
-    def restart(self) -> None:
-        """Set up afresh on the next solve instead of warm-starting from the previous problem's iterate."""
-        self.solver = None
-
-    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
-        t0 = time.perf_counter()
-        lower = np.full_like(b, -np.inf)
-        lower[: self.n_zero] = b[: self.n_zero]
-        if self.solver is None:
-            self.solver = self._osqp.OSQP()
-            self.solver.setup(
-                P=sp.triu(self.sub.P, format="csc"),
-                q=self.sub.q,
-                A=self.sub.matrix(a_values),
-                l=lower,
-                u=b,
-                eps_abs=self.eps,
-                eps_rel=self.eps,
-                max_iter=self.max_iter,
-                polishing=True,
-                verbose=False,
-                warm_starting=True,
-            )
-        else:  # keeps the previous primal/dual iterate as the warm start
-            self.solver.update(Ax=a_values, l=lower, u=b)
-        res = self.solver.solve()
-        elapsed = time.perf_counter() - t0
-        status = str(res.info.status)
-        ok = status in ("solved", "solved inaccurate")
-        infeasible = "primal infeasible" in status
-        return BackendSolution(
-            np.asarray(res.x) if ok else None, float(res.info.obj_val), ok, infeasible, status, elapsed
-        )
-
-
 class QOCOBackend:
     """QOCO (optional extra): min ½xᵀPx + cᵀx s.t. Ax = b, Gx ≤_C h with C = ℝ₊ˡ × SOCs. The zero-cone rows of
     the assembled matrix are QOCO's A, the rest its G.
@@ -185,23 +131,18 @@ class QOCOBackend:
         )
 
 
-BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "qoco": QOCOBackend}
-QP_BACKENDS = ("riccati", "piqp", "osqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
+BACKENDS: dict[str, type[ClarabelBackend | QOCOBackend]] = {"clarabel": ClarabelBackend, "qoco": QOCOBackend}
+QP_BACKENDS = ("riccati", "piqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
 # every name ``backend=`` takes: the chains (``engine.backend_chain``), the solvers, and the naive cvxpy baseline
 BACKEND_NAMES = ("auto", "conic", "riccati", "piqp", *BACKENDS, "cvxpy-naive")
 
 
-def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPBackend | QOCOBackend:
+def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | QOCOBackend:
     try:
         cls = BACKENDS[name]
     except KeyError:
         raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}") from None
     return cls(sub)
-
-
-def _reject_cones(sub: AssembledSubproblem, name: str) -> None:
-    if any(kind == "soc" for kind, _ in sub.cones):
-        raise ValueError(cone_error(name))
 
 
 def cone_error(name: str) -> str:

@@ -165,7 +165,6 @@ def run_scp(
     best: tuple[float, np.ndarray, np.ndarray, float, int] | None = None  # (merit, X, U, violation, iteration)
     least_bad: tuple[float, np.ndarray, np.ndarray, int] | None = None  # fallback: smallest violation
     prev_merit: float | None = None
-    flat_run = 0  # consecutive subproblems whose merit changed by at most cost_tol (SCPSettings.stall_iters)
     status: SCPStatus | None = None
     solver_time = 0.0
     solver: SubproblemSolver | None = None
@@ -240,11 +239,9 @@ def run_scp(
             least_bad = (violation, X, U, it)
         # a fixed point: the step from this iteration's linearisation point and the merit change from that point
         # are both below tolerance. The first iteration compares with the warm start, so a converged warm start
-        # costs one subproblem, not two. Opt-in (not the paper's): a feasible iterate after stall_iters flat merits.
+        # costs one subproblem, not two.
         flat = prev_merit is not None and abs(merit - prev_merit) <= settings.cost_tol
-        flat_run = flat_run + 1 if flat else 0
-        stalled = 0 < settings.stall_iters <= flat_run and violation <= settings.feas_tol
-        converged = (step <= settings.tr_end and flat) or stalled
+        converged = step <= settings.tr_end and flat
         X_ref, U_ref, prev_merit = X, U, merit
         delta *= shrink
         if converged or not use_tr:
