@@ -33,8 +33,8 @@ import numpy as np
 
 from ttompc.evaluation.metrics import write_json
 from ttompc.evaluation.problems import eval_problem
+from ttompc.evaluation.stats import interval
 from ttompc.mpc import DISTProvider, PlanProvider, RELProvider, TerminalDesign, run_mpc
-from ttompc.mpc.metrics import interval
 from ttompc.mpc.providers import full_horizon_plan
 from ttompc.parallel import pool_map
 from ttompc.scenarios import Problem, Scenario, get_scenario

@@ -48,7 +48,7 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
 def test_protocol_reaches_the_closed_loop_measurement(monkeypatch: pytest.MonkeyPatch) -> None:
     """dagger.protocol (with dagger.mpc overrides) is what the keep/reject measurement runs with; a bad setting is a
     config error."""
-    import ttompc.mpc.metrics as metrics
+    import ttompc.evaluation.episodes as metrics
     from ttompc.finetune.loop import measure
 
     seen: dict[str, object] = {}

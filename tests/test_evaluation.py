@@ -17,10 +17,11 @@ import pytest
 from ttompc.cli import main
 from ttompc.config import ConfigError
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+from ttompc.evaluation.episodes import summarize_episodes
 from ttompc.evaluation.metrics import gain_share, improvement_by_threshold, paper_normalized
 from ttompc.evaluation.problems import eval_problem, first_solvable
+from ttompc.evaluation.stats import interval
 from ttompc.evaluation.warmstart import ORACLE, evaluate_problem
-from ttompc.mpc.metrics import interval, summarize_episodes
 from ttompc.mpc.settings import MPCSettings
 from ttompc.scenarios import Problem, get_scenario
 from ttompc.scenarios.freeflyer import DT

@@ -37,11 +37,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ttompc.evaluation.episodes import episode_record, summarize_episodes
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.evaluation.stats import format_interval, interval
 from ttompc.evaluation.warmstart import default_workers
 from ttompc.mpc.loop import run_mpc_batch
-from ttompc.mpc.metrics import episode_record, format_interval, interval, summarize_episodes
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import (
     DISTProvider,
@@ -49,12 +50,11 @@ from ttompc.mpc.providers import (
     PlanProvider,
     Provider,
     RELProvider,
-    RolloutGroup,
     TerminalDesign,
-    TTOProvider,
     full_horizon_plan,
 )
 from ttompc.mpc.settings import MPCSettings, protocol_settings
+from ttompc.mpc.tto import RolloutGroup, TTOProvider
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec

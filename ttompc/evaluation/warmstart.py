@@ -33,7 +33,7 @@ from ttompc.evaluation.metrics import (
     write_json,
 )
 from ttompc.evaluation.problems import EvalProblem, eval_problem
-from ttompc.mpc.metrics import format_interval, interval
+from ttompc.evaluation.stats import format_interval, interval
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec

@@ -35,8 +35,9 @@ from ttompc.data.schema import make_row, trajectory_features
 from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig
 from ttompc.mpc.loop import MPCController
-from ttompc.mpc.providers import ShiftProvider, TTOProvider
+from ttompc.mpc.providers import ShiftProvider
 from ttompc.mpc.settings import MPCSettings
+from ttompc.mpc.tto import TTOProvider
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec

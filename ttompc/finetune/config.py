@@ -65,8 +65,9 @@ class CollectConfig:
 @dataclass
 class EvalConfig:
     """Closed-loop TTO-MPC on fixed held-out problems (the metrics of ``ClosedLoopEvalCallback``,
-    ``ttompc.mpc.metrics.closed_loop_metrics``), measured for the pretrained model and after every iteration. They
-    decide which iterations are kept: see ``ttompc.finetune.loop.improves``."""
+    ``ttompc.evaluation.episodes.closed_loop_metrics``), measured for the pretrained model and after every
+    iteration under ``dagger.protocol``. They decide which iterations are kept: see
+    ``ttompc.finetune.loop.improves``."""
 
     problems: int = 4
     horizon: int = 10

@@ -7,10 +7,10 @@ Iteration i starts from its *parent*, the best model so far (the pretrained mode
 2. **Train** ``dagger.steps_per_iteration`` optimiser steps from the parent's weights and optimiser state on the
    open-loop data mixed with every DAgger folder so far (``data.open_loop_fraction`` and ``data.closed_loop_share``;
    "grow" is the paper's mix) into ``<run>/checkpoints/iter-<i>.ckpt``.
-3. **Measure** the candidate's closed-loop TTO-MPC on the fixed held-out problems of ``dagger.eval`` (the metrics the
-   training callback logs, ``ttompc.mpc.metrics.closed_loop_metrics``) and **keep** it only if it ``improves`` on
-   the parent; otherwise the next iteration starts again from the parent. A rejected iteration's rollouts stay in
-   the aggregate: its visited states carry valid expert labels.
+3. **Measure** the candidate's closed-loop TTO-MPC on the fixed held-out problems of ``dagger.eval`` under
+   ``dagger.protocol`` (the metrics the training callback logs, ``ttompc.evaluation.episodes.closed_loop_metrics``)
+   and **keep** it only if it ``improves`` on the parent; otherwise the next iteration starts again from the
+   parent. A rejected iteration's rollouts stay in the aggregate: its visited states carry valid expert labels.
 
 After the last iteration the selected model is exported to ``<run>/planner``. The fine-tuned model is therefore
 never worse than its pretrained parent by that measure; it *is* the parent when no iteration improved.
@@ -132,7 +132,7 @@ def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[EvalProblem]
 
 def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) -> dict[str, float]:
     """Closed-loop TTO-MPC metrics of ``planner`` on the evaluation problems (one torch thread: batch-1 rollouts)."""
-    from ttompc.mpc.metrics import closed_loop_metrics
+    from ttompc.evaluation.episodes import closed_loop_metrics
     from ttompc.parallel import single_torch_thread
 
     e = cfg.dagger.eval

@@ -12,13 +12,12 @@ from ttompc.mpc.providers import (
     Provider,
     RELProvider,
     RemainingREL,
-    RolloutGroup,
     ShiftProvider,
     TerminalDesign,
-    TTOProvider,
     WarmStart,
 )
 from ttompc.mpc.settings import MPCSettings, protocol_settings
+from ttompc.mpc.tto import RolloutGroup, TTOProvider
 
 __all__ = [
     "DISTProvider",

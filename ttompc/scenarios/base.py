@@ -298,9 +298,12 @@ class Scenario(abc.ABC):
 
     def state_units(self) -> np.ndarray:
         """``state_scale`` as an array (ones where the scenario gives none): the per-state units in which distances
-        between states are measured (plan reuse, target change, oracle detours)."""
-        n = self.state_dim
-        return np.asarray(self.state_scale, dtype=np.float64) if len(self.state_scale) == n else np.ones(n)
+        between states are measured (plan reuse, target change, oracle detours) and the solvers non-dimensionalise."""
+        return units_of(self.state_scale, self.state_dim)
+
+    def control_units(self) -> np.ndarray:
+        """``control_scale`` as an array (ones where the scenario gives none), as ``state_units``."""
+        return units_of(self.control_scale, self.control_dim)
 
     @abc.abstractmethod
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
@@ -403,3 +406,8 @@ def stage_cost(U: np.ndarray, norm: CostNorm) -> np.ndarray:
     if norm == "quad":
         return 0.5 * np.sum(U * U, axis=-1)
     raise ValueError(f"unknown cost norm {norm!r}")
+
+
+def units_of(scale: tuple[float, ...], dim: int) -> np.ndarray:
+    """A scale tuple as an array of ``dim`` units (ones where it is empty or does not fit)."""
+    return np.asarray(scale, dtype=np.float64) if len(scale) == dim else np.ones(dim)

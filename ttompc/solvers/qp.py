@@ -85,8 +85,7 @@ class QPSubproblem:
         self.spec = spec
         H, n, m = spec.H, spec.n, spec.m
         self._layout(spec)
-        sx = np.asarray(spec.state_scale or np.ones(n), dtype=np.float64)
-        su = np.asarray(spec.control_scale or np.ones(m), dtype=np.float64)
+        sx, su = spec.units()
         self._scale: list[np.ndarray] = []
         self._lo: list[np.ndarray] = []  # constant lower bounds per variable group
         self._cost: list[np.ndarray] = []

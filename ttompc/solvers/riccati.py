@@ -65,8 +65,7 @@ class StageQP:
                              "'penalized'); use backend='piqp' or 'auto'")  # fmt: skip
         self.spec = spec
         H, n, m = spec.H, spec.n, spec.m
-        self.sx = np.asarray(spec.state_scale or np.ones(n), dtype=np.float64)
-        self.su = np.asarray(spec.control_scale or np.ones(m), dtype=np.float64)
+        self.sx, self.su = spec.units()
         self.vr = spec.virtual_rows() if spec.virtual_control else np.zeros(0, np.int64)
         self.nu = m + len(self.vr)
         ny = n + self.nu

@@ -3,8 +3,8 @@
 Teacher-forced validation loss says little about closed-loop behaviour (covariate shift, paper §IV-C), so every
 ``every_n_val`` validation runs the callback runs TTO-MPC with the current weights on a fixed, seeded set of held-out
 problems (REL solved once and cached) under the MPC settings of a protocol (``settings``, e.g. the recipe's
-``callbacks.eval_mpc.protocol``), on the nominal or the perturbed plant (``plant``, seeded per problem), and
-logs ``ttompc.mpc.metrics.closed_loop_metrics`` through ``pl_module.log`` (any logger): ``<prefix>/feasible_rate``,
+``callbacks.eval_mpc.protocol``), on the nominal or the perturbed plant (``plant``, seeded per problem), and logs
+``ttompc.evaluation.episodes.closed_loop_metrics`` through ``pl_module.log`` (any logger): ``<prefix>/feasible_rate``,
 ``<prefix>/infeasible`` (count), ``<prefix>/cost_increment`` (mean (J − J_REL)/J_REL over feasible runs) and its
 ``_se``, ``<prefix>/cost``, ``<prefix>/target_change``, step times and fallbacks, plus a trajectory figure (PNG
 under ``<root>/plots/``, and an image on wandb or TensorBoard). Runs on global rank 0 only. Counting validation
@@ -79,7 +79,7 @@ class ClosedLoopEvalCallback(L.Callback):
 
     def evaluate(self, pl_module: L.LightningModule) -> tuple[dict[str, float], list[Any], list[EvalProblem]]:
         """Closed-loop metrics of the module's current weights (model mode restored afterwards)."""
-        from ttompc.mpc.metrics import closed_loop_metrics
+        from ttompc.evaluation.episodes import closed_loop_metrics
         from ttompc.policy import Planner
         from ttompc.scenarios import get_scenario
         from ttompc.training.module import TrajectoryTransformerModule

@@ -39,6 +39,7 @@ from ttompc.scenarios.base import (
     Window,
 )
 from ttompc.seeding import problem_seed
+from ttompc.solvers.scp import solve_problem
 
 CHECKS = (
     "interface",
@@ -94,8 +95,7 @@ class _Context:
 
     def __init__(self, sc: Scenario, problems: int, seed: int, backend: str) -> None:
         self.sc, self.n_problems, self.seed, self.backend = sc, problems, seed, backend
-        self.sx = np.asarray(sc.state_scale or np.ones(sc.state_dim), dtype=np.float64)
-        self.su = np.asarray(sc.control_scale or np.ones(sc.control_dim), dtype=np.float64)
+        self.sx, self.su = sc.state_units(), sc.control_units()
         self.rng = np.random.default_rng(seed)
         self._problems: list[tuple[int, Problem]] | None = None
 
@@ -405,8 +405,6 @@ def _violations(ctx: _Context) -> str:
 
 
 def _solve(ctx: _Context) -> str:
-    from ttompc.solvers.scp import solve_problem
-
     sc = ctx.sc
     tol = sc.scp.feas_tol
     iters, times = [], []

@@ -1,57 +1,28 @@
-"""Closed-loop metrics of MPC episodes, next to the loop that produces them (used by ``ttompc evaluate mpc``, the
-training callback and DAgger).
+"""Closed-loop metrics of MPC episodes (used by ``ttompc evaluate mpc``, the training callback and DAgger).
 
 Costs are only averaged over episodes that are *feasible* (no keep-out violation, path constraints met, goal
 reached within ``terminal_tol``): an infeasible or goal-missing run has no meaningful cost, so it is counted apart
 (``infeasible``) and never averaged into one. Every mean comes with its standard error and a seeded percentile
-bootstrap interval (``interval``), so two models can be told apart from noise.
+bootstrap interval (``ttompc.evaluation.stats.interval``), so two models can be told apart from noise.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ttompc.evaluation.problems import EvalProblem
+from ttompc.evaluation.stats import interval
 from ttompc.mpc.loop import Episode, run_mpc_batch
 from ttompc.mpc.plant import PlantNoise
-from ttompc.mpc.providers import RolloutGroup, TerminalDesign, TTOProvider
+from ttompc.mpc.providers import TerminalDesign
 from ttompc.mpc.settings import MPCSettings
-from ttompc.scenarios.base import Problem
+from ttompc.mpc.tto import RolloutGroup, TTOProvider
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
-
-BOOTSTRAP_SAMPLES = 2000
-
-
-def interval(values: Sequence[float] | np.ndarray, *, level: float = 0.95, seed: int = 0) -> dict[str, float]:
-    """Mean of the finite ``values`` with its standard error and a percentile bootstrap interval at ``level``
-    (``BOOTSTRAP_SAMPLES`` resamples from ``default_rng(seed)``): keys mean, se, lo, hi and n (the number of finite
-    values). With no value everything is nan; with one, the s.e. and interval are nan."""
-    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
-    out = {"mean": float("nan"), "se": float("nan"), "lo": float("nan"), "hi": float("nan"), "n": len(x)}
-    if len(x) == 0:
-        return out
-    out["mean"] = float(np.mean(x))
-    if len(x) < 2:
-        return out
-    out["se"] = float(np.std(x, ddof=1) / np.sqrt(len(x)))
-    idx = np.random.default_rng(seed).integers(0, len(x), size=(BOOTSTRAP_SAMPLES, len(x)))
-    out["lo"], out["hi"] = (float(v) for v in np.quantile(x[idx].mean(axis=1), [(1 - level) / 2, (1 + level) / 2]))
-    return out
-
-
-def format_interval(iv: dict[str, float], scale: float = 1.0, digits: int = 3) -> str:
-    """'mean ± se [lo, hi]' (times ``scale``) for tables."""
-    if not iv["n"]:
-        return "–"
-    m, se, lo, hi = (iv[k] * scale for k in ("mean", "se", "lo", "hi"))
-    if not math.isfinite(se):
-        return f"{m:.{digits}g}"
-    return f"{m:.{digits}g} ± {se:.2g} [{lo:.{digits}g}, {hi:.{digits}g}]"
 
 
 def episode_record(e: Episode) -> dict[str, Any]:
@@ -82,19 +53,9 @@ def summarize_episodes(records: Sequence[dict[str, Any]], *, seed: int = 0) -> d
     }
 
 
-class ProblemWithRel(Protocol):
-    """What closed-loop metrics need of an evaluation problem (``ttompc.evaluation.problems.EvalProblem``)."""
-
-    seed: int
-    problem: Problem
-
-    @property
-    def rel_cost(self) -> float: ...
-
-
 def closed_loop_metrics(
     planner: Planner,
-    problems: Sequence[ProblemWithRel],
+    problems: Sequence[EvalProblem],
     horizon: int,
     *,
     settings: MPCSettings | None = None,
