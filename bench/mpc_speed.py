@@ -57,7 +57,7 @@ from ttompc.finetune.config import ExplorationConfig
 from ttompc.mpc import DISTProvider, MPCSettings, RELProvider, TTOProvider, run_mpc
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import Scenario, get_scenario
-from ttompc.solvers.engine import clear_solver_cache
+from ttompc.solvers.backends import clear_solver_cache
 
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 

@@ -10,7 +10,7 @@ import pytest
 
 from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
 from ttompc.solvers import SCPStatus, TerminalCost, solve_problem, solve_rel, solve_scp
-from ttompc.solvers.engine import AssembledSolver
+from ttompc.solvers.backends.conic import AssembledSolver
 from ttompc.solvers.naive import NaiveCvxpySolver
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
 
@@ -83,13 +83,13 @@ def test_a_solve_does_not_depend_on_earlier_solves(name: str) -> None:
     """Solvers are cached per structure and process; a problem solved after another one (a pool worker's second
     task) gives the bits of the same problem solved first (a fresh worker), so regenerated data rows are exact."""
     from ttompc.seeding import problem_seed
-    from ttompc.solvers import engine
+    from ttompc.solvers.backends import clear_solver_cache
 
     scenario = get_scenario(name)
     earlier, problem = (scenario.sample(np.random.default_rng(problem_seed(0, i))) for i in (1, 0))
-    engine._CACHE.clear()
+    clear_solver_cache()
     fresh = solve_problem(scenario, problem)
-    engine._CACHE.clear()
+    clear_solver_cache()
     solve_problem(scenario, earlier)
     after = solve_problem(scenario, problem)
     for a, b in zip(fresh, after, strict=True):

@@ -234,7 +234,7 @@ class Scenario(abc.ABC):
     # largest ‖x_N − goal‖ (optimisation representation) of a closed-loop episode counted as reaching the goal; soft
     # MPC end penalties leave a small residual
     terminal_tol: ClassVar[float] = 5e-2
-    # what backend="auto" means for this scenario (see ttompc.solvers.engine.backend_chain)
+    # what backend="auto" means for this scenario (see ttompc.solvers.backends.backend_chain)
     auto_backends: ClassVar[tuple[str, ...]] = ("piqp", "qoco", "clarabel")
     state_labels: ClassVar[tuple[str, ...]]
     control_labels: ClassVar[tuple[str, ...]]

@@ -1,8 +1,5 @@
-"""Solver backends for the conic assembly of the subproblem (``subproblem.py``).
-
-What ``backend="auto"`` runs (``engine.backend_chain``): PIQP on the compact QP form (``qp.py``, optional extra
-``ttompc[fast]``) wherever the subproblem has no cone; otherwise QOCO (optional extra) with Clarabel as the fallback
-on a numerical failure, or Clarabel alone where QOCO is not installed or the scenario asks for it (RPOD).
+"""Conic solvers on the conic assembly of the subproblem (``ttompc.solvers.subproblem``), and
+``AssembledSolver``, which runs them in order (a later one takes the subproblems an earlier one fails on).
 
 * ``qoco``: interior-point conic solver, the fastest measured here on our SOCPs; set up afresh per solve (below).
 * ``clarabel``: interior-point conic solver shipped with cvxpy; handles the SOC trust region, the 2-norm costs
@@ -12,23 +9,14 @@ on a numerical failure, or Clarabel alone where QOCO is not installed or the sce
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
-from ttompc.solvers.subproblem import AssembledSubproblem
-
-
-@dataclass
-class BackendSolution:
-    z: np.ndarray | None
-    objective: float
-    ok: bool  # a usable (optimal or almost optimal) primal solution
-    infeasible: bool  # the solver certified primal infeasibility
-    status: str
-    solve_time: float
+from ttompc.solvers.backends.base import BackendSolution
+from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
 
 
 class ClarabelBackend:
@@ -132,21 +120,40 @@ class QOCOBackend:
 
 
 BACKENDS: dict[str, type[ClarabelBackend | QOCOBackend]] = {"clarabel": ClarabelBackend, "qoco": QOCOBackend}
-QP_BACKENDS = ("riccati", "piqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
-# every name ``backend=`` takes: the chains (``engine.backend_chain``), the solvers, and the naive cvxpy baseline
-BACKEND_NAMES = ("auto", "conic", "riccati", "piqp", *BACKENDS, "cvxpy-naive")
 
 
 def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | QOCOBackend:
     try:
         cls = BACKENDS[name]
     except KeyError:
+        from ttompc.solvers.backends.chain import BACKEND_NAMES
+
         raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}") from None
     return cls(sub)
 
 
-def cone_error(name: str) -> str:
-    return (
-        f"backend {name!r} solves QPs only, but this subproblem has second-order cones (2-norm cost, 2-norm trust "
-        "region, approach cone or a soft terminal norm); use backend='auto', 'qoco' or 'clarabel', or trust_norm='linf'"
-    )
+class AssembledSolver:
+    """Assembled structure + persistent backends: only values change between calls. With several backends the
+    later ones are fallbacks for a numerical failure of the first (``auto``: QOCO, then Clarabel)."""
+
+    def __init__(self, spec: SubproblemSpec, backends: Sequence[str]) -> None:
+        self.sub = AssembledSubproblem(spec)
+        self.backends = [make_backend(name, self.sub) for name in backends]
+
+    def restart(self) -> None:
+        for backend in self.backends:
+            backend.restart()
+
+    def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
+        a_values, b = self.sub.update(data)
+        spent = 0.0
+        for backend in self.backends:
+            sol = backend.solve(a_values, b)
+            spent += sol.solve_time
+            if sol.ok:
+                break
+        sol.solve_time = spent
+        if sol.z is None:
+            return None, None, sol
+        X, U = self.sub.split(sol.z)
+        return X, U, sol
