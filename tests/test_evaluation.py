@@ -267,6 +267,7 @@ def test_evaluate_mpc_command_and_bad_settings(tmp_path: Path) -> None:
     assert report["protocol"] == {"name": "zoo mpc.mode=hard", "settings": {**asdict(MPCSettings(end_horizon=30)),
                                                                            "mode": "hard"}}  # fmt: skip
     assert "Protocol: zoo mpc.mode=hard." in (out / "mpc.md").read_text()
+    assert report["solver"] == {"backend": "auto", "chain": ["piqp", "qoco", "clarabel"], "trust_norm": "linf"}
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "plants=[windy]"]) == 2
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "protocol=nope"]) == 2
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "mpc.end_horizont=3"]) == 2

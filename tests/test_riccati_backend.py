@@ -188,6 +188,18 @@ def test_where_the_chain_takes_it(monkeypatch) -> None:
         backend_chain("riccati", ff)
 
 
+def test_default_path_does_not_depend_on_installed_extras(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``auto`` is the scenario's chain and its trust-region norm whatever is installed (PIQP and QOCO are
+    dependencies); only the opt-in ``riccati`` needs an extra. ``solver_path`` is what reports record."""
+    from ttompc.solvers.backends import default_trust_norm, solver_path
+
+    ff, rpod = get_scenario("freeflyer"), get_scenario("rpod")
+    monkeypatch.setattr(chain_module, "_installed", lambda module: False)
+    assert solver_path("auto", ff) == {"backend": "auto", "chain": ["piqp", "qoco", "clarabel"], "trust_norm": "linf"}
+    assert solver_path("auto", rpod) == {"backend": "auto", "chain": ["clarabel"], "trust_norm": "l2"}
+    assert default_trust_norm("clarabel", ff) == "linf" and default_trust_norm("conic", ff) == "l2"
+
+
 def test_cli_solve_with_the_riccati_backend(tmp_path) -> None:
     """`ttompc solve --backend riccati` as a user runs it: the default path's optimum."""
     import json

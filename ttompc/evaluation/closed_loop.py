@@ -59,6 +59,7 @@ from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario
+from ttompc.solvers.backends import solver_path
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -368,6 +369,7 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
     report = {
         "config": {**asdict(cfg), "out": str(out), "workers": workers},
         "protocol": {"name": protocol_label(cfg), "settings": asdict(settings)},
+        "solver": solver_path(settings.backend, sc),
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
         "wall_time_s": time.perf_counter() - t0,
         "departures": notes,

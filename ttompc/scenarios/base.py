@@ -236,6 +236,9 @@ class Scenario(abc.ABC):
     terminal_tol: ClassVar[float] = 5e-2
     # what backend="auto" means for this scenario (see ttompc.solvers.backends.backend_chain)
     auto_backends: ClassVar[tuple[str, ...]] = ("piqp", "qoco", "clarabel")
+    # trust-region norm of the SCP: "linf" (bounds on the states: a subproblem without cones is a QP) or "l2" (a
+    # second-order cone); whichever backend solves it, except the "conic" comparison path (2-norm)
+    trust_norm: ClassVar[Literal["l2", "linf"]] = "linf"
     state_labels: ClassVar[tuple[str, ...]]
     control_labels: ClassVar[tuple[str, ...]]
 

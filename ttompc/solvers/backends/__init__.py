@@ -8,26 +8,28 @@
   built solver structures (``get_solver``).
 
 What ``backend="auto"`` runs: the scenario's ``auto_backends`` (default PIQP on the compact QP wherever the
-subproblem has no cone, else QOCO with Clarabel as the fallback on a numerical failure; RPOD: Clarabel).
+subproblem has no cone, else QOCO with Clarabel as the fallback on a numerical failure; RPOD: Clarabel), with the
+scenario's trust-region norm (``Scenario.trust_norm``). PIQP and QOCO are dependencies: the default does not depend
+on installed extras (numba, for ``riccati``, is the ``fast`` extra).
 """
 
 from ttompc.solvers.backends.base import BackendSolution, SubproblemSolver
 from ttompc.solvers.backends.chain import (
     BACKEND_NAMES,
-    QP_BACKENDS,
     backend_chain,
     clear_solver_cache,
     default_trust_norm,
     get_solver,
+    solver_path,
 )
 
 __all__ = [
     "BACKEND_NAMES",
-    "QP_BACKENDS",
     "BackendSolution",
     "SubproblemSolver",
     "backend_chain",
     "clear_solver_cache",
     "default_trust_norm",
     "get_solver",
+    "solver_path",
 ]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import importlib.util
 from collections import OrderedDict
+from typing import Any
 
 from ttompc.scenarios.base import Scenario
 from ttompc.solvers.backends.base import SubproblemSolver, is_qp
@@ -15,7 +16,6 @@ from ttompc.solvers.backends.riccati import RiccatiSolver
 from ttompc.solvers.backends.riccati import supports as riccati_supports
 from ttompc.solvers.subproblem import SubproblemSpec
 
-QP_BACKENDS = ("riccati", "piqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
 # every name ``backend=`` takes: the chains (``backend_chain``), the solvers, and the naive cvxpy baseline
 BACKEND_NAMES = ("auto", "conic", "riccati", "piqp", *BACKENDS, "cvxpy-naive")
 
@@ -23,9 +23,10 @@ BACKEND_NAMES = ("auto", "conic", "riccati", "piqp", *BACKENDS, "cvxpy-naive")
 def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
     """``auto`` = the scenario's ``auto_backends`` (default: PIQP on the compact QP wherever the subproblem has
     no cone, else QOCO, with Clarabel as the fallback on a numerical failure); ``conic`` = QOCO then Clarabel on
-    every subproblem (the default before the QP path, kept for comparisons); both restricted to installed solvers.
-    ``riccati`` = the stage-wise interior-point kernel (``riccati.py``) ahead of the ``auto`` chain where that chain
-    starts with PIQP, the ``auto`` chain elsewhere. Other names alone."""
+    every subproblem (the default before the QP path, kept for comparisons). PIQP and QOCO are dependencies, so a
+    chain does not depend on what is installed. ``riccati`` = the stage-wise interior-point kernel (``riccati.py``)
+    ahead of the ``auto`` chain where that chain starts with PIQP, the ``auto`` chain elsewhere. Other names
+    alone."""
     if name == "riccati":
         if not _installed("numba"):
             raise ValueError("backend 'riccati' needs numba: pip install 'ttompc[fast]'")
@@ -37,8 +38,7 @@ def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
         chain = ["qoco", "clarabel"]
     else:
         return [name]
-    chain = [b for b in chain if b not in ("piqp", "qoco") or _installed(b)]
-    return chain or ["clarabel"]
+    return chain
 
 
 @functools.cache
@@ -47,8 +47,21 @@ def _installed(module: str) -> bool:
 
 
 def default_trust_norm(backend: str, scenario: Scenario | None = None) -> str:
-    """∞-norm (a QP: bounds on the states) where the first backend of the chain solves QPs, else the 2-norm."""
-    return "linf" if backend_chain(backend, scenario)[0] in QP_BACKENDS else "l2"
+    """The scenario's ``trust_norm`` (∞-norm without a scenario); ``conic``, the previous default path kept for
+    comparisons, keeps its 2-norm."""
+    if backend == "conic":
+        return "l2"
+    return scenario.trust_norm if scenario is not None else "linf"
+
+
+def solver_path(backend: str, scenario: Scenario) -> dict[str, Any]:
+    """What ``backend`` resolves to for ``scenario`` (recorded by reports and datasets): the name, the chain of
+    solvers and the trust-region norm."""
+    return {
+        "backend": backend,
+        "chain": backend_chain(backend, scenario),
+        "trust_norm": default_trust_norm(backend, scenario),
+    }
 
 
 _CACHE: OrderedDict[tuple[SubproblemSpec, tuple[str, ...]], SubproblemSolver] = OrderedDict()
