@@ -253,6 +253,9 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     # the exported model is the kept iteration 0, not the rejected last one
     exported, kept = Planner.from_pretrained(run / "planner"), Planner.from_pretrained(state["best"]["planner"])
     assert exported.extra["dagger_iteration"] == 0 and exported.extra["dagger_kept"] == [0]
+    protocol = state["protocol"]  # the measurement's settings, in the state file and the exported bundle
+    assert protocol["name"] == cfg.dagger.protocol and protocol["settings"]["end_horizon"] >= 0
+    assert protocol["solver"]["chain"][0] == "piqp" and exported.extra["dagger_protocol"] == protocol
     assert exported.rtg_scale == 1.2
     for (name, a), b in zip(exported.model.state_dict().items(), kept.model.state_dict().values(), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0, msg=name)

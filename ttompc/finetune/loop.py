@@ -15,11 +15,13 @@ Iteration i starts from its *parent*, the best model so far (the pretrained mode
 After the last iteration the selected model is exported to ``<run>/planner``. The fine-tuned model is therefore
 never worse than its pretrained parent by that measure; it *is* the parent when no iteration improved.
 
-``<run>/dagger_state.json`` records the source, the pretrained model's metrics, the current best and, per iteration,
-its checkpoint, planner, global step, metrics, parent and the keep/reject decision with its reason (also logged as
-``dagger/*`` metrics and printed). Re-running the same command continues: finished iterations are skipped, done
-rollout shards are not recollected, and an iteration whose training was interrupted resumes from its checkpoint
-(refreshed every ``trainer.checkpoint_every_n_steps`` and on an exception such as Ctrl-C).
+``<run>/dagger_state.json`` records the source, the protocol of the measurement (``protocol_record``), the
+pretrained model's metrics, the current best and, per iteration, its checkpoint, planner, global step, metrics,
+parent and the keep/reject decision with its reason (also logged as ``dagger/*`` metrics and printed); the exported
+planner keeps the protocol record (``dagger_protocol``). Re-running the same command continues: finished
+iterations are skipped, done rollout shards are not recollected, and an iteration whose training was interrupted
+resumes from its checkpoint (refreshed every ``trainer.checkpoint_every_n_steps`` and on an exception such as
+Ctrl-C).
 Ranks: every rank collects its own shards and trains (Lightning strategy); rank 0 measures and decides, and the other
 ranks wait for its decision in the state file.
 """
@@ -130,6 +132,18 @@ def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[EvalProblem]
     return problems
 
 
+def protocol_record(cfg: FinetuneConfig, scenario: Scenario) -> dict[str, Any]:
+    """What the state file and the exported bundle record of the measurement's settings: the protocol, its
+    overrides, the resolved settings and the solver path (chain and trust-region norm)."""
+    from dataclasses import asdict
+
+    from ttompc.solvers.backends import solver_path
+
+    settings = cfg.dagger.settings()
+    return {"name": cfg.dagger.protocol, "overrides": dict(cfg.dagger.mpc), "settings": asdict(settings),
+            "solver": solver_path(settings.backend, scenario)}  # fmt: skip
+
+
 def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) -> dict[str, float]:
     """Closed-loop TTO-MPC metrics of ``planner`` on the evaluation problems (one torch thread: batch-1 rollouts)."""
     from ttompc.evaluation.episodes import closed_loop_metrics
@@ -231,6 +245,7 @@ def _export(run: Path, state: dict[str, Any], source: str) -> Path:
         dagger_kept=[r["iteration"] for r in state["completed"] if r["kept"]],
         dagger_metrics=best["metrics"],
         dagger_baseline_metrics=state["baseline_metrics"],
+        dagger_protocol=state.get("protocol"),  # the settings its metrics were measured under
     )
     return planner.save(run / PLANNER)
 
@@ -266,8 +281,8 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
         _log(logger, measured, -1, 0)
         baseline = _json_safe(measured)
         best = {"iteration": -1, "planner": str(src_dir), "checkpoint": None, "global_step": 0, "metrics": baseline}
-        state = {"source": str(source), "seed": cfg.dagger.seed, "baseline_metrics": baseline, "best": best,
-                 "completed": []}  # fmt: skip
+        state = {"source": str(source), "seed": cfg.dagger.seed, "protocol": protocol_record(cfg, scenario),
+                 "baseline_metrics": baseline, "best": best, "completed": []}  # fmt: skip
         atomic_write_json(run / STATE_FILE, state)
     elif state is None:
         _wait(lambda: (run / STATE_FILE).is_file(), wait_s, "rank 0 to measure the pretrained model")
