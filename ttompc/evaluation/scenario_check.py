@@ -156,6 +156,8 @@ def _interface(ctx: _Context) -> str:
             _fail(f"{attr} must be a positive int, got {size!r}")
     if getattr(sc, "cost_norm", None) not in get_args(CostNorm):
         _fail(f"cost_norm must be one of {get_args(CostNorm)}, got {getattr(sc, 'cost_norm', None)!r}")
+    if getattr(sc, "trust_norm", None) not in ("l2", "linf"):
+        _fail(f"trust_norm must be 'l2' or 'linf', got {getattr(sc, 'trust_norm', None)!r}")
     scp = getattr(sc, "scp", None)
     if not isinstance(scp, SCPSettings):
         _fail("scp must be an SCPSettings (trust region, iterations, penalty, feasibility tolerance)")
