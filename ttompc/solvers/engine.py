@@ -47,8 +47,9 @@ def run_scp(
         scenario.validate(problem)
     penalized = formulation == "penalized"
     use_tr = bool(np.isfinite(settings.tr_start))
-    if not penalized and backend == "auto":
+    if not penalized and backend == "auto":  # the reference's path, kept for comparisons (docs/benchmarks.md)
         backend = "clarabel"  # certified infeasibility matters for the reference formulation; QOCO reports errors
+        trust_norm = trust_norm or "l2"  # the reference's 2-norm trust region
     if trust_norm is None:
         trust_norm = default_trust_norm(backend, scenario)
     shrink = settings.shrink if use_tr else 1.0

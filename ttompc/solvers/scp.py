@@ -58,7 +58,7 @@ def solve_scp(
     "riccati" (opt-in, numba: the stage-wise interior-point kernel where the subproblem is a penalised QP, the
     ``auto`` chain elsewhere), "clarabel", "qoco", "piqp" or "cvxpy-naive" (the rebuild-every-iteration
     baseline). ``trust_norm`` defaults to the scenario's (``Scenario.trust_norm``; l2 for
-    ``conic``).
+    ``conic`` and for the reference formulation with ``auto``, the comparison paths).
     """
     window = window or Window.full(problem)
     return run_scp(
