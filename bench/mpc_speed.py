@@ -54,11 +54,10 @@ from ttompc.evaluation.closed_loop import ClosedLoopConfig, episodes_per_problem
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.finetune.collect import collect_rollout
 from ttompc.finetune.config import ExplorationConfig
-from ttompc.mpc import DISTProvider, RELProvider, TTOProvider, run_mpc
-from ttompc.mpc.loop import REUSE_TOL
+from ttompc.mpc import DISTProvider, MPCSettings, RELProvider, TTOProvider, run_mpc
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import Scenario, get_scenario
-from ttompc.solvers.engine import clear_solver_cache
+from ttompc.solvers.backends import clear_solver_cache
 
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
@@ -96,20 +95,21 @@ def episode_cost(
     """CPU- and wall-seconds per closed-loop episode of the protocol: one problem at a time re-solving every step
     (before issues 18 and 21) vs batched with plan reuse, and batched with real-time iteration (module doc)."""
     cfg = ClosedLoopConfig(scenario=scenario.name, horizons=[horizon], max_steps=max_steps, batch=len(problems),
-                           end_horizon=end_horizon)  # fmt: skip
+                           mpc={"end_horizon": end_horizon})  # fmt: skip
+    settings = cfg.settings()
     models = {"TTO": planner}
     episodes = len(problems) * episodes_per_problem(cfg, len(models))
     out: dict[str, float] = {"episodes": episodes, "end_horizon": end_horizon}
     runs = (
-        ("before", [[ep] for ep in problems], dataclasses.replace(cfg, reuse=False)),
-        ("after", [problems], cfg),
-        ("after_rti", [problems], dataclasses.replace(cfg, rti=True)),
+        ("before", [[ep] for ep in problems], dataclasses.replace(settings, reuse=False)),
+        ("after", [problems], settings),
+        ("after_rti", [problems], dataclasses.replace(settings, rti=True)),
     )
-    for label, tasks, c in runs:
+    for label, tasks, s in runs:
         clear_solver_cache()
         cpu, wall = time.process_time(), time.perf_counter()
         for task in tasks:
-            run_problems(scenario, task, models, c)
+            run_problems(scenario, task, models, cfg, settings=s)
         out[f"{label}_cpu_s_per_episode"] = (time.process_time() - cpu) / episodes
         out[f"{label}_wall_s_per_episode"] = (time.perf_counter() - wall) / episodes
     for label in ("after", "after_rti"):
@@ -120,17 +120,17 @@ def episode_cost(
 def dagger_cost(scenario: Scenario, planner: Planner, rollouts: int, seed: int) -> dict[str, float]:
     """CPU-seconds per DAgger rollout with labels, the expert re-solving every step vs with plan reuse, alternating
     per rollout (module doc), and the largest difference between their labels."""
-    runs = [("before", None, "auto"), ("after", REUSE_TOL, "auto")]
+    runs = [("before", False, "auto"), ("after", True, "auto")]
     if HAVE_NUMBA:
-        runs.append(("riccati", REUSE_TOL, "riccati"))
+        runs.append(("riccati", True, "riccati"))
     cpu = {label: 0.0 for label, _, _ in runs}
     diff = {label: 0.0 for label, _, _ in runs[1:]}
     for r in range(rollouts):
         rows = {}
-        for label, tol, backend in runs[r % len(runs) :] + runs[: r % len(runs)]:  # rotate who goes first
+        for label, reuse, backend in runs[r % len(runs) :] + runs[: r % len(runs)]:  # rotate who goes first
             t0 = time.process_time()
             rows[label] = collect_rollout(
-                scenario, planner, 0, r, seed, ExplorationConfig(), reuse_tol=tol, backend=backend
+                scenario, planner, 0, r, seed, ExplorationConfig(), MPCSettings(reuse=reuse, backend=backend)
             )
             cpu[label] += time.process_time() - t0
         for label in diff:
@@ -188,7 +188,7 @@ def main() -> None:
     # step (no plan reuse), "[rti]" real-time iteration
     providers = {"REL-MPC": (lambda: RELProvider(), "auto", {}), "DIST-MPC": (lambda: DISTProvider(), "auto", {}),
                  name: (lambda: TTOProvider(planner, name), "auto", {}),
-                 "REL-MPC[today]": (lambda: RELProvider(), "auto", {"reuse_tol": None}),
+                 "REL-MPC[today]": (lambda: RELProvider(), "auto", {"reuse": False}),
                  "REL-MPC[rti]": (lambda: RELProvider(), "auto", {"rti": True}),
                  f"{name}[rti]": (lambda: TTOProvider(planner, name), "auto", {"rti": True}),
                  "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic", {})}  # fmt: skip
@@ -197,7 +197,7 @@ def main() -> None:
     # warm-up (imports, solver structure caches, torch kernels) outside the timing
     for make, backend, opts in providers.values():
         run_mpc(sc, problems[0].problem, make(), horizons[0], rel_cost=problems[0].rel.cost, max_steps=2,
-                backend=backend, **opts)  # fmt: skip
+                settings=MPCSettings(backend=backend, **opts))  # fmt: skip
     results: dict[str, dict[str, float]] = {}
     print(f"{sc.name}: {len(problems)} problems, model {model_desc} ({n_params / 1e6:.2f}M params, {args.device})")
     print(f"{'method':>11} {'H':>4} {'mean step [ms]':>15} {'max step [ms]':>14} {'warm [ms]':>10} {'cost':>9}")
@@ -209,7 +209,13 @@ def main() -> None:
             cpu = time.process_time()
             eps = [
                 run_mpc(
-                    sc, ep.problem, make(), H, rel_cost=ep.rel.cost, max_steps=args.max_steps, backend=backend, **opts
+                    sc,
+                    ep.problem,
+                    make(),
+                    H,
+                    rel_cost=ep.rel.cost,
+                    max_steps=args.max_steps,
+                    settings=MPCSettings(backend=backend, **opts),
                 )
                 for ep in problems
             ]

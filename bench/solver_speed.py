@@ -35,7 +35,7 @@ import numpy as np
 
 from ttompc.scenarios import get_scenario, list_scenarios
 from ttompc.solvers import solve_problem
-from ttompc.solvers.engine import backend_chain, default_trust_norm
+from ttompc.solvers.backends import backend_chain, default_trust_norm
 
 sys.path.insert(0, str(Path(__file__).parent))  # bench/ipopt_peer.py
 
@@ -199,8 +199,8 @@ def subproblems(name: str, n: int) -> dict:
     """PIQP and the Riccati backend on the same recorded subproblems, in the order the engine solves them."""
     import re
 
-    from ttompc.solvers import qp as qp_module
-    from ttompc.solvers.riccati import RiccatiSolver
+    from ttompc.solvers.backends import qp as qp_module
+    from ttompc.solvers.backends.riccati import RiccatiSolver
 
     scenario = get_scenario(name)
     recorded: list = []

@@ -2,7 +2,7 @@
 
 A model's plan is stood in for by the *oracle* — the open-loop SCP optimum of the problem, the best plan a perfect
 model could give — plus seeded noise of 0, 1, 3 and 10 cm per MPC step on the positions of the provided window
-plan (``ttompc.mpc.PlanNoise``): *independent* (drawn afresh every step) or *drifting* (AR(1), correlation 0.9,
+plan (``NoisyPlanProvider``): *independent* (drawn afresh every step) or *drifting* (AR(1), correlation 0.9,
 same stationary std). Each noisy plan drives the MPC with the paper's terminal target (``paper``: x̄ = the plan's
 state at t+H, weight 1 on the full state) and with the robust target (``robust``: ``TerminalDesign(blend=0.95)``,
 ``--blend``: the new target blended with the previous target shifted by one step). REL-MPC and DIST-MPC run beside
@@ -25,18 +25,20 @@ import json
 import os
 import platform
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from ttompc.evaluation.metrics import write_json
 from ttompc.evaluation.problems import eval_problem
-from ttompc.mpc import DISTProvider, PlanNoise, PlanProvider, RELProvider, TerminalDesign, run_mpc
-from ttompc.mpc.metrics import interval
+from ttompc.evaluation.stats import interval
+from ttompc.mpc import DISTProvider, PlanProvider, RELProvider, TerminalDesign, run_mpc
 from ttompc.mpc.providers import full_horizon_plan
 from ttompc.parallel import pool_map
-from ttompc.scenarios import get_scenario
+from ttompc.scenarios import Problem, Scenario, get_scenario
+from ttompc.scenarios.base import Window
 
 H = 10
 NOISE_CM = (1, 3, 10)
@@ -44,6 +46,46 @@ KINDS = ("independent", "drift")
 BLEND = 0.95  # the robust target's blend (docs/evaluation.md)
 POSITIONS = {"freeflyer": (0, 1), "quadrotor": (0, 1, 2)}
 VERDICT = {"oracle_mpc10": "oracle", "tto_mpc10_noise3cm": "robust_independent_3cm", "rel_mpc10": "REL-MPC"}
+
+
+@dataclass(frozen=True)
+class PlanNoise:
+    """Seeded error added to a plan, per MPC step, as a rigid offset ε_t of the window's states X[1:] along the
+    components ``dims`` (positions): ``independent``: ε_t ~ N(0, std²) drawn afresh every step; ``drift``: an AR(1)
+    process ε_t = ρ·ε_{t−1} + √(1 − ρ²)·N(0, std²) with the same stationary std (a slowly wandering, consistent
+    error; ρ = ``correlation``). ``std`` is per component, in the optimisation representation (metres)."""
+
+    std: float
+    kind: Literal["independent", "drift"] = "independent"
+    dims: tuple[int, ...] = (0, 1)
+    correlation: float = 0.9
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.std < 0 or self.kind not in ("independent", "drift") or not 0 <= self.correlation < 1:
+            raise ValueError(f"invalid PlanNoise {self}")
+
+
+class NoisyPlanProvider(PlanProvider):
+    """PLAN-ONCE whose window plans carry ``noise`` (the noisy oracle): the offset moves X[1:] before the target is
+    taken from it."""
+
+    def __init__(self, plan: tuple[np.ndarray, np.ndarray], noise: PlanNoise, design: TerminalDesign | None) -> None:
+        super().__init__(plan, design=design)
+        self.noise = noise
+
+    def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
+        super().reset(scenario, problem, rel_cost)
+        self._rng = np.random.default_rng(self.noise.seed)
+        self._eps = np.zeros(len(self.noise.dims))
+
+    def window_plan(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
+        X, U = super().window_plan(window)
+        draw = self.noise.std * self._rng.standard_normal(len(self.noise.dims))
+        rho = self.noise.correlation
+        self._eps = draw if self.noise.kind == "independent" else rho * self._eps + np.sqrt(1 - rho**2) * draw
+        X[1:, list(self.noise.dims)] += self._eps
+        return X, U
 
 
 def variants(scenario: str, seed: int, blend: float) -> list[tuple[str, Any]]:
@@ -63,7 +105,7 @@ def variants(scenario: str, seed: int, blend: float) -> list[tuple[str, Any]]:
                 out.append(
                     (
                         f"{design_name}_{kind}_{cm}cm",
-                        lambda plan, n=noise, d=design: PlanProvider(plan, noise=n, design=d),
+                        lambda plan, n=noise, d=design: NoisyPlanProvider(plan, n, d),
                     )
                 )
     return out

@@ -52,3 +52,10 @@ class UnsolvableSampler(DoubleIntegrator2D):
         problem = super().sample(rng)
         goal = problem.goal + np.array([60.0, 0.0, 0.0, 0.0])
         return Problem(x0=problem.x0, goal=goal, dt=problem.dt, n_steps=problem.n_steps)
+
+
+class WrongTrustNorm(DoubleIntegrator2D):
+    """A trust-region norm the engine does not have."""
+
+    name = "di2d-wrong-trust-norm"
+    trust_norm = "l1"  # type: ignore[assignment]

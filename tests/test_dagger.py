@@ -16,6 +16,7 @@ from ttompc.data.distributed import RankInfo
 from ttompc.finetune import finetune, improves
 from ttompc.finetune.collect import collect_iteration, expert_schedule, rollout_folder
 from ttompc.finetune.config import ExplorationConfig, FinetuneConfig, load_finetune_config
+from ttompc.mpc.settings import MPCSettings
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import get_scenario
 from ttompc.seeding import rollout_seed
@@ -37,14 +38,17 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
             assert d.collect.rollouts >= 200 and d.iterations >= 3, path
             assert cfg.data.closed_loop_share == "grow" and cfg.data.open_loop_fraction == 0.9, path
             assert d.eval.problems >= 8, path  # the keep/reject decision needs more than a handful of problems
-        if path.stem == "finetune-zoo-v3":  # the keep/reject decision under the settings the zoo's cards report
-            card_end_horizon = {"freeflyer": 30, "quadrotor": 30, "rpod": 0}[path.parent.name]
-            assert cfg.dagger.eval.end_horizon == card_end_horizon and cfg.dagger.collect.workers == 1, path
+        if path.stem == "finetune-zoo-v3":  # the keep/reject decision under the protocol the zoo's cards name
+            card_protocol = {"freeflyer": "zoo", "quadrotor": "zoo", "rpod": "paper"}[path.parent.name]
+            assert cfg.dagger.protocol == card_protocol and cfg.dagger.collect.workers == 1, path
+            card = (RECIPES.parent / "zoo" / f"{path.parent.name}-tto-v3.md").read_text()
+            assert f"protocol={card_protocol}" in card, path
 
 
-def test_eval_end_horizon_reaches_the_closed_loop_measurement(monkeypatch: pytest.MonkeyPatch) -> None:
-    """dagger.eval.end_horizon is what the keep/reject measurement runs with; a negative one is a config error."""
-    import ttompc.mpc.metrics as metrics
+def test_protocol_reaches_the_closed_loop_measurement(monkeypatch: pytest.MonkeyPatch) -> None:
+    """dagger.protocol (with dagger.mpc overrides) is what the keep/reject measurement runs with; a bad setting is a
+    config error."""
+    import ttompc.evaluation.episodes as metrics
     from ttompc.finetune.loop import measure
 
     seen: dict[str, object] = {}
@@ -56,9 +60,11 @@ def test_eval_end_horizon_reaches_the_closed_loop_measurement(monkeypatch: pytes
     monkeypatch.setattr(metrics, "closed_loop_metrics", fake)
     cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml")
     assert measure(cfg, object(), []) == {"feasible_rate": 1.0}  # type: ignore[arg-type]
-    assert seen["end_horizon"] == 30 and seen["horizon"] == 10
-    with pytest.raises((ConfigError, ValueError), match="end_horizon"):
-        load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml", ["dagger.eval.end_horizon=-1"])
+    assert seen["settings"] == MPCSettings(end_horizon=30) and seen["horizon"] == 10
+    cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml", ["dagger.mpc.mode=hard"])
+    assert measure(cfg, object(), []) and seen["settings"] == MPCSettings(end_horizon=30, mode="hard")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="end_horizon"):
+        load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml", ["dagger.mpc.end_horizon=-1"])
 
 
 @pytest.mark.parametrize(
@@ -71,8 +77,8 @@ def test_trainer_keys_dagger_would_ignore_are_rejected(key: str) -> None:
     with pytest.raises(ConfigError, match="dagger_dirs"):
         load_finetune_config(None, ["data.dagger_dirs=[x]"])  # DAgger fills it: a value would be ignored
     cfg = load_finetune_config(None, ["trainer.num_sanity_val_steps=2", "trainer.checkpoint_every_n_steps=7"])
-    lightning = cfg.trainer.lightning(max_steps=30)  # what build_trainer gets: every DAgger key carried over
-    assert (lightning.num_sanity_val_steps, lightning.checkpoint_every_n_steps, lightning.max_steps) == (2, 7, 30)
+    assert (cfg.trainer.num_sanity_val_steps, cfg.trainer.checkpoint_every_n_steps) == (2, 7)
+    assert load_finetune_config().trainer.out_dir == "runs/freeflyer-dagger"  # DAgger's own defaults
 
 
 def test_keep_reject_rule() -> None:
@@ -247,6 +253,9 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     # the exported model is the kept iteration 0, not the rejected last one
     exported, kept = Planner.from_pretrained(run / "planner"), Planner.from_pretrained(state["best"]["planner"])
     assert exported.extra["dagger_iteration"] == 0 and exported.extra["dagger_kept"] == [0]
+    protocol = state["protocol"]  # the measurement's settings, in the state file and the exported bundle
+    assert protocol["name"] == cfg.dagger.protocol and protocol["settings"]["end_horizon"] >= 0
+    assert protocol["solver"]["chain"][0] == "piqp" and exported.extra["dagger_protocol"] == protocol
     assert exported.rtg_scale == 1.2
     for (name, a), b in zip(exported.model.state_dict().items(), kept.model.state_dict().values(), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0, msg=name)
@@ -326,7 +335,6 @@ def test_expert_labels_with_plan_reuse_are_the_re_solved_optimum(monkeypatch: py
     point of equal cost)."""
     import ttompc.mpc.loop as loop_module
     from ttompc.finetune.collect import collect_rollout
-    from ttompc.mpc.loop import REUSE_TOL
 
     sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
     exploration = ExplorationConfig(horizons=[10], windows=[2, 2], window_length=[8, 8])
@@ -354,9 +362,9 @@ def test_expert_labels_with_plan_reuse_are_the_re_solved_optimum(monkeypatch: py
     monkeypatch.setattr(loop_module.MPCController, "plan", plan)
     monkeypatch.setattr(loop_module, "solve_scp", count)
     counts = {}
-    for name, tol in (("cold", None), ("reuse", REUSE_TOL)):
+    for name, reuse in (("cold", False), ("reuse", True)):
         solves.clear()
-        collect_rollout(sc, planner, 0, 1, 5, exploration, reuse_tol=tol)
+        collect_rollout(sc, planner, 0, 1, 5, exploration, MPCSettings(reuse=reuse))
         counts[name] = len(solves) - len(checked)
     assert len(checked) >= 5  # after the expert steps whose plan met the stopping rule
     np.testing.assert_allclose([a for a, _ in checked], [b for _, b in checked], rtol=1e-5)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -14,11 +15,14 @@ import numpy as np
 import pytest
 
 from ttompc.cli import main
+from ttompc.config import ConfigError
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+from ttompc.evaluation.episodes import summarize_episodes
 from ttompc.evaluation.metrics import gain_share, improvement_by_threshold, paper_normalized
 from ttompc.evaluation.problems import eval_problem, first_solvable
+from ttompc.evaluation.stats import interval
 from ttompc.evaluation.warmstart import ORACLE, evaluate_problem
-from ttompc.mpc.metrics import interval, summarize_episodes
+from ttompc.mpc.settings import MPCSettings
 from ttompc.scenarios import Problem, get_scenario
 from ttompc.scenarios.freeflyer import DT
 
@@ -255,13 +259,31 @@ def test_closed_loop_report_nominal_and_perturbed(tmp_path: Path, bundle: Path) 
 def test_evaluate_mpc_command_and_bad_settings(tmp_path: Path) -> None:
     out = tmp_path / "mpc"
     rc = main(["evaluate", "mpc", f"scenario={SHORT}", "problems=1", "workers=1", "max_steps=2", "plants=[nominal]",
-               "robust_blend=0", f"out={out}"])  # fmt: skip
+               "robust_blend=0", "protocol=zoo", "mpc.mode=hard", f"out={out}"])  # fmt: skip
     assert rc == 0
-    methods = {r["method"] for r in json.loads((out / "mpc.json").read_text())["summary"]}
+    report = json.loads((out / "mpc.json").read_text())
+    methods = {r["method"] for r in report["summary"]}
     assert methods == {"REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC"}
+    assert report["protocol"] == {"name": "zoo mpc.mode=hard", "settings": {**asdict(MPCSettings(end_horizon=30)),
+                                                                           "mode": "hard"}}  # fmt: skip
+    assert "Protocol: zoo mpc.mode=hard." in (out / "mpc.md").read_text()
+    assert report["solver"] == {"backend": "auto", "chain": ["piqp", "qoco", "clarabel"], "trust_norm": "linf"}
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "plants=[windy]"]) == 2
+    assert main(["evaluate", "mpc", f"scenario={SHORT}", "protocol=nope"]) == 2
+    assert main(["evaluate", "mpc", f"scenario={SHORT}", "mpc.end_horizont=3"]) == 2
     assert main(["evaluate", "mpc", "problems=1"]) == 2  # neither a model nor a scenario
     assert not (tmp_path / "outputs").exists() and os.path.isdir(out)
+
+
+def test_evaluate_mpc_prints_at_most_18_settings(capsys: pytest.CaptureFixture[str]) -> None:
+    """The closed-loop protocol is one named preset, not a key per MPC setting (issue 28: 24 leaves before)."""
+
+    def leaves(node: object) -> int:
+        return sum(leaves(v) for v in node.values()) if isinstance(node, dict) else 1
+
+    assert main(["evaluate", "mpc", "--print-config"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert leaves(printed) <= 18 and printed["protocol"] == "paper" and printed["mpc"] == {}
 
 
 def _random_batches(n_batches: int, B: int = 2, L: int = 8) -> Any:
@@ -451,3 +473,7 @@ def test_callback_plant_is_selectable() -> None:
     assert cb.plant == PlantNoise.perturbed() and ClosedLoopEvalCallback(SHORT).plant is None
     with pytest.raises(ValueError, match="plant"):
         ClosedLoopEvalCallback(SHORT, plant="windy")
+    zoo = ClosedLoopEvalCallback.from_config(EvalMPCConfig(protocol="zoo"), SHORT)
+    assert zoo.settings.end_horizon == 30 and cb.settings.end_horizon == 0  # the recipe's protocol, paper by default
+    with pytest.raises(ConfigError, match="protocol"):
+        EvalMPCConfig(protocol="nope")

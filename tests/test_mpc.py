@@ -14,8 +14,8 @@ import ttompc.mpc.loop as loop_module
 from ttompc.mpc import (
     DISTProvider,
     MPCController,
+    MPCSettings,
     OracleProvider,
-    PlanNoise,
     PlanProvider,
     Plant,
     PlantNoise,
@@ -55,7 +55,7 @@ def setup() -> tuple:
 
 def test_full_horizon_mpc_reproduces_open_loop_scp(setup: tuple) -> None:
     sc, problem, rel, scp = setup
-    ep = run_mpc(sc, problem, RELProvider(), problem.n_steps, rel_cost=rel.cost, mode="hard")
+    ep = run_mpc(sc, problem, RELProvider(), problem.n_steps, rel_cost=rel.cost, settings=MPCSettings(mode="hard"))
     assert ep.complete and ep.feasible and ep.fallbacks == 0
     assert ep.cost == pytest.approx(scp.cost, rel=5e-3)
     assert ep.terminal_error < 1e-4
@@ -259,7 +259,7 @@ def test_hard_mode_keeps_planning_when_the_goal_is_out_of_reach(setup: tuple) ->
     sc, problem, rel, scp = setup
     N = problem.n_steps
     plan = (scp.X, scp.U)
-    hard = MPCController(sc, problem, PlanProvider(plan), 10, mode="hard")
+    hard = MPCController(sc, problem, PlanProvider(plan), 10, MPCSettings(mode="hard"))
     soft = MPCController(sc, problem, PlanProvider(plan), 10)
     for ctrl in (hard, soft):
         ctrl.provider.reset(sc, problem, rel.cost)
@@ -295,34 +295,33 @@ class _Windows:
 def test_end_horizon_runs_the_last_windows_to_the_end(setup: tuple) -> None:
     sc, problem, rel, scp = setup
     N = problem.n_steps
-    ctrl = MPCController(sc, problem, RELProvider(), 10, end_horizon=25)
+    ctrl = MPCController(sc, problem, RELProvider(), 10, MPCSettings(end_horizon=25))
     lengths = [ctrl.window(t).length for t in (0, N - 26, N - 25, N - 11, N - 1)]
     assert lengths == [10, 10, 25, 11, 1] and ctrl.window(N - 25).reaches_end
     assert MPCController(sc, problem, RELProvider(), 10).window(N - 25).length == 10  # the paper: fixed H
     with pytest.raises(ValueError, match="end_horizon"):
-        MPCController(sc, problem, RELProvider(), 10, end_horizon=-1)
+        MPCSettings(end_horizon=-1)
     spy = _Windows(PlanProvider((scp.X, scp.U)))  # run_mpc passes it on
-    e = run_mpc(sc, problem, spy, 10, rel_cost=rel.cost, max_steps=1, end_horizon=N)
+    e = run_mpc(sc, problem, spy, 10, rel_cost=rel.cost, max_steps=1, settings=MPCSettings(end_horizon=N))
     assert [w.length for w in spy.windows] == [N] and e.fallbacks == 0
 
 
 def test_rtg_modes_keep_the_fed_rtg_in_the_training_range(setup: tuple) -> None:
     """Closed loop the running reward-to-go rtg_0 + executed cost turns positive, where no training row lives;
-    ``floor`` and ``reanchor`` feed values inside [μ − 3σ, −ε·|rtg_0|]. The three episodes share one batched
-    rollout (a RolloutGroup: modes are per provider)."""
+    ``reanchor`` feeds values inside [μ − 3σ, −ε·|rtg_0|]. The two episodes share one batched rollout (a
+    RolloutGroup: modes are per provider)."""
     sc, problem, _, _ = setup
     planner = mpc_fakes.tiny_planner()
     group = RolloutGroup(planner)
-    provs = [TTOProvider(planner, mode, rtg_mode=mode, group=group) for mode in ("running", "floor", "reanchor")]
+    provs = [TTOProvider(planner, mode, rtg_mode=mode, group=group) for mode in ("running", "reanchor")]
     T = 4
-    episodes = run_mpc_batch(sc, [problem] * 3, provs, 5, rel_costs=[1e-3] * 3, max_steps=T)
+    episodes = run_mpc_batch(sc, [problem] * 2, provs, 5, rel_costs=[1e-3] * 2, max_steps=T)
     fed = group.context.rtg[:, :T].double().numpy()  # the rtg the model saw at each executed step
-    assert group.context.batch == 3 and [e.method for e in episodes] == ["running", "floor", "reanchor"]
+    assert group.context.batch == 2 and [e.method for e in episodes] == ["running", "reanchor"]
     assert fed[0, -1] > 0  # running: outside the training range
-    for b in (1, 2):
-        lo, hi = provs[b].rtg_range()
-        assert np.all(fed[b] >= lo - 1e-6) and np.all(fed[b] <= hi + 1e-6), (provs[b].rtg_mode, fed[b])
-    assert np.all(fed[2, 1:] < -0.1)  # re-anchored on the remaining REL cost (~J_REL here), not the tiny rtg_0
+    lo, hi = provs[1].rtg_range()
+    assert np.all(fed[1] >= lo - 1e-6) and np.all(fed[1] <= hi + 1e-6), fed[1]
+    assert np.all(fed[1, 1:] < -0.1)  # re-anchored on the remaining REL cost (~J_REL here), not the tiny rtg_0
     with pytest.raises(ValueError, match="rtg_mode"):
         TTOProvider(planner, rtg_mode="budget")  # type: ignore[arg-type]
 
@@ -347,12 +346,23 @@ def test_batched_tto_episodes_equal_single_ones(setup: tuple) -> None:
         run_mpc_batch(sc, problems, [PlanProvider((scp.X, scp.U))], 5, rel_costs=costs)
 
 
-def test_plan_noise_is_seeded_and_drift_is_correlated(setup: tuple) -> None:
+def test_plan_noise_is_seeded_and_drift_is_correlated(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The noisy oracle of ``bench/tto_mpc_robustness.py``."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "tto_mpc_robustness.py"
+    spec = importlib.util.spec_from_file_location("tto_mpc_robustness", path)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, bench)  # dataclasses look their module up
+    spec.loader.exec_module(bench)
+    PlanNoise = bench.PlanNoise
     sc, problem, rel, scp = setup
     N = problem.n_steps
 
-    def offsets(noise: PlanNoise) -> np.ndarray:
-        prov = PlanProvider((scp.X, scp.U), noise=noise)
+    def offsets(noise: object) -> np.ndarray:
+        prov = bench.NoisyPlanProvider((scp.X, scp.U), noise, None)
         prov.reset(sc, problem, rel.cost)
         return np.stack([prov.warm_start(Window(t, 5, N), scp.X[t]).X[1, :2] - scp.X[t + 1, :2] for t in range(30)])
 
@@ -411,30 +421,43 @@ def test_rel_mpc_starts_each_rel_from_the_previous_plan(setup: tuple, monkeypatc
         return res
 
     monkeypatch.setattr(providers_module, "solve_rel", spy)
-    warm, cold = RELProvider(), RELProvider(warm_rel=False)
+    warm, cold = RELProvider(), RELProvider()  # cold: a fresh provider, its first REL from the straight line
     for prov in (warm, cold):
         prov.reset(sc, problem, rel.cost)
-        prov.warm_start(Window(0, H, N), problem.x0)
+    warm.warm_start(Window(0, H, N), problem.x0)
     x1 = rel.X[1]
     a, b = warm.warm_start(Window(1, H, N), x1), cold.warm_start(Window(1, H, N), x1)
-    assert [g for g, _ in iterations] == [False, False, True, False]  # only the warm provider's second REL
-    assert iterations[2][1] < iterations[3][1]  # a converged guess needs fewer subproblems
+    assert [g for g, _ in iterations] == [False, True, False]  # only the warm provider's second REL
+    assert iterations[1][1] < iterations[2][1]  # a converged guess needs fewer subproblems
     np.testing.assert_allclose(a.X, b.X, atol=5e-3)  # the same relaxation's plan
 
 
 def test_closed_loop_settings_are_labelled_departures() -> None:
-    """``evaluate mpc`` lists the settings that depart from the paper under its table, validates the new ones, and
-    splits the problems into pool tasks that do not depend on the number of workers."""
-    from ttompc.evaluation.closed_loop import ClosedLoopConfig, departures, tasks
+    """``evaluate mpc`` lists the settings that depart from the paper under its table, validates the protocol and
+    its overrides, and splits the problems into pool tasks that do not depend on the number of workers."""
+    from ttompc.evaluation.closed_loop import ClosedLoopConfig, departures, protocol_label, tasks
 
     sc = get_scenario(mpc_fakes.FreeFlyerShort.name)
-    assert departures(ClosedLoopConfig(scenario=sc.name, track=sc.mpc.terminal), sc) == []  # the paper's settings
-    notes = departures(ClosedLoopConfig(scenario=sc.name, end_horizon=30, rtg_mode="reanchor"), sc)
+    paper = ClosedLoopConfig(scenario=sc.name, mpc={"track": sc.mpc.terminal})
+    assert departures(paper.settings(), sc) == [] and protocol_label(paper) == f"paper mpc.track={sc.mpc.terminal}"
+    zoo = ClosedLoopConfig(scenario=sc.name, protocol="zoo", mpc={"rtg_mode": "reanchor"})
+    assert zoo.settings() == MPCSettings(end_horizon=30, rtg_mode="reanchor")
+    notes = departures(zoo.settings(), sc)
     assert len(notes) == 3 and "weight 3" in notes[0] and "end horizon" in notes[1] and "reanchor" in notes[2]
-    for bad in ({"end_horizon": -1}, {"batch": 0}, {"rtg_mode": "budget"}, {"track": 0.0}):
+    bad_settings = ({"end_horizon": -1}, {"rtg_mode": "budget"}, {"rtg_mode": "floor"}, {"track": 0.0}, {"rti2": 1})
+    for bad in ({"batch": 0}, {"protocol": "nope"}, *({"mpc": m} for m in bad_settings)):
         with pytest.raises(ValueError):
             ClosedLoopConfig(scenario=sc.name, **bad)  # type: ignore[arg-type]
     assert tasks(23, 10) == [tuple(range(10)), tuple(range(10, 20)), (20, 21, 22)]
+
+
+def test_presets_are_the_settings_the_cards_and_the_paper_use() -> None:
+    """paper: the MPCSettings defaults (fixed H, running rtg, soft); zoo: the same with end_horizon 30."""
+    from ttompc.mpc.settings import preset_names, protocol_settings
+
+    assert {"paper", "zoo"} <= set(preset_names())
+    assert protocol_settings("paper") == MPCSettings() and MPCSettings().end_horizon == 0
+    assert protocol_settings("zoo") == MPCSettings(end_horizon=30)
 
 
 def test_plan_reuse_applies_the_own_plan_tail_and_keeps_the_results(setup: tuple) -> None:
@@ -442,15 +465,16 @@ def test_plan_reuse_applies_the_own_plan_tail_and_keeps_the_results(setup: tuple
     own plan's tail (no provider call, no solve) and the episode equals the one that re-solves every step; a
     perturbed plant moves the state off the plan, so nothing is reused there."""
     sc, problem, rel, _ = setup
-    kw = {"rel_cost": rel.cost, "end_horizon": 15}
-    warm = run_mpc(sc, problem, RELProvider(), 10, **kw)
-    cold = run_mpc(sc, problem, RELProvider(), 10, reuse_tol=None, **kw)
+    kw = {"rel_cost": rel.cost}
+    warm = run_mpc(sc, problem, RELProvider(), 10, settings=MPCSettings(end_horizon=15), **kw)
+    cold = run_mpc(sc, problem, RELProvider(), 10, settings=MPCSettings(end_horizon=15, reuse=False), **kw)
     assert cold.reuses == 0 and warm.reuses == 14  # every end window after the first
     assert np.all(warm.iterations[-14:] == 0) and np.all(cold.iterations[-14:] >= 1)
     assert warm.feasible == cold.feasible and warm.terminal_error == pytest.approx(cold.terminal_error, abs=1e-6)
     np.testing.assert_allclose(warm.X, cold.X, atol=1e-4)  # the heading's L1 optimum is flat: 1e-5 rad apart
     assert warm.cost == pytest.approx(cold.cost, rel=1e-5)
-    noisy = run_mpc(sc, problem, RELProvider(), 10, plant=PlantNoise(0.05, 0.02, 0.002), plant_seed=3, **kw)
+    noisy = run_mpc(sc, problem, RELProvider(), 10, plant=PlantNoise(0.05, 0.02, 0.002), plant_seed=3,
+                    settings=MPCSettings(end_horizon=15), **kw)  # fmt: skip
     assert noisy.reuses == 0
 
 
@@ -492,7 +516,7 @@ def test_rti_solves_one_subproblem_per_step_from_the_shifted_solution(
         return res
 
     monkeypatch.setattr(loop_module, "solve_scp", spy)
-    rti = run_mpc(sc, problem, RELProvider(), 10, rel_cost=rel.cost, rti=True, reuse_tol=None)
+    rti = run_mpc(sc, problem, RELProvider(), 10, rel_cost=rel.cost, settings=MPCSettings(rti=True, reuse=False))
     assert rti.rti and rti.fallbacks == 0 and len(calls) == problem.n_steps
     assert calls[0][2] is None and all(c[2].max_iters == 1 for c in calls[1:])
     assert np.all(rti.iterations[1:] == 1)

@@ -215,7 +215,7 @@ def test_the_policy_imports_nothing_above_it_and_data_stays_light() -> None:
 def test_the_conditioning_default_comes_from_the_bundle(tmp_path: Path, toy, toy_stats) -> None:
     """rtg_0 = −κ·J_REL with κ from the model's bundle (``extra.rtg_scale``) unless the caller sets it: TTO-MPC and
     the warm-start evaluation both read it; a bundle without it uses the paper's κ = 1."""
-    from ttompc.mpc.providers import TTOProvider
+    from ttompc.mpc.tto import TTOProvider
     from ttompc.policy import ModelConfig, TrajectoryGPT
 
     torch.manual_seed(0)

@@ -11,9 +11,11 @@ from helpers import qp_subproblem, waypoint_subproblem
 
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import TerminalCost, solve_rel, solve_scp
-from ttompc.solvers.engine import AssembledSolver, get_solver
+from ttompc.solvers.backends import get_solver
+from ttompc.solvers.backends.base import is_qp
+from ttompc.solvers.backends.conic import AssembledSolver
+from ttompc.solvers.backends.qp import PIQPSolver
 from ttompc.solvers.naive import NaiveCvxpySolver
-from ttompc.solvers.qp import PIQPSolver, is_qp
 from ttompc.solvers.subproblem import SubproblemSpec
 
 pytest.importorskip("piqp")  # the optional fast extra

@@ -11,11 +11,11 @@ from helpers import qp_subproblem, waypoint_subproblem
 
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import TerminalCost, solve_problem, solve_scp
-from ttompc.solvers import engine as engine_module
-from ttompc.solvers import riccati as riccati_module
-from ttompc.solvers.engine import backend_chain, get_solver
-from ttompc.solvers.qp import PIQPSolver
-from ttompc.solvers.riccati import RiccatiSolver, supports
+from ttompc.solvers.backends import backend_chain, get_solver
+from ttompc.solvers.backends import chain as chain_module
+from ttompc.solvers.backends import riccati as riccati_module
+from ttompc.solvers.backends.qp import PIQPSolver
+from ttompc.solvers.backends.riccati import RiccatiSolver, supports
 
 pytest.importorskip("numba")  # the optional fast extra
 pytest.importorskip("piqp")
@@ -32,7 +32,7 @@ def _random_stage_qp(seed: int, N: int = 6, n: int = 3, nu: int = 2):
 
 
 def _kernel(args, boxes, rows, n, nu):
-    from ttompc.solvers.riccati_kernel import solve
+    from ttompc.solvers.backends.riccati_kernel import solve
 
     A, B, c, x0, Qd, q = args
     N = A.shape[0]
@@ -183,9 +183,21 @@ def test_where_the_chain_takes_it(monkeypatch) -> None:
     w = Window(0, 10, 100)
     res = solve_scp(ff, p, rel.X[:11], rel.U[:10], window=w, terminal=TerminalCost(rel.X[10], 1.0), backend="riccati")
     assert res.success and not any("RICCATI" in h.solver_status for h in res.history)
-    monkeypatch.setattr(engine_module, "_installed", lambda module: module != "numba")
+    monkeypatch.setattr(chain_module, "_installed", lambda module: module != "numba")
     with pytest.raises(ValueError, match="needs numba"):
         backend_chain("riccati", ff)
+
+
+def test_default_path_does_not_depend_on_installed_extras(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``auto`` is the scenario's chain and its trust-region norm whatever is installed (PIQP and QOCO are
+    dependencies); only the opt-in ``riccati`` needs an extra. ``solver_path`` is what reports record."""
+    from ttompc.solvers.backends import default_trust_norm, solver_path
+
+    ff, rpod = get_scenario("freeflyer"), get_scenario("rpod")
+    monkeypatch.setattr(chain_module, "_installed", lambda module: False)
+    assert solver_path("auto", ff) == {"backend": "auto", "chain": ["piqp", "qoco", "clarabel"], "trust_norm": "linf"}
+    assert solver_path("auto", rpod) == {"backend": "auto", "chain": ["clarabel"], "trust_norm": "l2"}
+    assert default_trust_norm("clarabel", ff) == "linf" and default_trust_norm("conic", ff) == "l2"
 
 
 def test_cli_solve_with_the_riccati_backend(tmp_path) -> None:

@@ -3,7 +3,6 @@ subproblem with an independent cvxpy formulation, the reference formulation, err
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 
 import numpy as np
@@ -11,7 +10,7 @@ import pytest
 
 from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
 from ttompc.solvers import SCPStatus, TerminalCost, solve_problem, solve_rel, solve_scp
-from ttompc.solvers.engine import AssembledSolver
+from ttompc.solvers.backends.conic import AssembledSolver
 from ttompc.solvers.naive import NaiveCvxpySolver
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
 
@@ -84,13 +83,13 @@ def test_a_solve_does_not_depend_on_earlier_solves(name: str) -> None:
     """Solvers are cached per structure and process; a problem solved after another one (a pool worker's second
     task) gives the bits of the same problem solved first (a fresh worker), so regenerated data rows are exact."""
     from ttompc.seeding import problem_seed
-    from ttompc.solvers import engine
+    from ttompc.solvers.backends import clear_solver_cache
 
     scenario = get_scenario(name)
     earlier, problem = (scenario.sample(np.random.default_rng(problem_seed(0, i))) for i in (1, 0))
-    engine._CACHE.clear()
+    clear_solver_cache()
     fresh = solve_problem(scenario, problem)
-    engine._CACHE.clear()
+    clear_solver_cache()
     solve_problem(scenario, earlier)
     after = solve_problem(scenario, problem)
     for a, b in zip(fresh, after, strict=True):
@@ -186,7 +185,7 @@ def test_bad_inputs_raise_clear_errors(ff) -> None:
     with pytest.raises(ValueError, match="unknown solver backend"):
         solve_scp(ff, p, X, U, backend="nope")
     with pytest.raises(ValueError, match="QPs only"):
-        solve_scp(ff, p, X, U, backend="osqp", trust_norm="l2")
+        solve_scp(ff, p, X, U, backend="piqp", trust_norm="l2")
     X_bad = X.copy()
     X_bad[3, 0] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
@@ -214,23 +213,3 @@ def test_rel_from_a_guess(ff) -> None:
     assert again.cost == pytest.approx(rel.cost, rel=1e-6)
     with pytest.raises(ValueError, match="REL guess must have shapes"):
         solve_rel(ff, p, guess=(rel.X[:-1], rel.U))
-
-
-def test_stall_stop_is_opt_in_and_saves_only_flat_subproblems(ff, solved) -> None:
-    """``SCPSettings.stall_iters`` (not the paper's rule) stops at a feasible iterate after flat merits while the
-    step is still above tr_end: never more subproblems, the same cost to 1e-4. Free-flyer seed 10 wanders on the
-    L1 cost's optimal face (8 subproblems by the paper's rule, 6 with stall_iters=2); off by default everywhere."""
-    assert all(get_scenario(name).scp.stall_iters == 0 for name in ("freeflyer", "quadrotor", "rpod"))
-    qd = get_scenario("quadrotor")
-    cases = [(ff, p, rel, scp) for p, rel, scp in solved]
-    for sc, seed in ((qd, 0), (ff, 10)):  # seed 10 last
-        p = sc.sample(np.random.default_rng(seed))
-        rel = solve_rel(sc, p)
-        cases.append((sc, p, rel, solve_scp(sc, p, rel.X, rel.U)))
-    for sc, p, rel, scp in cases:
-        stalled = solve_scp(sc, p, rel.X, rel.U, settings=dataclasses.replace(sc.scp, stall_iters=2))
-        assert stalled.status is scp.status and stalled.iterations <= scp.iterations
-        assert stalled.cost == pytest.approx(scp.cost, rel=1e-4)
-    last = stalled.history[-1]  # free-flyer seed 10: stopped by the stall rule, not the paper's
-    assert stalled.iterations < scp.iterations
-    assert last.step > ff.scp.tr_end and last.violation <= ff.scp.feas_tol

@@ -123,6 +123,13 @@ def test_check_scenario_passes_the_example(capsys: pytest.CaptureFixture[str]) -
     assert out[-1] == "all checks passed" and sum(line.startswith("ok") for line in out) == 9
 
 
+def test_check_scenario_rejects_a_trust_norm_the_engine_does_not_have(capsys: pytest.CaptureFixture[str]) -> None:
+    """The trust-region norm is the scenario's setting (``Scenario.trust_norm``): a wrong one stops at the interface."""
+    assert cli_main(["check-scenario", f"{PLANTS}:WrongTrustNorm", "problems=1"]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert "FAIL  interface: trust_norm must be 'l2' or 'linf', got 'l1'" in out and out[-1].endswith("interface")
+
+
 @pytest.mark.parametrize(
     ("plant", "failed", "needle"),
     [

@@ -455,3 +455,17 @@ def test_the_zoo_imports_no_model_code(tmp_path: Path) -> None:
     ckpt.write_bytes(b"never read")
     with pytest.raises(zoo.PublishError, match=r"Lightning checkpoint, not a bundle.*ttompc zoo publish"):
         zoo.publish(ckpt, "m", str(tmp_path / "out"), zoo_dir=tmp_path / "zoo", skip_eval=True)
+
+
+def test_zoo_list_headline_reads_the_protocol_numbers() -> None:
+    """``ttompc zoo list`` says what a card measured in words; a card without the protocol's metrics shows its
+    headline metrics as key=value."""
+    from ttompc.commands.zoo import headline_text
+
+    (v3,) = [c for c in zoo.list_models(REPO_ZOO) if c.name == "freeflyer-tto-v3"]
+    text = headline_text(v3)
+    assert "from REL 40.7% → from model 34.5%, 82.3% of the reachable gain" in text
+    assert text.endswith("closed-loop goal reached 100% · 75%")
+    v3.metrics = {"success_rate": {"value": 0.9, "how": "unit test"}}
+    v3.headline_metrics = []
+    assert headline_text(v3) == "success_rate=0.9"

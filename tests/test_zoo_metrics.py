@@ -43,8 +43,9 @@ MPC = {
         "seed": 4242,
         "horizons": [10],
         "plants": ["nominal", "perturbed"],
-        "end_horizon": 30,
-        "track": None,
+        "rtg_scale": None,
+        "protocol": "zoo",
+        "mpc": {"track": 2.5},
     },
     "summary": [
         _row("nominal", "REL-MPC", 4, 0.9, paper_norm=_iv(0.7)),
@@ -78,8 +79,9 @@ def test_metrics_are_the_reports_numbers_with_their_command() -> None:
     assert "DIST" not in json.dumps(list(m))  # only the model, its robust variant, REL, oracle and plan-once
     assert all(math.isfinite(v["value"]) for v in m.values())
     assert "`ttompc evaluate warmstart --model m-tto --ft-model m-ft problems=10 seed=4242" in m["ws_iterations"]["how"]
-    assert "horizons=[10] plants=[nominal,perturbed] end_horizon=30" in m["mpc10_nominal_model_step_time_s"]["how"]
-    assert "track=" not in m["mpc10_nominal_model_step_time_s"]["how"]  # None: the default, not on the command line
+    how = m["mpc10_nominal_model_step_time_s"]["how"]
+    assert "horizons=[10] plants=[nominal,perturbed] protocol=zoo mpc.track=2.5`" in how  # the preset, its override
+    assert "rtg_scale=" not in how  # None: the model's own, not on the command line
 
 
 def test_ft_metrics_pick_the_ft_rows() -> None:

@@ -1,5 +1,5 @@
 """``ttompc check-scenario SPEC [key=value ...]``: check a scenario against the contract the engine, the datasets,
-the rollout and MPC rely on (``ttompc.scenarios.check``), one line per check, before generating data with it.
+the rollout and MPC rely on (``ttompc.evaluation.scenario_check``), one line per check, before generating data with it.
 
 SPEC is any scenario spec: a name, ``module:Class``, ``path/to/file.py:Class`` or an entry point. Settings are
 ``CheckConfig`` keys (``problems``, ``seed``, ``backend``). Exit status 0 when every check passes, 1 otherwise; a
@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("settings", nargs="*", metavar="key=value", help="CheckConfig overrides, e.g. problems=5")
     p.add_argument("--problems", type=int, help="sampled problems to check and solve (default 3)")
     p.add_argument("--seed", type=int, help="root seed of the sampled problems (default 0)")
-    p.add_argument("--backend", help="auto|conic|riccati|piqp|clarabel|osqp|qoco|cvxpy-naive (default auto)")
+    p.add_argument("--backend", help="auto|conic|riccati|piqp|clarabel|qoco|cvxpy-naive (default auto)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
 
 
@@ -46,8 +46,8 @@ def run(args: argparse.Namespace) -> int:
     if cfg.problems < 1:
         raise UserError(f"problems must be at least 1, got {cfg.problems}")
     scenario = checks.scenario(cfg.scenario)
+    from ttompc.evaluation.scenario_check import check_scenario
     from ttompc.scenarios import scenario_spec
-    from ttompc.scenarios.check import check_scenario
 
     print(f"{scenario.name} v{scenario.version} ({scenario_spec(scenario)}), {cfg.problems} problems, seed {cfg.seed}")
     findings = []

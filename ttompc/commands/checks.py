@@ -27,9 +27,8 @@ def backend(name: str | None) -> None:
 
     if name is not None and name not in BACKEND_NAMES:
         raise UserError(f"unknown solver backend {name!r}", f"choose one of: {', '.join(BACKEND_NAMES)}")
-    for needs, module in (("riccati", "numba"), ("piqp", "piqp"), ("qoco", "qoco")):
-        if name == needs and importlib.util.find_spec(module) is None:
-            raise UserError(f"solver backend {name!r} needs {module}, which is not installed", "install ttompc[fast]")
+    if name == "riccati" and importlib.util.find_spec("numba") is None:
+        raise UserError("solver backend 'riccati' needs numba, which is not installed", "install ttompc[fast]")
 
 
 def seed(value: int, key: str = "seed") -> None:

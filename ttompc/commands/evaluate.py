@@ -3,7 +3,8 @@
 * ``warmstart``: open-loop SCP warm starts, REL vs the model(s) vs the oracle (best of several warm starts), on
   ``problems`` (default 100) held-out non-convex problems (``WarmStartConfig`` keys);
 * ``mpc``: closed loop, REL-/DIST-MPC, plan-once, the oracle, TTO-MPC and the robust R-TTO-MPC, on the nominal and
-  the perturbed plant, ``problems`` (default 20) held-out non-convex problems (``ClosedLoopConfig`` keys).
+  the perturbed plant, ``problems`` (default 20) held-out non-convex problems (``ClosedLoopConfig`` keys), under
+  ``protocol=paper|zoo|FILE.yaml`` with single settings overridden as ``mpc.KEY=VALUE`` (``ttompc.mpc.settings``).
 
 Reports (JSON, a markdown table, CSV, PNG) go to ``out`` (default ``outputs/evaluate/<kind>-<scenario>``).
 ``--model``, ``--ft-model``, ``--scenario``, ``--problems``, ``--seed``, ``--workers`` and ``--out`` are shortcuts
@@ -52,10 +53,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     ws = sub.add_parser("warmstart", help="open loop: SCP from REL vs from the model(s) vs the oracle")
     _shortcuts(ws, "problems=100 seed=2027 rtg_scale=1.3", 100)
     mpc = sub.add_parser("mpc", help="closed loop: REL/DIST/plan-once/oracle/TTO-MPC, nominal and perturbed plant")
-    _shortcuts(mpc, "horizons=[10,30] plants=[perturbed] plant.process_std=0.005", 20)
+    _shortcuts(mpc, "protocol=zoo horizons=[10,30] plants=[perturbed] plant.process_std=0.005", 20)
 
 
 def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
+    from ttompc.evaluation.warmstart import WarmStartConfig
+
     """The scenario defaults to the model's; settings and models are checked before any work. Every model is loaded
     here as the pool workers will load it: a name that is not in the zoo, a damaged bundle or a model of another
     scenario is one error line before the pool starts, not a failure in every worker."""
@@ -73,7 +76,7 @@ def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
         for source in sources:
             Planner.from_pretrained(source, scenario, device=cfg.device)
     checks.seed(cfg.seed)
-    checks.backend(cfg.backend)
+    checks.backend(cfg.backend if isinstance(cfg, WarmStartConfig) else cfg.settings().backend)
 
 
 def _announce(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:

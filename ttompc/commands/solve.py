@@ -20,7 +20,7 @@ from ttompc.config import add_config_arguments, command_config, to_container
 class SolveConfig:
     scenario: str = "freeflyer"
     seed: int = 0  # problem seed (numpy Generator)
-    backend: str = "auto"  # auto | clarabel | osqp | piqp | qoco | cvxpy-naive
+    backend: str = "auto"  # one of ttompc.solvers.backends.BACKEND_NAMES
     formulation: Literal["penalized", "reference"] = "penalized"
     plot: str | None = None  # PNG path for a plot of the REL and SCP trajectories
 
@@ -34,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--scenario", help="a name (`ttompc solve --list`), module:Class or path/to/file.py:Class (default freeflyer)"
     )
     p.add_argument("--seed", type=int, help="problem seed (default 0)")
-    p.add_argument("--backend", help="auto|conic|riccati|piqp|clarabel|osqp|qoco|cvxpy-naive (default auto)")
+    p.add_argument("--backend", help="auto|conic|riccati|piqp|clarabel|qoco|cvxpy-naive (default auto)")
     p.add_argument("--formulation", choices=["penalized", "reference"])
     p.add_argument("--plot", metavar="PNG", help="save a plot of the REL and SCP trajectories")
     p.add_argument("--json", action="store_true", help="print the results as JSON")

@@ -93,12 +93,31 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def format_table(cards: list[ModelCard]) -> str:
-    rows = [("NAME", "SCENARIO", "KIND", "SIZE", "METRICS")]
+    rows = [("NAME", "SCENARIO", "KIND", "SIZE", "HEADLINE")]
     for c in cards:
-        metrics = ", ".join(f"{k}={v:.4g}" for k, v in c.headline().items()) or "-"
-        rows.append((c.name, f"{c.scenario} v{c.scenario_version}", c.kind, _human(c.size), metrics))
+        rows.append((c.name, f"{c.scenario} v{c.scenario_version}", c.kind, _human(c.size), headline_text(c)))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
     return "\n".join("  ".join([*(v.ljust(w) for v, w in zip(r, widths, strict=False)), r[-1]]) for r in rows)
+
+
+def headline_text(card: ModelCard) -> str:
+    """A card's protocol numbers in words: open loop (J − J_REL)/J_REL of SCP from REL → from the model and the share
+    of the reachable gain, closed-loop goal-reached rates at H = 10 (nominal · perturbed); a card without them shows
+    its ``headline`` metrics as key=value."""
+    m = {k: v["value"] for k, v in card.metrics.items()}
+    parts = []
+    if "ws_suboptimality" in m:
+        rel = f"from REL {_pct(m['ws_suboptimality_rel'])} → " if "ws_suboptimality_rel" in m else ""
+        gain = f", {_pct(m['ws_gain_share'])} of the reachable gain" if "ws_gain_share" in m else ""
+        parts.append(f"open loop above J_REL {rel}from model {_pct(m['ws_suboptimality'])}{gain}")
+    rates = [m[k] for p in ("nominal", "perturbed") if (k := f"mpc10_{p}_model_feasible_rate") in m]
+    if rates:
+        parts.append("closed-loop goal reached " + " · ".join(_pct(r) for r in rates))
+    return "; ".join(parts) or ", ".join(f"{k}={v:.4g}" for k, v in card.headline().items()) or "-"
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.3g}%"
 
 
 def _human(n: int) -> str:

@@ -41,6 +41,7 @@ from ttompc.policy.stats import KEYS, NormStats
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import InfeasibleProblemError, Scenario
 from ttompc.seeding import problem_seed
+from ttompc.solvers.backends import solver_path
 from ttompc.version import code_version
 
 MANIFEST = "manifest.json"
@@ -332,6 +333,7 @@ def finalize(cfg: GenerateConfig) -> dict[str, Any]:
         },
         "generation": {k: v for k, v in to_container(cfg).items() if k not in ("out", "max_shards", "workers")},
         "root_seed": cfg.seed,
+        "solver_path": solver_path(cfg.backend or "auto", scenario),  # what backend=null ran: chain, trust norm
         "code_version": code_version(),
         "counts": {
             "problems": cfg.problems,

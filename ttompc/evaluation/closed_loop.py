@@ -2,7 +2,8 @@
 
 For seeded held-out problems whose REL solution violates a keep-out zone, every planning horizon H and every plant
 (``nominal``: the exact dynamics; ``perturbed``: seeded actuation error and process noise, ``PlantNoise``, the same
-disturbances for every method of a problem), run in soft mode:
+disturbances for every method of a problem), run under the settings of a protocol (``protocol``: a preset of
+``ttompc.mpc.settings``, ``paper`` or ``zoo``, with single-key overrides in ``mpc``):
 
 * REL-MPC and DIST-MPC (the paper's baselines),
 * PLAN-ONCE: the open-loop SCP optimum solved at t = 0, then MPC tracking it (no model, no re-planning),
@@ -15,7 +16,8 @@ averaged into a cost), (J − J_REL)/J_REL over feasible runs with standard erro
 normalisation (problems feasible for every method, DIST-MPC's worst horizon = 1), the paired difference to
 REL-MPC on the problems both ran feasibly (fair where the feasible sets differ), the share of the reachable gain
 REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between steps) and step times. The
-settings that depart from the paper (``departures``) are listed under the table.
+report names its protocol and records the resolved settings; the settings that depart from the paper preset
+(``departures``) are listed under the table.
 
 Problems run in parallel in the spawn pool in tasks of ``batch`` problems; each worker loads the model(s) once.
 Within a task the episodes of one method run in lockstep (``run_mpc_batch``): a TTO method plans the windows of all
@@ -35,29 +37,29 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ttompc.evaluation.episodes import episode_record, summarize_episodes
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.evaluation.stats import format_interval, interval
 from ttompc.evaluation.warmstart import default_workers
-from ttompc.mpc.loop import REUSE_TOL, Mode, run_mpc_batch
-from ttompc.mpc.metrics import episode_record, format_interval, interval, summarize_episodes
+from ttompc.mpc.loop import run_mpc_batch
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import (
-    RTG_MODES,
     DISTProvider,
     OracleProvider,
     PlanProvider,
     Provider,
     RELProvider,
-    RolloutGroup,
-    RTGMode,
     TerminalDesign,
-    TTOProvider,
     full_horizon_plan,
 )
+from ttompc.mpc.settings import MPCSettings, protocol_settings
+from ttompc.mpc.tto import RolloutGroup, TTOProvider
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario
+from ttompc.solvers.backends import solver_path
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -65,18 +67,6 @@ if TYPE_CHECKING:
 BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"
 BASELINE_METHODS = 4  # REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC: the providers() of every problem, model or not
 PLANTS = ("nominal", "perturbed")
-
-
-@dataclass
-class PlantConfig:
-    """The perturbed plant's disturbances, relative to the scenario's state/control scales (``PlantNoise``)."""
-
-    gain_std: float = 0.05
-    actuation_std: float = 0.02
-    process_std: float = 0.002
-
-    def noise(self) -> PlantNoise:
-        return PlantNoise(self.gain_std, self.actuation_std, self.process_std)
 
 
 @dataclass
@@ -90,19 +80,14 @@ class ClosedLoopConfig:
     seed: int = 0
     horizons: list[int] = field(default_factory=lambda: [10])
     plants: list[str] = field(default_factory=lambda: list(PLANTS))
-    plant: PlantConfig = field(default_factory=PlantConfig)
+    plant: PlantNoise = field(default_factory=PlantNoise.perturbed)  # the perturbed plant's disturbances
     robust_blend: float = 0.95  # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0 leaves them out
     rtg_scale: float | None = None  # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale)
-    rtg_mode: RTGMode = "running"  # the rtg fed in closed loop: running (the paper) | floor | reanchor (TTOProvider)
-    track: float | None = None  # terminal weight of TTO-MPC, PLAN-ONCE, ORACLE-MPC; None: the scenario's mpc.tracking
-    end_horizon: int = 0  # departure from the paper: windows run to N once N − t <= end_horizon (0: fixed H)
-    rti: bool = False  # departure from the paper: real-time iteration, one SCP subproblem per MPC step
-    reuse: bool = True  # plan reuse in windows that reach the end (same results; False: re-solve every step)
-    mode: Mode = "soft"
+    protocol: str = "paper"  # MPC settings: a preset (paper, zoo; ttompc/mpc/presets) or a YAML file of them
+    mpc: dict[str, Any] = field(default_factory=dict)  # single MPCSettings keys over the protocol's, e.g. mpc.mode=hard
     max_steps: int | None = None  # truncated episodes (smoke runs)
     batch: int = 10  # problems per pool task, their episodes in lockstep (one batched rollout per step)
     workers: int = 0  # processes; 0 = one per CPU core
-    backend: str = "auto"
     device: str = "cpu"
     out: str = ""  # default: outputs/evaluate/mpc-<scenario>
 
@@ -113,29 +98,29 @@ class ClosedLoopConfig:
         if bad or not self.plants:
             raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")
         TerminalDesign(self.robust_blend)  # validates the blend
-        if self.rtg_mode not in RTG_MODES:
-            raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
-        if self.end_horizon < 0 or self.batch < 1 or (self.track is not None and not self.track > 0):
-            raise ValueError(
-                f"end_horizon must be >= 0, batch >= 1 and track > 0, got {self.end_horizon}, {self.batch}, "
-                f"{self.track}"
-            )
+        if self.batch < 1:
+            raise ValueError(f"batch must be >= 1, got {self.batch}")
+        self.settings()  # validates the protocol and its overrides
+
+    def settings(self) -> MPCSettings:
+        """The MPC settings of this run: the protocol's, with the ``mpc`` overrides."""
+        return protocol_settings(self.protocol, self.mpc)
 
 
 def providers(
     plans: Sequence[tuple[np.ndarray, np.ndarray]],
     models: dict[str, Planner],
+    settings: MPCSettings,
     *,
     robust_blend: float = 0.95,
     rtg_scale: float | None = None,
-    rtg_mode: RTGMode = "running",
-    track: float | None = None,
-    backend: str = "auto",
 ) -> list[list[Provider]]:
     """Fresh providers of every method, one per problem: ``plans`` are the problems' open-loop SCP optima
     (``full_horizon_plan``), shared by PLAN-ONCE and ORACLE-MPC. The TTO providers of one method share a
-    ``RolloutGroup`` (one batched rollout per lockstep step). ``track`` overrides the plan-tracking weight."""
-    weights = None if track is None else (track,)
+    ``RolloutGroup`` (one batched rollout per lockstep step). ``settings`` give the plan-tracking weight, the
+    rtg mode and the backend."""
+    backend, rtg_mode = settings.backend, settings.rtg_mode
+    weights = None if settings.track is None else (settings.track,)
     plain = TerminalDesign(weights=weights)
     out: list[list[Provider]] = [
         [RELProvider(backend) for _ in plans],
@@ -161,32 +146,30 @@ def run_problems(
     models: dict[str, Planner],
     cfg: ClosedLoopConfig,
     on_episode: Callable[[], None] | None = None,
+    settings: MPCSettings | None = None,
 ) -> tuple[list[dict[str, Any]], dict[tuple[str, str, int, int], np.ndarray]]:
     """Every (plant, H, method) episode of the problems ``eps``, the episodes of one method in lockstep: records
     (per problem, then plant, H and method) and executed trajectories by (plant, method, H, problem index).
-    ``on_episode`` is called after each episode (a progress bar's ticker)."""
+    ``on_episode`` is called after each episode (a progress bar's ticker); ``settings`` replace the config's
+    (``cfg.settings()``)."""
     records: list[dict[str, Any]] = []
     trajectories = {}
-    plans = [full_horizon_plan(scenario, ep.problem, cfg.backend) for ep in eps]
+    s = settings or cfg.settings()
+    plans = [full_horizon_plan(scenario, ep.problem, s.backend) for ep in eps]
     for plant in cfg.plants:
-        noise = cfg.plant.noise() if plant == "perturbed" else None
+        noise = cfg.plant if plant == "perturbed" else None
         for H in cfg.horizons:
-            for method in providers(plans, models, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale,
-                                    rtg_mode=cfg.rtg_mode, track=cfg.track, backend=cfg.backend):  # fmt: skip
+            for method in providers(plans, models, s, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale):
                 episodes = run_mpc_batch(
                     scenario,
                     [ep.problem for ep in eps],
                     method,
                     H,
                     rel_costs=[ep.rel_cost for ep in eps],
-                    mode=cfg.mode,
+                    settings=s,
                     max_steps=cfg.max_steps,
-                    backend=cfg.backend,
                     plant=noise,
                     plant_seeds=[ep.seed for ep in eps],
-                    end_horizon=cfg.end_horizon,
-                    rti=cfg.rti,
-                    reuse_tol=REUSE_TOL if cfg.reuse else None,
                 )
                 for ep, e in zip(eps, episodes, strict=True):
                     records.append({"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, **episode_record(e)})
@@ -237,7 +220,7 @@ def _init(cfg: dict[str, Any], tick: Callable[[], None]) -> None:
 def _run(indices: tuple[int, ...]) -> list[dict[str, Any]]:
     cfg: ClosedLoopConfig = _W["cfg"]
     sc = _W["scenario"]
-    eps = [eval_problem(sc, cfg.seed, i, nonconvex_only=True, backend=cfg.backend) for i in indices]
+    eps = [eval_problem(sc, cfg.seed, i, nonconvex_only=True, backend=cfg.settings().backend) for i in indices]
     return run_problems(sc, eps, _W["models"], cfg, _W["tick"])[0]
 
 
@@ -246,28 +229,38 @@ def tasks(problems: int, batch: int) -> list[tuple[int, ...]]:
     return [tuple(range(i, min(i + batch, problems))) for i in range(0, problems, batch)]
 
 
-def departures(cfg: ClosedLoopConfig, scenario: Scenario) -> list[str]:
-    """The settings of this run that depart from the paper (and from the authors' code), one sentence each."""
+def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
+    """The settings of a run that depart from the paper (and from the authors' code), one sentence each."""
     out = []
-    track = scenario.mpc.tracking if cfg.track is None else cfg.track
+    track = scenario.mpc.tracking if settings.track is None else settings.track
     if track != scenario.mpc.terminal:
         out.append(
             f"plan-tracking terminal weight {track:g} for TTO-MPC, PLAN-ONCE and ORACLE-MPC (the paper: "
             f"{scenario.mpc.terminal:g}, below the terminal multipliers of optimal plans; docs/evaluation.md)"
         )
-    if cfg.end_horizon > 0:
+    if settings.end_horizon > 0:
         out.append(
-            f"shrinking end horizon: windows run to N once N − t <= {cfg.end_horizon} (the paper keeps H and "
+            f"shrinking end horizon: windows run to N once N − t <= {settings.end_horizon} (the paper keeps H and "
             "truncates the windows at N)"
         )
-    if cfg.rtg_mode != "running":
-        out.append(f"reward-to-go fed in closed loop: {cfg.rtg_mode} (the paper: the running rtg_0 + executed cost)")
-    if cfg.rti:
+    if settings.rtg_mode != "running":
+        out.append(
+            f"reward-to-go fed in closed loop: {settings.rtg_mode} (the paper: the running rtg_0 + executed cost)"
+        )
+    if settings.mode != "soft":
+        out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
+    if settings.rti:
         out.append(
             "real-time iteration: one SCP subproblem per MPC step from the previous solution shifted (the paper "
             "solves every window to convergence)"
         )
     return out
+
+
+def protocol_label(cfg: ClosedLoopConfig) -> str:
+    """How a report names its protocol: the preset, and the overrides when there are any."""
+    overrides = " ".join(f"mpc.{k}={v}" for k, v in cfg.mpc.items())
+    return f"{cfg.protocol} {overrides}" if overrides else cfg.protocol
 
 
 def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
@@ -368,12 +361,15 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
         for rs in pool_map(_run, chunks, workers, _init, init, scenarios=[scenario_spec(sc)]):
             records.extend(rs)
     summary = summarize(records, cfg.seed)
-    notes = departures(cfg, sc)
-    table = format_table(summary)
+    settings = cfg.settings()
+    notes = departures(settings, sc)
+    table = format_table(summary) + f"\nProtocol: {protocol_label(cfg)}."
     if notes:
         table += "\nDepartures from the paper: " + "; ".join(notes) + "."
     report = {
         "config": {**asdict(cfg), "out": str(out), "workers": workers},
+        "protocol": {"name": protocol_label(cfg), "settings": asdict(settings)},
+        "solver": solver_path(settings.backend, sc),
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
         "wall_time_s": time.perf_counter() - t0,
         "departures": notes,

@@ -1,7 +1,7 @@
 """Metrics of the evaluations (paper §V-B, §V-C; protocol: ``docs/evaluation.md``) and their JSON/CSV reports.
 
 * absolute: (J − J_REL)/J_REL per run, J_REL the open-loop REL cost (a lower bound of the full problem); means over
-  feasible runs only, with standard error and bootstrap interval (``ttompc.mpc.metrics.interval``); infeasible runs
+  feasible runs only, with standard error and bootstrap interval (``ttompc.evaluation.stats.interval``); infeasible runs
   are counted apart.
 * paper normalisation (Fig. 5): over the problems on which *every* method's run is feasible, mean(J_m − J_REL) per
   method and horizon divided by the largest mean(J_DIST-MPC − J_REL) over the horizons (DIST-MPC = 1 at its worst
@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from ttompc.mpc.metrics import BOOTSTRAP_SAMPLES, format_interval, interval
+from ttompc.evaluation.stats import BOOTSTRAP_SAMPLES, format_interval, interval
 
 
 def paper_normalized(

@@ -33,12 +33,13 @@ from ttompc.evaluation.metrics import (
     write_json,
 )
 from ttompc.evaluation.problems import EvalProblem, eval_problem
-from ttompc.mpc.metrics import format_interval, interval
+from ttompc.evaluation.stats import format_interval, interval
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario, Window
 from ttompc.seeding import rng
+from ttompc.solvers.backends import solver_path
 from ttompc.solvers.scp import SCPResult, solve_scp
 
 if TYPE_CHECKING:
@@ -242,6 +243,7 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     report = {
         "config": {**asdict(cfg), "out": str(out), "workers": workers},
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
+        "solver": solver_path(cfg.backend, sc),
         "wall_time_s": time.perf_counter() - t0,
         "max_ctg0": cmax,
         "methods": summary,

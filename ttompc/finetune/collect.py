@@ -34,8 +34,10 @@ from ttompc.data.resumable import ShardedFolder
 from ttompc.data.schema import make_row, trajectory_features
 from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig
-from ttompc.mpc.loop import REUSE_TOL, Mode, MPCController
-from ttompc.mpc.providers import ShiftProvider, TTOProvider
+from ttompc.mpc.loop import MPCController
+from ttompc.mpc.providers import ShiftProvider
+from ttompc.mpc.settings import MPCSettings
+from ttompc.mpc.tto import TTOProvider
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -86,13 +88,13 @@ def collect_rollout(
     index: int,
     root_seed: int,
     exploration: ExplorationConfig,
-    *,
-    mode: Mode = "soft",
-    backend: str = "auto",
-    reuse_tol: float | None = REUSE_TOL,
+    settings: MPCSettings | None = None,
 ) -> dict[str, Any]:
-    """One DAgger rollout -> one schema row (see the module docstring for the labels). ``reuse_tol``: plan reuse of
-    both controllers (``ttompc.mpc.loop``; None re-solves every step, the labels are the same)."""
+    """One DAgger rollout -> one schema row (see the module docstring for the labels). From ``settings`` both
+    controllers take mode, backend and plan reuse (without reuse the labels are the same); the learner runs the
+    paper's fixed H (exploration, Alg. 1)."""
+    s = settings or MPCSettings()
+    loop = MPCSettings(mode=s.mode, backend=s.backend, reuse=s.reuse)
     seed = rollout_seed(root_seed, iteration, index)
     rng = np.random.default_rng(seed)
     problem, rel = _sample_problem(scenario, rng)
@@ -100,9 +102,9 @@ def collect_rollout(
     H = min(int(rng.choice(exploration.horizons)), N)
     expert_steps = expert_schedule(rng, N, exploration)
     learner_provider = TTOProvider(planner)
-    learner = MPCController(scenario, problem, learner_provider, H, mode=mode, backend=backend, reuse_tol=reuse_tol)
+    learner = MPCController(scenario, problem, learner_provider, H, loop)
     shift = ShiftProvider()
-    expert = MPCController(scenario, problem, shift, N, mode=mode, backend=backend, reuse_tol=reuse_tol)
+    expert = MPCController(scenario, problem, shift, N, loop)
     learner_provider.reset(scenario, problem, rel.cost)
     shift.reset(scenario, problem, rel.cost)
     shift.reset_plan(rel.X, rel.U)
@@ -184,8 +186,7 @@ def _collect_one(task: tuple[int, int]) -> dict[str, Any]:
         index,
         cfg.seed,
         cfg.exploration,
-        mode=cfg.collect.mode,
-        backend=cfg.collect.backend,
+        cfg.settings(),
     )
 
 

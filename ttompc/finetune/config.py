@@ -1,13 +1,15 @@
 """Typed DAgger fine-tuning recipe (``recipes/<scenario>/finetune*.yaml``): ``dagger`` plus the training sections
 ``data``, ``optim``, ``trainer`` and ``logger`` (``model`` comes from the pretrained model).
 
-Every key is used. The ``trainer`` section is ``DaggerTrainerConfig``, not pre-training's ``TrainerConfig``: DAgger
-sets the step budget itself (``dagger.steps_per_iteration`` per iteration, continuing from the parent's global
-step), always resumes (``dagger_state.json``), keeps one checkpoint per iteration and always exports the selected
-planner, so ``max_steps``, ``max_epochs``, ``keep_checkpoints``, ``resume`` and ``export_planner`` are rejected as
-unknown keys. The open-loop/closed-loop mix is ``data.open_loop_fraction`` with ``data.closed_loop_share``: "grow"
-is the paper's (9:1 at the first iteration, then the closed-loop share grows as DAgger data accumulates), "fixed"
-keeps that fraction at every iteration.
+Every key a recipe may set is used. The ``trainer`` section is pre-training's ``TrainerConfig`` less the keys
+DAgger owns (``DAGGER_OWNED``): DAgger sets the step budget itself (``dagger.steps_per_iteration`` per iteration,
+continuing from the parent's global step), always resumes (``dagger_state.json``), keeps one checkpoint per
+iteration and always exports the selected planner, so a recipe or override that sets ``max_steps``, ``max_epochs``,
+``keep_checkpoints``, ``resume`` or ``export_planner`` is rejected. The MPC settings of the rollouts (mode, backend,
+plan reuse) and of the keep/reject measurement are ``dagger.protocol`` (a preset of ``ttompc.mpc.settings`` or a
+YAML file) with single-key overrides in ``dagger.mpc``. The open-loop/closed-loop mix is ``data.open_loop_fraction``
+with ``data.closed_loop_share``: "grow" is the paper's (9:1 at the first iteration, then the closed-loop share grows
+as DAgger data accumulates), "fixed" keeps that fraction at every iteration.
 """
 
 from __future__ import annotations
@@ -15,11 +17,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any
 
-from ttompc.config import ConfigError, load_command_config
+from ttompc.config import ConfigError, given_keys, load_command_config
 from ttompc.data.config import DataConfig
-from ttompc.training.config import LoggerConfig, OptimConfig, Precision, TrainerConfig
+from ttompc.mpc.settings import MPCSettings, protocol_settings
+from ttompc.training.config import LoggerConfig, OptimConfig, TrainerConfig
+
+DAGGER_OWNED = ("max_steps", "max_epochs", "keep_checkpoints", "resume", "export_planner")  # trainer keys DAgger sets
 
 
 @dataclass
@@ -48,8 +53,6 @@ class CollectConfig:
     workers: int = 0  # processes per rank (spawn pool); 0 = all cores
     shard_size: int = 50  # rollouts per shard (the unit of resumption and of the rank split)
     val_fraction: float = 0.1  # share of rollouts written to the DAgger val split (by rollout index hash)
-    mode: Literal["soft", "hard"] = "soft"  # MPC mode of learner and expert (and of the closed-loop measurement)
-    backend: str = "auto"
     wait_s: float = 3600.0  # multi-rank: how long to wait for other ranks' shards and rank 0's decisions
 
     def __post_init__(self) -> None:
@@ -62,22 +65,18 @@ class CollectConfig:
 @dataclass
 class EvalConfig:
     """Closed-loop TTO-MPC on fixed held-out problems (the metrics of ``ClosedLoopEvalCallback``,
-    ``ttompc.mpc.metrics.closed_loop_metrics``), measured for the pretrained model and after every iteration. They
-    decide which iterations are kept: see ``ttompc.finetune.loop.improves``."""
+    ``ttompc.evaluation.episodes.closed_loop_metrics``), measured for the pretrained model and after every
+    iteration under ``dagger.protocol``. They decide which iterations are kept: see
+    ``ttompc.finetune.loop.improves``."""
 
     problems: int = 4
     horizon: int = 10
     max_steps: int | None = None  # MPC steps per episode (None: whole episodes)
     seed: int = 0  # root seed of the evaluation problems (the evaluation stream: disjoint from rollouts and data)
-    # windows run to N once N - t <= end_horizon (0: the paper's fixed H); the zoo's closed-loop protocol uses 30, so
-    # the keep-only-if-better decision can be made under the settings the cards report (docs/evaluation.md)
-    end_horizon: int = 0
 
     def __post_init__(self) -> None:
         if self.problems < 1 or self.horizon < 1:
             raise ValueError("dagger.eval.problems and dagger.eval.horizon must be >= 1")
-        if self.end_horizon < 0:
-            raise ValueError(f"dagger.eval.end_horizon must be >= 0, got {self.end_horizon}")
 
 
 @dataclass
@@ -88,51 +87,19 @@ class DaggerConfig:
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    # MPC settings of rollouts and measurement: a preset (paper, zoo) or a YAML file; the zoo's cards report zoo,
+    # so the keep-only-if-better decision can be made under the settings the cards report (docs/evaluation.md)
+    protocol: str = "paper"
+    mpc: dict[str, Any] = field(default_factory=dict)  # single MPCSettings keys over the protocol's
 
     def __post_init__(self) -> None:
         if self.iterations < 1 or self.steps_per_iteration < 1:
             raise ValueError("dagger.iterations and dagger.steps_per_iteration must be >= 1")
+        self.settings()  # validates the protocol and its overrides
 
-
-@dataclass
-class DaggerTrainerConfig:
-    """The Lightning Trainer of each DAgger iteration (fields as in ``TrainerConfig``)."""
-
-    val_check_interval: float = 1.0  # <= 1: fraction of an epoch; > 1: every that many training batches
-    limit_val_batches: float = 1.0  # <= 1: fraction; > 1: number of batches
-    checkpoint_every_n_steps: int = 100  # refreshes checkpoints/iter-<i>.ckpt: an interrupted iteration resumes there
-    log_every_n_steps: int = 50
-    devices: int = 1
-    num_nodes: int = 1
-    accelerator: str = "auto"
-    strategy: str = "auto"
-    precision: Precision = "32-true"
-    num_sanity_val_steps: int = 0
-    seed: int = 0
-    out_dir: str = "runs/freeflyer-dagger"
-
-    def __post_init__(self) -> None:
-        if self.checkpoint_every_n_steps < 1:
-            raise ValueError(f"trainer.checkpoint_every_n_steps must be >= 1, got {self.checkpoint_every_n_steps}")
-
-    def lightning(self, max_steps: int) -> TrainerConfig:
-        """These settings as the ``TrainerConfig`` that ``build_trainer`` takes, for a run ending at ``max_steps``
-        (the other pre-training keys do not apply to a DAgger iteration and keep their defaults)."""
-        return TrainerConfig(
-            max_steps=max_steps,
-            val_check_interval=self.val_check_interval,
-            limit_val_batches=self.limit_val_batches,
-            checkpoint_every_n_steps=self.checkpoint_every_n_steps,
-            log_every_n_steps=self.log_every_n_steps,
-            devices=self.devices,
-            num_nodes=self.num_nodes,
-            accelerator=self.accelerator,
-            strategy=self.strategy,
-            precision=self.precision,
-            num_sanity_val_steps=self.num_sanity_val_steps,
-            seed=self.seed,
-            out_dir=self.out_dir,
-        )
+    def settings(self) -> MPCSettings:
+        """The MPC settings of the rollouts and the measurement: the protocol's, with the ``mpc`` overrides."""
+        return protocol_settings(self.protocol, self.mpc)
 
 
 @dataclass
@@ -140,7 +107,9 @@ class FinetuneConfig:
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
     data: DataConfig = field(default_factory=DataConfig)
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-5, warmup_steps=0))
-    trainer: DaggerTrainerConfig = field(default_factory=DaggerTrainerConfig)
+    trainer: TrainerConfig = field(
+        default_factory=lambda: TrainerConfig(checkpoint_every_n_steps=100, out_dir="runs/freeflyer-dagger")
+    )  # checkpoint_every_n_steps refreshes checkpoints/iter-<i>.ckpt: an interrupted iteration resumes there
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
     def __post_init__(self) -> None:
@@ -152,10 +121,17 @@ class FinetuneConfig:
 
 
 def load_finetune_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> FinetuneConfig:
-    """Load and validate a fine-tuning recipe (schema <- YAML <- ``key=value`` overrides)."""
+    """Load and validate a fine-tuning recipe (schema <- YAML <- ``key=value`` overrides); a trainer key DAgger owns
+    (``DAGGER_OWNED``) is an error."""
     try:
-        return load_command_config(FinetuneConfig, path, overrides)
+        cfg = load_command_config(FinetuneConfig, path, overrides)
     except ConfigError:
         raise
     except ValueError as err:
         raise ConfigError(f"invalid config ({path or 'defaults'}): {err}") from None
+    owned = sorted(f"trainer.{k}" for k in DAGGER_OWNED if f"trainer.{k}" in given_keys(path, overrides))
+    if owned:
+        raise ConfigError(
+            f"{', '.join(owned)}: set by DAgger itself", "size iterations with dagger.steps_per_iteration instead"
+        )
+    return cfg

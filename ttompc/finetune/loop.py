@@ -7,19 +7,21 @@ Iteration i starts from its *parent*, the best model so far (the pretrained mode
 2. **Train** ``dagger.steps_per_iteration`` optimiser steps from the parent's weights and optimiser state on the
    open-loop data mixed with every DAgger folder so far (``data.open_loop_fraction`` and ``data.closed_loop_share``;
    "grow" is the paper's mix) into ``<run>/checkpoints/iter-<i>.ckpt``.
-3. **Measure** the candidate's closed-loop TTO-MPC on the fixed held-out problems of ``dagger.eval`` (the metrics the
-   training callback logs, ``ttompc.mpc.metrics.closed_loop_metrics``) and **keep** it only if it ``improves`` on
-   the parent; otherwise the next iteration starts again from the parent. A rejected iteration's rollouts stay in
-   the aggregate: its visited states carry valid expert labels.
+3. **Measure** the candidate's closed-loop TTO-MPC on the fixed held-out problems of ``dagger.eval`` under
+   ``dagger.protocol`` (the metrics the training callback logs, ``ttompc.evaluation.episodes.closed_loop_metrics``)
+   and **keep** it only if it ``improves`` on the parent; otherwise the next iteration starts again from the
+   parent. A rejected iteration's rollouts stay in the aggregate: its visited states carry valid expert labels.
 
 After the last iteration the selected model is exported to ``<run>/planner``. The fine-tuned model is therefore
 never worse than its pretrained parent by that measure; it *is* the parent when no iteration improved.
 
-``<run>/dagger_state.json`` records the source, the pretrained model's metrics, the current best and, per iteration,
-its checkpoint, planner, global step, metrics, parent and the keep/reject decision with its reason (also logged as
-``dagger/*`` metrics and printed). Re-running the same command continues: finished iterations are skipped, done
-rollout shards are not recollected, and an iteration whose training was interrupted resumes from its checkpoint
-(refreshed every ``trainer.checkpoint_every_n_steps`` and on an exception such as Ctrl-C).
+``<run>/dagger_state.json`` records the source, the protocol of the measurement (``protocol_record``), the
+pretrained model's metrics, the current best and, per iteration, its checkpoint, planner, global step, metrics,
+parent and the keep/reject decision with its reason (also logged as ``dagger/*`` metrics and printed); the exported
+planner keeps the protocol record (``dagger_protocol``). Re-running the same command continues: finished
+iterations are skipped, done rollout shards are not recollected, and an iteration whose training was interrupted
+resumes from its checkpoint (refreshed every ``trainer.checkpoint_every_n_steps`` and on an exception such as
+Ctrl-C).
 Ranks: every rank collects its own shards and trains (Lightning strategy); rank 0 measures and decides, and the other
 ranks wait for its decision in the state file.
 """
@@ -123,27 +125,34 @@ def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[EvalProblem]
     problems = []
     with Bar(e.problems, "held-out problems (REL)", "problem") as bar:
         for i in range(e.problems):
-            problems.append(eval_problem(scenario, e.seed, i, nonconvex_only=True))
+            problems.append(
+                eval_problem(scenario, e.seed, i, nonconvex_only=True, backend=cfg.dagger.settings().backend)
+            )
             bar.update()
     return problems
 
 
+def protocol_record(cfg: FinetuneConfig, scenario: Scenario) -> dict[str, Any]:
+    """What the state file and the exported bundle record of the measurement's settings: the protocol, its
+    overrides, the resolved settings and the solver path (chain and trust-region norm)."""
+    from dataclasses import asdict
+
+    from ttompc.solvers.backends import solver_path
+
+    settings = cfg.dagger.settings()
+    return {"name": cfg.dagger.protocol, "overrides": dict(cfg.dagger.mpc), "settings": asdict(settings),
+            "solver": solver_path(settings.backend, scenario)}  # fmt: skip
+
+
 def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) -> dict[str, float]:
     """Closed-loop TTO-MPC metrics of ``planner`` on the evaluation problems (one torch thread: batch-1 rollouts)."""
-    from ttompc.mpc.metrics import closed_loop_metrics
+    from ttompc.evaluation.episodes import closed_loop_metrics
     from ttompc.parallel import single_torch_thread
 
-    e, c = cfg.dagger.eval, cfg.dagger.collect
+    e = cfg.dagger.eval
     with single_torch_thread():
         metrics, _ = closed_loop_metrics(
-            planner,
-            problems,
-            e.horizon,
-            max_steps=e.max_steps,
-            mode=c.mode,
-            backend=c.backend,
-            progress="measure",
-            end_horizon=e.end_horizon,
+            planner, problems, e.horizon, settings=cfg.dagger.settings(), max_steps=e.max_steps, progress="measure"
         )
     return metrics
 
@@ -203,7 +212,7 @@ def _train_iteration(
         module.model.load_state_dict(source.model.state_dict())
     t = cfg.trainer
     trainer = build_trainer(
-        t.lightning(target),
+        replace(t, max_steps=target),
         cfg.optim,
         Path(t.out_dir),
         logger,
@@ -236,6 +245,7 @@ def _export(run: Path, state: dict[str, Any], source: str) -> Path:
         dagger_kept=[r["iteration"] for r in state["completed"] if r["kept"]],
         dagger_metrics=best["metrics"],
         dagger_baseline_metrics=state["baseline_metrics"],
+        dagger_protocol=state.get("protocol"),  # the settings its metrics were measured under
     )
     return planner.save(run / PLANNER)
 
@@ -271,8 +281,8 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
         _log(logger, measured, -1, 0)
         baseline = _json_safe(measured)
         best = {"iteration": -1, "planner": str(src_dir), "checkpoint": None, "global_step": 0, "metrics": baseline}
-        state = {"source": str(source), "seed": cfg.dagger.seed, "baseline_metrics": baseline, "best": best,
-                 "completed": []}  # fmt: skip
+        state = {"source": str(source), "seed": cfg.dagger.seed, "protocol": protocol_record(cfg, scenario),
+                 "baseline_metrics": baseline, "best": best, "completed": []}  # fmt: skip
         atomic_write_json(run / STATE_FILE, state)
     elif state is None:
         _wait(lambda: (run / STATE_FILE).is_file(), wait_s, "rank 0 to measure the pretrained model")

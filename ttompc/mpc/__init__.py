@@ -1,30 +1,30 @@
-"""Receding-horizon control: one loop (``run_mpc``) on an exact or perturbed plant (``plant``), pluggable warm-start
-and terminal-target providers (REL-MPC, DIST-MPC, TTO-MPC, PLAN-ONCE, ORACLE-MPC) and the closed-loop metrics
-(``metrics``). Importing this package does not import Lightning (nor torch until TTO is used)."""
+"""Receding-horizon control: one loop (``run_mpc``) on an exact or perturbed plant (``plant``), its settings and
+their named presets (``MPCSettings``, ``protocol_settings``), pluggable warm-start and terminal-target providers
+(REL-MPC, DIST-MPC, TTO-MPC, PLAN-ONCE, ORACLE-MPC) and the closed-loop metrics (``metrics``). Importing this
+package does not import Lightning (nor torch until TTO is used)."""
 
 from ttompc.mpc.loop import Episode, MPCController, StepPlan, episode_metrics, run_mpc, run_mpc_batch
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import (
     DISTProvider,
     OracleProvider,
-    PlanNoise,
     PlanProvider,
     Provider,
     RELProvider,
     RemainingREL,
-    RolloutGroup,
     ShiftProvider,
     TerminalDesign,
-    TTOProvider,
     WarmStart,
 )
+from ttompc.mpc.settings import MPCSettings, protocol_settings
+from ttompc.mpc.tto import RolloutGroup, TTOProvider
 
 __all__ = [
     "DISTProvider",
     "Episode",
     "MPCController",
+    "MPCSettings",
     "OracleProvider",
-    "PlanNoise",
     "PlanProvider",
     "Plant",
     "PlantNoise",
@@ -38,6 +38,7 @@ __all__ = [
     "TerminalDesign",
     "WarmStart",
     "episode_metrics",
+    "protocol_settings",
     "run_mpc",
     "run_mpc_batch",
 ]

@@ -1,10 +1,11 @@
 """One receding-horizon loop for every scenario and warm-start method (paper §III Eq. (2), §IV-C Eq. (8)).
 
-At each step t: the provider fills the window [t, min(t+H, N)) with a warm start and a terminal target; the
-windowed problem is solved by ``solve_scp`` (the scenario supplies the full problem's constraints inside the
-window); the first control is applied with the *exact* dynamics ``scenario.step``. Soft mode (all paper analyses):
-fuel weight ``mpc.fuel``, soft equalities, the provider's terminal cost when the window stops early and
-‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the end. Hard mode keeps x_N = goal at the end while the goal
+At each step t (settings: ``MPCSettings``, ``ttompc.mpc.settings``) the provider fills the window
+[t, min(t+H, N)) with a warm start and a terminal target; the windowed problem is solved by ``solve_scp`` (the
+scenario supplies the full problem's constraints inside the window); the first control is applied with the
+*exact* dynamics ``scenario.step``. Soft mode (all paper analyses): fuel weight ``mpc.fuel``, soft equalities, the
+provider's terminal cost when the window stops early and ‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the
+end. Hard mode keeps x_N = goal at the end while the goal
 is reachable from the window; where it is not (the penalised solve misses it by more than the SCP's feasibility
 tolerance), that window is solved as in soft mode (the soft end term) instead of discarding its plan (counted in
 ``soft_ends``).
@@ -22,9 +23,9 @@ of one ``RolloutGroup`` plan all B windows of a step in one batched rollout; ``r
 
 Two ways a step does less than SCP to convergence from the provider's warm start:
 
-* *Plan reuse* (on unless ``reuse_tol=None``, results unchanged): a window that reaches the end poses the same
+* *Plan reuse* (``reuse``, on by default, results unchanged): a window that reaches the end poses the same
   problem at t + 1 as at t, minus its first step (the same end term and constraints). When the measured state is
-  the state this controller's own plan predicted for t + 1 (within ``reuse_tol`` in units of ``state_scale``,
+  the state this controller's own plan predicted for t + 1 (within ``REUSE_TOL`` in units of ``state_scale``,
   ∞-norm) and that plan met the SCP's stopping rule (a fixed point, not the best iterate of a solve that ran out of
   iterations), the plan's tail is optimal for it (principle of optimality; a re-solve from it returns it after one
   subproblem), so the step applies it without calling the provider or the solver (``StepPlan.reused``). This
@@ -51,19 +52,15 @@ import itertools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
+from ttompc.mpc.settings import Mode, MPCSettings
 from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
 from ttompc.solvers.scp import SCPResult, SCPStatus, TerminalCost, solve_scp
 
-Mode = Literal["soft", "hard"]
-# plan reuse: the measured state is the own plan's prediction within this many state_scale units (∞-norm). On an
-# exact plant the two differ by the subproblem solver's residual of the dynamics rows (about 1e-9 here).
-REUSE_TOL = 1e-6
 # Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol. A goal miss is not the soft end
 # penalty's: tracking an exact plan ends on the goal once the tracking weight exceeds the multiplier of the window's
 # terminal constraint (``MPCWeights.track``); a plan that lags (REL-MPC at H = 10 ended ~0.0105 away) brings the goal
@@ -147,24 +144,15 @@ class MPCController:
         problem: Problem,
         provider: Provider,
         horizon: int,
-        *,
-        mode: Mode = "soft",
-        backend: str = "auto",
-        end_horizon: int = 0,
-        rti: bool = False,
-        reuse_tol: float | None = REUSE_TOL,
+        settings: MPCSettings | None = None,
     ) -> None:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
-        if mode not in ("soft", "hard"):
-            raise ValueError(f"mode must be 'soft' or 'hard', got {mode!r}")
-        if end_horizon < 0:
-            raise ValueError(f"end_horizon must be >= 0, got {end_horizon}")
-        if reuse_tol is not None and reuse_tol < 0:
-            raise ValueError(f"reuse_tol must be >= 0 or None, got {reuse_tol}")
-        self.scenario, self.problem, self.provider = scenario, problem, provider
-        self.horizon, self.mode, self.backend, self.end_horizon = horizon, mode, backend, end_horizon
-        self.rti, self.reuse_tol = rti, reuse_tol
+        self.scenario, self.problem, self.provider, self.horizon = scenario, problem, provider, horizon
+        self.settings = s = settings or MPCSettings()
+        self.mode, self.backend, self.end_horizon, self.rti, self.reuse_tol = (
+            s.mode, s.backend, s.end_horizon, s.rti, s.reuse_tol
+        )  # fmt: skip
         self._scale = scenario.state_units()
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
         self._last: StepPlan | None = None  # the plan this controller made at the previous step
@@ -332,37 +320,29 @@ def run_mpc(
     horizon: int,
     *,
     rel_cost: float,
-    mode: Mode = "soft",
+    settings: MPCSettings | None = None,
     max_steps: int | None = None,
-    backend: str = "auto",
     terminal_tol: float | None = None,
     plant: PlantNoise | None = None,
     plant_seed: int = 0,
-    end_horizon: int = 0,
-    rti: bool = False,
-    reuse_tol: float | None = REUSE_TOL,
 ) -> Episode:
-    """Run receding-horizon control from x0 for N steps (or ``max_steps``) on the exact dynamics, or on a perturbed
-    plant (``plant``, disturbances seeded by ``plant_seed``: same seed, same disturbances).
+    """Run receding-horizon control from x0 for N steps (or ``max_steps``) with ``settings`` (default: the paper's)
+    on the exact dynamics, or on a perturbed plant (``plant``, disturbances seeded by ``plant_seed``: same seed,
+    same disturbances).
 
     ``rel_cost`` is J_REL of the open-loop REL solution: the lower bound of the metrics and the TTO conditioning
-    (rtg_0 = −J_REL). ``end_horizon``: the shrinking end horizon (module doc; 0 = the paper's). ``rti``: real-time
-    iteration; ``reuse_tol``: plan reuse, None = re-solve every step (module doc)."""
+    (rtg_0 = −J_REL)."""
     return run_mpc_batch(
         scenario,
         [problem],
         [provider],
         horizon,
         rel_costs=[rel_cost],
-        mode=mode,
+        settings=settings,
         max_steps=max_steps,
-        backend=backend,
         terminal_tol=terminal_tol,
         plant=plant,
         plant_seeds=[plant_seed],
-        end_horizon=end_horizon,
-        rti=rti,
-        reuse_tol=reuse_tol,
     )[0]
 
 
@@ -373,15 +353,11 @@ def run_mpc_batch(
     horizon: int,
     *,
     rel_costs: Sequence[float],
-    mode: Mode = "soft",
+    settings: MPCSettings | None = None,
     max_steps: int | None = None,
-    backend: str = "auto",
     terminal_tol: float | None = None,
     plant: PlantNoise | None = None,
     plant_seeds: Sequence[int] | None = None,
-    end_horizon: int = 0,
-    rti: bool = False,
-    reuse_tol: float | None = REUSE_TOL,
     on_step: Callable[[], None] | None = None,
 ) -> list[Episode]:
     """``run_mpc`` for B problems (one provider each) in lockstep: at every step all B episodes plan, then all B
@@ -401,8 +377,7 @@ def run_mpc_batch(
     ctrls, sims = [], []
     for problem, provider, rel_cost, seed in zip(problems, providers, rel_costs, seeds, strict=True):
         provider.reset(scenario, problem, rel_cost)
-        ctrls.append(MPCController(scenario, problem, provider, horizon, mode=mode, backend=backend,
-                                   end_horizon=end_horizon, rti=rti, reuse_tol=reuse_tol))  # fmt: skip
+        ctrls.append(MPCController(scenario, problem, provider, horizon, settings))
         sim = Plant(scenario, plant)
         sim.reset(seed)
         sims.append(sim)
@@ -462,7 +437,7 @@ def run_mpc_batch(
                 plant="perturbed" if perturbed else "nominal",
                 soft_ends=soft_ends[b],
                 reuses=reuses[b],
-                rti=rti,
+                rti=ctrls[b].rti,
             )
         )
     return episodes

@@ -53,7 +53,7 @@ class PlantNoise:
         the scenario's largest state scale (free-flyer/quadrotor at the default: 1 cm of keep-out depth), at least
         1e-3 like the nominal plant. A disturbance can push a plan that grazes a keep-out boundary inside it before
         any controller reacts; runs are only infeasible when they go deeper than that."""
-        scale = max(scenario.state_scale, default=1.0)
+        scale = float(np.max(scenario.state_units()))
         return max(1e-3, 5.0 * self.process_std * scale)
 
     @classmethod
@@ -62,18 +62,14 @@ class PlantNoise:
         return cls(gain_std=0.05, actuation_std=0.02, process_std=0.002)
 
 
-def _scale(values: tuple[float, ...], dim: int) -> np.ndarray:
-    return np.asarray(values, dtype=np.float64) if len(values) == dim else np.ones(dim)
-
-
 class Plant:
     """Steps the scenario's exact dynamics with the disturbances of ``noise``; ``reset(seed)`` starts an episode."""
 
     def __init__(self, scenario: Scenario, noise: PlantNoise | None = None) -> None:
         self.scenario = scenario
         self.noise = noise or PlantNoise()
-        self._x_scale = _scale(scenario.state_scale, scenario.state_dim)
-        self._u_scale = _scale(scenario.control_scale, scenario.control_dim)
+        self._x_scale = scenario.state_units()
+        self._u_scale = scenario.control_units()
         self._rng = np.random.default_rng(0)
         self._gain = np.ones(scenario.control_dim)
 

@@ -7,15 +7,11 @@ first row is the measured state, controls (H, m)) and, for windows that stop bef
 * ``RELProvider`` (REL-MPC): REL over the whole remaining horizon [t, N) from x_t, truncated to the window; the
   terminal target x̄ is the REL state at t+H (weights ``mpc.terminal``).
 * ``DISTProvider`` (DIST-MPC): REL over the window only, with the distance-to-goal terminal cost diag(``mpc.dist``).
-* ``TTOProvider`` (TTO-MPC / FT-TTO-MPC): an H-step transformer rollout from the running ``RolloutContext``
-  (conditioned on rtg_0 = −κ·J_REL, ctg_0 = 0); the context is advanced with every executed action and measured
-  state, so its KV cache is extended, never recomputed. x̄ = the predicted state at t+H. The TTO providers of B
-  episodes run in lockstep (``run_mpc_batch``) can share one batched context (``RolloutGroup``). ``rtg_mode``
-  chooses the reward-to-go fed at each step (``RTG_MODES``).
+* ``TTOProvider`` (TTO-MPC / FT-TTO-MPC) and its batching (``RolloutGroup``): ``ttompc.mpc.tto``.
 * ``ShiftProvider`` (the DAgger expert): the previous plan shifted by one step (first row replaced by the measured
   state), starting from a given plan; it makes the full-horizon expert cheap.
 * ``PlanProvider`` (PLAN-ONCE): one full-horizon plan (the open-loop SCP optimum, solved at t = 0) as warm start and
-  terminal target of every window: "plan once, then track", no model, no re-planning. With ``PlanNoise`` it is the
+  terminal target of every window: "plan once, then track", no model, no re-planning. Perturbed, it is the
   noisy oracle of ``bench/tto_mpc_robustness.py`` (a stand-in for a model whose plans are off by a known amount).
 * ``OracleProvider`` (ORACLE-MPC, the ceiling): the full remaining-horizon SCP optimum from the measured state
   (re-solved, warm-started from its own previous plan, whenever the state leaves the plan), as warm start and
@@ -35,17 +31,13 @@ control of every window free of the terminal term.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import SCPResult, TerminalCost, solve_problem, solve_rel, solve_scp
-
-if TYPE_CHECKING:
-    from ttompc.policy import Planner, RolloutContext
 
 
 @dataclass
@@ -130,11 +122,11 @@ class RemainingREL:
     """REL over the whole remaining horizon [t, N) from the measured state, each solve started from the last one's
     plan shifted to t (``solve_rel(guess=...)``) instead of the straight line: the same relaxation from a nearby
     start, about half the time (measured in docs/benchmarks.md, MPC section). The shift spans the steps it was not
-    asked for (a controller that reused its plan skips its provider). ``warm=False`` restarts from the straight
-    line every step. REL-MPC plans with it; TTO-MPC's ``rtg_mode="reanchor"`` reads its cost."""
+    asked for (a controller that reused its plan skips its provider). REL-MPC plans with it; TTO-MPC's
+    ``rtg_mode="reanchor"`` reads its cost."""
 
-    def __init__(self, backend: str = "auto", *, warm: bool = True) -> None:
-        self.backend, self.warm = backend, warm
+    def __init__(self, backend: str = "auto") -> None:
+        self.backend = backend
         self._rel: tuple[int, np.ndarray, np.ndarray] | None = None  # (start step, X, U) of the last solve
 
     def reset(self) -> None:
@@ -143,7 +135,7 @@ class RemainingREL:
     def __call__(self, scenario: Scenario, problem: Problem, t: int, x: np.ndarray) -> SCPResult:
         rest = Window(t, problem.n_steps - t, problem.n_steps)
         guess = None
-        if self.warm and self._rel is not None and 0 < t - self._rel[0] < len(self._rel[2]):
+        if self._rel is not None and 0 < t - self._rel[0] < len(self._rel[2]):
             start, X, U = self._rel
             guess = (X[t - start :], U[t - start :])
         rel = solve_rel(scenario, problem, window=rest, x_start=x, guess=guess, backend=self.backend)
@@ -153,13 +145,13 @@ class RemainingREL:
 
 class RELProvider:
     """REL-MPC: full remaining-horizon REL (``RemainingREL``), truncated; terminal target = REL state at t+H
-    (weight ``mpc.terminal``, the paper's). ``warm_rel=False`` restarts each REL from the straight line."""
+    (weight ``mpc.terminal``, the paper's)."""
 
     name = "REL-MPC"
 
-    def __init__(self, backend: str = "auto", *, warm_rel: bool = True) -> None:
+    def __init__(self, backend: str = "auto") -> None:
         self.backend = backend
-        self.rel = RemainingREL(backend, warm=warm_rel)
+        self.rel = RemainingREL(backend)
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         self.scenario, self.problem = scenario, problem
@@ -215,201 +207,6 @@ class DISTProvider:
         return None
 
 
-RTGMode = Literal["running", "floor", "reanchor"]
-RTG_MODES: tuple[str, ...] = ("running", "floor", "reanchor")
-RTG_SIGMAS = 3.0  # the training range's lower end: mean − 3 std of the model's rtg statistics
-
-
-class TTOProvider:
-    """TTO-MPC: H-step rollout from a persistent rollout context (one per episode, KV cache reused; or one batched
-    context shared by the providers of a ``group``), conditioned on rtg_0 = −``rtg_scale``·J_REL (None: the model's
-    own, ``Planner.rtg_scale``; the paper: 1) and ctg_0 = 0; the target goes through ``design``.
-
-    ``rtg_mode``, the reward-to-go fed at step t (training rows hold rtg_t = −Σ_(τ≥t) c(u_τ), never above 0):
-
-    * ``running`` (the paper, the default): rtg_t = rtg_0 + the cost executed so far. Closed loop the executed cost
-      soon exceeds J_REL and rtg_t turns positive, where no training row lives.
-    * ``floor``: the running rtg clipped to [μ − 3σ, −``rtg_floor``·|rtg_0|] (μ, σ: the model's rtg statistics), so
-      a budget of at least a fraction ``rtg_floor`` of rtg_0 remains.
-    * ``reanchor``: rtg_t = −κ·J_REL(t), the REL cost of the remaining horizon [t, N) from the measured state (one
-      ``RemainingREL`` per step, as REL-MPC solves; its time counts in the warm start), clipped to the same range;
-      the floor value where that REL fails.
-
-    Inside a window the rollout still adds the model's own planned costs to the fed value (the rollout's rule).
-    ``use_cache`` and ``clipped`` configure the provider's own group; a given ``group`` has its own."""
-
-    def __init__(
-        self,
-        planner: Planner,
-        name: str = "TTO-MPC",
-        *,
-        use_cache: bool = True,
-        clipped: bool = True,
-        rtg_scale: float | None = None,
-        design: TerminalDesign | None = None,
-        rtg_mode: RTGMode = "running",
-        rtg_floor: float = 0.05,
-        group: RolloutGroup | None = None,
-        backend: str = "auto",
-    ) -> None:
-        if rtg_mode not in RTG_MODES:
-            raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {rtg_mode!r}")
-        if not 0.0 <= rtg_floor < 1.0:
-            raise ValueError(f"rtg_floor must be in [0, 1), got {rtg_floor}")
-        self.planner, self.name = planner, name
-        self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
-        self.rtg_mode, self.rtg_floor = rtg_mode, rtg_floor
-        self.target = TargetFilter(design)
-        self.group = group or RolloutGroup(planner, use_cache=use_cache, clipped=clipped)
-        if self.group.planner is not planner:
-            raise ValueError("the providers of a RolloutGroup must share its planner")
-        self.slot = self.group.add(self)
-        self.rel = RemainingREL(backend)
-
-    @property
-    def context(self) -> RolloutContext | None:
-        """The rollout context of this provider's group (row ``slot`` is this episode)."""
-        return self.group.context
-
-    def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
-        if scenario.name != self.planner.scenario.name:
-            raise ValueError(f"model was trained on {self.planner.scenario.name!r}, not {scenario.name!r}")
-        self.scenario, self.problem = scenario, problem
-        self.target.reset()
-        self.rel.reset()
-        self.rtg0 = -self.rtg_scale * rel_cost
-        self.spent = 0.0  # Σ c(u) of the executed controls
-        self.x = problem.x0
-        self.group.join(self.slot)
-
-    def rtg_range(self) -> tuple[float, float]:
-        """[μ − 3σ of the model's rtg statistics, −rtg_floor·|rtg_0|]: where training rows' rtg lie."""
-        stats = self.planner.stats
-        lo = float(stats.mean["rtg"][0] - RTG_SIGMAS * stats.std["rtg"][0])
-        hi = -self.rtg_floor * abs(self.rtg0)
-        return min(lo, hi), hi
-
-    def conditioning(self, t: int) -> float | None:
-        """The rtg to feed at step t (None: the context's running value, ``running``)."""
-        if self.rtg_mode == "running":
-            return None
-        value = self.rtg0 + self.spent  # at t = 0 also reanchor's: rtg_0 = −κ·J_REL(0)
-        if self.rtg_mode == "reanchor" and t > 0:
-            rel = self.rel(self.scenario, self.problem, t, self.x)
-            if rel.success:
-                value = -self.rtg_scale * rel.cost
-        return float(np.clip(value, *self.rtg_range()))
-
-    def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
-        t0 = time.perf_counter()
-        S, U, share, shared = self.group.rollout(self.slot, window)
-        X = self.scenario.from_model_states(self.problem, S, start=window.start)
-        X[0] = x  # the measured state, exactly (the context holds it in the model dtype)
-        ws = WarmStart(X, U, self.target(self.scenario, window, X))
-        ws.seconds = time.perf_counter() - t0 - shared + share
-        return ws
-
-    def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
-        self.spent += self.scenario.cost(np.asarray(u)[None])
-        self.x = np.asarray(x_next)
-        k = self.group.t + 1
-        s_next = self.scenario.to_model_states(self.problem, self.x[None], start=k)[0]
-        self.group.advance(self.slot, u, s_next)
-
-
-class RolloutGroup:
-    """One ``RolloutContext`` for the TTO providers of B episodes run in lockstep (``run_mpc_batch``): the B windows
-    of a step come from one batched rollout (a batch-1 rollout is a chain of tiny matmuls, so B episodes cost about
-    as much as one), and the context advances once every episode has executed its control. Each episode is charged
-    its share of the rollout (``WarmStart.seconds``). A ``TTOProvider`` made without a group has one of its own.
-
-    Lifecycle: providers join at construction (``add``: their slot is their row), the context is built when all of
-    them have been ``reset`` for an episode, and every member plans and observes once per step."""
-
-    def __init__(self, planner: Planner, *, use_cache: bool = True, clipped: bool = True) -> None:
-        self.planner, self.use_cache, self.clipped = planner, use_cache, clipped
-        self.members: list[TTOProvider] = []
-        self.context: RolloutContext | None = None
-        self._joined: set[int] = set()
-        self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._plan: tuple[tuple[int, int], np.ndarray, np.ndarray, list[float], float] | None = None
-
-    @property
-    def t(self) -> int:
-        if self.context is None:
-            raise RuntimeError("the rollout group's episodes have not all been reset")
-        return self.context.t
-
-    def add(self, member: TTOProvider) -> int:
-        if self.context is not None or self._joined:
-            raise RuntimeError("providers join a RolloutGroup before its first episode")
-        self.members.append(member)
-        return len(self.members) - 1
-
-    def join(self, slot: int) -> None:
-        """``slot``'s episode is reset; the context starts once every member's is."""
-        self._joined.add(slot)
-        if len(self._joined) < len(self.members):
-            self.context = None
-            return
-        self._joined.clear()
-        self._pending.clear()
-        self._plan = None
-        rtg0 = [m.rtg0 for m in self.members]
-        self.context = self.planner.context(
-            [m.problem for m in self.members], rtg0=rtg0, ctg0=0.0, use_cache=self.use_cache
-        )
-
-    def rollout(self, slot: int, window: Window) -> tuple[np.ndarray, np.ndarray, float, float]:
-        """Row ``slot`` of this step's batched rollout (run by the first member to ask): its states (H+1, n) and
-        actions (H, m) in the model representation, the member's share of the time (its own conditioning plus
-        1/B of the rollout) and the time this call spent on the shared work (0 for all but the first caller)."""
-        ctx = self.context
-        if ctx is None or ctx.t != window.start:
-            raise RuntimeError(f"rollout context is at step {getattr(ctx, 't', None)}, not {window.start}")
-        key = (window.start, window.length)
-        shared = 0.0
-        if self._plan is None or self._plan[0] != key:
-            t0 = time.perf_counter()
-            own = []
-            for m in self.members:
-                t1 = time.perf_counter()
-                value = m.conditioning(window.start)
-                if value is not None:
-                    ctx.rtg[m.slot, -1] = value
-                own.append(time.perf_counter() - t1)
-            t1 = time.perf_counter()
-            res = ctx.rollout(window.length, clipped=self.clipped)
-            self._sync()
-            S, A = res.states.double().cpu().numpy(), res.actions.double().cpu().numpy()
-            rollout_time = time.perf_counter() - t1
-            shared = time.perf_counter() - t0
-            self._plan = (key, S, A, own, rollout_time / len(self.members))
-        _, S, A, own, share = self._plan
-        return S[slot], A[slot], own[slot] + share, shared
-
-    def advance(self, slot: int, u: np.ndarray, s_next: np.ndarray) -> None:
-        """Member ``slot`` executed ``u`` and measured ``s_next`` (model representation); the context advances
-        when all members have."""
-        if self.context is None:
-            raise RuntimeError("the rollout group's episodes have not all been reset")
-        self._pending[slot] = (np.asarray(u), np.asarray(s_next))
-        if len(self._pending) < len(self.members):
-            return
-        order = range(len(self.members))
-        self.context.advance(np.stack([self._pending[b][0] for b in order]),
-                             np.stack([self._pending[b][1] for b in order]))  # fmt: skip
-        self._pending.clear()
-        self._plan = None
-        self._sync()
-
-    def _sync(self) -> None:
-        if self.planner.device.type == "cuda":
-            import torch
-
-            torch.cuda.synchronize()
-
-
 class ShiftProvider:
     """The previous plan shifted by one step (DAgger expert); the first plan comes from ``reset_plan``."""
 
@@ -439,38 +236,20 @@ class ShiftProvider:
         self.X, self.U = plan_X[1:], plan_U[1:]
 
 
-@dataclass(frozen=True)
-class PlanNoise:
-    """Seeded error added to a plan, per MPC step, as a rigid offset ε_t of the window's states X[1:] along the
-    components ``dims`` (positions): ``independent``: ε_t ~ N(0, std²) drawn afresh every step; ``drift``: an AR(1)
-    process ε_t = ρ·ε_{t−1} + √(1 − ρ²)·N(0, std²) with the same stationary std (a slowly wandering, consistent
-    error; ρ = ``correlation``). ``std`` is per component, in the optimisation representation (metres)."""
-
-    std: float
-    kind: Literal["independent", "drift"] = "independent"
-    dims: tuple[int, ...] = (0, 1)
-    correlation: float = 0.9
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.std < 0 or self.kind not in ("independent", "drift") or not 0 <= self.correlation < 1:
-            raise ValueError(f"invalid PlanNoise {self}")
-
-
 class PlanProvider:
     """PLAN-ONCE: a fixed full-horizon plan (given, or the open-loop SCP optimum solved at t = 0) as warm start and
-    terminal target of every window; optional ``noise`` on the plan (the noisy oracle)."""
+    terminal target of every window. ``window_plan`` is the plan a window gets (``bench/tto_mpc_robustness.py``
+    perturbs it: the noisy oracle)."""
 
     def __init__(
         self,
         plan: tuple[np.ndarray, np.ndarray] | None = None,
         *,
         name: str = "PLAN-ONCE",
-        noise: PlanNoise | None = None,
         design: TerminalDesign | None = None,
         backend: str = "auto",
     ) -> None:
-        self.name, self.noise, self.backend = name, noise, backend
+        self.name, self.backend = name, backend
         self._given = plan
         self.target = TargetFilter(design)
 
@@ -478,24 +257,14 @@ class PlanProvider:
         self.scenario, self.problem = scenario, problem
         self.X, self.U = self._given if self._given is not None else full_horizon_plan(scenario, problem, self.backend)
         self.target.reset()
-        self._rng = np.random.default_rng(self.noise.seed if self.noise else 0)
-        self._eps = np.zeros(len(self.noise.dims)) if self.noise else None
 
-    def _offset(self) -> np.ndarray:
-        assert self.noise is not None and self._eps is not None
-        draw = self.noise.std * self._rng.standard_normal(len(self.noise.dims))
-        if self.noise.kind == "independent":
-            self._eps = draw
-        else:
-            rho = self.noise.correlation
-            self._eps = rho * self._eps + np.sqrt(1 - rho**2) * draw
-        return self._eps
+    def window_plan(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the plan's states (H+1, n) and controls (H, m) over ``window``."""
+        t, H = window.start, window.length
+        return self.X[t : t + H + 1].copy(), self.U[t : t + H].copy()
 
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
-        t, H = window.start, window.length
-        X, U = self.X[t : t + H + 1].copy(), self.U[t : t + H].copy()
-        if self.noise is not None:
-            X[1:, list(self.noise.dims)] += self._offset()
+        X, U = self.window_plan(window)
         X[0] = x
         return WarmStart(X, U, self.target(self.scenario, window, X))
 

@@ -142,20 +142,17 @@ class Planner:
         ctg0: float | Sequence[float] | np.ndarray = 0.0,
         *,
         horizon: int | None = None,
-        clipped: bool = True,
         use_cache: bool = True,
     ) -> RolloutResult:
         """Open-loop rollout from step 0 in the model representation (default horizon: the problems' N)."""
         horizon = horizon or problems[0].n_steps
-        return self.context(problems, rtg0, ctg0, use_cache=use_cache).rollout(horizon, clipped=clipped)
+        return self.context(problems, rtg0, ctg0, use_cache=use_cache).rollout(horizon)
 
     def warm_start(
         self,
         problems: Sequence[Problem],
         rtg0: float | Sequence[float] | np.ndarray,
         ctg0: float | Sequence[float] | np.ndarray = 0.0,
-        *,
-        clipped: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Full-horizon warm starts for the SCP engine: states (B, N+1, n) in the *optimisation* representation and
         controls (B, N, m), float64.
@@ -172,7 +169,7 @@ class Planner:
         steps = {p.n_steps for p in problems}
         if len(steps) != 1:
             raise ValueError(f"problems in one batch must share n_steps, got {sorted(steps)}")
-        res = self.generate(problems, rtg0, ctg0, clipped=clipped)
+        res = self.generate(problems, rtg0, ctg0)
         S = res.states.double().cpu().numpy()
         X = np.stack([self.scenario.from_model_states(p, S[i], start=0) for i, p in enumerate(problems)])
         X[:, 0] = [p.x0 for p in problems]  # exact, not the model dtype's rounding: the SCP fixes this state

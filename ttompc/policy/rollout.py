@@ -3,7 +3,8 @@
 At every step k the transformer reads (goal_k, rtg_k, ctg_k, state_k) after the history and emits a normalised
 control; it is de-normalised and propagated with the scenario's approximate model (``Scenario.batched_model``) to
 give state_{k+1}; the conditioning is updated (rtg_{k+1} = rtg_k + c(a_k), i.e. minus the reward;
-ctg_{k+1} = ctg_k, or ctg_k − violations(state_{k+1}) with ``clipped=False``) and the target is held.
+ctg_{k+1} = ctg_k: a plan does not foresee its own violations) and the target is held. The executed history
+(``RolloutContext.advance``) counts violations: ctg_{t+1} = ctg_t − violations(s_{t+1}).
 
 One implementation serves open-loop warm starts (start at step 0) and MPC (start at step t after an executed
 prefix). ``RolloutContext`` keeps the executed history of B episodes and, with ``use_cache=True``, the KV cache of
@@ -169,7 +170,7 @@ class RolloutContext:
 
     # -------------------------------------------------------------------------------------------------- public
     @torch.no_grad()
-    def rollout(self, horizon: int, *, clipped: bool = True) -> RolloutResult:
+    def rollout(self, horizon: int) -> RolloutResult:
         """Generate ``horizon`` steps from the current step t on a fork of the history (the context is unchanged)."""
         t0, model = self.t, self.model
         if horizon < 1 or t0 + horizon > model.cfg.max_steps:
@@ -195,7 +196,7 @@ class RolloutContext:
                 prev = a[:, None]
                 S.append(s_next)
                 R.append(R[-1] + stage_cost_torch(a, self.cost_norm))
-                C.append(C[-1] if clipped else C[-1] - self.dynamics.violations(s_next, k + 1).to(a.dtype))
+                C.append(C[-1])
         finally:
             model.train(was_training)
         return RolloutResult(
@@ -226,14 +227,12 @@ class RolloutContext:
         action: Tensor | np.ndarray,
         next_state: Tensor | np.ndarray,
         goal: Tensor | np.ndarray | None = None,
-        *,
-        clipped: bool = False,
     ) -> None:
         """Record the executed action a_t (B, m) and the measured state s_{t+1} (B, n) (optionally a new goal), as
         tensors or arrays (converted to the model's dtype and device).
 
-        Like the reference MPC context, rtg_{t+1} = rtg_t + c(a_t) and ctg_{t+1} = ctg_t − violations(s_{t+1})
-        (``clipped=True`` keeps ctg constant instead). The cached history is extended by the deciding tokens of step t.
+        Like the reference MPC context, rtg_{t+1} = rtg_t + c(a_t) and ctg_{t+1} = ctg_t − violations(s_{t+1}). The
+        cached history is extended by the deciding tokens of step t.
         """
         t = self.t
         p = self.states
@@ -251,9 +250,7 @@ class RolloutContext:
             finally:
                 self.model.train(was_training)
         rtg = self.rtg[:, -1] + stage_cost_torch(action, self.cost_norm)
-        ctg = self.ctg[:, -1]
-        if not clipped:
-            ctg = ctg - self.dynamics.violations(next_state, t + 1).to(p.dtype)
+        ctg = self.ctg[:, -1] - self.dynamics.violations(next_state, t + 1).to(p.dtype)
         self.actions = torch.cat([self.actions, action[:, None]], dim=1)
         self.states = torch.cat([self.states, next_state[:, None]], dim=1)
         self.goals = torch.cat([self.goals, goal[:, None]], dim=1)
@@ -273,8 +270,7 @@ def rollout(
     horizon: int | None = None,
     *,
     use_cache: bool = True,
-    clipped: bool = True,
 ) -> RolloutResult:
     """One-shot open-loop rollout from step 0 over ``horizon`` steps (default: the model's ``max_steps``)."""
     ctx = RolloutContext.start(model, stats, dynamics, cost_norm, state0, goal, rtg0, ctg0, use_cache=use_cache)
-    return ctx.rollout(horizon or model.cfg.max_steps, clipped=clipped)
+    return ctx.rollout(horizon or model.cfg.max_steps)

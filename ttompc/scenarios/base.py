@@ -155,12 +155,7 @@ class ConstraintBlock:
 class SCPSettings:
     """Trust-region SCP settings (the authors' schedule, ``docs/design.md``): Δ shrinks geometrically from
     ``tr_start`` to ``tr_end`` over ``max_iters`` iterations; stop when the state step and the cost change are both
-    below tolerance.
-
-    ``stall_iters`` > 0 departs from the paper's stopping rule (0, the default, keeps it): also stop once the iterate
-    is feasible and the merit has changed by at most ``cost_tol`` for that many consecutive subproblems, whatever
-    the step. With an L1 cost the iterates can wander among equal-cost plans (the optimal face) until the shrinking
-    trust region forces the step below ``tr_end``; those subproblems do not improve the plan."""
+    below tolerance."""
 
     tr_start: float
     tr_end: float
@@ -168,7 +163,6 @@ class SCPSettings:
     cost_tol: float = 1e-6
     penalty: float = 1e3  # exact-penalty weight on slacks (virtual control, linearised constraints)
     feas_tol: float = 1e-4  # max nonlinear constraint violation accepted as feasible
-    stall_iters: int = 0  # 0: the paper's rule; k > 0: also stop after k flat-merit subproblems at a feasible iterate
 
     @property
     def shrink(self) -> float:
@@ -240,8 +234,11 @@ class Scenario(abc.ABC):
     # largest ‖x_N − goal‖ (optimisation representation) of a closed-loop episode counted as reaching the goal; soft
     # MPC end penalties leave a small residual
     terminal_tol: ClassVar[float] = 5e-2
-    # what backend="auto" means for this scenario (see ttompc.solvers.engine.backend_chain)
+    # what backend="auto" means for this scenario (see ttompc.solvers.backends.backend_chain)
     auto_backends: ClassVar[tuple[str, ...]] = ("piqp", "qoco", "clarabel")
+    # trust-region norm of the SCP: "linf" (bounds on the states: a subproblem without cones is a QP) or "l2" (a
+    # second-order cone); whichever backend solves it, except the "conic" comparison path (2-norm)
+    trust_norm: ClassVar[Literal["l2", "linf"]] = "linf"
     state_labels: ClassVar[tuple[str, ...]]
     control_labels: ClassVar[tuple[str, ...]]
 
@@ -304,9 +301,12 @@ class Scenario(abc.ABC):
 
     def state_units(self) -> np.ndarray:
         """``state_scale`` as an array (ones where the scenario gives none): the per-state units in which distances
-        between states are measured (plan reuse, target change, oracle detours)."""
-        n = self.state_dim
-        return np.asarray(self.state_scale, dtype=np.float64) if len(self.state_scale) == n else np.ones(n)
+        between states are measured (plan reuse, target change, oracle detours) and the solvers non-dimensionalise."""
+        return units_of(self.state_scale, self.state_dim)
+
+    def control_units(self) -> np.ndarray:
+        """``control_scale`` as an array (ones where the scenario gives none), as ``state_units``."""
+        return units_of(self.control_scale, self.control_dim)
 
     @abc.abstractmethod
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
@@ -409,3 +409,8 @@ def stage_cost(U: np.ndarray, norm: CostNorm) -> np.ndarray:
     if norm == "quad":
         return 0.5 * np.sum(U * U, axis=-1)
     raise ValueError(f"unknown cost norm {norm!r}")
+
+
+def units_of(scale: tuple[float, ...], dim: int) -> np.ndarray:
+    """A scale tuple as an array of ``dim`` units (ones where it is empty or does not fit)."""
+    return np.asarray(scale, dtype=np.float64) if len(scale) == dim else np.ones(dim)

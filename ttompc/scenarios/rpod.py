@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
@@ -148,6 +148,7 @@ class Rpod(Scenario):
     control_scale: ClassVar[tuple[float, ...]] = (0.01, 0.01, 0.01)  # Δv [m/s]
     # QOCO solved only 7/10 RPOD problems (numerical errors on the cone/waypoint rows); Clarabel 10/10 and as fast
     auto_backends: ClassVar[tuple[str, ...]] = ("clarabel",)
+    trust_norm: ClassVar[Literal["l2", "linf"]] = "l2"  # its subproblems have cones anyway (2-norm cost, approach cone)
     terminal_tol: ClassVar[float] = 1.0  # m of ROE at the docking port (the KOZ semi-axes are 60-123 m)
     # Labels of the model representation (RTN), which is what datasets store and the transformer sees.
     state_labels = ("r_R [m]", "r_T [m]", "r_N [m]", "v_R [m/s]", "v_T [m/s]", "v_N [m/s]")

@@ -1,122 +1,17 @@
-"""The SCP iteration (see ``scp.py`` for the public API and the formulation)."""
+"""The SCP iteration (see ``scp.py`` for the public API and the formulation); its subproblem solvers are
+``ttompc.solvers.backends``."""
 
 from __future__ import annotations
 
 import dataclasses
-import functools
-import importlib.util
 import time
-from collections import OrderedDict
-from collections.abc import Sequence
 
 import numpy as np
 
 from ttompc.scenarios.base import BlockKind, ConstraintBlock, Problem, Scenario, SCPSettings, Window
-from ttompc.solvers.backends import QP_BACKENDS, BackendSolution, make_backend
-from ttompc.solvers.qp import PIQPSolver, SubproblemSolver, is_qp
+from ttompc.solvers.backends import SubproblemSolver, default_trust_norm, get_solver
 from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
-from ttompc.solvers.riccati import RiccatiSolver
-from ttompc.solvers.riccati import supports as riccati_supports
-from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
-
-
-class AssembledSolver:
-    """Assembled structure + persistent backends: only values change between calls. With several backends the
-    later ones are fallbacks for a numerical failure of the first (``auto``: QOCO, then Clarabel)."""
-
-    def __init__(self, spec: SubproblemSpec, backends: Sequence[str]) -> None:
-        self.sub = AssembledSubproblem(spec)
-        self.backends = [make_backend(name, self.sub) for name in backends]
-
-    def restart(self) -> None:
-        for backend in self.backends:
-            backend.restart()
-
-    def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
-        a_values, b = self.sub.update(data)
-        spent = 0.0
-        for backend in self.backends:
-            sol = backend.solve(a_values, b)
-            spent += sol.solve_time
-            if sol.ok:
-                break
-        sol.solve_time = spent
-        if sol.z is None:
-            return None, None, sol
-        X, U = self.sub.split(sol.z)
-        return X, U, sol
-
-
-def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
-    """``auto`` = the scenario's ``auto_backends`` (default: PIQP on the compact QP wherever the subproblem has
-    no cone, else QOCO, with Clarabel as the fallback on a numerical failure); ``conic`` = QOCO then Clarabel on
-    every subproblem (the default before the QP path, kept for comparisons); both restricted to installed solvers.
-    ``riccati`` = the stage-wise interior-point kernel (``riccati.py``) ahead of the ``auto`` chain where that chain
-    starts with PIQP, the ``auto`` chain elsewhere. Other names alone."""
-    if name == "riccati":
-        if not _installed("numba"):
-            raise ValueError("backend 'riccati' needs numba: pip install 'ttompc[fast]'")
-        chain = backend_chain("auto", scenario)
-        return ["riccati", *chain] if chain[0] == "piqp" else chain
-    if name == "auto":
-        chain = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
-    elif name == "conic":
-        chain = ["qoco", "clarabel"]
-    else:
-        return [name]
-    chain = [b for b in chain if b not in ("piqp", "qoco") or _installed(b)]
-    return chain or ["clarabel"]
-
-
-@functools.cache
-def _installed(module: str) -> bool:
-    return importlib.util.find_spec(module) is not None
-
-
-def default_trust_norm(backend: str, scenario: Scenario | None = None) -> str:
-    """∞-norm (a QP: bounds on the states) where the first backend of the chain solves QPs, else the 2-norm."""
-    return "linf" if backend_chain(backend, scenario)[0] in QP_BACKENDS else "l2"
-
-
-_CACHE: OrderedDict[tuple[SubproblemSpec, tuple[str, ...]], SubproblemSolver] = OrderedDict()
-_CACHE_SIZE = 256  # receding-horizon REL uses one structure per remaining length (up to N = 100)
-
-
-def clear_solver_cache() -> None:
-    """Forget every built solver structure (benchmarks that time building them)."""
-    _CACHE.clear()
-
-
-def get_solver(spec: SubproblemSpec, backend: str, scenario: Scenario | None = None) -> SubproblemSolver:
-    """One solver per (structure, backends), least-recently-used cache (a receding-horizon REL needs one per
-    remaining length, its windows a handful more)."""
-    chain = tuple(backend_chain(backend, scenario))
-    key = (spec, chain)
-    solver = _CACHE.get(key)
-    if solver is None:
-        if chain[0] == "riccati" and riccati_supports(spec):
-            rest = chain[1:]
-            solver = RiccatiSolver(spec, lambda: _build(spec, rest))
-        else:
-            solver = _build(spec, tuple(b for b in chain if b != "riccati"))
-        _CACHE[key] = solver
-        if len(_CACHE) > _CACHE_SIZE:
-            _CACHE.popitem(last=False)
-    else:
-        _CACHE.move_to_end(key)
-    return solver
-
-
-def _build(spec: SubproblemSpec, chain: tuple[str, ...]) -> SubproblemSolver:
-    conic = tuple(b for b in chain if b != "piqp") or ("clarabel",)
-    if chain == ("cvxpy-naive",):
-        from ttompc.solvers.naive import NaiveCvxpySolver
-
-        return NaiveCvxpySolver(spec)
-    if chain[0] == "piqp" and (is_qp(spec) or len(chain) == 1):  # a lone "piqp" rejects cones itself
-        fallback = (lambda: AssembledSolver(spec, conic)) if len(chain) > 1 else None
-        return PIQPSolver(spec, fallback)
-    return AssembledSolver(spec, conic)
+from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
 
 
 def run_scp(
@@ -152,8 +47,9 @@ def run_scp(
         scenario.validate(problem)
     penalized = formulation == "penalized"
     use_tr = bool(np.isfinite(settings.tr_start))
-    if not penalized and backend == "auto":
+    if not penalized and backend == "auto":  # the reference's path, kept for comparisons (docs/benchmarks.md)
         backend = "clarabel"  # certified infeasibility matters for the reference formulation; QOCO reports errors
+        trust_norm = trust_norm or "l2"  # the reference's 2-norm trust region
     if trust_norm is None:
         trust_norm = default_trust_norm(backend, scenario)
     shrink = settings.shrink if use_tr else 1.0
@@ -165,7 +61,6 @@ def run_scp(
     best: tuple[float, np.ndarray, np.ndarray, float, int] | None = None  # (merit, X, U, violation, iteration)
     least_bad: tuple[float, np.ndarray, np.ndarray, int] | None = None  # fallback: smallest violation
     prev_merit: float | None = None
-    flat_run = 0  # consecutive subproblems whose merit changed by at most cost_tol (SCPSettings.stall_iters)
     status: SCPStatus | None = None
     solver_time = 0.0
     solver: SubproblemSolver | None = None
@@ -240,11 +135,9 @@ def run_scp(
             least_bad = (violation, X, U, it)
         # a fixed point: the step from this iteration's linearisation point and the merit change from that point
         # are both below tolerance. The first iteration compares with the warm start, so a converged warm start
-        # costs one subproblem, not two. Opt-in (not the paper's): a feasible iterate after stall_iters flat merits.
+        # costs one subproblem, not two.
         flat = prev_merit is not None and abs(merit - prev_merit) <= settings.cost_tol
-        flat_run = flat_run + 1 if flat else 0
-        stalled = 0 < settings.stall_iters <= flat_run and violation <= settings.feas_tol
-        converged = (step <= settings.tr_end and flat) or stalled
+        converged = step <= settings.tr_end and flat
         X_ref, U_ref, prev_merit = X, U, merit
         delta *= shrink
         if converged or not use_tr:

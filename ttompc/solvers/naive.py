@@ -12,7 +12,7 @@ import cvxpy as cp
 import numpy as np
 
 from ttompc.scenarios.base import BlockKind
-from ttompc.solvers.backends import BackendSolution
+from ttompc.solvers.backends.base import BackendSolution
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
 
 

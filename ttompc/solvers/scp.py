@@ -56,9 +56,9 @@ def solve_scp(
     2-norm penalties (MPC soft mode). ``backend``: "auto" (the scenario's chain: PIQP on subproblems without cones,
     QOCO/Clarabel on the others, see ``engine.backend_chain``), "conic" (QOCO then Clarabel throughout),
     "riccati" (opt-in, numba: the stage-wise interior-point kernel where the subproblem is a penalised QP, the
-    ``auto`` chain elsewhere), "clarabel", "qoco", "osqp", "piqp" or "cvxpy-naive" (the rebuild-every-iteration
-    baseline). ``trust_norm`` defaults to linf (bounds, so the subproblem can be a QP) where the chain starts with a
-    QP solver, else l2.
+    ``auto`` chain elsewhere), "clarabel", "qoco", "piqp" or "cvxpy-naive" (the rebuild-every-iteration
+    baseline). ``trust_norm`` defaults to the scenario's (``Scenario.trust_norm``; l2 for
+    ``conic`` and for the reference formulation with ``auto``, the comparison paths).
     """
     window = window or Window.full(problem)
     return run_scp(

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel
+from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, units_of
 
 
 @dataclass
@@ -55,6 +55,10 @@ class SubproblemSpec:
     control_scale: tuple[float, ...] = ()
     model_masks: tuple[tuple[bool, ...], tuple[bool, ...]] | None = None  # flattened A/B masks (None: dense)
     vc_rows: tuple[int, ...] = ()
+
+    def units(self) -> tuple[np.ndarray, np.ndarray]:
+        """The state and control units of the non-dimensionalised variables (ones where no scale is given)."""
+        return units_of(self.state_scale, self.n), units_of(self.control_scale, self.m)
 
     def virtual_rows(self) -> np.ndarray:
         """Dynamics rows that carry virtual control (those the convex model only approximates)."""
@@ -115,8 +119,7 @@ class AssembledSubproblem:
         H, n, m = spec.H, spec.n, spec.m
         self.n_var = 0
         self._scales: list[np.ndarray] = []
-        sx = np.asarray(spec.state_scale or np.ones(n), dtype=np.float64)
-        su = np.asarray(spec.control_scale or np.ones(m), dtype=np.float64)
+        sx, su = spec.units()
         self.ix = self._var((H + 1) * n, np.tile(sx, H + 1)).reshape(H + 1, n)
         self.iu = self._var(H * m, np.tile(su, H)).reshape(H, m)
         q_parts: list[tuple[np.ndarray, float]] = []

@@ -2,8 +2,9 @@
 
 Teacher-forced validation loss says little about closed-loop behaviour (covariate shift, paper §IV-C), so every
 ``every_n_val`` validation runs the callback runs TTO-MPC with the current weights on a fixed, seeded set of held-out
-problems (REL solved once and cached), on the nominal or the perturbed plant (``plant``, seeded per problem), and
-logs ``ttompc.mpc.metrics.closed_loop_metrics`` through ``pl_module.log`` (any logger): ``<prefix>/feasible_rate``,
+problems (REL solved once and cached) under the MPC settings of a protocol (``settings``, e.g. the recipe's
+``callbacks.eval_mpc.protocol``), on the nominal or the perturbed plant (``plant``, seeded per problem), and logs
+``ttompc.evaluation.episodes.closed_loop_metrics`` through ``pl_module.log`` (any logger): ``<prefix>/feasible_rate``,
 ``<prefix>/infeasible`` (count), ``<prefix>/cost_increment`` (mean (J − J_REL)/J_REL over feasible runs) and its
 ``_se``, ``<prefix>/cost``, ``<prefix>/target_change``, step times and fallbacks, plus a trajectory figure (PNG
 under ``<root>/plots/``, and an image on wandb or TensorBoard). Runs on global rank 0 only. Counting validation
@@ -17,8 +18,8 @@ from typing import Any
 import lightning as L
 
 from ttompc.evaluation.problems import EvalProblem, eval_problem
-from ttompc.mpc.loop import Mode
 from ttompc.mpc.plant import PlantNoise
+from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.parallel import single_torch_thread
 
 
@@ -32,9 +33,8 @@ class ClosedLoopEvalCallback(L.Callback):
         max_steps: int | None = None,
         every_n_val: int = 1,
         seed: int = 0,
-        mode: Mode = "soft",
+        settings: MPCSettings | None = None,
         plot: bool = True,
-        backend: str = "auto",
         prefix: str = "mpc",
         plant: str = "nominal",
     ) -> None:
@@ -44,8 +44,9 @@ class ClosedLoopEvalCallback(L.Callback):
             raise ValueError(f"eval_mpc: plant must be 'nominal' or 'perturbed', got {plant!r}")
         self.plant = PlantNoise.perturbed() if plant == "perturbed" else None
         self.scenario_name, self.n_problems, self.horizon = scenario, problems, horizon
-        self.max_steps, self.every_n_val, self.seed, self.mode = max_steps, every_n_val, seed, mode
-        self.plot, self.backend, self.prefix = plot, backend, prefix
+        self.max_steps, self.every_n_val, self.seed = max_steps, every_n_val, seed
+        self.settings = settings or MPCSettings()
+        self.plot, self.prefix = plot, prefix
         self._problems: list[EvalProblem] | None = None
         self._runs = 0
         self.last_metrics: dict[str, float] = {}
@@ -60,6 +61,7 @@ class ClosedLoopEvalCallback(L.Callback):
             max_steps=cfg.max_steps,
             every_n_val=cfg.every_n_val,
             seed=cfg.seed,
+            settings=protocol_settings(cfg.protocol),
             plant=cfg.plant,
         )
 
@@ -70,14 +72,14 @@ class ClosedLoopEvalCallback(L.Callback):
 
             sc = get_scenario(scenario_name)
             self._problems = [
-                eval_problem(sc, self.seed, i, nonconvex_only=True, backend=self.backend)
+                eval_problem(sc, self.seed, i, nonconvex_only=True, backend=self.settings.backend)
                 for i in range(self.n_problems)
             ]
         return self._problems
 
     def evaluate(self, pl_module: L.LightningModule) -> tuple[dict[str, float], list[Any], list[EvalProblem]]:
         """Closed-loop metrics of the module's current weights (model mode restored afterwards)."""
-        from ttompc.mpc.metrics import closed_loop_metrics
+        from ttompc.evaluation.episodes import closed_loop_metrics
         from ttompc.policy import Planner
         from ttompc.scenarios import get_scenario
         from ttompc.training.module import TrajectoryTransformerModule
@@ -95,9 +97,8 @@ class ClosedLoopEvalCallback(L.Callback):
                     planner,
                     problems,
                     self.horizon,
-                    mode=self.mode,
+                    settings=self.settings,
                     max_steps=self.max_steps,
-                    backend=self.backend,
                     plant=self.plant,
                 )
         finally:

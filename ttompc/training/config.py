@@ -100,6 +100,12 @@ class EvalMPCConfig:
     max_steps: int | None = None  # MPC steps per episode (None: whole episodes)
     seed: int = 0  # root seed of the held-out evaluation problems
     plant: str = "nominal"  # nominal | perturbed (seeded actuation error + process noise, ttompc.mpc.plant)
+    protocol: str = "paper"  # MPC settings: a preset (paper, zoo; ttompc/mpc/presets) or a YAML file of them
+
+    def __post_init__(self) -> None:
+        from ttompc.mpc.settings import protocol_settings
+
+        protocol_settings(self.protocol)  # a protocol that does not load fails with the recipe, not mid-training
 
 
 @dataclass

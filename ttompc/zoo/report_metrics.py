@@ -15,7 +15,7 @@ from ttompc.zoo.cards import is_metric_value
 # config keys that are part of the protocol's command line (others are defaults or output locations)
 _WS_KEYS = ("problems", "seed", "nonconvex_only", "rtg_scale", "oracle_detours")
 _MPC_KEYS = (
-    "problems", "seed", "horizons", "plants", "robust_blend", "rtg_scale", "rtg_mode", "track", "end_horizon", "mode",
+    "problems", "seed", "horizons", "plants", "robust_blend", "rtg_scale", "protocol",
 )  # fmt: skip
 
 
@@ -31,6 +31,8 @@ def command_line(kind: str, config: dict[str, Any]) -> str:
             if isinstance(value, list):
                 value = "[" + ",".join(str(v) for v in value) + "]"
             parts.append(f"{key}={value}")
+    if kind == "mpc":  # the protocol's overridden settings
+        parts += [f"mpc.{key}={value}" for key, value in (config.get("mpc") or {}).items()]
     return " ".join(parts)
 
 

@@ -1,37 +1,22 @@
-"""Solver backends for the conic assembly of the subproblem (``subproblem.py``).
-
-What ``backend="auto"`` runs (``engine.backend_chain``): PIQP on the compact QP form (``qp.py``, optional extra
-``ttompc[fast]``) wherever the subproblem has no cone; otherwise QOCO (optional extra) with Clarabel as the fallback
-on a numerical failure, or Clarabel alone where QOCO is not installed or the scenario asks for it (RPOD).
+"""Conic solvers on the conic assembly of the subproblem (``ttompc.solvers.subproblem``), and
+``AssembledSolver``, which runs them in order (a later one takes the subproblems an earlier one fails on).
 
 * ``qoco``: interior-point conic solver, the fastest measured here on our SOCPs; set up afresh per solve (below).
 * ``clarabel``: interior-point conic solver shipped with cvxpy; handles the SOC trust region, the 2-norm costs
   (RPOD) and the approach cone. Data updates keep the KKT symbolic factorisation.
-* ``osqp``: ADMM QP solver for subproblems without cones, on the conic assembly; warm-started from the previous
-  primal/dual iterate, which matters when many bounds are active (``docs/design.md``). Slow here; kept as a
-  comparison in ``bench/solver_speed.py``.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
-from ttompc.solvers.subproblem import AssembledSubproblem
-
-
-@dataclass
-class BackendSolution:
-    z: np.ndarray | None
-    objective: float
-    ok: bool  # a usable (optimal or almost optimal) primal solution
-    infeasible: bool  # the solver certified primal infeasibility
-    status: str
-    solve_time: float
+from ttompc.solvers.backends.base import BackendSolution
+from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
 
 
 class ClarabelBackend:
@@ -78,57 +63,6 @@ class ClarabelBackend:
         ok = status in ("Solved", "AlmostSolved")
         infeasible = "PrimalInfeasible" in status
         return BackendSolution(np.asarray(sol.x) if ok else None, float(sol.obj_val), ok, infeasible, status, elapsed)
-
-
-class OSQPBackend:
-    """OSQP on l ≤ Az ≤ u; the zero cone gives l = u = b, the nonnegative cone l = −∞, u = b."""
-
-    name = "osqp"
-    supports_cones = False
-
-    def __init__(self, sub: AssembledSubproblem, eps: float = 1e-4, max_iter: int = 20000) -> None:
-        import osqp
-
-        _reject_cones(sub, self.name)
-        self._osqp = osqp
-        self.sub = sub
-        self.n_zero = dict(sub.cones)["zero"]
-        self.eps, self.max_iter = eps, max_iter
-        self.solver: Any = None  # osqp.OSQP, set up on the first solve
-
-    def restart(self) -> None:
-        """Set up afresh on the next solve instead of warm-starting from the previous problem's iterate."""
-        self.solver = None
-
-    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
-        t0 = time.perf_counter()
-        lower = np.full_like(b, -np.inf)
-        lower[: self.n_zero] = b[: self.n_zero]
-        if self.solver is None:
-            self.solver = self._osqp.OSQP()
-            self.solver.setup(
-                P=sp.triu(self.sub.P, format="csc"),
-                q=self.sub.q,
-                A=self.sub.matrix(a_values),
-                l=lower,
-                u=b,
-                eps_abs=self.eps,
-                eps_rel=self.eps,
-                max_iter=self.max_iter,
-                polishing=True,
-                verbose=False,
-                warm_starting=True,
-            )
-        else:  # keeps the previous primal/dual iterate as the warm start
-            self.solver.update(Ax=a_values, l=lower, u=b)
-        res = self.solver.solve()
-        elapsed = time.perf_counter() - t0
-        status = str(res.info.status)
-        ok = status in ("solved", "solved inaccurate")
-        infeasible = "primal infeasible" in status
-        return BackendSolution(
-            np.asarray(res.x) if ok else None, float(res.info.obj_val), ok, infeasible, status, elapsed
-        )
 
 
 class QOCOBackend:
@@ -185,27 +119,41 @@ class QOCOBackend:
         )
 
 
-BACKENDS = {"clarabel": ClarabelBackend, "osqp": OSQPBackend, "qoco": QOCOBackend}
-QP_BACKENDS = ("riccati", "piqp", "osqp")  # solve QPs only: the trust region defaults to the ∞-norm for them
-# every name ``backend=`` takes: the chains (``engine.backend_chain``), the solvers, and the naive cvxpy baseline
-BACKEND_NAMES = ("auto", "conic", "riccati", "piqp", *BACKENDS, "cvxpy-naive")
+BACKENDS: dict[str, type[ClarabelBackend | QOCOBackend]] = {"clarabel": ClarabelBackend, "qoco": QOCOBackend}
 
 
-def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | OSQPBackend | QOCOBackend:
+def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | QOCOBackend:
     try:
         cls = BACKENDS[name]
     except KeyError:
+        from ttompc.solvers.backends.chain import BACKEND_NAMES
+
         raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}") from None
     return cls(sub)
 
 
-def _reject_cones(sub: AssembledSubproblem, name: str) -> None:
-    if any(kind == "soc" for kind, _ in sub.cones):
-        raise ValueError(cone_error(name))
+class AssembledSolver:
+    """Assembled structure + persistent backends: only values change between calls. With several backends the
+    later ones are fallbacks for a numerical failure of the first (``auto``: QOCO, then Clarabel)."""
 
+    def __init__(self, spec: SubproblemSpec, backends: Sequence[str]) -> None:
+        self.sub = AssembledSubproblem(spec)
+        self.backends = [make_backend(name, self.sub) for name in backends]
 
-def cone_error(name: str) -> str:
-    return (
-        f"backend {name!r} solves QPs only, but this subproblem has second-order cones (2-norm cost, 2-norm trust "
-        "region, approach cone or a soft terminal norm); use backend='auto', 'qoco' or 'clarabel', or trust_norm='linf'"
-    )
+    def restart(self) -> None:
+        for backend in self.backends:
+            backend.restart()
+
+    def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
+        a_values, b = self.sub.update(data)
+        spent = 0.0
+        for backend in self.backends:
+            sol = backend.solve(a_values, b)
+            spent += sol.solve_time
+            if sol.ok:
+                break
+        sol.solve_time = spent
+        if sol.z is None:
+            return None, None, sol
+        X, U = self.sub.split(sol.z)
+        return X, U, sol

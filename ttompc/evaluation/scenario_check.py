@@ -39,6 +39,7 @@ from ttompc.scenarios.base import (
     Window,
 )
 from ttompc.seeding import problem_seed
+from ttompc.solvers.scp import solve_problem
 
 CHECKS = (
     "interface",
@@ -94,8 +95,7 @@ class _Context:
 
     def __init__(self, sc: Scenario, problems: int, seed: int, backend: str) -> None:
         self.sc, self.n_problems, self.seed, self.backend = sc, problems, seed, backend
-        self.sx = np.asarray(sc.state_scale or np.ones(sc.state_dim), dtype=np.float64)
-        self.su = np.asarray(sc.control_scale or np.ones(sc.control_dim), dtype=np.float64)
+        self.sx, self.su = sc.state_units(), sc.control_units()
         self.rng = np.random.default_rng(seed)
         self._problems: list[tuple[int, Problem]] | None = None
 
@@ -156,15 +156,14 @@ def _interface(ctx: _Context) -> str:
             _fail(f"{attr} must be a positive int, got {size!r}")
     if getattr(sc, "cost_norm", None) not in get_args(CostNorm):
         _fail(f"cost_norm must be one of {get_args(CostNorm)}, got {getattr(sc, 'cost_norm', None)!r}")
+    if getattr(sc, "trust_norm", None) not in ("l2", "linf"):
+        _fail(f"trust_norm must be 'l2' or 'linf', got {getattr(sc, 'trust_norm', None)!r}")
     scp = getattr(sc, "scp", None)
     if not isinstance(scp, SCPSettings):
         _fail("scp must be an SCPSettings (trust region, iterations, penalty, feasibility tolerance)")
-    ok = scp.max_iters >= 1 and scp.penalty > 0 and scp.feas_tol > 0 and scp.stall_iters >= 0
+    ok = scp.max_iters >= 1 and scp.penalty > 0 and scp.feas_tol > 0
     if not (0 < scp.tr_end <= scp.tr_start and ok):
-        _fail(
-            "scp needs 0 < tr_end <= tr_start, max_iters >= 1, penalty > 0, feas_tol > 0 and stall_iters >= 0, "
-            f"got {scp}"
-        )
+        _fail(f"scp needs 0 < tr_end <= tr_start, max_iters >= 1, penalty > 0 and feas_tol > 0, got {scp}")
     mpc = getattr(sc, "mpc", None)
     if not isinstance(mpc, MPCWeights):
         _fail("mpc must be an MPCWeights (fuel, end, terminal, dist)")
@@ -408,8 +407,6 @@ def _violations(ctx: _Context) -> str:
 
 
 def _solve(ctx: _Context) -> str:
-    from ttompc.solvers.scp import solve_problem
-
     sc = ctx.sc
     tol = sc.scp.feas_tol
     iters, times = [], []

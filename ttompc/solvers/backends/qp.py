@@ -24,36 +24,17 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
 from ttompc.scenarios.base import BlockKind
-from ttompc.solvers.backends import BackendSolution, cone_error
+from ttompc.solvers.backends.base import BackendSolution, Fallback, SubproblemSolver, cone_error, is_qp
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec, structural_mask
 
 # a sparse-pattern entry: (rows, cols, source index into the flat data vector, coefficient[, keep mask])
 _Entry = tuple[np.ndarray | float, ...]
-
-
-class SubproblemSolver(Protocol):
-    def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]: ...
-
-    def restart(self) -> None:
-        """Make the next ``solve`` independent of the data solved before (see ``engine.run_scp``)."""
-
-
-def is_qp(spec: SubproblemSpec) -> bool:
-    """Whether ``spec`` has no second-order cone: a QP backend can solve it."""
-    soft_eq = spec.soft_equalities and any(BlockKind(sig[1]) is BlockKind.EQ for sig in spec.blocks)
-    return (
-        spec.cost_norm in ("l1", "quad")
-        and spec.trust in ("linf", "none")
-        and spec.terminal == "hard"
-        and not soft_eq
-        and not any(BlockKind(sig[1]) is BlockKind.SOC for sig in spec.blocks)
-    )
 
 
 @dataclass
@@ -85,8 +66,7 @@ class QPSubproblem:
         self.spec = spec
         H, n, m = spec.H, spec.n, spec.m
         self._layout(spec)
-        sx = np.asarray(spec.state_scale or np.ones(n), dtype=np.float64)
-        su = np.asarray(spec.control_scale or np.ones(m), dtype=np.float64)
+        sx, su = spec.units()
         self._scale: list[np.ndarray] = []
         self._lo: list[np.ndarray] = []  # constant lower bounds per variable group
         self._cost: list[np.ndarray] = []
@@ -374,32 +354,6 @@ def _vector(base: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray, np.ndarr
     vec.coef = [np.broadcast_to(np.asarray(p[2], dtype=float), np.shape(p[0])) for p in parts]
     vec.freeze()
     return vec
-
-
-class Fallback:
-    """The solver, built on first need, that takes the subproblems the primary backend could not solve."""
-
-    def __init__(self, make: Callable[[], SubproblemSolver] | None) -> None:
-        self._make = make
-        self._solver: SubproblemSolver | None = None
-
-    def restart(self) -> None:
-        if self._solver is not None:
-            self._solver.restart()
-
-    def take(
-        self, data: SubproblemData, failed: BackendSolution
-    ) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
-        """The fallback's solution of ``data`` (status and time include the failed attempt); without a fallback,
-        the failure itself."""
-        if self._make is None:
-            return None, None, failed
-        if self._solver is None:
-            self._solver = self._make()
-        X, U, sol = self._solver.solve(data)
-        sol.solve_time += failed.solve_time
-        sol.status = f"{failed.status} -> {sol.status}"
-        return X, U, sol
 
 
 class PIQPSolver:

@@ -26,8 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ttompc.scenarios.base import BlockKind
-from ttompc.solvers.backends import BackendSolution
-from ttompc.solvers.qp import Fallback, SubproblemSolver, is_qp
+from ttompc.solvers.backends.base import BackendSolution, Fallback, SubproblemSolver, is_qp
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec, structural_mask
 
 TOL = 1e-8  # residuals of the scaled problem (PIQP's eps_abs)
@@ -65,8 +64,7 @@ class StageQP:
                              "'penalized'); use backend='piqp' or 'auto'")  # fmt: skip
         self.spec = spec
         H, n, m = spec.H, spec.n, spec.m
-        self.sx = np.asarray(spec.state_scale or np.ones(n), dtype=np.float64)
-        self.su = np.asarray(spec.control_scale or np.ones(m), dtype=np.float64)
+        self.sx, self.su = spec.units()
         self.vr = spec.virtual_rows() if spec.virtual_control else np.zeros(0, np.int64)
         self.nu = m + len(self.vr)
         ny = n + self.nu
@@ -218,7 +216,9 @@ class RiccatiSolver:
         y = np.zeros((spec.H + 1, spec.n + st.nu))
         y[:, : spec.n] = data.X_ref / st.sx
         pi = np.zeros((spec.H, spec.n))
-        from ttompc.solvers.riccati_kernel import solve  # numba: imported when the backend is used, not with the engine
+        from ttompc.solvers.backends.riccati_kernel import (
+            solve,
+        )  # numba: imported when the backend is used, not with the engine
 
         code, iters, res, gap = solve(*arrays, y, pi, TOL, GAP_TOL, MAX_ITER, spec.n, st.nu)
         name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[code]

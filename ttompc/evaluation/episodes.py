@@ -1,0 +1,104 @@
+"""Closed-loop metrics of MPC episodes (used by ``ttompc evaluate mpc``, the training callback and DAgger).
+
+Costs are only averaged over episodes that are *feasible* (no keep-out violation, path constraints met, goal
+reached within ``terminal_tol``): an infeasible or goal-missing run has no meaningful cost, so it is counted apart
+(``infeasible``) and never averaged into one. Every mean comes with its standard error and a seeded percentile
+bootstrap interval (``ttompc.evaluation.stats.interval``), so two models can be told apart from noise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ttompc.evaluation.problems import EvalProblem
+from ttompc.evaluation.stats import interval
+from ttompc.mpc.loop import Episode, run_mpc_batch
+from ttompc.mpc.plant import PlantNoise
+from ttompc.mpc.providers import TerminalDesign
+from ttompc.mpc.settings import MPCSettings
+from ttompc.mpc.tto import RolloutGroup, TTOProvider
+
+if TYPE_CHECKING:
+    from ttompc.policy import Planner
+
+
+def episode_record(e: Episode) -> dict[str, Any]:
+    """An episode's summary plus the relative cost increment (J − J_REL)/J_REL (nan when infeasible)."""
+    r = e.summary()
+    r["rel_increment"] = float((e.cost - e.rel_cost) / abs(e.rel_cost)) if e.feasible else float("nan")
+    return r
+
+
+def summarize_episodes(records: Sequence[dict[str, Any]], *, seed: int = 0) -> dict[str, Any]:
+    """Counts (runs, feasible, infeasible), intervals of the relative cost increment and applied cost over the
+    feasible runs, plan consistency, step times, fallbacks and the goal miss of the infeasible runs of a group of
+    episode records."""
+    feasible = [r for r in records if r["feasible"]]
+    return {
+        "runs": len(records),
+        "feasible": len(feasible),
+        "infeasible": len(records) - len(feasible),
+        "rel_increment": interval([r["rel_increment"] for r in feasible], seed=seed),
+        "cost": interval([r["cost"] for r in feasible], seed=seed),
+        "target_change": interval([r["target_change"] for r in records], seed=seed),
+        "mean_step_time": float(np.mean([r["mean_step_time"] for r in records])) if records else float("nan"),
+        "max_step_time": float(np.max([r["max_step_time"] for r in records])) if records else float("nan"),
+        "fallbacks": int(sum(r["fallbacks"] for r in records)),
+        "infeasible_terminal_error": interval(
+            [r["terminal_error"] for r in records if not r["feasible"]], seed=seed
+        ),  # how far the infeasible runs ended from the goal
+    }
+
+
+def closed_loop_metrics(
+    planner: Planner,
+    problems: Sequence[EvalProblem],
+    horizon: int,
+    *,
+    settings: MPCSettings | None = None,
+    name: str = "TTO-MPC",
+    max_steps: int | None = None,
+    plant: PlantNoise | None = None,
+    rtg_scale: float | None = None,
+    progress: str = "",
+) -> tuple[dict[str, float], list[Episode]]:
+    """TTO-MPC with ``planner`` and ``settings`` (default: the paper's) on fixed problems (optionally on the
+    perturbed ``plant``, seeded per problem), all episodes in lockstep with one batched rollout per step
+    (``RolloutGroup``): flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count), ``cost_increment`` and
+    its ``_se`` (mean (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible runs),
+    ``target_change``, step times (each episode's share of the batched rollout plus its own solves) and
+    ``fallbacks``. ``progress``: the label of a progress bar over the episodes on stderr ("": none)."""
+    from ttompc.progress import Bar
+
+    sc = planner.scenario
+    s = settings or MPCSettings()
+    group = RolloutGroup(planner)
+    design = TerminalDesign(weights=None if s.track is None else (s.track,))
+    provs = [
+        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design, rtg_mode=s.rtg_mode, group=group,
+                    backend=s.backend)
+        for _ in problems
+    ]  # fmt: skip
+    steps = min(max_steps or sc.n_steps, sc.n_steps)
+    with Bar(len(problems), progress, "episode", show=bool(progress)) as bar:
+        episodes = run_mpc_batch(sc, [ep.problem for ep in problems], provs, horizon,
+                                 rel_costs=[ep.rel_cost for ep in problems], settings=s, max_steps=max_steps,
+                                 plant=plant, plant_seeds=[ep.seed for ep in problems],
+                                 on_step=lambda: bar.update(len(provs) / steps))  # fmt: skip
+    summary = summarize_episodes([episode_record(e) for e in episodes])
+    times = np.concatenate([e.step_times for e in episodes])
+    metrics = {
+        "feasible_rate": summary["feasible"] / max(summary["runs"], 1),
+        "infeasible": float(summary["infeasible"]),
+        "cost_increment": summary["rel_increment"]["mean"],
+        "cost_increment_se": summary["rel_increment"]["se"],
+        "cost": summary["cost"]["mean"],
+        "target_change": summary["target_change"]["mean"],
+        "step_time_mean": float(np.mean(times)),
+        "step_time_max": float(np.max(times)),
+        "fallbacks": float(summary["fallbacks"]),
+    }
+    return metrics, episodes

@@ -1,0 +1,76 @@
+"""``MPCSettings``: how the receding-horizon loop runs, and the named presets (protocols) that fix them.
+
+One settings object serves every closed-loop consumer: the MPC loop (``ttompc.mpc.loop``), ``ttompc evaluate mpc``,
+the closed-loop training callback and DAgger (its measurement, and mode/backend/reuse of its rollouts). A protocol
+is a YAML file of ``MPCSettings`` keys: a shipped preset by name (``ttompc/mpc/presets/<name>.yaml``: ``paper``,
+``zoo``) or a path to a file of your own. Keys a file leaves out keep the ``MPCSettings`` defaults, which are the
+``paper`` preset's. Commands take ``protocol=NAME`` plus single-key overrides (``mpc.end_horizon=20``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+Mode = Literal["soft", "hard"]
+RTGMode = Literal["running", "reanchor"]
+RTG_MODES: tuple[str, ...] = ("running", "reanchor")
+PRESETS = Path(__file__).with_name("presets")
+# plan reuse: the measured state is the own plan's prediction within this many state_scale units (∞-norm). On an
+# exact plant the two differ by the subproblem solver's residual of the dynamics rows (about 1e-9 here).
+REUSE_TOL = 1e-6
+
+
+@dataclass
+class MPCSettings:
+    """The settings of a closed-loop run (``ttompc.mpc.loop`` documents each behaviour).
+
+    ``mode``: soft (all paper analyses) or hard end condition. ``end_horizon``: windows run to N once
+    N − t <= end_horizon (0: the paper's fixed H, windows truncated at N). ``track``: terminal weight of the
+    plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``rtg_mode``:
+    the reward-to-go TTO-MPC feeds in closed loop (``TTOProvider``). ``reuse``: plan reuse in windows that reach
+    the end (same results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step.
+    ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``)."""
+
+    mode: Mode = "soft"
+    end_horizon: int = 0
+    track: float | None = None
+    rtg_mode: RTGMode = "running"
+    reuse: bool = True
+    rti: bool = False
+    backend: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("soft", "hard"):
+            raise ValueError(f"mode must be 'soft' or 'hard', got {self.mode!r}")
+        if self.end_horizon < 0:
+            raise ValueError(f"end_horizon must be >= 0, got {self.end_horizon}")
+        if self.track is not None and not self.track > 0:
+            raise ValueError(f"track must be > 0 or null, got {self.track}")
+        if self.rtg_mode not in RTG_MODES:
+            raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
+
+    @property
+    def reuse_tol(self) -> float | None:
+        """The plan-reuse tolerance of the loop (None: re-solve every step)."""
+        return REUSE_TOL if self.reuse else None
+
+
+def preset_names() -> list[str]:
+    """The shipped presets, by name."""
+    return sorted(p.stem for p in PRESETS.glob("*.yaml"))
+
+
+def protocol_settings(protocol: str, overrides: Mapping[str, Any] | None = None) -> MPCSettings:
+    """The settings of ``protocol`` (a preset name or a YAML file) with ``overrides`` (key -> value) on top; raises
+    ``ttompc.config.ConfigError`` naming the protocol or key that does not fit."""
+    from ttompc.config import ConfigError, load_command_config
+
+    path = PRESETS / f"{protocol}.yaml" if protocol in preset_names() else Path(protocol)
+    if not path.is_file():
+        raise ConfigError(f"unknown protocol {protocol!r}", f"use one of {preset_names()} or a YAML file of settings")
+    dotlist = [f"{key}={json.dumps(value)}" for key, value in (overrides or {}).items()]  # JSON values are YAML
+    return load_command_config(MPCSettings, path, dotlist)

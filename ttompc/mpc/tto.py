@@ -1,0 +1,211 @@
+"""TTO-MPC's provider (paper §IV-C, Eq. (8)) and the batching of its rollouts.
+
+``TTOProvider`` (TTO-MPC / FT-TTO-MPC): an H-step transformer rollout from the running ``RolloutContext``
+(conditioned on rtg_0 = −κ·J_REL, ctg_0 = 0); the context is advanced with every executed action and measured
+state, so its KV cache is extended, never recomputed. x̄ = the predicted state at t+H, through a
+``TerminalDesign`` (``ttompc.mpc.providers``). The TTO providers of B episodes run in lockstep (``run_mpc_batch``)
+share one batched context (``RolloutGroup``). ``rtg_mode`` chooses the reward-to-go fed at each step
+(``RTG_MODES``).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ttompc.mpc.providers import RemainingREL, TargetFilter, TerminalDesign, WarmStart
+from ttompc.mpc.settings import RTG_MODES, RTGMode
+from ttompc.scenarios.base import Problem, Scenario, Window
+
+if TYPE_CHECKING:
+    from ttompc.policy import Planner, RolloutContext
+
+RTG_SIGMAS = 3.0  # the training range's lower end: mean − 3 std of the model's rtg statistics
+RTG_FLOOR = 0.05  # ... and its upper end: −RTG_FLOOR·|rtg_0|, a budget of at least that fraction of rtg_0 left
+
+
+class TTOProvider:
+    """TTO-MPC: H-step rollout from a persistent rollout context (one per episode, KV cache reused; or one batched
+    context shared by the providers of a ``group``), conditioned on rtg_0 = −``rtg_scale``·J_REL (None: the model's
+    own, ``Planner.rtg_scale``; the paper: 1) and ctg_0 = 0; the target goes through ``design``.
+
+    ``rtg_mode``, the reward-to-go fed at step t (training rows hold rtg_t = −Σ_(τ≥t) c(u_τ), never above 0):
+
+    * ``running`` (the paper, the default): rtg_t = rtg_0 + the cost executed so far. Closed loop the executed cost
+      soon exceeds J_REL and rtg_t turns positive, where no training row lives.
+    * ``reanchor``: rtg_t = −κ·J_REL(t), the REL cost of the remaining horizon [t, N) from the measured state (one
+      ``RemainingREL`` per step, as REL-MPC solves; its time counts in the warm start), clipped to
+      [μ − 3σ, −``RTG_FLOOR``·|rtg_0|] (μ, σ: the model's rtg statistics); the running value, clipped, where that
+      REL fails.
+
+    Inside a window the rollout still adds the model's own planned costs to the fed value (the rollout's rule).
+    ``use_cache`` configures the provider's own group; a given ``group`` has its own."""
+
+    def __init__(
+        self,
+        planner: Planner,
+        name: str = "TTO-MPC",
+        *,
+        use_cache: bool = True,
+        rtg_scale: float | None = None,
+        design: TerminalDesign | None = None,
+        rtg_mode: RTGMode = "running",
+        group: RolloutGroup | None = None,
+        backend: str = "auto",
+    ) -> None:
+        if rtg_mode not in RTG_MODES:
+            raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {rtg_mode!r}")
+        self.planner, self.name = planner, name
+        self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
+        self.rtg_mode = rtg_mode
+        self.target = TargetFilter(design)
+        self.group = group or RolloutGroup(planner, use_cache=use_cache)
+        if self.group.planner is not planner:
+            raise ValueError("the providers of a RolloutGroup must share its planner")
+        self.slot = self.group.add(self)
+        self.rel = RemainingREL(backend)
+
+    @property
+    def context(self) -> RolloutContext | None:
+        """The rollout context of this provider's group (row ``slot`` is this episode)."""
+        return self.group.context
+
+    def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
+        if scenario.name != self.planner.scenario.name:
+            raise ValueError(f"model was trained on {self.planner.scenario.name!r}, not {scenario.name!r}")
+        self.scenario, self.problem = scenario, problem
+        self.target.reset()
+        self.rel.reset()
+        self.rtg0 = -self.rtg_scale * rel_cost
+        self.spent = 0.0  # Σ c(u) of the executed controls
+        self.x = problem.x0
+        self.group.join(self.slot)
+
+    def rtg_range(self) -> tuple[float, float]:
+        """[μ − 3σ of the model's rtg statistics, −RTG_FLOOR·|rtg_0|]: where training rows' rtg lie."""
+        stats = self.planner.stats
+        lo = float(stats.mean["rtg"][0] - RTG_SIGMAS * stats.std["rtg"][0])
+        hi = -RTG_FLOOR * abs(self.rtg0)
+        return min(lo, hi), hi
+
+    def conditioning(self, t: int) -> float | None:
+        """The rtg to feed at step t (None: the context's running value, ``running``)."""
+        if self.rtg_mode == "running":
+            return None
+        value = self.rtg0 + self.spent  # at t = 0 also reanchor's: rtg_0 = −κ·J_REL(0)
+        if t > 0:
+            rel = self.rel(self.scenario, self.problem, t, self.x)
+            if rel.success:
+                value = -self.rtg_scale * rel.cost
+        return float(np.clip(value, *self.rtg_range()))
+
+    def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
+        t0 = time.perf_counter()
+        S, U, share, shared = self.group.rollout(self.slot, window)
+        X = self.scenario.from_model_states(self.problem, S, start=window.start)
+        X[0] = x  # the measured state, exactly (the context holds it in the model dtype)
+        ws = WarmStart(X, U, self.target(self.scenario, window, X))
+        ws.seconds = time.perf_counter() - t0 - shared + share
+        return ws
+
+    def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
+        self.spent += self.scenario.cost(np.asarray(u)[None])
+        self.x = np.asarray(x_next)
+        k = self.group.t + 1
+        s_next = self.scenario.to_model_states(self.problem, self.x[None], start=k)[0]
+        self.group.advance(self.slot, u, s_next)
+
+
+class RolloutGroup:
+    """One ``RolloutContext`` for the TTO providers of B episodes run in lockstep (``run_mpc_batch``): the B windows
+    of a step come from one batched rollout (a batch-1 rollout is a chain of tiny matmuls, so B episodes cost about
+    as much as one), and the context advances once every episode has executed its control. Each episode is charged
+    its share of the rollout (``WarmStart.seconds``). A ``TTOProvider`` made without a group has one of its own.
+
+    Lifecycle: providers join at construction (``add``: their slot is their row), the context is built when all of
+    them have been ``reset`` for an episode, and every member plans and observes once per step."""
+
+    def __init__(self, planner: Planner, *, use_cache: bool = True) -> None:
+        self.planner, self.use_cache = planner, use_cache
+        self.members: list[TTOProvider] = []
+        self.context: RolloutContext | None = None
+        self._joined: set[int] = set()
+        self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._plan: tuple[tuple[int, int], np.ndarray, np.ndarray, list[float], float] | None = None
+
+    @property
+    def t(self) -> int:
+        if self.context is None:
+            raise RuntimeError("the rollout group's episodes have not all been reset")
+        return self.context.t
+
+    def add(self, member: TTOProvider) -> int:
+        if self.context is not None or self._joined:
+            raise RuntimeError("providers join a RolloutGroup before its first episode")
+        self.members.append(member)
+        return len(self.members) - 1
+
+    def join(self, slot: int) -> None:
+        """``slot``'s episode is reset; the context starts once every member's is."""
+        self._joined.add(slot)
+        if len(self._joined) < len(self.members):
+            self.context = None
+            return
+        self._joined.clear()
+        self._pending.clear()
+        self._plan = None
+        rtg0 = [m.rtg0 for m in self.members]
+        self.context = self.planner.context(
+            [m.problem for m in self.members], rtg0=rtg0, ctg0=0.0, use_cache=self.use_cache
+        )
+
+    def rollout(self, slot: int, window: Window) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """Row ``slot`` of this step's batched rollout (run by the first member to ask): its states (H+1, n) and
+        actions (H, m) in the model representation, the member's share of the time (its own conditioning plus
+        1/B of the rollout) and the time this call spent on the shared work (0 for all but the first caller)."""
+        ctx = self.context
+        if ctx is None or ctx.t != window.start:
+            raise RuntimeError(f"rollout context is at step {getattr(ctx, 't', None)}, not {window.start}")
+        key = (window.start, window.length)
+        shared = 0.0
+        if self._plan is None or self._plan[0] != key:
+            t0 = time.perf_counter()
+            own = []
+            for m in self.members:
+                t1 = time.perf_counter()
+                value = m.conditioning(window.start)
+                if value is not None:
+                    ctx.rtg[m.slot, -1] = value
+                own.append(time.perf_counter() - t1)
+            t1 = time.perf_counter()
+            res = ctx.rollout(window.length)
+            self._sync()
+            S, A = res.states.double().cpu().numpy(), res.actions.double().cpu().numpy()
+            rollout_time = time.perf_counter() - t1
+            shared = time.perf_counter() - t0
+            self._plan = (key, S, A, own, rollout_time / len(self.members))
+        _, S, A, own, share = self._plan
+        return S[slot], A[slot], own[slot] + share, shared
+
+    def advance(self, slot: int, u: np.ndarray, s_next: np.ndarray) -> None:
+        """Member ``slot`` executed ``u`` and measured ``s_next`` (model representation); the context advances
+        when all members have."""
+        if self.context is None:
+            raise RuntimeError("the rollout group's episodes have not all been reset")
+        self._pending[slot] = (np.asarray(u), np.asarray(s_next))
+        if len(self._pending) < len(self.members):
+            return
+        order = range(len(self.members))
+        self.context.advance(np.stack([self._pending[b][0] for b in order]),
+                             np.stack([self._pending[b][1] for b in order]))  # fmt: skip
+        self._pending.clear()
+        self._plan = None
+        self._sync()
+
+    def _sync(self) -> None:
+        if self.planner.device.type == "cuda":
+            import torch
+
+            torch.cuda.synchronize()

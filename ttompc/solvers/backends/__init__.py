@@ -1,0 +1,35 @@
+"""The subproblem solvers of the SCP engine, in one place.
+
+* ``base``: the solver protocol (``SubproblemSolver``), its solution (``BackendSolution``) and ``Fallback``;
+* ``conic``: QOCO and Clarabel on the conic assembly (``ttompc.solvers.subproblem``), ``AssembledSolver``;
+* ``qp``: PIQP on the compact QP of subproblems without cones;
+* ``riccati`` / ``riccati_kernel``: the stage-wise interior point for penalised QP subproblems (numba);
+* ``chain``: what a ``backend=`` name runs (``backend_chain``), the trust-region norm it implies and the cache of
+  built solver structures (``get_solver``).
+
+What ``backend="auto"`` runs: the scenario's ``auto_backends`` (default PIQP on the compact QP wherever the
+subproblem has no cone, else QOCO with Clarabel as the fallback on a numerical failure; RPOD: Clarabel), with the
+scenario's trust-region norm (``Scenario.trust_norm``). PIQP and QOCO are dependencies: the default does not depend
+on installed extras (numba, for ``riccati``, is the ``fast`` extra).
+"""
+
+from ttompc.solvers.backends.base import BackendSolution, SubproblemSolver
+from ttompc.solvers.backends.chain import (
+    BACKEND_NAMES,
+    backend_chain,
+    clear_solver_cache,
+    default_trust_norm,
+    get_solver,
+    solver_path,
+)
+
+__all__ = [
+    "BACKEND_NAMES",
+    "BackendSolution",
+    "SubproblemSolver",
+    "backend_chain",
+    "clear_solver_cache",
+    "default_trust_norm",
+    "get_solver",
+    "solver_path",
+]
