@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ttompc.errors import UserError
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.warmstart import default_workers
@@ -52,6 +53,7 @@ from ttompc.mpc.providers import (
     RTGMode,
     TerminalDesign,
     TTOProvider,
+    check_rtg_scale,
     full_horizon_plan,
 )
 from ttompc.parallel import pool_map
@@ -113,6 +115,8 @@ class ClosedLoopConfig:
         if bad or not self.plants:
             raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")
         TerminalDesign(self.robust_blend)  # validates the blend
+        if self.rtg_scale is not None:
+            check_rtg_scale(self.rtg_scale)
         if self.rtg_mode not in RTG_MODES:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
         if self.end_horizon < 0 or self.batch < 1 or (self.track is not None and not self.track > 0):
@@ -356,7 +360,13 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
     if cfg.scenario is None:
         raise ValueError("ClosedLoopConfig.scenario is not set (the command takes it from the model)")
     sc = get_scenario(cfg.scenario)
-    cfg.horizons = sorted({min(h, sc.n_steps) for h in cfg.horizons})
+    too_long = sorted({h for h in cfg.horizons if h > sc.n_steps})
+    if too_long:  # refused, not clipped: a clipped horizon would report under a number that was never run
+        raise UserError(
+            f"horizons {too_long} exceed the horizon of {sc.name}, N = {sc.n_steps} steps",
+            f"pass horizons of at most {sc.n_steps} (horizons=[{sc.n_steps}] plans the whole remaining episode)",
+        )
+    cfg.horizons = sorted(set(cfg.horizons))
     out = Path(cfg.out or f"outputs/evaluate/mpc-{sc.name}")
     workers = default_workers(cfg.workers)
     t0 = time.perf_counter()
