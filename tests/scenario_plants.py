@@ -52,3 +52,10 @@ class UnsolvableSampler(DoubleIntegrator2D):
         problem = super().sample(rng)
         goal = problem.goal + np.array([60.0, 0.0, 0.0, 0.0])
         return Problem(x0=problem.x0, goal=goal, dt=problem.dt, n_steps=problem.n_steps)
+
+
+class NegativePerturbation(DoubleIntegrator2D):
+    """A perturbed plant with a negative noise level (a sign slip): refused by the interface check."""
+
+    name = "di2d-negative-perturbation"
+    perturbation = (0.05, -0.02, 0.002)

@@ -480,7 +480,8 @@ def test_callback_plant_is_selectable() -> None:
     from ttompc.training.callbacks import ClosedLoopEvalCallback
     from ttompc.training.config import EvalMPCConfig
 
+    sc = get_scenario(SHORT)
     cb = ClosedLoopEvalCallback.from_config(EvalMPCConfig(plant="perturbed"), SHORT)
-    assert cb.plant == PlantNoise.perturbed() and ClosedLoopEvalCallback(SHORT).plant is None
+    assert cb.plant_noise(sc) == PlantNoise.perturbed(sc) and ClosedLoopEvalCallback(SHORT).plant_noise(sc) is None
     with pytest.raises(ValueError, match="plant"):
         ClosedLoopEvalCallback(SHORT, plant="windy")

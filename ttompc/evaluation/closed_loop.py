@@ -71,14 +71,20 @@ PLANTS = ("nominal", "perturbed")
 
 @dataclass
 class PlantConfig:
-    """The perturbed plant's disturbances, relative to the scenario's state/control scales (``PlantNoise``)."""
+    """The perturbed plant's disturbances, relative to the scenario's state/control scales (``PlantNoise``); None:
+    the scenario's own (``Scenario.perturbation``)."""
 
-    gain_std: float = 0.05
-    actuation_std: float = 0.02
-    process_std: float = 0.002
+    gain_std: float | None = None
+    actuation_std: float | None = None
+    process_std: float | None = None
 
-    def noise(self) -> PlantNoise:
-        return PlantNoise(self.gain_std, self.actuation_std, self.process_std)
+    def noise(self, scenario: Scenario) -> PlantNoise:
+        own = PlantNoise.perturbed(scenario)
+        return PlantNoise(
+            own.gain_std if self.gain_std is None else self.gain_std,
+            own.actuation_std if self.actuation_std is None else self.actuation_std,
+            own.process_std if self.process_std is None else self.process_std,
+        )
 
 
 @dataclass
@@ -173,7 +179,7 @@ def run_problems(
     trajectories = {}
     plans = [full_horizon_plan(scenario, ep.problem, cfg.backend) for ep in eps]
     for plant in cfg.plants:
-        noise = cfg.plant.noise() if plant == "perturbed" else None
+        noise = cfg.plant.noise(scenario) if plant == "perturbed" else None
         for H in cfg.horizons:
             for method in providers(plans, models, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale,
                                     rtg_mode=cfg.rtg_mode, track=cfg.track, backend=cfg.backend):  # fmt: skip
@@ -385,6 +391,7 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
     report = {
         "config": {**asdict(cfg), "out": str(out), "workers": workers},
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
+        "perturbed_plant": asdict(cfg.plant.noise(sc)),  # the disturbance the perturbed episodes met
         "wall_time_s": time.perf_counter() - t0,
         "departures": notes,
         "summary": summary,

@@ -7,17 +7,20 @@ A model-based controller is only tested by a plant that differs from its model. 
 * actuation noise: + N(0, (``actuation_std``·control_scale)²) per step and component,
 * process noise: + N(0, (``process_std``·state_scale)²) on the next state, per step and component,
 
-in units of the scenario's characteristic magnitudes (``state_scale``, ``control_scale``), so one setting means the
-same relative disturbance in every scenario. Defaults (``PlantNoise.perturbed()``): gain 5%, actuation 2% of
-control_scale, process 0.2% of state_scale per step — free-flyer/quadrotor: 2 mm and 0.2 mm/s per step, a gain
-error of a few percent; enough that plans made at t = 0 drift measurably over 100 steps, small enough that every
-method stays feasible on most problems.
+in units of the scenario's characteristic magnitudes (``state_scale``, ``control_scale``). Each scenario sizes its
+perturbed plant (``Scenario.perturbation``, ``PlantNoise.perturbed(scenario)``) so that the disturbance of the last
+step, which no controller can undo, stays inside its goal tolerance ``terminal_tol``. The default: gain 5%,
+actuation 2% of control_scale, process 0.2% of state_scale per step — free-flyer/quadrotor: 2 mm and 0.2 mm/s per
+step; enough that plans made at t = 0 drift measurably over 100 steps, small enough that every method stays
+feasible on most problems. RPOD, whose 1 m docking tolerance is 1% of its 100 m state scale and whose docking burn
+is an episode's largest: gain 0.3%, actuation 1% of control_scale, process 0.05% of state_scale (5 cm of ROE).
 
 Draws come from one generator seeded by the episode's seed, so the same seed gives the same disturbances (and the
 same executed trajectory for a deterministic controller) whatever the method, and another seed gives other ones.
 The cost of an episode is the cost of the *commanded* controls (what the controller decided to spend). On the
 perturbed plant a run is feasible when its keep-out depth and other path violations stay within ``path_tol`` (5
-standard deviations of one step's process noise: 1 cm for free-flyer and quadrotor at the default), not at 1e-5 m.
+standard deviations of one step's process noise: 1 cm for free-flyer and quadrotor, 25 cm of ROE for RPOD), not
+at 1e-5 m.
 """
 
 from __future__ import annotations
@@ -57,9 +60,10 @@ class PlantNoise:
         return max(1e-3, 5.0 * self.process_std * scale)
 
     @classmethod
-    def perturbed(cls) -> PlantNoise:
-        """The documented default disturbance of the evaluations' perturbed plant."""
-        return cls(gain_std=0.05, actuation_std=0.02, process_std=0.002)
+    def perturbed(cls, scenario: Scenario) -> PlantNoise:
+        """The disturbance of the evaluations' perturbed plant for ``scenario`` (``Scenario.perturbation``)."""
+        gain_std, actuation_std, process_std = scenario.perturbation
+        return cls(gain_std=gain_std, actuation_std=actuation_std, process_std=process_std)
 
 
 def _scale(values: tuple[float, ...], dim: int) -> np.ndarray:

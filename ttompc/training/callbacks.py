@@ -12,7 +12,7 @@ runs rather than epochs makes it work with the step-based validation of endless 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import lightning as L
 
@@ -20,6 +20,9 @@ from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.mpc.loop import Mode
 from ttompc.mpc.plant import PlantNoise
 from ttompc.parallel import single_torch_thread
+
+if TYPE_CHECKING:
+    from ttompc.scenarios.base import Scenario
 
 
 class ClosedLoopEvalCallback(L.Callback):
@@ -42,7 +45,7 @@ class ClosedLoopEvalCallback(L.Callback):
             raise ValueError("eval_mpc: problems, horizon and every_n_val must be >= 1")
         if plant not in ("nominal", "perturbed"):
             raise ValueError(f"eval_mpc: plant must be 'nominal' or 'perturbed', got {plant!r}")
-        self.plant = PlantNoise.perturbed() if plant == "perturbed" else None
+        self.perturbed = plant == "perturbed"
         self.scenario_name, self.n_problems, self.horizon = scenario, problems, horizon
         self.max_steps, self.every_n_val, self.seed, self.mode = max_steps, every_n_val, seed, mode
         self.plot, self.backend, self.prefix = plot, backend, prefix
@@ -62,6 +65,10 @@ class ClosedLoopEvalCallback(L.Callback):
             seed=cfg.seed,
             plant=cfg.plant,
         )
+
+    def plant_noise(self, scenario: Scenario) -> PlantNoise | None:
+        """The plant the episodes run on: None (nominal) or the scenario's perturbed plant."""
+        return PlantNoise.perturbed(scenario) if self.perturbed else None
 
     def problems(self, scenario_name: str) -> list[EvalProblem]:
         """The fixed evaluation problems (REL-violating, seeded), solved once."""
@@ -98,7 +105,7 @@ class ClosedLoopEvalCallback(L.Callback):
                     mode=self.mode,
                     max_steps=self.max_steps,
                     backend=self.backend,
-                    plant=self.plant,
+                    plant=self.plant_noise(planner.scenario),
                 )
         finally:
             model.train(was_training)
