@@ -290,10 +290,11 @@ class Planner:
             with warnings.catch_warnings():  # torch warns about the pickle protocol of foreign files
                 warnings.simplefilter("ignore")
                 ckpt = torch.load(path, map_location=device, weights_only=True)
-        except OSError as err:
+        except PermissionError as err:
             raise BundleError(f"cannot read {path}: {err.strerror or err}") from None
-        except (EOFError, RuntimeError, pickle.UnpicklingError, ValueError, TypeError, AttributeError):
-            # torch's own text suggests weights_only=False: never right for a file from elsewhere, so it is not shown
+        except (OSError, EOFError, RuntimeError, pickle.UnpicklingError, ValueError, TypeError, AttributeError):
+            # a truncated archive can surface as OSError "Invalid argument"; torch's own text suggests
+            # weights_only=False, never right for a file from elsewhere, so it is not shown
             raise BundleError(
                 f"{path} is not a ttompc checkpoint (truncated, another format, or objects other than tensors and "
                 f"plain values, which are never loaded); {expected}"
