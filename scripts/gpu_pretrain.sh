@@ -17,12 +17,12 @@ SEED=${SEED:-3201}
 STEPS=${STEPS:-4000}
 BATCH=${BATCH:-256}
 WORKERS=${WORKERS:-$(nproc)}
-RECIPE=recipes/$SC/pretrain.yaml
+RECIPE=recipes/paper/$SC-pretrain.yaml
 export WANDB_MODE=${WANDB_MODE:-offline} HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1
 
 [ -f "$RECIPE" ] || { echo "gpu_pretrain: no recipe $RECIPE (scenarios: freeflyer, quadrotor, rpod)" >&2; exit 2; }
 if [ "${DRY_RUN:-0}" != 1 ] && ! python -c 'import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)'; then
-    echo "gpu_pretrain: no CUDA GPU visible to torch; train on CPUs with recipes/$SC/zoo-v3.yaml instead" >&2
+    echo "gpu_pretrain: no CUDA GPU visible to torch; train on CPUs with recipes/$SC/pretrain.yaml instead" >&2
     exit 2
 fi
 DATA=$WORK/data/$SC-gpu-$SEED

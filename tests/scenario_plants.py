@@ -59,3 +59,10 @@ class WrongTrustNorm(DoubleIntegrator2D):
 
     name = "di2d-wrong-trust-norm"
     trust_norm = "l1"  # type: ignore[assignment]
+
+
+class NegativePerturbation(DoubleIntegrator2D):
+    """A perturbed plant with a negative noise level (a sign slip): refused by the interface check."""
+
+    name = "di2d-negative-perturbation"
+    perturbation = (0.05, -0.02, 0.002)

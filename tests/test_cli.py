@@ -108,6 +108,35 @@ def test_settings_may_follow_options(tmp_path: Path) -> None:
     assert '"seed": 4' in res.stdout
 
 
+def _not_a_ttompc_file(kind: str, folder: Path) -> Path:
+    """A file a user might pass as --model: a checkpoint cut short, a pickle of someone else's objects, noise."""
+    import pickle
+
+    import torch
+
+    path = folder / f"{kind}.ckpt"
+    if kind == "truncated":
+        torch.save({"state_dict": {"model.w": torch.zeros(64, 64)}, "hyper_parameters": {"lr": 1.0}}, path)
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif kind == "foreign-pickle":
+        path.write_bytes(pickle.dumps(textwrap.TextWrapper(width=7)))  # any class: the loader must not build it
+    else:
+        path.write_bytes(bytes(range(256)) * 16)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["truncated", "foreign-pickle", "random-bytes"])
+def test_a_file_that_is_not_a_ttompc_model_is_one_line_without_an_unpickling_hint(tmp_path: Path, kind: str) -> None:
+    """Before: six lines of torch's text suggesting `weights_only=False`, an unsafe hint for a file from elsewhere."""
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    bad = _not_a_ttompc_file(kind, inputs)
+    res = ttompc("evaluate", "warmstart", "--model", str(bad), "problems=1", "out=out", cwd=tmp_path)
+    line = assert_user_error(res, str(bad), "is not a ttompc checkpoint", "expected a Lightning .ckpt written by")
+    assert "weights_only" not in res.stderr and "Re-running" not in res.stderr, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
+
+
 def test_damaged_safetensors_from_zoo_publish(tmp_path: Path) -> None:
     bundle = tmp_path / "bundle"
     bundle.mkdir()

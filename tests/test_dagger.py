@@ -26,19 +26,20 @@ RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
 def test_recipes_load_at_a_scale_that_can_work() -> None:
-    paths = sorted(RECIPES.glob("*/finetune*.yaml"))
-    assert {p.parent.name for p in paths if p.name == "finetune-zoo-v2.yaml"} == {"freeflyer", "quadrotor", "rpod"}
+    paths = sorted(RECIPES.glob("*/*finetune.yaml")) + sorted(RECIPES.glob("zoo/*-ft-*.yaml"))
+    assert {p.parent.name for p in paths if p.name == "finetune.yaml"} == {"freeflyer", "quadrotor", "rpod", "generic"}
     for path in paths:
         cfg = load_finetune_config(path)
         assert cfg.dagger.iterations >= 1 and 0 < cfg.data.open_loop_fraction <= 1
-        # issue 11: >= 200 rollouts per iteration, >= 3 iterations, the paper's mix (tiny: smoke runs; small: the
+        # issue 11: >= 200 rollouts per iteration, >= 3 iterations, the paper's mix (recipes/zoo/*-ft-tto-small: the
         # record of the v1 zoo models)
-        if path.stem in ("finetune", "finetune-zoo-v2", "finetune-zoo-v3"):
+        if path.parent.name != "zoo":
             d = cfg.dagger
             assert d.collect.rollouts >= 200 and d.iterations >= 3, path
             assert cfg.data.closed_loop_share == "grow" and cfg.data.open_loop_fraction == 0.9, path
             assert d.eval.problems >= 8, path  # the keep/reject decision needs more than a handful of problems
-        if path.stem == "finetune-zoo-v3":  # the keep/reject decision under the protocol the zoo's cards name
+        # the keep/reject decision under the protocol the zoo's cards name
+        if path.name == "finetune.yaml" and path.parent.name != "generic":
             card_protocol = {"freeflyer": "zoo", "quadrotor": "zoo", "rpod": "paper"}[path.parent.name]
             assert cfg.dagger.protocol == card_protocol and cfg.dagger.collect.workers == 1, path
             card = (RECIPES.parent / "zoo" / f"{path.parent.name}-tto-v3.md").read_text()
@@ -58,13 +59,13 @@ def test_protocol_reaches_the_closed_loop_measurement(monkeypatch: pytest.Monkey
         return {"feasible_rate": 1.0}, []
 
     monkeypatch.setattr(metrics, "closed_loop_metrics", fake)
-    cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml")
+    cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml")
     assert measure(cfg, object(), []) == {"feasible_rate": 1.0}  # type: ignore[arg-type]
     assert seen["settings"] == MPCSettings(end_horizon=30) and seen["horizon"] == 10
-    cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml", ["dagger.mpc.mode=hard"])
+    cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", ["dagger.mpc.mode=hard"])
     assert measure(cfg, object(), []) and seen["settings"] == MPCSettings(end_horizon=30, mode="hard")  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match="end_horizon"):
-        load_finetune_config(RECIPES / "freeflyer" / "finetune-zoo-v3.yaml", ["dagger.mpc.end_horizon=-1"])
+        load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", ["dagger.mpc.end_horizon=-1"])
 
 
 @pytest.mark.parametrize(
@@ -73,7 +74,7 @@ def test_protocol_reaches_the_closed_loop_measurement(monkeypatch: pytest.Monkey
 )
 def test_trainer_keys_dagger_would_ignore_are_rejected(key: str) -> None:
     with pytest.raises(ConfigError, match=key):
-        load_finetune_config(RECIPES / "freeflyer" / "finetune-tiny.yaml", [f"trainer.{key}=1"])
+        load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", [f"trainer.{key}=1"])
     with pytest.raises(ConfigError, match="dagger_dirs"):
         load_finetune_config(None, ["data.dagger_dirs=[x]"])  # DAgger fills it: a value would be ignored
     cfg = load_finetune_config(None, ["trainer.num_sanity_val_steps=2", "trainer.checkpoint_every_n_steps=7"])
@@ -94,7 +95,7 @@ def test_keep_reject_rule() -> None:
 def test_cli_takes_overrides_before_and_after_model(capsys: pytest.CaptureFixture[str]) -> None:
     from ttompc.cli import main
 
-    recipe = str(RECIPES / "freeflyer" / "finetune-tiny.yaml")
+    recipe = str(RECIPES / "freeflyer" / "finetune.yaml")
     for argv in (["--model", "m", "dagger.iterations=7"], ["dagger.iterations=7", "--model", "m"]):
         assert main(["finetune", recipe, *argv, "--print-config"]) == 0
         assert json.loads(capsys.readouterr().out)["dagger"]["iterations"] == 7

@@ -16,6 +16,7 @@ import pytest
 
 from ttompc.cli import main
 from ttompc.config import ConfigError
+from ttompc.errors import UserError
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
 from ttompc.evaluation.episodes import summarize_episodes
 from ttompc.evaluation.metrics import gain_share, improvement_by_threshold, paper_normalized
@@ -230,7 +231,7 @@ def test_closed_loop_report_nominal_and_perturbed(tmp_path: Path, bundle: Path) 
         model=str(bundle),
         scenario=SHORT,
         problems=2,
-        horizons=[10, 200],
+        horizons=[10, 40],  # 40 = N: the whole remaining episode
         workers=2,  # spawn pool: workers import the test scenario and load the model once
         max_steps=3,
         out=str(tmp_path),
@@ -284,6 +285,38 @@ def test_evaluate_mpc_prints_at_most_18_settings(capsys: pytest.CaptureFixture[s
     assert main(["evaluate", "mpc", "--print-config"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert leaves(printed) <= 18 and printed["protocol"] == "paper" and printed["mpc"] == {}
+
+
+@pytest.mark.parametrize("kind", ["warmstart", "mpc"])
+@pytest.mark.parametrize("scale", ["-5", "0"])
+def test_a_non_positive_rtg_scale_is_refused_with_its_meaning(
+    kind: str, scale: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """rtg_scale <= 0 asks the model for a non-negative reward-to-go (before: -5 ran and reported a warm start 159%
+    above J_REL without a word): one line that says what the scale means, before any model is loaded."""
+    assert main(["evaluate", kind, "--model", "no-such-model", f"rtg_scale={scale}", f"out={tmp_path / 'o'}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"rtg_scale must be > 0, got {float(scale)}" in err, err
+    assert "rtg_0 = -rtg_scale*J_REL" in err and "no-such-model" not in err
+    assert list(tmp_path.iterdir()) == []
+    from ttompc.mpc.tto import TTOProvider
+
+    with pytest.raises(ValueError, match="rtg_scale must be > 0"):  # the library refuses it too
+        TTOProvider(mpc_fakes.tiny_planner(), rtg_scale=-1.0)
+
+
+def test_horizons_above_the_scenarios_n_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A horizon longer than the episode is refused in one line (before: clipped to N without a word, and reported
+    under the number given), before any episode runs or any report is written."""
+    n = get_scenario(SHORT).n_steps
+    out = tmp_path / "mpc"
+    argv = ["evaluate", "mpc", f"scenario={SHORT}", "problems=1", "workers=1", "plants=[nominal]", f"out={out}"]
+    assert main([*argv, f"horizons=[10,{n + 1},{5 * n}]"]) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]  # after the status line
+    assert len(errors) == 1 and f"horizons [{n + 1}, {5 * n}] exceed" in errors[0], errors
+    assert f"N = {n} steps" in errors[0] and f"horizons=[{n}]" in errors[0] and not out.exists()
+    with pytest.raises(UserError, match="exceed"):
+        run_closed_loop(ClosedLoopConfig(scenario=SHORT, problems=1, horizons=[n + 1], out=str(out)))
 
 
 def _random_batches(n_batches: int, B: int = 2, L: int = 8) -> Any:
@@ -469,8 +502,9 @@ def test_callback_plant_is_selectable() -> None:
     from ttompc.training.callbacks import ClosedLoopEvalCallback
     from ttompc.training.config import EvalMPCConfig
 
+    sc = get_scenario(SHORT)
     cb = ClosedLoopEvalCallback.from_config(EvalMPCConfig(plant="perturbed"), SHORT)
-    assert cb.plant == PlantNoise.perturbed() and ClosedLoopEvalCallback(SHORT).plant is None
+    assert cb.plant_noise(sc) == PlantNoise.perturbed(sc) and ClosedLoopEvalCallback(SHORT).plant_noise(sc) is None
     with pytest.raises(ValueError, match="plant"):
         ClosedLoopEvalCallback(SHORT, plant="windy")
     zoo = ClosedLoopEvalCallback.from_config(EvalMPCConfig(protocol="zoo"), SHORT)

@@ -173,17 +173,23 @@ def test_from_pretrained_names_what_it_could_not_load(tmp_path: Path) -> None:
     assert "ttompc zoo list" in str(missing.value.hint)
     truncated = tmp_path / "truncated.ckpt"
     truncated.write_bytes(b"PK\x03\x04 cut short")
-    with pytest.raises(BundleError, match="not a readable checkpoint"):
+    with pytest.raises(BundleError, match="not a ttompc checkpoint") as cut:
         Planner.from_pretrained(truncated)
+    assert "weights_only" not in str(cut.value) and "\n" not in str(cut.value)
     marker, bomb = tmp_path / "unpickled", tmp_path / "bomb.ckpt"
     torch.save({"state_dict": {}, "hyper_parameters": _Bomb(marker)}, bomb)
-    with pytest.raises(BundleError, match="not a readable checkpoint"):
+    with pytest.raises(BundleError, match="not a ttompc checkpoint") as refused:
         Planner.from_pretrained(bomb)
+    assert "weights_only" not in str(refused.value)  # never a hint to unpickle a file from elsewhere
     assert not marker.exists()  # weights_only loading refused the object instead of running it
     foreign = tmp_path / "foreign.ckpt"
     torch.save({"weights": torch.zeros(2)}, foreign)
-    with pytest.raises(BundleError, match="not a checkpoint written by `ttompc train`"):
+    with pytest.raises(BundleError, match=r"not a ttompc checkpoint \(no hyper-parameters"):
         Planner.from_pretrained(foreign)
+    lightning = tmp_path / "lightning.ckpt"
+    torch.save({"state_dict": {}, "hyper_parameters": {"lr": 1e-3}}, lightning)
+    with pytest.raises(BundleError, match=r"not one written by `ttompc train`.*lack model_config"):
+        Planner.from_pretrained(lightning)
     (tmp_path / "empty").mkdir()
     with pytest.raises(BundleError, match="missing"):
         Planner.from_pretrained(tmp_path / "empty")

@@ -109,7 +109,7 @@ def test_readme_commands_run_as_written(tmp_path: Path) -> None:
     # what the README says the commands leave behind
     assert (tmp_path / "outputs" / "solve.png").is_file()
     assert (tmp_path / "data" / "freeflyer-v1" / "manifest.json").is_file()
-    assert (tmp_path / "runs" / "freeflyer-small" / "planner" / "model.safetensors").is_file()
+    assert (tmp_path / "runs" / "freeflyer" / "planner" / "model.safetensors").is_file()
     assert any((tmp_path / "outputs" / "evaluate" / "warmstart-freeflyer").iterdir())
     assert any((tmp_path / "outputs" / "evaluate" / "mpc-freeflyer").iterdir())
     assert (tmp_path / "outputs" / "my-zoo" / "my-freeflyer.md").is_file()

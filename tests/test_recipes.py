@@ -1,17 +1,23 @@
-"""Every YAML under recipes/ loads against its schema (training or fine-tuning) and describes the run it claims to:
-its scenario's data, dimensions and output folder, the advertised model size, the architecture of the zoo model it
-produced, and (fine-tuning) the same open-loop dataset as the model it starts from. The generic recipes name no
-scenario: their horizon-dependent settings follow the dataset they are given."""
+"""Every YAML under recipes/ loads through its command's config loader (``ttompc train`` or ``ttompc finetune``),
+holds no absolute path, and describes the run it claims to: its scenario's data, dimensions and output folder, the
+architecture of the zoo model it produced, and (fine-tuning) the same open-loop dataset as the model it starts from.
+
+Layout (one recipe per job): ``recipes/<scenario>/`` and ``recipes/generic/`` hold exactly ``pretrain``, ``finetune``
+and ``tiny``; ``recipes/zoo/<model>[-legN].yaml`` reproduce published models, each headed by the ``ttompc generate``
+command of its data; ``recipes/paper/<scenario>-{pretrain,finetune}.yaml`` are the paper-size GPU recipes. Every
+recipe path named in the cards, README, docs, scripts and code exists."""
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
 import pytest
+from omegaconf import OmegaConf
 
-from ttompc.config import ConfigError
+from ttompc.config import ConfigError, to_container
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
 from ttompc.policy import TrajectoryGPT
 from ttompc.scenarios import get_scenario
@@ -20,38 +26,93 @@ from ttompc.training.config import TrainConfig, load_train_config
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = ROOT / "recipes"
 ALL = sorted(RECIPES.glob("**/*.y*ml"))
+SCENARIOS = ("freeflyer", "quadrotor", "rpod")
 GENERIC = [p for p in ALL if p.parent.name == "generic"]
 SCENARIO_RECIPES = [p for p in ALL if p not in GENERIC]
 ARCHITECTURE = ("state_dim", "control_dim", "n_embd", "n_layer", "n_head", "mlp_ratio", "activation", "max_steps")
+JOBS = {"pretrain", "finetune", "tiny"}
+
+
+def rel(path: Path) -> str:
+    return path.relative_to(RECIPES).as_posix()
 
 
 def is_finetune(path: Path) -> bool:
-    return path.stem.startswith("finetune")
+    return path.stem == "finetune" or path.stem.endswith("-finetune") or "-ft-" in path.stem
 
 
-def load(path: Path) -> TrainConfig | FinetuneConfig:
-    return load_finetune_config(path) if is_finetune(path) else load_train_config(path)
+def scenario_of(path: Path) -> str:
+    """recipes/<scenario>/X.yaml, recipes/zoo/<scenario>-..., recipes/paper/<scenario>-..."""
+    return path.parent.name if path.parent.name in SCENARIOS else path.stem.split("-")[0]
+
+
+def zoo_model(path: Path) -> str:
+    """The published model a recipes/zoo/ file reproduces (a leg suffix names one of its training legs)."""
+    return re.sub(r"-leg\d+$", "", path.stem)
+
+
+def load(path: Path, overrides: list[str] | None = None) -> TrainConfig | FinetuneConfig:
+    loader = load_finetune_config if is_finetune(path) else load_train_config
+    return loader(path, overrides or [])
 
 
 def source_recipe(path: Path) -> Path:
-    """The training recipe of the model a fine-tuning recipe starts from (finetune-X -> X, finetune -> pretrain)."""
-    stem = path.stem.removeprefix("finetune").removeprefix("-") or "pretrain"
-    return path.with_name(f"{stem}{path.suffix}")
+    """The training recipe of the model a fine-tuning recipe starts from."""
+    if path.parent.name == "zoo":  # <s>-ft-tto-small -> <s>-tto-small
+        return path.with_name(path.name.replace("-ft-tto-", "-tto-"))
+    if path.parent.name == "paper":
+        return path.with_name(path.name.replace("-finetune", "-pretrain"))
+    return path.with_name(f"pretrain{path.suffix}")
 
 
-def test_every_scenario_has_the_documented_recipes() -> None:
-    names = {(p.parent.name, p.stem) for p in ALL}
-    for scenario in ("freeflyer", "quadrotor", "rpod"):
-        assert {(scenario, r) for r in ("pretrain", "small", "tiny", "finetune", "finetune-small")} <= names
-    assert {("generic", "tiny"), ("generic", "small")} <= names
-    assert all(p.parent.parent == RECIPES for p in ALL), "recipes live in recipes/<scenario>/"
+def leaves(node: Any) -> list[Any]:
+    if isinstance(node, dict):
+        return [x for v in node.values() for x in leaves(v)]
+    if isinstance(node, list):
+        return [x for v in node for x in leaves(v)]
+    return [node]
 
 
-@pytest.mark.parametrize("path", SCENARIO_RECIPES, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_one_recipe_per_job() -> None:
+    folders = {p.parent.name for p in ALL}
+    assert folders == {*SCENARIOS, "generic", "zoo", "paper"}, "recipes live in recipes/<folder>/"
+    assert all(p.parent.parent == RECIPES for p in ALL)
+    for folder in (*SCENARIOS, "generic"):
+        assert {p.stem for p in ALL if p.parent.name == folder} == JOBS, folder
+    assert {p.stem for p in ALL if p.parent.name == "paper"} == {f"{s}-{j}" for s in SCENARIOS for j in
+                                                                 ("pretrain", "finetune")}  # fmt: skip
+    published = {p.stem for p in (ROOT / "zoo").glob("*.md") if p.stem != "README"}
+    for path in (p for p in ALL if p.parent.name == "zoo"):
+        # a published model, or a withdrawn FT model of one (kept to repeat the rows measured with it)
+        model = zoo_model(path)
+        assert model in published or model.replace("-ft-tto-", "-tto-") in published, path.name
+        command = next(line for line in path.read_text().splitlines() if line.lstrip("# ").startswith("ttompc "))
+        assert command.lstrip("# ").startswith(f"ttompc generate --scenario {scenario_of(path)} "), path.name
+
+
+@pytest.mark.parametrize("path", ALL, ids=rel)
+def test_recipe_holds_no_absolute_path(path: Path) -> None:
+    """Data and output folders are relative to where the command runs (or required on the command line); a machine's
+    folder (/root/..., ~/...) in a recipe works only on that machine, in a value or in a command of its header."""
+    values = leaves(OmegaConf.to_container(OmegaConf.load(path)))
+    absolute = [v for v in values if isinstance(v, str) and (Path(v).is_absolute() or v.startswith("~"))]
+    assert not absolute, f"{path.name}: {absolute}"
+    in_text = re.findall(r"(?:^|[\s=\[,'\"])((?:~[/A-Za-z]|/[A-Za-z])\S*)", path.read_text())
+    assert not in_text, f"{path.name}: {in_text}"
+
+
+def test_the_absolute_path_check_can_fail(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("data:\n  paths: [/root/data/freeflyer-v3]\n")
+    with pytest.raises(AssertionError, match="/root/data"):
+        test_recipe_holds_no_absolute_path(bad)
+
+
+@pytest.mark.parametrize("path", SCENARIO_RECIPES, ids=rel)
 def test_recipe_loads_and_matches_its_scenario(path: Path) -> None:
     cfg = load(path)
-    scenario = get_scenario(path.parent.name)
-    assert cfg.data.paths, "a recipe names its dataset"
+    scenario = get_scenario(scenario_of(path))
+    assert cfg.data.paths, "a scenario recipe names its dataset (relative to where the command runs)"
     # every scenario recipe names its scenario, checked against every dataset's manifest before training
     assert cfg.data.scenario == scenario.name
     for data in cfg.data.paths:
@@ -62,33 +123,58 @@ def test_recipe_loads_and_matches_its_scenario(path: Path) -> None:
         assert (model.state_dim, model.control_dim) == (scenario.state_dim, scenario.control_dim)
         assert (cfg.data.context_length or scenario.n_steps) <= model.max_steps
         assert scenario.n_steps <= model.max_steps, "the model must cover a full-horizon rollout"
+    else:
+        assert all(h <= scenario.n_steps for h in cfg.dagger.exploration.horizons)
 
 
-@pytest.mark.parametrize("path", [p for p in ALL if not is_finetune(p)], ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize("path", [p for p in ALL if not is_finetune(p)], ids=rel)
 def test_training_recipe_builds_the_model_it_describes(path: Path) -> None:
     cfg = load_train_config(path)
     n_params = TrajectoryGPT(cfg.model).num_parameters()
-    if path.stem == "pretrain":  # the paper's size
+    folder = path.parent.name
+    if folder == "paper":  # the paper's size
         assert (cfg.model.n_embd, cfg.model.n_layer, cfg.model.n_head) == (384, 6, 6)
         assert cfg.optim.accumulate == 8 and cfg.optim.grad_clip == 1.0
         assert 10.5e6 < n_params < 11.5e6
     elif path.stem == "tiny":
         assert n_params < 300_000
-    elif path.stem == "small":  # the zoo's "-tto-small" model was trained with this file: same architecture
-        zoo_model = "freeflyer" if path.parent.name == "generic" else path.parent.name
-        bundle: dict[str, Any] = json.loads(
-            (ROOT / "zoo" / "models" / f"{zoo_model}-tto-small" / "config.json").read_text()
-        )
-        keys = ARCHITECTURE[2:-1] if path in GENERIC else ARCHITECTURE  # generic: dims and horizon follow the data
+    else:  # the zoo model it trained: pretrain.yaml the current one (-tto-v3), recipes/zoo/ the one it names
+        model = zoo_model(path) if folder == "zoo" else f"{'freeflyer' if folder == 'generic' else folder}-tto-v3"
+        bundle: dict[str, Any] = json.loads((ROOT / "zoo" / "models" / model / "config.json").read_text())
+        keys = ARCHITECTURE[2:-1] if folder == "generic" else ARCHITECTURE  # generic: dims and horizon follow data
         assert {k: getattr(cfg.model, k) for k in keys} == {k: bundle["model"][k] for k in keys}
+        assert cfg.model.layout == bundle["model"].get("layout", "interleaved")
+    if re.search(r"-leg\d+$", path.stem):
+        assert cfg.init_from, "a continuation leg starts from the previous leg's weights"
 
 
-@pytest.mark.parametrize("path", GENERIC, ids=lambda p: p.name)
+LEGS = sorted(p for p in ALL if p.parent.name == "zoo" and re.search(r"-leg\d+$", p.stem))
+LAST_LEGS = [p for p in LEGS if p == max(q for q in LEGS if zoo_model(q) == zoo_model(p))]
+
+
+@pytest.mark.parametrize("path", LAST_LEGS, ids=rel)
+def test_the_last_leg_is_the_recipe_the_bundle_recorded(path: Path) -> None:
+    """A model's last training leg is the recipe its published bundle recorded (out_dir, init_from and the logger
+    aside: they named the training machine's folders), so the card's rebuild commands reproduce it."""
+    recorded = json.loads((ROOT / "zoo" / "models" / zoo_model(path) / "config.json").read_text())["recipe"]
+    ours = json.loads(json.dumps(to_container(load_train_config(path))))
+    for section in ("model", "optim"):
+        assert ours[section] == recorded[section], section
+    for key in ("sources", "batch_size", "context_length", "scenario"):
+        assert ours["data"][key] == recorded["data"][key], key
+    assert Path(ours["data"]["paths"][0]).name == Path(recorded["data"]["paths"][0]).name
+    for key in ("max_steps", "precision", "seed"):
+        assert ours["trainer"][key] == recorded["trainer"][key], key
+
+
+@pytest.mark.parametrize("path", GENERIC, ids=rel)
 def test_generic_recipe_follows_the_dataset_horizon(path: Path, tmp_path: Path) -> None:
     """No dataset, scenario or horizon in the file: model.max_steps follows the manifest of the dataset given on
     the command line (context_length None = the whole horizon, resolved by the data module), unless set."""
-    cfg = load_train_config(path)
-    assert cfg.data.paths == [] and cfg.data.context_length is None
+    cfg = load(path)
+    assert cfg.data.paths == [] and cfg.data.context_length is None and cfg.data.scenario is None
+    if isinstance(cfg, FinetuneConfig):
+        return
     data = tmp_path / "di2d-v1"
     data.mkdir()
     (data / "manifest.json").write_text(json.dumps({"scenario": {"name": "di2d", "n_steps": 40}}))
@@ -96,15 +182,42 @@ def test_generic_recipe_follows_the_dataset_horizon(path: Path, tmp_path: Path) 
     assert load_train_config(path, [f"data.paths=[{data}]", "model.max_steps=64"]).model.max_steps == 64
 
 
-@pytest.mark.parametrize("path", [p for p in ALL if is_finetune(p)], ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize("command", ["train", "finetune"])
+def test_a_required_dataset_left_out_is_one_line(command: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """The generic recipes leave data.paths to the command line: without it, one line names the key and what to
+    pass, before any model or Lightning is loaded."""
+    from ttompc.cli import main
+
+    model = ["--model", "no-such-model"] if command == "finetune" else []
+    assert main([command, str(RECIPES / "generic" / f"{'pretrain' if command == 'train' else command}.yaml"),
+                 *model]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "data.paths" in err and "pass data.paths=[" in err and "generate" in err, err
+
+
+@pytest.mark.parametrize("path", [p for p in ALL if is_finetune(p)], ids=rel)
 def test_finetuning_recipe_mixes_the_source_models_dataset(path: Path) -> None:
     """DAgger mixes new rollouts with the open-loop data the source model was trained on (same normalisation)."""
     cfg = load_finetune_config(path)
+    assert 0.0 < cfg.data.open_loop_fraction < 1.0
+    if path.parent.name == "generic":
+        return
     source = source_recipe(path)
     assert source.is_file(), f"{path.name} fine-tunes a model from {source.name}, which is missing"
     assert cfg.data.paths == load_train_config(source).data.paths
-    assert 0.0 < cfg.data.open_loop_fraction < 1.0
-    assert all(h <= get_scenario(path.parent.name).n_steps for h in cfg.dagger.exploration.horizons)
+
+
+def test_every_named_recipe_exists() -> None:
+    """Cards, README, docs, scripts and code name recipes by path: each of those paths is a file."""
+    texts = [ROOT / "README.md", ROOT / "Makefile", *(ROOT / "docs").glob("*.md"), *(ROOT / "zoo").glob("*.md"),
+             *(ROOT / "scripts").glob("*"), *(ROOT / "ttompc").rglob("*.py"), *ALL]  # fmt: skip
+    named = {m for t in texts for m in re.findall(r"(?<![\w:/])recipes/[\w.-]+/[\w.-]+\.yaml", t.read_text())}
+    assert named, "the pattern finds recipe paths"
+    assert sorted(n for n in named if not (ROOT / n).is_file()) == []
+    cards = [p for p in (ROOT / "zoo").glob("*.md") if p.stem != "README"]
+    for card in cards:
+        recipe = re.search(r"^recipe: (\S+)$", card.read_text(), re.MULTILINE)
+        assert recipe and (ROOT / recipe.group(1)).is_file(), card.name
 
 
 def test_unknown_key_and_wrong_type_name_the_key(tmp_path: Path) -> None:
@@ -122,7 +235,7 @@ def test_unknown_key_and_wrong_type_name_the_key(tmp_path: Path) -> None:
         load_train_config(RECIPES / "freeflyer" / "tiny.yaml", ["model.n_head=5"])
 
 
-@pytest.mark.parametrize("scenario", ["freeflyer", "quadrotor", "rpod"])
+@pytest.mark.parametrize("scenario", SCENARIOS)
 def test_gpu_pretrain_script_builds_a_loadable_config(scenario: str, tmp_path: Path) -> None:
     """scripts/gpu_pretrain.sh (issue 17 item 7) cannot run here (no GPU); its training overrides must still load."""
     import os
@@ -133,7 +246,7 @@ def test_gpu_pretrain_script_builds_a_loadable_config(scenario: str, tmp_path: P
     out = subprocess.run(["bash", "scripts/gpu_pretrain.sh", scenario, str(tmp_path)], cwd=ROOT, env=env,
                          capture_output=True, text=True, timeout=120)  # fmt: skip
     assert out.returncode == 0, out.stderr
-    assert f"config OK (recipes/{scenario}/pretrain.yaml" in out.stdout
+    assert f"config OK (recipes/paper/{scenario}-pretrain.yaml" in out.stdout
 
 
 def test_gpu_pretrain_script_rejects_an_unknown_scenario(tmp_path: Path) -> None:
@@ -141,4 +254,5 @@ def test_gpu_pretrain_script_rejects_an_unknown_scenario(tmp_path: Path) -> None
 
     out = subprocess.run(["bash", "scripts/gpu_pretrain.sh", "nope", str(tmp_path)], cwd=ROOT, capture_output=True,
                          text=True, timeout=60)  # fmt: skip
-    assert out.returncode == 2 and out.stderr.count("\n") == 1 and "no recipe recipes/nope/pretrain.yaml" in out.stderr
+    assert out.returncode == 2 and out.stderr.count("\n") == 1
+    assert "no recipe recipes/paper/nope-pretrain.yaml" in out.stderr

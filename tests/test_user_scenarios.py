@@ -131,20 +131,27 @@ def test_check_scenario_rejects_a_trust_norm_the_engine_does_not_have(capsys: py
 
 
 @pytest.mark.parametrize(
-    ("plant", "failed", "needle"),
+    ("plant", "failed", "needle", "ran"),
     [
         # the wrong slope also breaks REL (one convex solve on a wrong model): the first failure names the cause
-        ("WrongJacobian", ["jacobian", "solve"], "A[0, 2] at step 0 is 0.5 but finite differences of step() give 0.25"),
-        ("WrongBatchedModel", ["batched_model"], "but the scenario's step gives"),
-        ("UnsolvableSampler", ["solve"], "REL infeasible after 1 iteration(s)"),
+        (
+            "WrongJacobian",
+            ["jacobian", "solve"],
+            "A[0, 2] at step 0 is 0.5 but finite differences of step() give 0.25",
+            9,
+        ),
+        ("WrongBatchedModel", ["batched_model"], "but the scenario's step gives", 9),
+        ("UnsolvableSampler", ["solve"], "REL infeasible after 1 iteration(s)", 9),
+        # a broken interface stops the checks: the others would fail for the same reason
+        ("NegativePerturbation", ["interface"], "perturbation must be (gain_std, actuation_std, process_std)", 1),
     ],
 )
 def test_check_scenario_names_a_planted_mistake_in_one_line(
-    plant: str, failed: list[str], needle: str, capsys: pytest.CaptureFixture[str]
+    plant: str, failed: list[str], needle: str, ran: int, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert cli_main(["check-scenario", f"{PLANTS}:{plant}", "problems=1"]) == 1
     out = capsys.readouterr().out.splitlines()
     lines = [line for line in out if line.startswith("FAIL")]
     assert [line.split()[1].rstrip(":") for line in lines] == failed, out
     assert needle in lines[0], lines[0]
-    assert out[-1] == f"{len(failed)} of 9 checks failed: {', '.join(failed)}"
+    assert out[-1] == f"{len(failed)} of {ran} checks failed: {', '.join(failed)}"

@@ -43,7 +43,12 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
     if args.model is None:
-        raise UserError("no model to fine-tune", "pass --model NAME (e.g. --model freeflyer-tto-small)")
+        raise UserError("no model to fine-tune", "pass --model NAME (e.g. --model freeflyer-tto-v3)")
+    if not cfg.data.paths:
+        raise UserError(
+            "no open-loop data: data.paths is empty (the recipe leaves it to the command line)",
+            "pass data.paths=[FOLDER], the dataset written by `ttompc generate` that the model was trained on",
+        )
     status(f"ttompc finetune: loading {args.model} and Lightning")
     from ttompc.finetune import finetune
 

@@ -42,7 +42,10 @@ def check_datasets(data: DataConfig) -> None:
     imported (Lightning takes 10 s)."""
     paths, dagger_dirs = data.paths, data.dagger_dirs
     if not paths and not dagger_dirs:
-        raise UserError("no training data: data.paths is empty", "pass data.paths=[data/freeflyer-v1]")
+        raise UserError(
+            "no training data: data.paths is empty (the recipe leaves it to the command line)",
+            "pass data.paths=[FOLDER], a dataset written by `ttompc generate`",
+        )
     for key, folders in (("data.paths", paths), ("data.dagger_dirs", dagger_dirs)):
         missing = [p for p in folders if not Path(p).is_dir()]
         if missing:

@@ -187,6 +187,13 @@ def _publish(args: argparse.Namespace) -> int:
         "data_card": args.data_card,
     }
     fields = {k: v for k, v in given.items() if v is not None}
+    if args.rtg_scale is not None:
+        from ttompc.mpc.tto import check_rtg_scale
+
+        try:
+            check_rtg_scale(args.rtg_scale, "--rtg-scale")
+        except ValueError as err:
+            raise UserError(str(err)) from None
     extra = {"rtg_scale": args.rtg_scale} if args.rtg_scale is not None else {}
     with _as_bundle(Path(args.source), extra) as source:
         card = zoo.publish(

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ttompc.errors import UserError
 from ttompc.evaluation.episodes import episode_record, summarize_episodes
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
 from ttompc.evaluation.problems import EvalProblem, eval_problem
@@ -54,7 +55,7 @@ from ttompc.mpc.providers import (
     full_horizon_plan,
 )
 from ttompc.mpc.settings import MPCSettings, protocol_settings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider
+from ttompc.mpc.tto import RolloutGroup, TTOProvider, check_rtg_scale
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -80,7 +81,8 @@ class ClosedLoopConfig:
     seed: int = 0
     horizons: list[int] = field(default_factory=lambda: [10])
     plants: list[str] = field(default_factory=lambda: list(PLANTS))
-    plant: PlantNoise = field(default_factory=PlantNoise.perturbed)  # the perturbed plant's disturbances
+    # the perturbed plant's disturbances; None: the scenario's own (Scenario.perturbation)
+    plant: PlantNoise = field(default_factory=lambda: PlantNoise(None, None, None))
     robust_blend: float = 0.95  # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0 leaves them out
     rtg_scale: float | None = None  # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale)
     protocol: str = "paper"  # MPC settings: a preset (paper, zoo; ttompc/mpc/presets) or a YAML file of them
@@ -98,6 +100,8 @@ class ClosedLoopConfig:
         if bad or not self.plants:
             raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")
         TerminalDesign(self.robust_blend)  # validates the blend
+        if self.rtg_scale is not None:
+            check_rtg_scale(self.rtg_scale)
         if self.batch < 1:
             raise ValueError(f"batch must be >= 1, got {self.batch}")
         self.settings()  # validates the protocol and its overrides
@@ -157,7 +161,7 @@ def run_problems(
     s = settings or cfg.settings()
     plans = [full_horizon_plan(scenario, ep.problem, s.backend) for ep in eps]
     for plant in cfg.plants:
-        noise = cfg.plant if plant == "perturbed" else None
+        noise = cfg.plant.resolve(scenario) if plant == "perturbed" else None
         for H in cfg.horizons:
             for method in providers(plans, models, s, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale):
                 episodes = run_mpc_batch(
@@ -349,7 +353,13 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
     if cfg.scenario is None:
         raise ValueError("ClosedLoopConfig.scenario is not set (the command takes it from the model)")
     sc = get_scenario(cfg.scenario)
-    cfg.horizons = sorted({min(h, sc.n_steps) for h in cfg.horizons})
+    too_long = sorted({h for h in cfg.horizons if h > sc.n_steps})
+    if too_long:  # refused, not clipped: a clipped horizon would report under a number that was never run
+        raise UserError(
+            f"horizons {too_long} exceed the horizon of {sc.name}, N = {sc.n_steps} steps",
+            f"pass horizons of at most {sc.n_steps} (horizons=[{sc.n_steps}] plans the whole remaining episode)",
+        )
+    cfg.horizons = sorted(set(cfg.horizons))
     out = Path(cfg.out or f"outputs/evaluate/mpc-{sc.name}")
     workers = default_workers(cfg.workers)
     t0 = time.perf_counter()
@@ -371,6 +381,7 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
         "protocol": {"name": protocol_label(cfg), "settings": asdict(settings)},
         "solver": solver_path(settings.backend, sc),
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
+        "perturbed_plant": asdict(cfg.plant.resolve(sc)),  # the disturbance the perturbed episodes met
         "wall_time_s": time.perf_counter() - t0,
         "departures": notes,
         "summary": summary,

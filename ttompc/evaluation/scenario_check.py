@@ -177,6 +177,9 @@ def _interface(ctx: _Context) -> str:
             _fail(f"{attr} has {len(value)} entries for dimension {size}")
         if attr.endswith("scale") and not all(np.isfinite(v) and v > 0 for v in value):
             _fail(f"{attr} must be positive and finite, got {value}")
+    perturbation = tuple(sc.perturbation)
+    if len(perturbation) != 3 or not all(np.isfinite(v) and v >= 0 for v in perturbation):
+        _fail(f"perturbation must be (gain_std, actuation_std, process_std), 3 numbers >= 0, got {perturbation}")
     if any(not 0 <= r < n for r in sc.approximate_rows):
         _fail(f"approximate_rows {sc.approximate_rows} are not state rows 0..{n - 1}")
     return f"{sc.name} v{sc.version}: {n} states, {m} controls, N = {N}, cost {sc.cost_norm}"

@@ -34,6 +34,7 @@ from ttompc.evaluation.metrics import (
 )
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.stats import format_interval, interval
+from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -72,6 +73,8 @@ class WarmStartConfig:
     def __post_init__(self) -> None:
         if self.problems < 1 or self.oracle_detours < 0 or self.workers < 0:
             raise ValueError("problems must be >= 1, oracle_detours and workers >= 0")
+        if self.rtg_scale is not None:
+            check_rtg_scale(self.rtg_scale)
 
 
 def default_workers(workers: int) -> int:

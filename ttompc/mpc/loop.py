@@ -372,6 +372,8 @@ def run_mpc_batch(
         raise ValueError("episodes run in lockstep need problems of one length N")
     if B == 0:
         return []
+    if plant is not None:
+        plant = plant.resolve(scenario)  # None components: the scenario's own
     N = problems[0].n_steps
     T = N if max_steps is None else min(max_steps, N)
     ctrls, sims = [], []

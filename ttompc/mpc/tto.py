@@ -26,6 +26,17 @@ RTG_SIGMAS = 3.0  # the training range's lower end: mean − 3 std of the model'
 RTG_FLOOR = 0.05  # ... and its upper end: −RTG_FLOOR·|rtg_0|, a budget of at least that fraction of rtg_0 left
 
 
+def check_rtg_scale(value: float, key: str = "rtg_scale") -> None:
+    """The conditioning scale κ of rtg_0 = −κ·J_REL must be positive: rewards-to-go are negative costs, so κ <= 0
+    asks the model for a trajectory that costs nothing or less; raises ``ValueError`` naming ``key``."""
+    if not value > 0:
+        raise ValueError(
+            f"{key} must be > 0, got {value}: the model is conditioned on rtg_0 = -{key}*J_REL, the reward-to-go "
+            f"(minus the cost) of a trajectory costing {key} times REL's; 1 is the paper's, a model's own is in its "
+            "bundle"
+        )
+
+
 class TTOProvider:
     """TTO-MPC: H-step rollout from a persistent rollout context (one per episode, KV cache reused; or one batched
     context shared by the providers of a ``group``), conditioned on rtg_0 = −``rtg_scale``·J_REL (None: the model's
@@ -59,6 +70,7 @@ class TTOProvider:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {rtg_mode!r}")
         self.planner, self.name = planner, name
         self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
+        check_rtg_scale(self.rtg_scale)
         self.rtg_mode = rtg_mode
         self.target = TargetFilter(design)
         self.group = group or RolloutGroup(planner, use_cache=use_cache)

@@ -31,6 +31,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import pickle
+import warnings
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -281,13 +282,29 @@ class Planner:
     ) -> Planner:
         from ttompc.zoo import BundleError
 
+        expected = "expected a Lightning .ckpt written by `ttompc train`, a bundle folder or a zoo model name"
         try:  # weights_only: tensors and primitives only, never arbitrary objects
-            ckpt = torch.load(path, map_location=device, weights_only=True)
-        except (OSError, EOFError, RuntimeError, pickle.UnpicklingError) as err:
-            raise BundleError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from None
-        if not isinstance(ckpt, dict) or "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
-            raise BundleError(f"{path} is not a checkpoint written by `ttompc train` (no hyper-parameters)")
-        hp = ckpt["hyper_parameters"]
+            with warnings.catch_warnings():  # torch warns about the pickle protocol of foreign files
+                warnings.simplefilter("ignore")
+                ckpt = torch.load(path, map_location=device, weights_only=True)
+        except PermissionError as err:
+            raise BundleError(f"cannot read {path}: {err.strerror or err}") from None
+        except (OSError, EOFError, RuntimeError, pickle.UnpicklingError, ValueError, TypeError, AttributeError):
+            # a truncated archive can surface as OSError "Invalid argument"; torch's own text suggests
+            # weights_only=False, never right for a file from elsewhere, so it is not shown
+            raise BundleError(
+                f"{path} is not a ttompc checkpoint (truncated, another format, or objects other than tensors and "
+                f"plain values, which are never loaded); {expected}"
+            ) from None
+        hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+        if not isinstance(hp, dict) or not isinstance(ckpt.get("state_dict"), dict):
+            raise BundleError(f"{path} is not a ttompc checkpoint (no hyper-parameters and weights); {expected}")
+        missing = [k for k in ("model_config", "scenario", "scenario_version", "norm_stats") if k not in hp]
+        if missing:
+            raise BundleError(
+                f"{path} is a checkpoint but not one written by `ttompc train` (its hyper-parameters lack "
+                f"{', '.join(missing)}); {expected}"
+            )
         state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
         extra = {"global_step": int(ckpt.get("global_step", 0)), "epoch": int(ckpt.get("epoch", 0))}
         return cls._build(

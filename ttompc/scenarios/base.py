@@ -234,6 +234,11 @@ class Scenario(abc.ABC):
     # largest ‖x_N − goal‖ (optimisation representation) of a closed-loop episode counted as reaching the goal; soft
     # MPC end penalties leave a small residual
     terminal_tol: ClassVar[float] = 5e-2
+    # the perturbed plant of closed-loop evaluation (ttompc.mpc.plant.PlantNoise): (gain_std, actuation_std,
+    # process_std) = a per-episode actuation gain error, actuation noise in units of control_scale and process noise
+    # in units of state_scale per step. Sized so that what the last step adds, which no controller can undo, stays
+    # inside terminal_tol: the ceiling ORACLE-MPC must still be able to reach the goal.
+    perturbation: ClassVar[tuple[float, float, float]] = (0.05, 0.02, 0.002)
     # what backend="auto" means for this scenario (see ttompc.solvers.backends.backend_chain)
     auto_backends: ClassVar[tuple[str, ...]] = ("piqp", "qoco", "clarabel")
     # trust-region norm of the SCP: "linf" (bounds on the states: a subproblem without cones is a QP) or "l2" (a

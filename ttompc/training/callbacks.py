@@ -13,7 +13,7 @@ runs rather than epochs makes it work with the step-based validation of endless 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import lightning as L
 
@@ -21,6 +21,9 @@ from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.parallel import single_torch_thread
+
+if TYPE_CHECKING:
+    from ttompc.scenarios.base import Scenario
 
 
 class ClosedLoopEvalCallback(L.Callback):
@@ -42,7 +45,7 @@ class ClosedLoopEvalCallback(L.Callback):
             raise ValueError("eval_mpc: problems, horizon and every_n_val must be >= 1")
         if plant not in ("nominal", "perturbed"):
             raise ValueError(f"eval_mpc: plant must be 'nominal' or 'perturbed', got {plant!r}")
-        self.plant = PlantNoise.perturbed() if plant == "perturbed" else None
+        self.perturbed = plant == "perturbed"
         self.scenario_name, self.n_problems, self.horizon = scenario, problems, horizon
         self.max_steps, self.every_n_val, self.seed = max_steps, every_n_val, seed
         self.settings = settings or MPCSettings()
@@ -64,6 +67,10 @@ class ClosedLoopEvalCallback(L.Callback):
             settings=protocol_settings(cfg.protocol),
             plant=cfg.plant,
         )
+
+    def plant_noise(self, scenario: Scenario) -> PlantNoise | None:
+        """The plant the episodes run on: None (nominal) or the scenario's perturbed plant."""
+        return PlantNoise.perturbed(scenario) if self.perturbed else None
 
     def problems(self, scenario_name: str) -> list[EvalProblem]:
         """The fixed evaluation problems (REL-violating, seeded), solved once."""
@@ -99,7 +106,7 @@ class ClosedLoopEvalCallback(L.Callback):
                     self.horizon,
                     settings=self.settings,
                     max_steps=self.max_steps,
-                    plant=self.plant,
+                    plant=self.plant_noise(planner.scenario),
                 )
         finally:
             model.train(was_training)

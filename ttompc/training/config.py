@@ -1,8 +1,8 @@
 """Typed training recipe: ``TrainConfig`` = model + data + optimiser + trainer + logger + callbacks sections.
 
-Recipes live in ``recipes/<scenario>/<name>.yaml`` and are loaded with ``load_train_config`` (schema defaults <- YAML
-<- ``key=value`` overrides); unknown keys and wrong types raise ``ConfigError`` naming the key. This module does not
-import Lightning.
+Recipes (``recipes/<scenario>/pretrain.yaml`` and ``tiny.yaml``, ``recipes/generic/``, ``recipes/zoo/``) are
+loaded with ``load_train_config`` (schema defaults <- YAML <- ``key=value`` overrides); unknown keys and wrong types
+raise ``ConfigError`` naming the key. This module does not import Lightning.
 """
 
 from __future__ import annotations
