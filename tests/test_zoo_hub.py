@@ -108,6 +108,7 @@ def test_publish_download_plan_gives_the_same_warm_start(
         "mpc10_nominal_model_feasible_rate": ("model-predictive-control", 0.5),
     }
     ours = cards.parse_card((snapshot / "README.md").read_text())
+    assert 'Planner.from_pretrained("hf://org/toy-tto")' in ours.body
     assert ours.metrics == METRICS and ours.inference["rtg_scale"] == local.rtg_scale
     assert ours.inference["protocol"] == ["ttompc evaluate warmstart --model m problems=3 seed=1",
                                           "ttompc evaluate mpc --model m problems=2"]  # fmt: skip
@@ -128,6 +129,21 @@ def test_republish_is_a_new_revision_and_old_revisions_still_load(
     for planner, seed in ((old, 1), (new, 2)):
         expected = helpers.tiny_toy_planner(seed=seed).model.state_dict()
         assert all(np.array_equal(v.numpy(), expected[k].numpy()) for k, v in planner.model.state_dict().items())
+
+
+def test_a_fine_tuned_model_names_its_base_model_and_data(hub: hub_server.HubServer, tmp_path: Path) -> None:
+    import huggingface_hub
+
+    planner = helpers.tiny_toy_planner()
+    planner.extra.update(finetuned_from="hf://org/base@0123abc", rtg_scale=1.3)  # what `ttompc finetune` records
+    card, revision = zoo.publish_to_hub(
+        planner.save(tmp_path / "b"), "hf://org/ft", skip_eval=True, card_fields={"datasets": ["org/data-v1"]}
+    )
+    assert card.kind == "FT-TTO" and card.inference["rtg_scale"] == 1.3 and "model-index" not in card.front_matter()
+    readme = huggingface_hub.hf_hub_download("org/ft", "README.md", revision=revision)
+    data = huggingface_hub.ModelCard.load(readme).data
+    assert data.base_model == "org/base" and data.datasets == ["org/data-v1"] and data.eval_results is None
+    assert Planner.from_pretrained("hf://org/ft", progress=False).rtg_scale == 1.3
 
 
 def test_private_repositories_need_the_token(

@@ -37,7 +37,7 @@ from ttompc.zoo.cards import (
 )
 from ttompc.zoo.download import local_path
 from ttompc.zoo.errors import DownloadError, PublishError
-from ttompc.zoo.hub import CARD_FILE, is_hub_ref, parse_hf_url, upload
+from ttompc.zoo.hub import CARD_FILE, HubRef, is_hub_ref, parse_hf_url, upload
 from ttompc.zoo.registry import write_index, zoo_path
 
 DEFAULT_TAGS = ("ttompc", "trajectory-optimization", "mpc")
@@ -74,7 +74,7 @@ def publish(
         FileEntry(f, _url_for(dest / f, zoo, base_url), sha256_file(bundle / f), (bundle / f).stat().st_size)
         for f in REQUIRED_FILES
     ]
-    card = _card(bundle, config, name, files, card_path, metrics, skip_eval, evaluate, card_fields)
+    card = _card(bundle, config, name, files, card_path, metrics, skip_eval, evaluate, card_fields, name)
     dest.mkdir(parents=True, exist_ok=True)
     for entry in files:
         if _copy_hashed(bundle / entry.filename, dest / entry.filename) != (entry.sha256, entry.size):
@@ -113,7 +113,8 @@ def publish_to_hub(
     config = check_bundle(bundle)
     files = [FileEntry(f, f, sha256_file(bundle / f), (bundle / f).stat().st_size) for f in REQUIRED_FILES]
     card_path = zoo_path(zoo_dir) / f"{name}.md"
-    card = _card(bundle, config, name, files, card_path, metrics, skip_eval, evaluate, card_fields)
+    load_as = str(HubRef(ref.repo_id))
+    card = _card(bundle, config, name, files, card_path, metrics, skip_eval, evaluate, card_fields, load_as)
     with tempfile.TemporaryDirectory(prefix="ttompc-card-") as tmp:
         readme = Path(tmp) / CARD_FILE
         readme.write_text(render_card(card), encoding="utf-8")
@@ -158,6 +159,7 @@ def _card(
     skip_eval: bool,
     evaluate: Evaluate | None,
     card_fields: dict[str, Any] | None,
+    load_as: str,
 ) -> ModelCard:
     """The card of ``bundle`` published as ``files``. Metrics: ``metrics`` if given; else, unless ``skip_eval``,
     the existing card's when the files are byte-identical to the ones it describes (its numbers were measured on
@@ -194,7 +196,7 @@ def _card(
     fields.update(metrics=metrics, files=[f.to_dict() for f in files], **(card_fields or {}))
     fields["inference"] = inference_settings(config, metrics)
     card = ModelCard.from_dict(fields, body=previous.body if previous else "")
-    card.body = card.body or _default_body(card)
+    card.body = card.body or _default_body(card, load_as)
     return card
 
 
@@ -288,13 +290,16 @@ def _url_for(path: Path, zoo: Path, base_url: str | None) -> str:
     return resolved.as_uri()
 
 
-def _default_body(card: ModelCard) -> str:
+def _default_body(card: ModelCard, load_as: str) -> str:
+    """The body of a new card: what the model is and how to load it (``load_as``: its zoo name or Hub URL); a zoo
+    card links the zoo's README, which lies beside it."""
+    where = "the ttompc model zoo's README" if is_hub_ref(load_as) else "[README.md](README.md)"
     return (
         f"\n# {card.name}\n\n"
         f"{card.kind} model for the `{card.scenario}` scenario (version {card.scenario_version}).\n\n"
         "```python\nfrom ttompc.policy import Planner\n\n"
-        f'planner = Planner.from_pretrained("{card.name}")\n```\n\n'
-        "Card format, metric definitions and download details: [README.md](README.md).\n"
+        f'planner = Planner.from_pretrained("{load_as}")\n```\n\n'
+        f"Card format, metric definitions and download details: {where}.\n"
     )
 
 
