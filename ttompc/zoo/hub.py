@@ -76,8 +76,12 @@ def parse_hf_url(url: str, *, with_path: bool = False) -> HubRef:
 
 
 def _client() -> Any:
+    """The ``huggingface_hub`` package with the submodules used here imported (they are not loaded lazily)."""
     try:
         import huggingface_hub
+        import huggingface_hub.constants
+        import huggingface_hub.errors
+        import huggingface_hub.utils
     except ImportError:
         raise DownloadError(f"{SCHEME} URLs need huggingface_hub (pip install huggingface_hub)") from None
     return huggingface_hub

@@ -203,7 +203,7 @@ def _card(
 def inference_settings(config: dict[str, Any], metrics: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The card's ``inference`` section: the conditioning the model plans with by default (``rtg_scale`` from the
     bundle's ``extra``, else the paper's 1) and the evaluation commands its metrics came from (the protocol)."""
-    extra = config.get("extra") if isinstance(config.get("extra"), dict) else {}
+    extra = _extra(config)
     commands = dict.fromkeys(c for m in metrics.values() for c in _COMMAND_RE.findall(m["how"]))
     settings: dict[str, Any] = {
         "rtg_scale": float(extra.get("rtg_scale", 1.0)),
@@ -214,6 +214,12 @@ def inference_settings(config: dict[str, Any], metrics: dict[str, dict[str, Any]
     return settings
 
 
+def _extra(config: dict[str, Any]) -> dict[str, Any]:
+    """The bundle's free-form metadata (``Planner.extra``), ``{}`` when absent or not a mapping."""
+    extra = config.get("extra")
+    return extra if isinstance(extra, dict) else {}
+
+
 def _from_config(config: dict[str, Any]) -> dict[str, Any]:
     scenario, model = config.get("scenario"), config.get("model")
     if not isinstance(scenario, dict) or not {"name", "version"} <= set(scenario) or not isinstance(model, dict):
@@ -221,7 +227,7 @@ def _from_config(config: dict[str, Any]) -> dict[str, Any]:
             "the bundle's config.json needs 'scenario': {'name', 'version'} and 'model' (the "
             "architecture config) to fill the card"
         )
-    extra = config.get("extra") if isinstance(config.get("extra"), dict) else {}
+    extra = _extra(config)
     return {
         "kind": config.get("kind") or ("FT-TTO" if "finetuned_from" in extra else None),
         "scenario": {"name": scenario["name"], "version": scenario["version"]},
