@@ -1,6 +1,7 @@
 """A Hugging Face Hub stand-in on the loopback for the real ``huggingface_hub`` client, in memory.
 
-It implements exactly the endpoints that ttompc's use of the client calls (``huggingface_hub`` 2.x):
+It implements exactly the endpoints that ttompc's use of the client (``huggingface_hub`` 2.x) and
+``datasets.load_dataset("ORG/NAME")`` call:
 
     POST /api/repos/create                               create_repo (409 when it exists)
     POST /api/validate-yaml                              create_commit, when README.md is committed
@@ -9,6 +10,10 @@ It implements exactly the endpoints that ttompc's use of the client calls (``hug
                                                          transfer endpoint is needed)
     POST /api/{models|datasets}/ORG/NAME/commit/REV      create_commit: the NDJSON commit (header + base64 files)
     HEAD|GET /[datasets/]ORG/NAME/resolve/REV/PATH       hf_hub_download: metadata headers, then the bytes
+    GET /api/{models|datasets}/ORG/NAME/revision/REV     repo_info (datasets.load_dataset("ORG/NAME")): the commit
+                                                         and its files
+    GET /api/{models|datasets}/ORG/NAME/tree/REV[/PATH]  the file listing that load_dataset resolves the card's
+                                                         ``configs:`` globs with (``?recursive=...`` honoured)
     GET /api/agent-harnesses                             the client's user-agent detection (at most once per
                                                          process and day): an empty registry
 
@@ -35,6 +40,9 @@ import yaml
 
 _ID = r"(?P<repo>[A-Za-z0-9][\w.-]*/[A-Za-z0-9][\w.-]*)"
 _API_RE = re.compile(rf"^/api/(?P<type>models|datasets)/{_ID}/(?P<action>preupload|commit)/(?P<rev>[^/]+)$")
+_INFO_RE = re.compile(
+    rf"^/api/(?P<type>models|datasets)/{_ID}/(?P<action>revision|tree)/(?P<rev>[^/]+)(?:/(?P<path>.*))?$"
+)
 _RESOLVE_RE = re.compile(rf"^/(?:(?P<type>datasets)/)?{_ID}/resolve/(?P<rev>[^/]+)/(?P<path>.+)$")
 
 
@@ -184,9 +192,41 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         self._resolve()
 
     def do_GET(self) -> None:
-        if urlsplit(self.path).path == "/api/agent-harnesses":  # not a repository call: not in server.requests
+        path = urlsplit(self.path).path
+        if path == "/api/agent-harnesses":  # not a repository call: not in server.requests
             return self._json(200, {"standardEnvVars": [], "harnesses": {}})
-        self._resolve()
+        match = _INFO_RE.match(path)
+        if match is None:
+            return self._resolve()
+        self.server.requests.append(("GET", path))
+        with self.server.lock:
+            repo = self._repo(match["type"].removesuffix("s"), match["repo"])
+            if repo is None:
+                return self._json(404, {"error": "Repository not found"}, "RepoNotFound")
+            oid = repo.resolve(unquote(match["rev"]))
+            if oid is None:
+                return self._json(404, {"error": "Invalid rev id"}, "RevisionNotFound")
+            tree = repo.commits[oid]
+        if match["action"] == "revision":
+            siblings = [{"rfilename": p} for p in sorted(tree)]
+            return self._json(200, {"id": match["repo"], "sha": oid, "private": repo.private, "siblings": siblings})
+        return self._tree(tree, unquote(match["path"] or ""), "recursive" in urlsplit(self.path).query)
+
+    def _tree(self, tree: dict[str, bytes], folder: str, recursive: bool) -> None:
+        prefix = f"{folder.strip('/')}/" if folder.strip("/") else ""
+        entries: dict[str, dict[str, Any]] = {}
+        for path, data in sorted(tree.items()):
+            if not path.startswith(prefix):
+                continue
+            parts = path[len(prefix) :].split("/")
+            if len(parts) > 1 and not recursive:
+                entries.setdefault(prefix + parts[0], {"type": "directory", "path": prefix + parts[0], "oid": "0" * 40})
+                continue
+            for depth in range(1, len(parts)):  # the folders on the way down (recursive listings only)
+                below = prefix + "/".join(parts[:depth])
+                entries.setdefault(below, {"type": "directory", "path": below, "oid": "0" * 40})
+            entries[path] = {"type": "file", "path": path, "size": len(data), "oid": _git_oid(data)}
+        return self._json(200, list(entries.values()))
 
     def _resolve(self) -> None:
         path = urlsplit(self.path).path
@@ -204,8 +244,14 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             data = repo.commits[oid].get(unquote(match["path"]))
         if data is None:
             return self._json(404, {"error": "Entry not found"}, "EntryNotFound")
-        etag = hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
-        self._send(200, data, {"X-Repo-Commit": oid, "ETag": f'"{etag}"', "Content-Type": "application/octet-stream"})
+        self._send(
+            200, data, {"X-Repo-Commit": oid, "ETag": f'"{_git_oid(data)}"', "Content-Type": "application/octet-stream"}
+        )
+
+
+def _git_oid(data: bytes) -> str:
+    """The git blob id of ``data`` (what the Hub sends as the ETag of a regular file)."""
+    return hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
 
 
 @contextmanager

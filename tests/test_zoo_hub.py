@@ -225,13 +225,12 @@ def test_offline_uses_the_cache_or_says_what_is_missing(
 
 
 def test_dataset_folder_publishes_in_one_commit_and_loads_with_datasets(
-    hub: hub_server.HubServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    hub: hub_server.HubServer, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """A `ttompc generate` folder goes to a dataset repository; what comes back from the Hub is the same folder,
-    and `datasets.load_dataset` reads it through the card's `configs:` section."""
+    """A `ttompc generate` folder goes to a dataset repository in one commit, byte for byte, and
+    `datasets.load_dataset("ORG/NAME")` reads its splits from the Hub through the card's `configs:` section."""
     import data_fakes as fakes
     import datasets
-    from huggingface_hub import hf_hub_download
 
     from ttompc.data.config import GenerateConfig, SplitConfig
     from ttompc.data.generate import generate
@@ -252,14 +251,13 @@ def test_dataset_folder_publishes_in_one_commit_and_loads_with_datasets(
     assert published == {k: v for k, v in local.items() if k in published}
     assert {"README.md", "manifest.json"} <= set(published) and any(k.endswith(".parquet") for k in published)
 
-    for name in published:
-        path = hf_hub_download("org/fake-v1", name, repo_type="dataset", revision=revision)
-    snapshot = Path(path).parents[len(Path(name).parts) - 1]
-    loaded = datasets.load_dataset(str(snapshot), streaming=True)
+    monkeypatch.setattr(datasets.config, "HF_ENDPOINT", hub.url)  # datasets keeps its own copies of these
+    monkeypatch.setattr(datasets.config, "HF_HUB_OFFLINE", False)
+    monkeypatch.setattr(datasets.config, "HF_DATASETS_CACHE", tmp_path / "datasets-cache")
+    loaded = datasets.load_dataset("org/fake-v1", revision=revision, streaming=True)
     hf_split = {"train": "train", "validation": "val", "test": "test"}
     rows = {s: sum(1 for _ in loaded[s]) for s in loaded}
     assert rows == {s: manifest["splits"]["rows"][hf_split[s]] for s in loaded} and sum(rows.values()) > 0
-
     capsys.readouterr()  # datasets' own warnings
     (out / next(k for k in published if k.endswith(".parquet"))).write_bytes(b"damaged")
     assert main(["zoo", "publish", str(out), "--to", "hf://datasets/org/fake-v1"]) == 2
