@@ -79,6 +79,10 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
         ),
         (["finetune", str(REPO / "recipes/freeflyer/finetune.yaml")], ["--model"]),
         (["zoo", "info", "nope"], ["no model 'nope'"]),
+        (
+            ["evaluate", "warmstart", "--model", "hf://org/nope", "problems=1"],
+            ["hf://org/nope: README.md is not in the Hugging Face cache", "HF_HUB_OFFLINE=1"],
+        ),
     ],
 )
 def test_user_errors_are_one_line_and_create_nothing(tmp_path: Path, args: list[str], needles: list[str]) -> None:

@@ -156,7 +156,7 @@ def test_stale_index_is_detected(env: Path) -> None:
     make_bundle(env / "b")
     zoo.publish(env / "b", "m1", str(env / "zoo" / "models" / "m1"), skip_eval=True)
     assert registry.index_is_current()
-    (env / "zoo" / "m1.md").write_text((env / "zoo" / "m1.md").read_text().replace("license: MIT", "license: BSD"))
+    (env / "zoo" / "m1.md").write_text((env / "zoo" / "m1.md").read_text().replace("license: mit", "license: BSD"))
     assert not registry.index_is_current()
     assert main(["zoo", "index", "--check"]) == 1
     assert main(["zoo", "index"]) == 0 and registry.index_is_current()
@@ -218,10 +218,10 @@ def test_publish_records_the_conditioning(env: Path, toy, toy_stats) -> None:
 def test_republish_keeps_hand_edits_and_makes_a_new_snapshot(env: Path) -> None:
     zoo.publish(make_bundle(env / "b1"), "m", str(env / "zoo" / "models" / "m"), metrics=METRICS)
     path = env / "zoo" / "m.md"
-    path.write_text(path.read_text().replace("license: MIT", "license: CC-BY-4.0") + "\nHand-written notes.\n")
+    path.write_text(path.read_text().replace("license: mit", "license: cc-by-4.0") + "\nHand-written notes.\n")
     first = zoo.download("m", progress=False)
     card = zoo.publish(make_bundle(env / "b2", seed=1), "m", str(env / "zoo" / "models" / "m"), skip_eval=True)
-    assert card.license == "CC-BY-4.0" and card.body.endswith("Hand-written notes.\n") and card.metrics == {}
+    assert card.license == "cc-by-4.0" and card.body.endswith("Hand-written notes.\n") and card.metrics == {}
     second = zoo.download("m", progress=False)
     assert second != first and (first / "model.safetensors").is_file()  # the old snapshot is not rewritten
     assert (second / "model.safetensors").read_bytes() == (env / "b2" / "model.safetensors").read_bytes()

@@ -22,7 +22,7 @@ from ttompc.config import add_config_arguments, command_config, to_container
 
 @dataclass
 class DemoConfig:
-    model: str = "freeflyer-tto-v3"  # zoo name, bundle folder or .ckpt (the best free-flyer model)
+    model: str = "freeflyer-tto-v3"  # zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt (the best free-flyer model)
     problems: int = 2
     horizon: int = 10  # MPC planning horizon H
     seed: int = 0  # root seed of the held-out evaluation stream
@@ -39,7 +39,7 @@ _FLAGS = {"model": "model", "problems": "problems", "horizon": "horizon", "seed"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_config_arguments(p, "problems=3 horizon=20")
-    p.add_argument("--model", help="zoo name, bundle folder or .ckpt (default freeflyer-tto-v3)")
+    p.add_argument("--model", help="zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt (default freeflyer-tto-v3)")
     p.add_argument("--problems", type=int, help="held-out problems to plan (default 2)")
     p.add_argument("--horizon", type=int, help="MPC planning horizon H (default 10)")
     p.add_argument("--seed", type=int, help="root seed of the evaluation problem stream (default 0)")

@@ -39,7 +39,7 @@ _FLAGS = {
 
 def _shortcuts(p: argparse.ArgumentParser, example: str, problems: int) -> None:
     add_config_arguments(p, example)
-    p.add_argument("--model", help="TTO model: zoo name, bundle folder or Lightning .ckpt")
+    p.add_argument("--model", help="TTO model: zoo name, hf://ORG/NAME[@REV], bundle folder or Lightning .ckpt")
     p.add_argument("--ft-model", dest="ft_model", help="fine-tuned (FT-TTO) model, same forms as --model")
     p.add_argument("--scenario", help="scenario (default: the model's)")
     p.add_argument("--problems", type=int, help=f"number of held-out non-convex problems (default {problems})")
@@ -94,7 +94,9 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(to_container(cfg), indent=2))
             return 0
         if not cfg.model and not cfg.ft_model:
-            raise UserError("evaluate warmstart needs a model", "pass --model NAME (zoo name, folder or .ckpt)")
+            raise UserError(
+                "evaluate warmstart needs a model", "pass --model NAME (zoo name, hf://ORG/NAME, folder or .ckpt)"
+            )
         _announce("warmstart", cfg)
         _resolve_scenario(cfg)
         report = run_warmstart(cfg)

@@ -1,8 +1,9 @@
 """``ttompc finetune [RECIPE.yaml] --model MODEL key=value ...``: DAgger fine-tuning for MPC (paper Alg. 1).
 
-Settings are ``FinetuneConfig`` keys. MODEL is a zoo model name, a planner bundle directory or a Lightning
-checkpoint. Re-running the same command with the same ``trainer.out_dir`` resumes after the last finished iteration
-(collected shards are not recollected). Under torchrun/SLURM every rank collects its own slice of the rollouts."""
+Settings are ``FinetuneConfig`` keys. MODEL is a zoo model name, hf://ORG/NAME[@REV], a planner bundle directory or
+a Lightning checkpoint. Re-running the same command with the same ``trainer.out_dir`` resumes after the last finished
+iteration (collected shards are not recollected).
+Under torchrun/SLURM every rank collects its own slice of the rollouts."""
 
 from __future__ import annotations
 
@@ -17,7 +18,9 @@ from ttompc.progress import status
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, "recipes/freeflyer/finetune.yaml dagger.iterations=3")
-    parser.add_argument("--model", help="pretrained model: zoo name, bundle directory or Lightning .ckpt")
+    parser.add_argument(
+        "--model", help="pretrained model: zoo name, hf://ORG/NAME[@REV], bundle directory or Lightning .ckpt"
+    )
 
 
 def _config(args: argparse.Namespace) -> FinetuneConfig:

@@ -1,4 +1,4 @@
-"""``ttompc zoo list|info|download|publish|index``: the command-line face of ``ttompc.zoo``.
+"""``ttompc zoo list|info|download|publish|metrics|index``: the command-line face of ``ttompc.zoo``.
 
 The zoo's errors are ``UserError``s (one line, exit 2, through ``ttompc.cli``); so are unreadable input files."""
 
@@ -17,6 +17,7 @@ from typing import Any
 from ttompc import zoo
 from ttompc.errors import UserError
 from ttompc.zoo.cards import KINDS, ModelCard, render_card
+from ttompc.zoo.hub import parse_hf_url
 from ttompc.zoo.registry import index_is_current, write_index
 
 
@@ -34,14 +35,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--raw", action="store_true", help="print the card file as stored (YAML front matter first)")
 
     p = sub.add_parser("download", parents=[common], help="fetch and verify a model into the local cache")
-    p.add_argument("name")
+    p.add_argument("name", help="zoo model name, or hf://ORG/NAME[@REVISION] (into the Hugging Face cache)")
     p.add_argument("--cache-dir", help="cache root (default: $TTOMPC_HOME, $XDG_CACHE_HOME/ttompc, ~/.cache/ttompc)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    p = sub.add_parser("publish", parents=[common], help="copy a bundle to a destination and write its card")
-    p.add_argument("source", help="bundle directory (model.safetensors + config.json) or a Lightning .ckpt")
-    p.add_argument("--name", required=True)
-    p.add_argument("--to", required=True, help="destination directory or file:// URL, e.g. zoo/models/NAME")
+    p = sub.add_parser(
+        "publish", parents=[common], help="publish a bundle with its card (a folder or the Hub) or a dataset (the Hub)"
+    )
+    p.add_argument(
+        "source",
+        help="bundle directory (model.safetensors + config.json), a Lightning .ckpt, or with --to hf://datasets/... "
+        "a dataset folder of `ttompc generate`",
+    )
+    p.add_argument("--name", help="model name (required for a folder; default for the Hub: the repository's NAME)")
+    p.add_argument(
+        "--to",
+        required=True,
+        help="destination directory or file:// URL (e.g. zoo/models/NAME), or a Hugging Face repository "
+        "hf://ORG/NAME[@BRANCH] (a dataset: hf://datasets/ORG/NAME), uploaded in one commit",
+    )
+    p.add_argument("--private", action="store_true", help="create the Hub repository as private")
     p.add_argument("--card-metrics", help="JSON file {metric: {value, how}} to put in the card")
     p.add_argument("--skip-eval", action="store_true", help="publish without metrics")
     p.add_argument("--base-url", help="card URLs become BASE_URL/<file> (when the files are uploaded there)")
@@ -55,6 +68,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--recipe", help="path of the training recipe, e.g. recipes/freeflyer/pretrain.yaml")
     p.add_argument("--data-card", help="path or name of the training data card")
     p.add_argument("--tag", action="append", dest="tags", help="card tag (repeatable; replaces the default tags)")
+    p.add_argument(
+        "--dataset", action="append", dest="datasets", help="Hub id ORG/NAME of the training data (repeatable)"
+    )
+    p.add_argument("--base-model", help="Hub id ORG/NAME of the model a fine-tuned (FT-TTO) model started from")
 
     p = sub.add_parser("metrics", help="card metrics ({metric: {value, how}}) from `ttompc evaluate` reports")
     p.add_argument("--method", required=True, choices=KINDS, help="which model of the reports (TTO or FT-TTO)")
@@ -156,6 +173,9 @@ def readable_card(card: ModelCard) -> str:
 
 
 def _download(args: argparse.Namespace) -> int:
+    if zoo.is_hub_ref(args.name):  # the Hugging Face cache, not ours: --cache-dir does not apply
+        print(zoo.download_model(args.name, progress=not args.no_progress)[0])
+        return 0
     print(zoo.download(args.name, args.cache_dir, zoo_dir=args.zoo_dir, progress=not args.no_progress))
     return 0
 
@@ -179,12 +199,25 @@ def _as_bundle(source: Path, extra: dict[str, Any]) -> Iterator[Path]:
 def _publish(args: argparse.Namespace) -> int:
     from ttompc.zoo.publish import load_metrics
 
+    hub = zoo.is_hub_ref(args.to)
+    if hub and parse_hf_url(args.to).repo_type == "dataset":
+        commit = zoo.publish_dataset(args.source, args.to, private=args.private)
+        print(f"published {args.source} to {args.to} at revision {commit}")
+        return 0
+    if not hub and args.name is None:
+        raise UserError("zoo publish to a folder needs --name NAME")
+    if not hub and args.private:
+        raise UserError("--private is for a Hugging Face repository (--to hf://ORG/NAME)")
+    if hub and args.base_url:
+        raise UserError("--base-url is for a folder destination: a Hub card lists the repository's own files")
     given = {
         "kind": args.kind,
         "license": args.license,
         "tags": args.tags,
         "recipe": args.recipe,
         "data_card": args.data_card,
+        "datasets": args.datasets,
+        "base_model": args.base_model,
     }
     fields = {k: v for k, v in given.items() if v is not None}
     if args.rtg_scale is not None:
@@ -195,20 +228,35 @@ def _publish(args: argparse.Namespace) -> int:
         except ValueError as err:
             raise UserError(str(err)) from None
     extra = {"rtg_scale": args.rtg_scale} if args.rtg_scale is not None else {}
+    metrics = load_metrics(args.card_metrics) if args.card_metrics else None
     with _as_bundle(Path(args.source), extra) as source:
-        card = zoo.publish(
-            source,
-            args.name,
-            args.to,
-            zoo_dir=args.zoo_dir,
-            metrics=load_metrics(args.card_metrics) if args.card_metrics else None,
-            skip_eval=args.skip_eval,
-            base_url=args.base_url,
-            card_fields=fields,
-        )
+        if hub:
+            card, commit = zoo.publish_to_hub(
+                source,
+                args.to,
+                name=args.name,
+                private=args.private,
+                zoo_dir=args.zoo_dir,
+                metrics=metrics,
+                skip_eval=args.skip_eval,
+                card_fields=fields,
+            )
+        else:
+            card = zoo.publish(
+                source,
+                args.name,
+                args.to,
+                zoo_dir=args.zoo_dir,
+                metrics=metrics,
+                skip_eval=args.skip_eval,
+                base_url=args.base_url,
+                card_fields=fields,
+            )
+    files = ", ".join(f"{f.filename} ({f.size} B, sha256 {f.sha256[:12]}…)" for f in card.files)
     print(
-        f"published {card.name}: "
-        + ", ".join(f"{f.filename} ({f.size} B, sha256 {f.sha256[:12]}…)" for f in card.files)
+        f"published {card.name} to {args.to} at revision {commit}: {files}"
+        if hub
+        else f"published {card.name}: {files}"
     )
     return 0
 

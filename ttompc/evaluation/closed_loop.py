@@ -74,7 +74,7 @@ PLANTS = ("nominal", "perturbed")
 class ClosedLoopConfig:
     """``ttompc evaluate mpc`` settings (``key=value`` on the command line)."""
 
-    model: str | None = None  # TTO model: zoo name, bundle folder or .ckpt; None: baselines only
+    model: str | None = None  # TTO model: zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt; None: baselines only
     ft_model: str | None = None  # FT-TTO model, same forms
     scenario: str | None = None  # default: the model's scenario
     problems: int = 20

@@ -56,7 +56,7 @@ DETOUR_SIZE = 0.3  # detour amplitude in units of the scenario's state_scale
 class WarmStartConfig:
     """``ttompc evaluate warmstart`` settings (``key=value`` on the command line)."""
 
-    model: str | None = None  # TTO model: zoo name, bundle folder or .ckpt
+    model: str | None = None  # TTO model: zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt
     ft_model: str | None = None  # FT-TTO model, same forms
     scenario: str | None = None  # default: the model's scenario
     problems: int = 100

@@ -21,9 +21,10 @@ Every load re-hashes the files ``"sha256"`` lists and refuses a mismatch with a 
 (``ttompc.zoo.check_bundle``), so damaged weights fail instead of planning NaNs. Bundles saved before the key
 existed still load; zoo copies are also checked against their card's sha256 when fetched.
 
-``Planner.from_pretrained`` is the one loader: a zoo model name (downloaded and verified into the cache), a bundle
-directory, or a Lightning ``.ckpt`` written by ``TrajectoryTransformerModule`` (read without importing Lightning: its
-hyper-parameters are primitives, so ``weights_only=True`` loading works). Weights are never unpickled.
+``Planner.from_pretrained`` is the one loader: a zoo model name (downloaded and verified into the cache), a Hugging
+Face Hub model ``hf://ORG/NAME[@REVISION]`` (verified in the Hugging Face cache), a bundle directory, or a Lightning
+``.ckpt`` written by ``TrajectoryTransformerModule`` (read without importing Lightning: its hyper-parameters are
+primitives, so ``weights_only=True`` loading works). Weights are never unpickled.
 """
 
 from __future__ import annotations
@@ -222,16 +223,24 @@ class Planner:
         zoo_dir: str | Path | None = None,
         progress: bool = True,
     ) -> Planner:
-        """A planner from a Lightning checkpoint (``*.ckpt``), a bundle directory or a zoo model name (downloaded
-        into the verified cache if needed), in that order of precedence: a local path wins over a zoo name.
+        """A planner from a Hugging Face Hub model (``hf://ORG/NAME[@REVISION]``: through the Hugging Face cache,
+        every file checked against the repository card's sha256 first), a Lightning checkpoint (``*.ckpt``), a
+        bundle directory or a zoo model name (downloaded into the verified cache if needed), in that order of
+        precedence: a local path wins over a zoo name.
 
         The scenario defaults to the one the model was trained on (by name, else loaded from the recorded spec:
         ``ttompc.scenarios.find_scenario``); a scenario version different from the training one is an error unless
         ``check_version=False``."""
-        from ttompc.zoo import BundleError, check_bundle, download
+        from ttompc.zoo import BundleError, check_bundle, download, download_model, is_hub_ref
         from ttompc.zoo.cards import CardError, validate_name
 
-        forms = "pass a zoo model name (see `ttompc zoo list`), a bundle folder or a Lightning .ckpt file"
+        forms = (
+            "pass a zoo model name (see `ttompc zoo list`), hf://ORG/NAME[@REVISION], a bundle folder or a "
+            "Lightning .ckpt file"
+        )
+        if is_hub_ref(source):
+            path, meta = download_model(str(source), progress=progress)  # verified and checked like a bundle
+            return cls._from_bundle(path, meta, scenario, device=device, check_version=check_version)
         path = Path(source)
         if path.is_file():
             if path.suffix != ".ckpt":

@@ -121,9 +121,9 @@ class TrainConfig:
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     callbacks: CallbacksConfig = field(default_factory=CallbacksConfig)
-    # continue from published weights: a zoo name, a planner bundle folder or a Lightning .ckpt. Only a fresh run
-    # uses it (a run with checkpoints in out_dir resumes from them); the optimiser starts fresh with its warm-up,
-    # the model keeps the source's architecture and normalisation statistics.
+    # continue from published weights: a zoo name, hf://ORG/NAME[@REV], a planner bundle folder or a Lightning .ckpt.
+    # Only a fresh run uses it (a run with checkpoints in out_dir resumes from them); the optimiser starts fresh with
+    # its warm-up, the model keeps the source's architecture and normalisation statistics.
     init_from: str | None = None
 
 

@@ -1,5 +1,6 @@
 """The model zoo: cards in ``zoo/`` and verified downloads into a local cache (``Planner.from_pretrained`` in
-``ttompc.policy`` loads a zoo model by name through ``download``).
+``ttompc.policy`` loads a zoo model by name through ``download``), and the Hugging Face Hub: models and datasets
+published to ``hf://`` repositories and models loaded from them through the Hugging Face cache (``hub``).
 
 A published model is a *bundle*: ``model.safetensors`` (weights) + ``config.json`` (model config, scenario,
 normalisation statistics, recipe, code version), each listed in the card with its URL, sha256 and size.
@@ -12,8 +13,10 @@ from pathlib import Path
 
 from ttompc.zoo.cache import BundleError, UnsafePathError, cache_root, check_bundle
 from ttompc.zoo.cards import CardError, ModelCard
-from ttompc.zoo.download import ChecksumError, DownloadError, download_bundle
-from ttompc.zoo.publish import PublishError, publish
+from ttompc.zoo.download import download_bundle
+from ttompc.zoo.errors import ChecksumError, DownloadError, PublishError
+from ttompc.zoo.hub import download_model, is_hub_ref
+from ttompc.zoo.publish import publish, publish_dataset, publish_to_hub
 from ttompc.zoo.registry import UnknownModelError, get_card, load_cards, zoo_path
 
 
@@ -45,7 +48,11 @@ __all__ = [
     "cache_root",
     "check_bundle",
     "download",
+    "download_model",
+    "is_hub_ref",
     "list_models",
     "model_info",
     "publish",
+    "publish_dataset",
+    "publish_to_hub",
 ]

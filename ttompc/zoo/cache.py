@@ -123,8 +123,11 @@ CHECKSUMS = "sha256"  # config.json key: {file name: sha256} of the bundle's oth
 _REEXPORT = "re-export the bundle, or for a zoo model run `ttompc zoo download NAME` again"
 
 
-def check_bundle(bundle_dir: str | Path) -> dict[str, Any]:
+def check_bundle(bundle_dir: str | Path, within: Path | None = None) -> dict[str, Any]:
     """Validate a bundle without executing anything in it; returns its parsed ``config.json``.
+
+    Its files must resolve inside ``within`` (default: the bundle dir itself; a Hugging Face cache snapshot links
+    its files to its repository folder's ``blobs/``, so the Hub download passes that folder).
 
     The files whose sha256 ``config.json`` records (``CHECKSUMS``; bundles saved before it existed have none) are
     re-hashed: flipped bytes in the weights would otherwise load silently and plan NaNs. ``model.safetensors`` is
@@ -144,7 +147,7 @@ def check_bundle(bundle_dir: str | Path) -> dict[str, Any]:
         raise BundleError(f"{config_path} is not valid JSON: {err}", _REEXPORT) from None
     if not isinstance(config, dict):
         raise BundleError(f"{config_path} must hold a JSON object")
-    _verify_checksums(bundle, config.get(CHECKSUMS, {}))
+    _verify_checksums(bundle, config.get(CHECKSUMS, {}), bundle if within is None else within)
     weights_path = bundle / "model.safetensors"
     try:
         with safe_open(weights_path, framework="numpy") as weights:
@@ -155,11 +158,13 @@ def check_bundle(bundle_dir: str | Path) -> dict[str, Any]:
     return config
 
 
-def _verify_checksums(bundle: Path, recorded: object) -> None:
+def _verify_checksums(bundle: Path, recorded: object, within: Path) -> None:
     if not isinstance(recorded, dict) or not all(isinstance(v, str) for v in recorded.values()):
         raise BundleError(f"{bundle / 'config.json'}: {CHECKSUMS!r} must map file names to sha256 hex digests")
     for filename, expected in recorded.items():
-        path = inside(bundle, validate_name(filename, "file name"))
+        path = bundle / validate_name(filename, "file name")
+        if not path.resolve().is_relative_to(within.resolve()):
+            raise UnsafePathError(f"{path} resolves to {path.resolve()}, outside {within.resolve()}")
         if not path.is_file():
             raise BundleError(f"{path} is missing (config.json records its sha256)", _REEXPORT)
         actual = sha256_file(path)

@@ -1,8 +1,14 @@
-"""Model cards: ``zoo/<name>.md``, Markdown with a YAML front matter in the Hugging Face model-card style.
+"""Model cards: ``zoo/<name>.md``, Markdown with a YAML front matter that is also Hugging Face model-card metadata.
 
 The front matter is the machine-readable record (what ``zoo/index.json`` is generated from); the Markdown body is
 for people. Parsing is strict (unknown keys, bad hashes, unsafe names are errors) because the card decides which
 bytes land in a user's cache and under which file names.
+
+Besides our record the rendered front matter carries the Hub's keys: ``library_name: ttompc``, ``license``,
+``tags``, ``datasets`` (Hub ids of the training data), ``base_model`` (the source of a fine-tuned model) and a
+``model-index`` that ``huggingface_hub.ModelCard.load(...).data.eval_results`` reads. The ``model-index`` is derived
+from ``metrics`` (open-loop ``ws_*`` and closed-loop ``mpc*`` metrics, one result each); a card whose
+``model-index`` differs from its metrics is refused, so the numbers the Hub shows are the card's.
 """
 
 from __future__ import annotations
@@ -18,10 +24,19 @@ import yaml
 from ttompc.errors import UserError
 
 KINDS = ("TTO", "FT-TTO")  # pre-trained transformer / DAgger fine-tuned transformer
+LIBRARY_NAME = "ttompc"
+INFERENCE_KEYS = ("rtg_scale", "conditioning", "protocol")  # what the card's ``inference`` section may hold
+# model-index results: metric-name prefix -> (task type, task name)
+EVAL_TASKS = {
+    "ws_": ("trajectory-optimization", "Open-loop warm start of full-horizon SCP"),
+    "mpc": ("model-predictive-control", "Closed-loop TTO-MPC"),
+}
 REQUIRED_FILES = ("model.safetensors", "config.json")
 # Names become directory and file names in the cache: one path component, no leading dot, no "..".
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
+_OPTIONAL_HUB_KEYS = ("datasets", "base_model", "inference")
+_HUB_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,95}/[A-Za-z0-9][A-Za-z0-9._-]{0,95}$")
 _FRONT_MATTER_RE = re.compile(r"\A---[ \t]*\r?\n(.*?)\r?\n---[ \t]*(?:\r?\n|\Z)(.*)\Z", re.DOTALL)
 
 
@@ -81,8 +96,11 @@ class ModelCard:
     code_version: str
     metrics: dict[str, dict[str, Any]] = field(default_factory=dict)
     headline_metrics: list[str] = field(default_factory=list)
-    license: str = "MIT"
+    license: str = "mit"
     tags: list[str] = field(default_factory=list)
+    datasets: list[str] = field(default_factory=list)
+    base_model: str = ""
+    inference: dict[str, Any] = field(default_factory=dict)
     body: str = ""
 
     def __post_init__(self) -> None:
@@ -99,6 +117,16 @@ class ModelCard:
         missing = [f for f in REQUIRED_FILES if f not in names]
         if missing or len(set(names)) != len(names):
             raise CardError(f"card {self.name!r}: files must list {REQUIRED_FILES} once each, got {names}")
+        bad = [d for d in self.datasets if not _HUB_ID_RE.fullmatch(d) or ".." in d]
+        if bad:
+            raise CardError(f"card {self.name!r}: datasets must be Hugging Face ids ORG/NAME, got {bad}")
+        if self.base_model and (self.kind != "FT-TTO" or not _HUB_ID_RE.fullmatch(self.base_model)):
+            raise CardError(
+                f"card {self.name!r}: base_model {self.base_model!r} must be the Hugging Face id ORG/NAME of the "
+                f"model a fine-tuned (FT-TTO) model started from; this one is {self.kind}"
+            )
+        if not isinstance(self.inference, dict) or not set(self.inference) <= set(INFERENCE_KEYS):
+            raise CardError(f"card {self.name!r}: inference must be a mapping with keys from {INFERENCE_KEYS}")
 
     @property
     def size(self) -> int:
@@ -124,7 +152,31 @@ class ModelCard:
             "license": self.license,
             "code_version": self.code_version,
             "tags": self.tags,
+            "datasets": self.datasets,
+            "base_model": self.base_model,
+            "inference": self.inference,
         }
+
+    def front_matter(self) -> dict[str, Any]:
+        """The record (``to_dict``) plus the Hub's derived keys; empty optional Hub keys are left out."""
+        record = {k: v for k, v in self.to_dict().items() if v or k not in _OPTIONAL_HUB_KEYS}
+        index = self.model_index()
+        return {"library_name": LIBRARY_NAME, **record, **({"model-index": index} if index else {})}
+
+    def model_index(self) -> list[dict[str, Any]]:
+        """The Hub's ``model-index`` derived from ``metrics``: one result per evaluation (``EVAL_TASKS``: open loop,
+        closed loop) holding its metrics' values; empty when the card has no such metric. How each number was
+        measured stays in ``metrics`` (the Hub's result format has no place for it)."""
+        results = []
+        for prefix, (task_type, task_name) in EVAL_TASKS.items():
+            metrics = [{"type": k, "value": m["value"]} for k, m in self.metrics.items() if k.startswith(prefix)]
+            if metrics:
+                dataset = {
+                    "type": f"{LIBRARY_NAME}/{self.scenario}",
+                    "name": f"{self.scenario} v{self.scenario_version} held-out problems",
+                }
+                results.append({"task": {"type": task_type, "name": task_name}, "dataset": dataset, "metrics": metrics})
+        return [{"name": self.name, "results": results}] if results else []
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], body: str = "") -> ModelCard:
@@ -143,6 +195,11 @@ class ModelCard:
             "license",
             "code_version",
             "tags",
+            "datasets",
+            "base_model",
+            "inference",
+            "library_name",
+            "model-index",
         }
         unknown = sorted(set(d) - allowed)
         required = sorted({"name", "kind", "scenario", "architecture", "files", "code_version"} - set(d))
@@ -158,7 +215,9 @@ class ModelCard:
             entries = [FileEntry(**f) for f in files]
         except TypeError as err:
             raise CardError(f"card {d['name']!r}: bad file entry ({err})") from None
-        return cls(
+        if d.get("library_name", LIBRARY_NAME) != LIBRARY_NAME:
+            raise CardError(f"card {d['name']!r}: library_name must be {LIBRARY_NAME!r}, got {d['library_name']!r}")
+        card = cls(
             name=d["name"],
             kind=d["kind"],
             scenario=str(scenario["name"]),
@@ -170,10 +229,19 @@ class ModelCard:
             code_version=str(d["code_version"]),
             metrics=d.get("metrics") or {},
             headline_metrics=list(d.get("headline_metrics") or []),
-            license=str(d.get("license", "MIT")),
+            license=str(d.get("license", "mit")),
             tags=[str(t) for t in d.get("tags") or []],
+            datasets=[str(t) for t in d.get("datasets") or []],
+            base_model=str(d.get("base_model") or ""),
+            inference=d.get("inference") or {},
             body=body,
         )
+        if "model-index" in d and d["model-index"] != card.model_index():
+            raise CardError(
+                f"card {d['name']!r}: model-index does not match metrics",
+                "edit metrics only and re-render the card (the model-index is derived from them)",
+            )
+        return card
 
 
 def is_metric_value(x: Any) -> bool:
@@ -205,7 +273,9 @@ def parse_card(text: str) -> ModelCard:
 
 
 def render_card(card: ModelCard) -> str:
-    front = yaml.safe_dump(card.to_dict(), sort_keys=False, allow_unicode=True, default_flow_style=False, width=110)
+    front = yaml.safe_dump(
+        card.front_matter(), sort_keys=False, allow_unicode=True, default_flow_style=False, width=110
+    )
     return f"---\n{front}---\n{card.body}"
 
 

@@ -22,11 +22,12 @@ from typing import BinaryIO
 
 from tqdm.auto import tqdm
 
-from ttompc.errors import UserError
 from ttompc.progress import STDERR, progress_enabled
 from ttompc.version import code_version
 from ttompc.zoo.cache import assemble_bundle, blob_path, cache_root, inside, sha256_file
 from ttompc.zoo.cards import FileEntry, ModelCard
+from ttompc.zoo.errors import ChecksumError, DownloadError
+from ttompc.zoo.hub import hub_file, parse_hf_url
 
 try:
     import fcntl
@@ -36,14 +37,6 @@ except ImportError:  # Windows: no advisory locks, so concurrent downloads of on
 CHUNK = 1 << 20
 TIMEOUT_S = 60.0
 _CONTENT_RANGE_RE = re.compile(r"^bytes (\d+)-\d+/(?:\d+|\*)$")
-
-
-class DownloadError(UserError, RuntimeError):
-    """A file that could not be fetched."""
-
-
-class ChecksumError(DownloadError):
-    """Fetched bytes that are not the published ones (the file has been deleted)."""
 
 
 def download_bundle(
@@ -188,16 +181,5 @@ def _open_http(url: str, offset: int) -> tuple[BinaryIO, int]:
 
 def _hf_path(url: str) -> Path:
     """Resolve ``hf://org/repo[@revision]/path/in/repo`` to a local file via huggingface_hub's own cache."""
-    parts = urllib.parse.urlsplit(url)
-    repo, _, filename = parts.path.lstrip("/").partition("/")
-    repo_name, _, revision = repo.partition("@")
-    if not parts.netloc or not repo_name or not filename:
-        raise DownloadError(f"{url!r}: expected hf://org/repo[@revision]/path/in/repo")
-    try:
-        from huggingface_hub import hf_hub_download
-    except ImportError:
-        raise DownloadError(f"{url}: hf:// URLs need huggingface_hub (pip install huggingface_hub)") from None
-    try:
-        return Path(hf_hub_download(f"{parts.netloc}/{repo_name}", filename, revision=revision or None))
-    except Exception as err:  # huggingface_hub raises many unrelated types (HTTP, offline mode, auth, not found)
-        raise DownloadError(f"{url}: {type(err).__name__}: {err}") from err
+    ref = parse_hf_url(url, with_path=True)
+    return hub_file(ref, ref.path)

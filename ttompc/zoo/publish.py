@@ -1,11 +1,15 @@
-"""Publishing a model bundle: copy its two files to a destination, hash them, write the card and the index.
+"""Publishing a model bundle: hash its two files, write the card, and put both where users fetch them: a local
+directory plus the zoo's card and index (``publish``), or a Hugging Face Hub repository with the card as its
+``README.md`` in one commit (``publish_to_hub``). Datasets made by ``ttompc generate`` go to a Hub dataset
+repository the same way (``publish_dataset``).
 
 The zoo stores bundles and never builds a model (``ttompc.policy`` imports the zoo to load names, not the reverse):
 a Lightning checkpoint is converted by the caller (``ttompc zoo publish`` does). Only ``model.safetensors`` and
 ``config.json`` are published. Card fields come from the bundle's ``config.json``
-(``scenario: {name, version}``, ``model`` = architecture, and optionally ``kind``, ``recipe``, ``data_card``,
-``code_version``) over an existing card's hand-edited fields (body, licence, tags, recipe, ...), and explicit
-``card_fields`` over both.
+(``scenario: {name, version}``, ``model`` = architecture, optionally ``kind``, ``recipe``, ``data_card``,
+``code_version``, and ``extra``: ``rtg_scale`` for the inference settings, ``finetuned_from`` for ``base_model``)
+over an existing card's hand-edited fields (body, licence, tags, recipe, ...), and explicit ``card_fields`` over
+both.
 """
 
 from __future__ import annotations
@@ -13,14 +17,15 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
+import tempfile
 import urllib.parse
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ttompc.errors import UserError
 from ttompc.version import code_version
-from ttompc.zoo.cache import check_bundle
+from ttompc.zoo.cache import check_bundle, inside, sha256_file
 from ttompc.zoo.cards import (
     REQUIRED_FILES,
     FileEntry,
@@ -31,14 +36,14 @@ from ttompc.zoo.cards import (
     validate_name,
 )
 from ttompc.zoo.download import local_path
+from ttompc.zoo.errors import DownloadError, PublishError
+from ttompc.zoo.hub import CARD_FILE, HubRef, is_hub_ref, parse_hf_url, upload
 from ttompc.zoo.registry import write_index, zoo_path
 
 DEFAULT_TAGS = ("ttompc", "trajectory-optimization", "mpc")
+MANIFEST_FILE = "manifest.json"  # a dataset folder's file list with sha256 (``ttompc.data.generate``)
 Evaluate = Callable[[Path], dict[str, dict[str, Any]]]
-
-
-class PublishError(UserError, RuntimeError):
-    """A publish request that cannot be carried out as asked."""
+_COMMAND_RE = re.compile(r"`(ttompc evaluate [^`]+)`")
 
 
 def publish(
@@ -57,30 +62,125 @@ def publish(
 
     ``to`` is a local directory or ``file://`` URL. Card URLs are relative when ``to`` lies inside the zoo dir
     (models shipped with the repository), ``base_url + filename`` when the files will be uploaded there by hand,
-    else ``file://``. Metrics: ``metrics`` if given, else ``evaluate(bundle_dir)`` (the standard evaluation hook),
-    else nothing with ``skip_eval``; a card never silently claims metrics it was not given.
+    else ``file://``. Metrics: see ``_card``.
     """
     validate_name(name)
     zoo = zoo_path(zoo_dir)
     dest = _destination(to)
     card_path = zoo / f"{name}.md"
-    previous = _read_existing(card_path)
     bundle = _bundle_dir(Path(source))
-    from_config = _from_config(check_bundle(bundle))
+    config = check_bundle(bundle)
+    files = [
+        FileEntry(f, _url_for(dest / f, zoo, base_url), sha256_file(bundle / f), (bundle / f).stat().st_size)
+        for f in REQUIRED_FILES
+    ]
+    card = _card(bundle, config, name, files, card_path, metrics, skip_eval, evaluate, card_fields, name)
+    dest.mkdir(parents=True, exist_ok=True)
+    for entry in files:
+        if _copy_hashed(bundle / entry.filename, dest / entry.filename) != (entry.sha256, entry.size):
+            raise PublishError(f"{bundle / entry.filename} changed while it was being published; publish again")
+    zoo.mkdir(parents=True, exist_ok=True)
+    tmp = card_path.with_name(f".{card_path.name}.tmp")
+    tmp.write_text(render_card(card), encoding="utf-8")
+    os.replace(tmp, card_path)
+    write_index(zoo)
+    return card
+
+
+def publish_to_hub(
+    source: str | Path,
+    to: str,
+    *,
+    name: str | None = None,
+    private: bool = False,
+    zoo_dir: str | Path | None = None,
+    metrics: dict[str, dict[str, Any]] | None = None,
+    skip_eval: bool = False,
+    evaluate: Evaluate | None = None,
+    card_fields: dict[str, Any] | None = None,
+) -> tuple[ModelCard, str]:
+    """Publish the bundle dir ``source`` to the Hub model repository ``to`` (``hf://ORG/NAME[@BRANCH]``): its two
+    files and the card as ``README.md``, in one commit; returns the card and the commit id.
+
+    The card is named ``name`` (default: the repository's NAME) and lists the files by name (the repository's top
+    level); a zoo card of that name supplies the hand-edited fields as for ``publish``. Nothing is written locally.
+    """
+    ref = parse_hf_url(to)
+    if ref.repo_type != "model":
+        raise PublishError(f"{to}: a model bundle goes to a model repository (hf://ORG/NAME), not a dataset one")
+    name = validate_name(name or ref.repo_id.split("/")[1])
+    bundle = _bundle_dir(Path(source))
+    config = check_bundle(bundle)
+    files = [FileEntry(f, f, sha256_file(bundle / f), (bundle / f).stat().st_size) for f in REQUIRED_FILES]
+    card_path = zoo_path(zoo_dir) / f"{name}.md"
+    load_as = str(HubRef(ref.repo_id))
+    card = _card(bundle, config, name, files, card_path, metrics, skip_eval, evaluate, card_fields, load_as)
+    with tempfile.TemporaryDirectory(prefix="ttompc-card-") as tmp:
+        readme = Path(tmp) / CARD_FILE
+        readme.write_text(render_card(card), encoding="utf-8")
+        uploads = {**{f: bundle / f for f in REQUIRED_FILES}, CARD_FILE: readme}
+        commit = upload(ref, uploads, f"Publish {name} ({card.kind}, {card.scenario})", private=private)
+    return card, commit
+
+
+def publish_dataset(folder: str | Path, to: str, *, private: bool = False) -> str:
+    """Publish a dataset folder written by ``ttompc generate`` to the Hub dataset repository ``to``
+    (``hf://datasets/ORG/NAME[@BRANCH]``) in one commit: its card (``README.md``, whose ``configs:`` section lets
+    ``datasets.load_dataset`` find the splits), ``manifest.json`` and every parquet shard the manifest lists, each
+    checked against the manifest's sha256 first; returns the commit id."""
+    ref = parse_hf_url(to)
+    if ref.repo_type != "dataset":
+        raise PublishError(f"{to}: a dataset goes to a dataset repository, hf://datasets/ORG/NAME")
+    root = Path(folder)
+    missing = [f for f in (CARD_FILE, MANIFEST_FILE) if not (root / f).is_file()]
+    if missing:
+        raise PublishError(f"{root} is not a dataset folder of `ttompc generate`: missing {missing}")
+    manifest = json.loads((root / MANIFEST_FILE).read_text(encoding="utf-8"))
+    uploads = {CARD_FILE: root / CARD_FILE, MANIFEST_FILE: root / MANIFEST_FILE}
+    for shard in manifest.get("shards", []):
+        for entry in shard["files"]:
+            path = inside(root, *Path(entry["path"]).parts)
+            if not path.is_file() or sha256_file(path) != entry["sha256"]:
+                raise PublishError(
+                    f"{path} is missing or does not match manifest.json",
+                    "re-run `ttompc generate` with the same arguments to repair the folder",
+                )
+            uploads[Path(entry["path"]).as_posix()] = path
+    return upload(ref, uploads, f"Publish dataset {manifest.get('name', root.name)}", private=private)
+
+
+def _card(
+    bundle: Path,
+    config: dict[str, Any],
+    name: str,
+    files: list[FileEntry],
+    card_path: Path,
+    metrics: dict[str, dict[str, Any]] | None,
+    skip_eval: bool,
+    evaluate: Evaluate | None,
+    card_fields: dict[str, Any] | None,
+    load_as: str,
+) -> ModelCard:
+    """The card of ``bundle`` published as ``files``. Metrics: ``metrics`` if given; else, unless ``skip_eval``,
+    the existing card's when the files are byte-identical to the ones it describes (its numbers were measured on
+    these bytes), else ``evaluate(bundle)`` (the standard evaluation hook); a card never silently claims metrics it
+    was not given."""
+    previous = read_card(card_path) if card_path.is_file() else None
+    same_files = previous is not None and {(f.filename, f.sha256) for f in previous.files} == {
+        (f.filename, f.sha256) for f in files
+    }
     if metrics is None and not skip_eval:
-        if evaluate is None:
+        if previous is not None and same_files:
+            metrics = previous.metrics
+        elif evaluate is None:
             raise PublishError(
                 "no metrics: pass metrics (--card-metrics FILE) or skip_eval (--skip-eval); the "
                 "standard evaluation is not wired into publish yet"
             )
-        metrics = evaluate(bundle)
+        else:
+            metrics = evaluate(bundle)
     metrics = validate_metrics(metrics or {})
-    dest.mkdir(parents=True, exist_ok=True)
-    files = []
-    for filename in REQUIRED_FILES:
-        sha256, size = _copy_hashed(bundle / filename, dest / filename)
-        files.append(FileEntry(filename, _url_for(dest / filename, zoo, base_url), sha256, size))
-    fields: dict[str, Any] = {"name": name, "kind": "TTO", "license": "MIT", "tags": list(DEFAULT_TAGS)}
+    fields: dict[str, Any] = {"name": name, "kind": "TTO", "license": "mit", "tags": list(DEFAULT_TAGS)}
     if previous is not None:  # keep what a maintainer edited by hand; metrics and files are replaced
         fields.update(
             kind=previous.kind,
@@ -88,18 +188,36 @@ def publish(
             tags=previous.tags,
             recipe=previous.recipe,
             data_card=previous.data_card,
+            datasets=previous.datasets,
+            base_model=previous.base_model,
             headline_metrics=[m for m in previous.headline_metrics if m in metrics],
         )
-    fields.update({k: v for k, v in from_config.items() if v})
+    fields.update({k: v for k, v in _from_config(config).items() if v})
     fields.update(metrics=metrics, files=[f.to_dict() for f in files], **(card_fields or {}))
+    fields["inference"] = inference_settings(config, metrics)
     card = ModelCard.from_dict(fields, body=previous.body if previous else "")
-    card.body = card.body or _default_body(card)
-    zoo.mkdir(parents=True, exist_ok=True)
-    tmp = card_path.with_name(f".{card_path.name}.tmp")
-    tmp.write_text(render_card(card), encoding="utf-8")
-    os.replace(tmp, card_path)
-    write_index(zoo)
+    card.body = card.body or _default_body(card, load_as)
     return card
+
+
+def inference_settings(config: dict[str, Any], metrics: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The card's ``inference`` section: the conditioning the model plans with by default (``rtg_scale`` from the
+    bundle's ``extra``, else the paper's 1) and the evaluation commands its metrics came from (the protocol)."""
+    extra = _extra(config)
+    commands = dict.fromkeys(c for m in metrics.values() for c in _COMMAND_RE.findall(m["how"]))
+    settings: dict[str, Any] = {
+        "rtg_scale": float(extra.get("rtg_scale", 1.0)),
+        "conditioning": "rtg_0 = -rtg_scale * J_REL (cost of the relaxed problem), ctg_0 = 0",
+    }
+    if commands:
+        settings["protocol"] = list(commands)
+    return settings
+
+
+def _extra(config: dict[str, Any]) -> dict[str, Any]:
+    """The bundle's free-form metadata (``Planner.extra``), ``{}`` when absent or not a mapping."""
+    extra = config.get("extra")
+    return extra if isinstance(extra, dict) else {}
 
 
 def _from_config(config: dict[str, Any]) -> dict[str, Any]:
@@ -109,15 +227,28 @@ def _from_config(config: dict[str, Any]) -> dict[str, Any]:
             "the bundle's config.json needs 'scenario': {'name', 'version'} and 'model' (the "
             "architecture config) to fill the card"
         )
+    extra = _extra(config)
     return {
-        "kind": config.get("kind"),
+        "kind": config.get("kind") or ("FT-TTO" if "finetuned_from" in extra else None),
         "scenario": {"name": scenario["name"], "version": scenario["version"]},
         "architecture": model,
         # Planner bundles store the recipe's content; the card wants its path (pass it via card_fields).
         "recipe": config["recipe"] if isinstance(config.get("recipe"), str) else "",
         "data_card": config.get("data_card"),
         "code_version": str(config.get("code_version") or code_version()),
+        "base_model": _base_model(extra.get("finetuned_from")),
     }
+
+
+def _base_model(source: object) -> str:
+    """The source a fine-tuned bundle records (``extra.finetuned_from``) as the Hub's ``base_model`` when it is a
+    Hub repository (ORG/NAME); a zoo name, a local folder or a checkpoint is no Hub model and gives ""."""
+    if not is_hub_ref(source):
+        return ""
+    try:
+        return parse_hf_url(str(source)).repo_id
+    except DownloadError:
+        return ""
 
 
 def _bundle_dir(source: Path) -> Path:
@@ -165,17 +296,16 @@ def _url_for(path: Path, zoo: Path, base_url: str | None) -> str:
     return resolved.as_uri()
 
 
-def _read_existing(card_path: Path) -> ModelCard | None:
-    return read_card(card_path) if card_path.is_file() else None
-
-
-def _default_body(card: ModelCard) -> str:
+def _default_body(card: ModelCard, load_as: str) -> str:
+    """The body of a new card: what the model is and how to load it (``load_as``: its zoo name or Hub URL); a zoo
+    card links the zoo's README, which lies beside it."""
+    where = "the ttompc model zoo's README" if is_hub_ref(load_as) else "[README.md](README.md)"
     return (
         f"\n# {card.name}\n\n"
         f"{card.kind} model for the `{card.scenario}` scenario (version {card.scenario_version}).\n\n"
         "```python\nfrom ttompc.policy import Planner\n\n"
-        f'planner = Planner.from_pretrained("{card.name}")\n```\n\n'
-        "Card format, metric definitions and download details: [README.md](README.md).\n"
+        f'planner = Planner.from_pretrained("{load_as}")\n```\n\n'
+        f"Card format, metric definitions and download details: {where}.\n"
     )
 
 
