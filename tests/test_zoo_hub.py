@@ -18,6 +18,7 @@ from ttompc.cli import main
 from ttompc.policy import Planner
 from ttompc.scenarios import get_scenario
 from ttompc.zoo import cards, registry
+from ttompc.zoo.publish import inference_settings
 
 REPO_ZOO = Path(__file__).resolve().parents[1] / "zoo"
 TOKEN = "hf_test_token"
@@ -278,6 +279,8 @@ def test_shipped_cards_give_the_hub_their_results() -> None:
         expected = {k: m["value"] for k, m in ours.metrics.items() if k.startswith(("ws_", "mpc"))}
         assert results == expected and expected, path.name
         assert ours.inference["rtg_scale"] > 0 and ours.inference["protocol"], path.name
+        # the protocol is the commands behind the card's metrics, so it names the settings they were measured under
+        assert ours.inference["protocol"] == inference_settings({}, ours.metrics)["protocol"], path.name
 
 
 def test_cards_refuse_a_model_index_that_is_not_their_metrics(tmp_path: Path) -> None:
