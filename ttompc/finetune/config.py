@@ -1,5 +1,5 @@
 """Typed DAgger fine-tuning recipe (``recipes/<scenario>/finetune*.yaml``): ``dagger`` plus the training sections
-``data``, ``optim``, ``trainer`` and ``logger`` (``model`` comes from the pretrained model).
+``data``, ``optim``, ``trainer``, ``logger`` and ``callbacks`` (``model`` comes from the pretrained model).
 
 Every key is used. The ``trainer`` section is ``DaggerTrainerConfig``, not pre-training's ``TrainerConfig``: DAgger
 sets the step budget itself (``dagger.steps_per_iteration`` per iteration, continuing from the parent's global
@@ -19,7 +19,7 @@ from typing import Literal
 
 from ttompc.config import ConfigError, load_command_config
 from ttompc.data.config import DataConfig
-from ttompc.training.config import LoggerConfig, OptimConfig, Precision, TrainerConfig
+from ttompc.training.config import CallbacksConfig, LoggerConfig, OptimConfig, Precision, TrainerConfig
 
 
 @dataclass
@@ -40,6 +40,27 @@ class ExplorationConfig:
                 raise ValueError(f"dagger.exploration.{name} must be [min, max] with 0 <= min <= max, got {lo_hi}")
         if not self.horizons or min(self.horizons) < 1:
             raise ValueError(f"dagger.exploration.horizons must be positive, got {self.horizons}")
+
+
+@dataclass
+class LabelConfig:
+    """Which visited states get an expert label, and what a label is (``ttompc.finetune.collect``).
+
+    ``per_rollout``: labelled visited steps per rollout, drawn uniformly without replacement (0: every step, the
+    paper); steps where the expert acts are labelled too. The loss skips unlabelled steps (a departure when > 0: the
+    expert's full-horizon solve at every visited state is most of a rollout's cost, docs/scaling.md).
+    ``kind``: ``step`` (the paper) labels the visited state x_t with the expert's control u*_t and f(x_t, u*_t), one
+    row per rollout; ``plan`` (a departure) writes one row per labelled step: the visited prefix up to x_t followed by
+    the expert's whole plan from x_t, so the model learns the plan it should generate from where the learner is."""
+
+    kind: Literal["step", "plan"] = "step"
+    per_rollout: int = 0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("step", "plan"):
+            raise ValueError(f"dagger.labels.kind must be 'step' or 'plan', got {self.kind!r}")
+        if self.per_rollout < 0:
+            raise ValueError(f"dagger.labels.per_rollout must be >= 0 (0: every step), got {self.per_rollout}")
 
 
 @dataclass
@@ -86,6 +107,7 @@ class DaggerConfig:
     seed: int = 0  # root seed: rollout (i, r) uses SeedSequence(seed, spawn_key=(stream, i, r))
     steps_per_iteration: int = 3000
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    labels: LabelConfig = field(default_factory=LabelConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
 
@@ -142,6 +164,8 @@ class FinetuneConfig:
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-5, warmup_steps=0))
     trainer: DaggerTrainerConfig = field(default_factory=DaggerTrainerConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
+    # closed-loop TTO-MPC of the model being fine-tuned, logged at its validation runs (``ClosedLoopEvalCallback``)
+    callbacks: CallbacksConfig = field(default_factory=CallbacksConfig)
 
     def __post_init__(self) -> None:
         if self.data.dagger_dirs:
