@@ -14,7 +14,7 @@ Batch contract (float32 unless stated, normalised with the open-loop dataset's t
     timesteps (B, L) int64      absolute step indices t
     target_actions (B, L, m)    normalised like actions
     target_next_states (B, L, n) normalised like states
-    mask (B, L)                 1 for real steps
+    mask (B, L)                 1 for steps with a target (DAgger rows: NaN targets mark unlabelled steps, 0 here)
     source (B,) int64           0 rel, 1 scp, 2 dagger (``schema.SOURCE_CODES``)
     problem_id (B,) int64
 """
@@ -176,6 +176,9 @@ class _Batcher:
             return np.take_along_axis(a, t.reshape(B, Lc, *([1] * (a.ndim - 2))), axis=1)
 
         f32 = np.float32
+        # DAgger rows mark unlabelled steps with NaN targets: no loss there (mask 0, target 0)
+        target_a, target_s = win(rows["target_actions"]).astype(f32), win(rows["target_next_states"]).astype(f32)
+        labelled = np.isfinite(target_a).all(axis=-1) & np.isfinite(target_s).all(axis=-1)  # (B, L)
         out = {
             "states": st.normalize("states", win(rows["states"]).astype(f32)),
             "actions": st.normalize("actions", win(rows["actions"]).astype(f32)),
@@ -183,9 +186,9 @@ class _Batcher:
             "rtg": st.normalize("rtg", win(rows["rtg"]).astype(f32)[..., None]),
             "ctg": st.normalize("ctg", win(rows["ctg"]).astype(f32)[..., None]),
             "timesteps": t.astype(np.int64),
-            "target_actions": st.normalize("actions", win(rows["target_actions"]).astype(f32)),
-            "target_next_states": st.normalize("states", win(rows["target_next_states"]).astype(f32)),
-            "mask": np.ones((B, Lc), dtype=f32),
+            "target_actions": np.nan_to_num(st.normalize("actions", target_a), nan=0.0),
+            "target_next_states": np.nan_to_num(st.normalize("states", target_s), nan=0.0),
+            "mask": labelled.astype(f32),
             "source": np.array([SOURCE_CODES[s] for s in rows["source"]], dtype=np.int64),
             "problem_id": rows["problem_id"].astype(np.int64),
         }

@@ -2,16 +2,25 @@
 
 A rollout runs one episode in which the exploration policy alternates between the learner (TTO-MPC with the current
 model, H drawn per rollout from ``exploration.horizons``) and the expert (full-horizon SCP over [t, N) from the true
-state, warm-started by its own previous plan shifted one step; REL at t = 0) in expert windows (``exploration``; by
-default 1–3 windows of 15–25 steps, one covering the end).
+state) in expert windows (``exploration``; by default 1–3 windows of 15–25 steps, one covering the end). The expert
+solves at the labelled steps (``labels``: every step, the paper, or ``labels.per_rollout`` drawn ones) and wherever it
+acts, each time from REL over [t, N) from x_t, as a from-scratch solve does (REL at t = 0); where the expert acts on
+consecutive steps its own converged plan's tail is reused when the state is on it (plan reuse, ``ttompc.mpc.loop``).
+Warm-starting it from its previous plan shifted by one step instead (the reference's expert) was measured to land in
+worse local optima: 3.6% costlier than from scratch at a visited state of the short free-flyer (docs/scaling.md).
 
-Labels: every visited state x_t gets the expert's control u*_t and the state *that control* leads to with the exact
-dynamics, x*_{t+1} = f(x_t, u*_t). The reference paired the expert's planned next state with the *executed* action
-token; our (target_action, target_next_state) pair is always consistent. The row's states, actions, rtg and ctg are
-the visited states, executed actions and the learner's running conditioning; its solver columns hold the applied
-cost, the learner's/expert's compute time (solve_time/solver_time), the keep-out violations of the executed
-trajectory (violation) and "H=..;expert_steps=..;fallbacks=.." (status). Rollouts are kept whether or not they end
-feasible: their visited states are where the learner needs corrections.
+Labels (``labels.kind``):
+* ``step`` (the paper): a labelled x_t gets the expert's control u*_t and the state *that control* leads to with the
+  exact dynamics, x*_{t+1} = f(x_t, u*_t). The reference paired the expert's planned next state with the *executed*
+  action token; our (target_action, target_next_state) pair is always consistent. One row per rollout: the visited
+  states, executed actions and the learner's running conditioning, NaN targets at unlabelled steps (no loss).
+* ``plan`` (a departure): one row per labelled step t whose expert solve converged: the visited prefix, then the
+  expert's plan from x_t, with targets from t on (``_plan_row``). TTO-MPC's terminal target is the model's H-step
+  rollout from the visited history; these rows supervise exactly that rollout.
+The solver columns hold the row's cost, the learner's/expert's compute time (solve_time/solver_time), the keep-out
+violations of the row's trajectory (violation) and "H=..;expert_steps=..;fallbacks=..;labels=.." (status; plan rows
+add ";plan_from=t"). Rollouts are kept whether or not they end feasible: their visited states are where the learner
+needs corrections.
 
 Seeds: rollout (i, r) draws everything (problem, H, windows) from ``ttompc.seeding.rollout_seed(seed, i, r)``, never
 the wall clock. Rows go through the same resumable writer as open-loop generation (``ShardedFolder``, shard k =
@@ -22,6 +31,7 @@ reads like an open-loop folder; each rank collects its own shards with the share
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,9 +43,9 @@ from ttompc.data.generate import split_of
 from ttompc.data.resumable import ShardedFolder
 from ttompc.data.schema import make_row, trajectory_features
 from ttompc.evaluation.problems import first_solvable
-from ttompc.finetune.config import DaggerConfig, ExplorationConfig
-from ttompc.mpc.loop import MPCController
-from ttompc.mpc.providers import ShiftProvider
+from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig
+from ttompc.mpc.loop import MPCController, StepPlan
+from ttompc.mpc.providers import RemainingREL, ShiftProvider
 from ttompc.mpc.settings import MPCSettings
 from ttompc.mpc.tto import TTOProvider
 from ttompc.parallel import pool_map
@@ -81,6 +91,16 @@ def _sample_problem(scenario: Scenario, rng: np.random.Generator, attempts: int 
     return found[1], found[2]
 
 
+def label_schedule(rng: np.random.Generator, n_steps: int, per_rollout: int) -> np.ndarray:
+    """Steps (N,) bool that get an expert label: ``per_rollout`` distinct steps drawn uniformly (0 or >= N: every
+    step, the paper). Draws nothing from ``rng`` when every step is labelled, so such rollouts keep their seeds."""
+    if per_rollout <= 0 or per_rollout >= n_steps:
+        return np.ones(n_steps, dtype=bool)
+    mask = np.zeros(n_steps, dtype=bool)
+    mask[rng.choice(n_steps, size=per_rollout, replace=False)] = True
+    return mask
+
+
 def collect_rollout(
     scenario: Scenario,
     planner: Planner,
@@ -88,11 +108,14 @@ def collect_rollout(
     index: int,
     root_seed: int,
     exploration: ExplorationConfig,
+    labels: LabelConfig | None = None,
+    *,
     settings: MPCSettings | None = None,
-) -> dict[str, Any]:
-    """One DAgger rollout -> one schema row (see the module docstring for the labels). From ``settings`` both
-    controllers take mode, backend and plan reuse (without reuse the labels are the same); the learner runs the
-    paper's fixed H (exploration, Alg. 1)."""
+) -> list[dict[str, Any]]:
+    """One DAgger rollout -> its schema rows (see the module docstring for the labels): one row with ``kind="step"``
+    labels, one row per labelled step with ``kind="plan"``. From ``settings`` both controllers take mode, backend and
+    plan reuse (without reuse the labels are the same); the learner runs the paper's fixed H (exploration, Alg. 1)."""
+    labels = labels or LabelConfig()
     s = settings or MPCSettings()
     loop = MPCSettings(mode=s.mode, backend=s.backend, reuse=s.reuse)
     seed = rollout_seed(root_seed, iteration, index)
@@ -101,23 +124,30 @@ def collect_rollout(
     N = problem.n_steps
     H = min(int(rng.choice(exploration.horizons)), N)
     expert_steps = expert_schedule(rng, N, exploration)
+    labelled = label_schedule(rng, N, labels.per_rollout) | expert_steps
     learner_provider = TTOProvider(planner)
     learner = MPCController(scenario, problem, learner_provider, H, loop)
     shift = ShiftProvider()
     expert = MPCController(scenario, problem, shift, N, loop)
+    remaining_rel = RemainingREL(loop.backend)
     learner_provider.reset(scenario, problem, rel.cost)
     shift.reset(scenario, problem, rel.cost)
-    shift.reset_plan(rel.X, rel.U)
     x = problem.x0.copy()
-    X, U, U_star, X_star = [x], [], [], []
+    X, U = [x], []
+    plans: dict[int, StepPlan] = {}  # the expert's plan at each labelled step
     learner_time = expert_time = 0.0
     fallbacks = 0
     for t in range(N):
-        e = expert.plan(t, x)
-        expert_time += e.warm_time + e.solve_time
-        U_star.append(e.u)
-        X_star.append(scenario.step(problem, t, x, e.u))
+        e = None
+        if labelled[t]:  # the expert starts from REL over [t, N) from x_t, as a from-scratch solve does
+            t0 = time.perf_counter()
+            start = rel if t == 0 else remaining_rel(scenario, problem, t, x)
+            shift.reset_plan(start.X, start.U)
+            expert_time += time.perf_counter() - t0
+            e = plans[t] = expert.plan(t, x)
+            expert_time += e.warm_time + e.solve_time
         if expert_steps[t]:
+            assert e is not None
             plan, u = e, e.u
         else:
             plan = learner.plan(t, x)
@@ -125,7 +155,8 @@ def collect_rollout(
             fallbacks += plan.fallback
             u = plan.u
         x_next = scenario.step(problem, t, x, u)
-        expert.observe(e, u, x_next)
+        if e is not None:
+            expert.observe(e, u, x_next)
         learner.observe(plan, u, x_next)
         X.append(x_next)
         U.append(u)
@@ -133,28 +164,83 @@ def collect_rollout(
     Xa, Ua = np.stack(X), np.stack(U)
     ctx = learner_provider.context
     assert ctx is not None
-    target_next = np.stack(
-        [scenario.to_model_states(problem, X_star[t][None], start=t + 1)[0] for t in range(N)]
-    )  # (N, n)
+    rtg, ctg = ctx.rtg[0, :N].double().cpu().numpy(), ctx.ctg[0, :N].double().cpu().numpy()
+    common = dict(problem_id=rollout_id(iteration, index), seed=seed, source="dagger", iteration=iteration,
+                  solve_time=learner_time, solver_time=expert_time)  # fmt: skip
+    status = f"H={H};expert_steps={int(expert_steps.sum())};fallbacks={fallbacks};labels={int(labelled.sum())}"
+    if labels.kind == "plan":
+        return [
+            _plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, status, common)
+            for t, e in sorted(plans.items())
+            if not e.fallback
+        ]
+    m, n = scenario.control_dim, scenario.state_dim
+    target_actions = np.full((N, m), np.nan)
+    target_next = np.full((N, n), np.nan)
+    for t, e in plans.items():
+        target_actions[t] = e.u
+        x_star = scenario.step(problem, t, Xa[t], e.u)
+        target_next[t] = scenario.to_model_states(problem, x_star[None], start=t + 1)[0]
+    return [
+        make_row(
+            scenario,
+            problem,
+            states=scenario.to_model_states(problem, Xa),
+            states_opt=Xa,
+            actions=Ua,
+            rtg=rtg,
+            ctg=ctg,
+            target_actions=target_actions,
+            target_next_states=target_next,
+            cost=scenario.cost(Ua),
+            status=status,
+            violation=float(np.sum(scenario.violations(problem, Xa))),
+            **common,  # type: ignore[arg-type]
+        )
+    ]
+
+
+def _plan_row(
+    scenario: Scenario,
+    problem: Problem,
+    X: np.ndarray,
+    U: np.ndarray,
+    rtg: np.ndarray,
+    ctg: np.ndarray,
+    t: int,
+    e: StepPlan,
+    status: str,
+    common: dict[str, Any],
+) -> dict[str, Any]:
+    """The row of a ``plan`` label at step t: the visited prefix (states x_0..x_t, executed u_0..u_(t-1), the learner's
+    rtg/ctg) followed by the expert's plan from x_t over [t, N); targets (the plan's controls and next states) from t
+    on, NaN (no loss) before. The plan's rtg runs on as the context's does (rtg_(s+1) = rtg_s + c(u*_s)), its ctg is
+    held (the expert plan is feasible)."""
+    N = problem.n_steps
+    Xr = np.concatenate([X[:t], e.X])  # (N+1, n)
+    Ur = np.concatenate([U[:t], e.U])  # (N, m)
+    S = scenario.to_model_states(problem, Xr)
+    stage = np.array([scenario.cost(u[None]) for u in e.U[:-1]])
+    rtg_r = np.concatenate([rtg[:t], rtg[t] + np.concatenate([[0.0], np.cumsum(stage)])])
+    ctg_r = np.concatenate([ctg[:t], np.full(N - t, ctg[t])])
+    target_actions = np.full_like(Ur, np.nan)
+    target_actions[t:] = e.U
+    target_next = np.full((N, S.shape[1]), np.nan)
+    target_next[t:] = S[t + 1 :]
     return make_row(
         scenario,
         problem,
-        problem_id=rollout_id(iteration, index),
-        seed=seed,
-        source="dagger",
-        iteration=iteration,
-        states=scenario.to_model_states(problem, Xa),
-        states_opt=Xa,
-        actions=Ua,
-        rtg=ctx.rtg[0, :N].double().cpu().numpy(),
-        ctg=ctx.ctg[0, :N].double().cpu().numpy(),
-        target_actions=np.stack(U_star),
+        states=S,
+        states_opt=Xr,
+        actions=Ur,
+        rtg=rtg_r,
+        ctg=ctg_r,
+        target_actions=target_actions,
         target_next_states=target_next,
-        cost=scenario.cost(Ua),
-        status=f"H={H};expert_steps={int(expert_steps.sum())};fallbacks={fallbacks}",
-        solve_time=learner_time,
-        solver_time=expert_time,
-        violation=float(np.sum(scenario.violations(problem, Xa))),
+        cost=scenario.cost(Ur),
+        status=f"{status};plan_from={t}",
+        violation=float(np.sum(scenario.violations(problem, Xr))),
+        **common,
     )
 
 
@@ -176,7 +262,7 @@ def _init_collector(scenario_name: str, planner_dir: str, cfg: DaggerConfig) -> 
     _W["cfg"] = cfg
 
 
-def _collect_one(task: tuple[int, int]) -> dict[str, Any]:
+def _collect_one(task: tuple[int, int]) -> list[dict[str, Any]]:
     iteration, index = task
     cfg: DaggerConfig = _W["cfg"]
     return collect_rollout(
@@ -186,7 +272,8 @@ def _collect_one(task: tuple[int, int]) -> dict[str, Any]:
         index,
         cfg.seed,
         cfg.exploration,
-        cfg.settings(),
+        cfg.labels,
+        settings=cfg.settings(),
     )
 
 
@@ -202,7 +289,8 @@ def collect_iteration(
     init = (scenario.name, str(planner_dir), cfg)
     rows = pool_map(_collect_one, tasks, workers, _init_collector, init, scenarios=[scenario_spec(scenario)])
     with Bar(len(tasks), f"collect iteration {iteration}", "rollout") as bar:
-        for k, shard_rows, seconds in folder.group(todo, bar.each(rows)):
+        for k, rollouts, seconds in folder.group(todo, bar.each(rows)):
+            shard_rows = [row for rollout in rollouts for row in rollout]
             by_split: dict[str, list[dict[str, Any]]] = {"train": [], "val": []}
             for row in shard_rows:
                 by_split[split_of(row["problem_id"] % ITERATION_IDS, splits)].append(row)
@@ -210,7 +298,8 @@ def collect_iteration(
                 k,
                 by_split,
                 iteration=iteration,
-                rollouts=len(shard_rows),
+                rollouts=len(rollouts),
+                rows=len(shard_rows),
                 mean_cost=float(np.mean([r["cost"] for r in shard_rows])),
                 seconds=seconds,
             )

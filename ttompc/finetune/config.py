@@ -1,5 +1,5 @@
 """Typed DAgger fine-tuning recipe (``recipes/<scenario>/finetune*.yaml``): ``dagger`` plus the training sections
-``data``, ``optim``, ``trainer`` and ``logger`` (``model`` comes from the pretrained model).
+``data``, ``optim``, ``trainer``, ``logger`` and ``callbacks`` (``model`` comes from the pretrained model).
 
 Every key a recipe may set is used. The ``trainer`` section is pre-training's ``TrainerConfig`` less the keys
 DAgger owns (``DAGGER_OWNED``): DAgger sets the step budget itself (``dagger.steps_per_iteration`` per iteration,
@@ -17,12 +17,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from ttompc.config import ConfigError, given_keys, load_command_config
 from ttompc.data.config import DataConfig
 from ttompc.mpc.settings import MPCSettings, protocol_settings
-from ttompc.training.config import LoggerConfig, OptimConfig, TrainerConfig
+from ttompc.training.config import CallbacksConfig, LoggerConfig, OptimConfig, TrainerConfig
 
 DAGGER_OWNED = ("max_steps", "max_epochs", "keep_checkpoints", "resume", "export_planner")  # trainer keys DAgger sets
 
@@ -45,6 +45,27 @@ class ExplorationConfig:
                 raise ValueError(f"dagger.exploration.{name} must be [min, max] with 0 <= min <= max, got {lo_hi}")
         if not self.horizons or min(self.horizons) < 1:
             raise ValueError(f"dagger.exploration.horizons must be positive, got {self.horizons}")
+
+
+@dataclass
+class LabelConfig:
+    """Which visited states get an expert label, and what a label is (``ttompc.finetune.collect``).
+
+    ``per_rollout``: labelled visited steps per rollout, drawn uniformly without replacement (0: every step, the
+    paper); steps where the expert acts are labelled too. The loss skips unlabelled steps (a departure when > 0: the
+    expert's full-horizon solve at every visited state is most of a rollout's cost, docs/scaling.md).
+    ``kind``: ``step`` (the paper) labels the visited state x_t with the expert's control u*_t and f(x_t, u*_t), one
+    row per rollout; ``plan`` (a departure) writes one row per labelled step: the visited prefix up to x_t followed by
+    the expert's whole plan from x_t, so the model learns the plan it should generate from where the learner is."""
+
+    kind: Literal["step", "plan"] = "step"
+    per_rollout: int = 0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("step", "plan"):
+            raise ValueError(f"dagger.labels.kind must be 'step' or 'plan', got {self.kind!r}")
+        if self.per_rollout < 0:
+            raise ValueError(f"dagger.labels.per_rollout must be >= 0 (0: every step), got {self.per_rollout}")
 
 
 @dataclass
@@ -85,6 +106,7 @@ class DaggerConfig:
     seed: int = 0  # root seed: rollout (i, r) uses SeedSequence(seed, spawn_key=(stream, i, r))
     steps_per_iteration: int = 3000
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    labels: LabelConfig = field(default_factory=LabelConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     # MPC settings of rollouts and measurement: a preset (paper, zoo) or a YAML file; the zoo's cards report zoo,
@@ -111,6 +133,8 @@ class FinetuneConfig:
         default_factory=lambda: TrainerConfig(checkpoint_every_n_steps=100, out_dir="runs/freeflyer-dagger")
     )  # checkpoint_every_n_steps refreshes checkpoints/iter-<i>.ckpt: an interrupted iteration resumes there
     logger: LoggerConfig = field(default_factory=LoggerConfig)
+    # closed-loop TTO-MPC of the model being fine-tuned, logged at its validation runs (``ClosedLoopEvalCallback``)
+    callbacks: CallbacksConfig = field(default_factory=CallbacksConfig)
 
     def __post_init__(self) -> None:
         if self.data.dagger_dirs:

@@ -211,13 +211,18 @@ def _train_iteration(
     if resume_from is None:
         module.model.load_state_dict(source.model.state_dict())
     t = cfg.trainer
+    callbacks: list[L.Callback] = [SaveLastCheckpoint(ckpt, t.checkpoint_every_n_steps), ExceptionCheckpoint(ckpt)]
+    if cfg.callbacks.eval_mpc.enabled:  # the model's closed loop while it fine-tunes (logged as mpc/*)
+        from ttompc.training.callbacks import ClosedLoopEvalCallback
+
+        callbacks.append(ClosedLoopEvalCallback.from_config(cfg.callbacks.eval_mpc, source.scenario.name))
     trainer = build_trainer(
         replace(t, max_steps=target),
         cfg.optim,
         Path(t.out_dir),
         logger,
         max_steps=target,
-        callbacks=[SaveLastCheckpoint(ckpt, t.checkpoint_every_n_steps), ExceptionCheckpoint(ckpt)],
+        callbacks=callbacks,
         num_sanity_val_steps=t.num_sanity_val_steps,
         enable_checkpointing=False,
     )
