@@ -45,14 +45,15 @@ from ttompc.data.schema import make_row, trajectory_features
 from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig
 from ttompc.mpc.loop import MPCController, StepPlan
-from ttompc.mpc.providers import RemainingREL, ShiftProvider
+from ttompc.mpc.providers import ShiftProvider
 from ttompc.mpc.settings import MPCSettings
 from ttompc.mpc.tto import TTOProvider
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
-from ttompc.scenarios.base import Problem, Scenario
+from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.seeding import rollout_seed
+from ttompc.solvers.scp import solve_rel
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -129,7 +130,6 @@ def collect_rollout(
     learner = MPCController(scenario, problem, learner_provider, H, loop)
     shift = ShiftProvider()
     expert = MPCController(scenario, problem, shift, N, loop)
-    remaining_rel = RemainingREL(loop.backend)
     learner_provider.reset(scenario, problem, rel.cost)
     shift.reset(scenario, problem, rel.cost)
     x = problem.x0.copy()
@@ -139,9 +139,12 @@ def collect_rollout(
     fallbacks = 0
     for t in range(N):
         e = None
-        if labelled[t]:  # the expert starts from REL over [t, N) from x_t, as a from-scratch solve does
+        # the expert starts from REL over [t, N) from x_t, as a from-scratch solve does: REL from the straight line,
+        # not warm-started by an earlier step's REL (which can stop at another point, and the label with it)
+        if labelled[t]:
             t0 = time.perf_counter()
-            start = rel if t == 0 else remaining_rel(scenario, problem, t, x)
+            rest = Window(t, N - t, N)
+            start = rel if t == 0 else solve_rel(scenario, problem, window=rest, x_start=x, backend=loop.backend)
             shift.reset_plan(start.X, start.U)
             expert_time += time.perf_counter() - t0
             e = plans[t] = expert.plan(t, x)
