@@ -287,6 +287,24 @@ def test_evaluate_mpc_prints_at_most_18_settings(capsys: pytest.CaptureFixture[s
     assert leaves(printed) <= 18 and printed["protocol"] == "paper" and printed["mpc"] == {}
 
 
+def test_the_plant_section_keeps_the_scenarios_own_disturbance_per_component() -> None:
+    """``plant`` is a PlantNoise (issue 28) whose unset components are the scenario's own perturbation (issue 30):
+    ``plant.process_std=...`` overrides that component and keeps the scenario's others."""
+    from ttompc.config import load_command_config
+    from ttompc.mpc.plant import Plant, PlantNoise
+
+    rpod, ff = get_scenario("rpod"), get_scenario("freeflyer")
+    default = load_command_config(ClosedLoopConfig).plant
+    assert default.resolve(rpod) == PlantNoise.perturbed(rpod) and default.resolve(ff) == PlantNoise.perturbed(ff)
+    assert Plant(rpod, default).noise == PlantNoise.perturbed(rpod) and Plant(rpod).noise.nominal
+    plant = load_command_config(ClosedLoopConfig, None, ["plant.process_std=0.005"]).plant
+    gain, actuation, _ = rpod.perturbation
+    assert plant.resolve(rpod) == PlantNoise(gain, actuation, 0.005)
+    assert plant.resolve(ff) == PlantNoise(0.05, 0.02, 0.005)
+    with pytest.raises(ConfigError, match="process_std"):
+        load_command_config(ClosedLoopConfig, None, ["plant.process_std=-1"])
+
+
 @pytest.mark.parametrize("kind", ["warmstart", "mpc"])
 @pytest.mark.parametrize("scale", ["-5", "0"])
 def test_a_non_positive_rtg_scale_is_refused_with_its_meaning(
