@@ -1,7 +1,8 @@
 """Receding-horizon control: one loop (``run_mpc``) on an exact or perturbed plant (``plant``), its settings and
 their named presets (``MPCSettings``, ``protocol_settings``), pluggable warm-start and terminal-target providers
-(REL-MPC, DIST-MPC, TTO-MPC, PLAN-ONCE, ORACLE-MPC) and the closed-loop metrics (``metrics``). Importing this
-package does not import Lightning (nor torch until TTO is used)."""
+(REL-MPC, DIST-MPC, TTO-MPC, PLAN-ONCE, ORACLE-MPC) and an episode's feasibility (``episode_metrics``; summaries
+over episodes are ``ttompc.evaluation.episodes``). Importing this package does not import Lightning (nor torch until
+TTO is used)."""
 
 from ttompc.mpc.loop import Episode, MPCController, StepPlan, episode_metrics, run_mpc, run_mpc_batch
 from ttompc.mpc.plant import Plant, PlantNoise
