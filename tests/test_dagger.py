@@ -440,6 +440,13 @@ def test_subsampled_and_plan_labels_match_the_expert_from_scratch() -> None:
         assert miss < np.linalg.norm(
             np.asarray(sub["states"][-1]) - sc.model_goal(problem)
         )  # the expert's plan ends nearer
+    expert_rtg = collect_rollout(sc, planner, 0, 3, 7, explore, LabelConfig(kind="plan", per_rollout=4, rtg="expert"))
+    for t, row, other in zip(starts, plans, expert_rtg, strict=True):  # the same rows but for the rtg from t on
+        np.testing.assert_array_equal(row["actions"], other["actions"])
+        np.testing.assert_array_equal(row["rtg"][:t], other["rtg"][:t])
+        togo = -np.cumsum(sc.stage_cost(np.asarray(row["actions"])[t:])[::-1])[::-1]  # the plan's own cost-to-go
+        np.testing.assert_allclose(other["rtg"][t:], togo, rtol=1e-12, atol=0)
+        assert other["rtg"][t] == pytest.approx(-sc.cost(np.asarray(row["actions"])[t:]))
     X = sc.from_model_states(problem, np.asarray(sub["states"]))
     by_start = {int(r["status"].rsplit("plan_from=", 1)[1]): r for r in every}
     for t in (3, 11):  # every-step labels: the full-horizon optimum within 1e-6 of the cost, where the learner was

@@ -19,7 +19,7 @@ from ttompc.config import to_container
 from ttompc.policy import Planner
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import get_scenario
-from ttompc.training.config import TrainConfig, load_train_config
+from ttompc.training.config import OptimConfig, TrainConfig, load_train_config
 from ttompc.training.module import TrajectoryTransformerModule
 from ttompc.training.run import train
 
@@ -126,6 +126,27 @@ def tiny_config(out_dir: Path, *overrides: str) -> TrainConfig:
             *overrides,
         ],
     )
+
+
+def test_huber_loss_is_mse_inside_delta_and_linear_outside() -> None:
+    """optim.huber_delta: the same loss as MSE where every error is within delta; an outlier's gradient is capped at
+    2·delta per element (MSE's grows with the error); masked steps count in neither."""
+    from ttompc.training.module import masked_mse
+
+    target = torch.zeros(2, 3, 2)
+    mask = torch.tensor([[1.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    small = torch.full((2, 3, 2), 0.3, requires_grad=True)
+    assert masked_mse(small, target, mask, 1.0).item() == pytest.approx(masked_mse(small, target, mask).item())
+    big = torch.zeros(2, 3, 2)
+    big[0, 0, 0], big[0, 2, 1] = 50.0, 1e6  # an outlier on a labelled step, a huge error on a masked one
+    big.requires_grad_(True)
+    loss = masked_mse(big, target, mask, 1.0)
+    assert loss.item() == pytest.approx((2 * 50.0 - 1.0) / 6)  # 3 labelled steps x 2 dims
+    loss.backward()
+    assert big.grad is not None
+    assert big.grad[0, 0, 0].item() == pytest.approx(2.0 / 6) and big.grad[0, 2, 1].item() == 0.0
+    with pytest.raises(ValueError, match="huber_delta"):
+        OptimConfig(huber_delta=0.0)
 
 
 @pytest.mark.slow  # ~50 s on the loaded 2-core machine: make test-all / CI

@@ -173,7 +173,7 @@ def collect_rollout(
     status = f"H={H};expert_steps={int(expert_steps.sum())};fallbacks={fallbacks};labels={int(labelled.sum())}"
     if labels.kind == "plan":
         return [
-            _plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, status, common)
+            _plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, status, common, labels.rtg)
             for t, e in sorted(plans.items())
             if not e.fallback
         ]
@@ -214,17 +214,23 @@ def _plan_row(
     e: StepPlan,
     status: str,
     common: dict[str, Any],
+    rtg_label: str,
 ) -> dict[str, Any]:
     """The row of a ``plan`` label at step t: the visited prefix (states x_0..x_t, executed u_0..u_(t-1), the learner's
     rtg/ctg) followed by the expert's plan from x_t over [t, N); targets (the plan's controls and next states) from t
-    on, NaN (no loss) before. The plan's rtg runs on as the context's does (rtg_(s+1) = rtg_s + c(u*_s)), its ctg is
-    held (the expert plan is feasible)."""
+    on, NaN (no loss) before. From t the rtg is, with ``rtg="learner"``, the learner's value run on as the context
+    runs it (rtg_(s+1) = rtg_s + c(u*_s)); with ``rtg="expert"`` the plan's own cost-to-go −Σ_(k>=s) c(u*_k), as in
+    open-loop rows. The ctg is held (the expert plan is feasible)."""
     N = problem.n_steps
     Xr = np.concatenate([X[:t], e.X])  # (N+1, n)
     Ur = np.concatenate([U[:t], e.U])  # (N, m)
     S = scenario.to_model_states(problem, Xr)
-    stage = np.array([scenario.cost(u[None]) for u in e.U[:-1]])
-    rtg_r = np.concatenate([rtg[:t], rtg[t] + np.concatenate([[0.0], np.cumsum(stage)])])
+    stage = scenario.stage_cost(e.U)  # (N - t,)
+    if rtg_label == "expert":
+        togo = -np.cumsum(stage[::-1])[::-1]
+    else:
+        togo = rtg[t] + np.concatenate([[0.0], np.cumsum(stage[:-1])])
+    rtg_r = np.concatenate([rtg[:t], togo])
     ctg_r = np.concatenate([ctg[:t], np.full(N - t, ctg[t])])
     target_actions = np.full_like(Ur, np.nan)
     target_actions[t:] = e.U

@@ -56,16 +56,21 @@ class LabelConfig:
     expert's full-horizon solve at every visited state is most of a rollout's cost, docs/scaling.md).
     ``kind``: ``step`` (the paper) labels the visited state x_t with the expert's control u*_t and f(x_t, u*_t), one
     row per rollout; ``plan`` (a departure) writes one row per labelled step: the visited prefix up to x_t followed by
-    the expert's whole plan from x_t, so the model learns the plan it should generate from where the learner is."""
+    the expert's whole plan from x_t, so the model learns the plan it should generate from where the learner is.
+    ``rtg`` (plan rows): the reward-to-go from x_t on, ``learner`` (the learner's running value, run on by the plan's
+    stage costs) or ``expert`` (the plan's own cost-to-go, as open-loop rows carry; measured in docs/scaling.md)."""
 
     kind: Literal["step", "plan"] = "step"
     per_rollout: int = 0
+    rtg: Literal["learner", "expert"] = "learner"
 
     def __post_init__(self) -> None:
         if self.kind not in ("step", "plan"):
             raise ValueError(f"dagger.labels.kind must be 'step' or 'plan', got {self.kind!r}")
         if self.per_rollout < 0:
             raise ValueError(f"dagger.labels.per_rollout must be >= 0 (0: every step), got {self.per_rollout}")
+        if self.rtg not in ("learner", "expert"):
+            raise ValueError(f"dagger.labels.rtg must be 'learner' or 'expert', got {self.rtg!r}")
 
 
 @dataclass

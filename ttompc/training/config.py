@@ -37,12 +37,16 @@ class OptimConfig:
     min_lr_ratio: float = 0.1  # cosine floor as a fraction of lr
     grad_clip: float = 1.0  # global-norm clipping (0 = off)
     accumulate: int = 1  # micro-batches per optimiser step
+    # training loss: None = MSE (the paper); a number = Huber beyond that many normalised units (docs/training.md)
+    huber_delta: float | None = None
 
     def __post_init__(self) -> None:
         if len(self.betas) != 2:
             raise ValueError(f"optim.betas needs two values, got {self.betas}")
         if self.lr <= 0 or self.warmup_steps < 0 or self.accumulate < 1:
             raise ValueError("optim.lr must be > 0, optim.warmup_steps >= 0 and optim.accumulate >= 1")
+        if self.huber_delta is not None and not self.huber_delta > 0:
+            raise ValueError(f"optim.huber_delta must be > 0 or null, got {self.huber_delta}")
 
 
 @dataclass

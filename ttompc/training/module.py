@@ -33,9 +33,12 @@ if TYPE_CHECKING:
     from ttompc.scenarios.base import Scenario
 
 
-def masked_mse(pred: Tensor, target: Tensor, mask: Tensor | None) -> Tensor:
-    """Mean squared error over valid steps (mask (B, L)) and all feature dims."""
-    sq = (pred - target) ** 2  # (B, L, k)
+def masked_mse(pred: Tensor, target: Tensor, mask: Tensor | None, delta: float | None = None) -> Tensor:
+    """Mean squared error over valid steps (mask (B, L)) and all feature dims; with ``delta`` each element's error
+    is squared up to ``delta`` and grows linearly beyond (2·delta·|e| − delta², a Huber loss scaled to match MSE
+    inside delta)."""
+    e = pred - target
+    sq = e**2 if delta is None else torch.where(e.abs() <= delta, e**2, 2 * delta * e.abs() - delta**2)  # (B, L, k)
     if mask is None:
         return sq.mean()
     w = mask.to(sq.dtype).unsqueeze(-1)
@@ -67,15 +70,17 @@ class TrajectoryTransformerModule(L.LightningModule):
             batch["goals"], batch["rtg"], batch["ctg"], batch["states"], batch["actions"], batch["timesteps"]
         )
 
-    def _losses(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor]]:
+    def _losses(
+        self, batch: dict[str, Tensor], delta: float | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor]]:
         a_pred, s_pred = self(batch)
         mask = batch.get("mask")
-        loss_a = masked_mse(a_pred, batch["target_actions"], mask)
-        loss_s = masked_mse(s_pred, batch["target_next_states"], batch.get("state_mask", mask))
+        loss_a = masked_mse(a_pred, batch["target_actions"], mask, delta)
+        loss_s = masked_mse(s_pred, batch["target_next_states"], batch.get("state_mask", mask), delta)
         return loss_a + loss_s, loss_a, loss_s, (a_pred, s_pred)
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        loss, loss_a, loss_s, _ = self._losses(batch)
+        loss, loss_a, loss_s, _ = self._losses(batch, self.optim_cfg.huber_delta)  # validation stays plain MSE
         B = batch["states"].shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=B)
         self.log_dict({"train/loss_action": loss_a, "train/loss_state": loss_s}, batch_size=B)
