@@ -40,7 +40,7 @@ def variants(labels: int) -> dict[str, tuple[ExplorationConfig, LabelConfig]]:
     return {
         "paper": (ExplorationConfig(), LabelConfig()),
         "subsampled": (ExplorationConfig(), LabelConfig(kind="step", per_rollout=labels)),
-        "v4": (v4, LabelConfig(kind="plan", per_rollout=labels)),
+        "v4": (v4, LabelConfig(kind="plan", per_rollout=labels, rtg="expert")),
     }
 
 
