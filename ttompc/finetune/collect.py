@@ -33,7 +33,7 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -184,23 +184,39 @@ def collect_rollout(
         target_actions[t] = e.u
         x_star = scenario.step(problem, t, Xa[t], e.u)
         target_next[t] = scenario.to_model_states(problem, x_star[None], start=t + 1)[0]
-    return [
-        make_row(
-            scenario,
-            problem,
-            states=scenario.to_model_states(problem, Xa),
-            states_opt=Xa,
-            actions=Ua,
-            rtg=rtg,
-            ctg=ctg,
-            target_actions=target_actions,
-            target_next_states=target_next,
-            cost=scenario.cost(Ua),
-            status=status,
-            violation=float(np.sum(scenario.violations(problem, Xa))),
-            **common,  # type: ignore[arg-type]
-        )
-    ]
+    S = scenario.to_model_states(problem, Xa)
+    return [_row(scenario, problem, Xa, Ua, S, rtg, ctg, target_actions, target_next, status, common)]
+
+
+def _row(
+    scenario: Scenario,
+    problem: Problem,
+    X: np.ndarray,
+    U: np.ndarray,
+    S: np.ndarray,
+    rtg: np.ndarray,
+    ctg: np.ndarray,
+    target_actions: np.ndarray,
+    target_next: np.ndarray,
+    status: str,
+    common: dict[str, Any],
+) -> dict[str, Any]:
+    """A DAgger row of the trajectory (X, U) with model states S: its cost and keep-out violations, the targets."""
+    return make_row(
+        scenario,
+        problem,
+        states=S,
+        states_opt=X,
+        actions=U,
+        rtg=rtg,
+        ctg=ctg,
+        target_actions=target_actions,
+        target_next_states=target_next,
+        cost=scenario.cost(U),
+        status=status,
+        violation=float(np.sum(scenario.violations(problem, X))),
+        **common,
+    )
 
 
 def _plan_row(
@@ -214,7 +230,7 @@ def _plan_row(
     e: StepPlan,
     status: str,
     common: dict[str, Any],
-    rtg_label: str,
+    rtg_label: Literal["learner", "expert"],
 ) -> dict[str, Any]:
     """The row of a ``plan`` label at step t: the visited prefix (states x_0..x_t, executed u_0..u_(t-1), the learner's
     rtg/ctg) followed by the expert's plan from x_t over [t, N); targets (the plan's controls and next states) from t
@@ -236,21 +252,8 @@ def _plan_row(
     target_actions[t:] = e.U
     target_next = np.full((N, S.shape[1]), np.nan)
     target_next[t:] = S[t + 1 :]
-    return make_row(
-        scenario,
-        problem,
-        states=S,
-        states_opt=Xr,
-        actions=Ur,
-        rtg=rtg_r,
-        ctg=ctg_r,
-        target_actions=target_actions,
-        target_next_states=target_next,
-        cost=scenario.cost(Ur),
-        status=f"{status};plan_from={t}",
-        violation=float(np.sum(scenario.violations(problem, Xr))),
-        **common,
-    )
+    status = f"{status};plan_from={t}"
+    return _row(scenario, problem, Xr, Ur, S, rtg_r, ctg_r, target_actions, target_next, status, common)
 
 
 # ------------------------------------------------------------------------------------------------ collection
