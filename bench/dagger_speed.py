@@ -6,13 +6,16 @@ Rows (each rollout index collected once per variant, variants alternating so tha
 * ``subsampled``: the same exploration, labels on ``--labels`` random steps per rollout (a departure; the loss skips
   the others): the labelling lever alone.
 * ``v4``: the FT-v4 recipes' collection: the deployed policy (TTO-MPC at H = 10, no expert windows) with ``plan``
-  labels on ``--labels`` steps per rollout.
+  labels on ``--labels`` steps per rollout, one rollout at a time.
+* ``v4-batched``: the same rollouts run ``--batch`` at a time in lockstep (``collect_rollouts``, ``collect.batch``):
+  one batched transformer rollout per step for all of them.
 CPU-seconds are this process's (``time.process_time``, one torch thread), so a loaded machine changes them less than
 the wall time. Per variant: CPU-s per rollout, labels and training rows per rollout, and the projected CPU-minutes for
-1,000 rollouts on one core; the ratio is paper / v4 CPU-s per rollout. Collection runs one rollout per process and
-scales over processes and ranks (``dagger.collect.workers``, torchrun), so rollouts per CPU-second is the unit.
+1,000 rollouts on one core; the ratios are paper / v4 and paper / v4-batched CPU-s per rollout. Collection runs on
+one core per process and scales over processes and ranks (``dagger.collect.workers``, torchrun), so rollouts per
+CPU-second is the unit.
 
-    python bench/dagger_speed.py --scenario freeflyer --model freeflyer-tto-v3 --rollouts 4
+    python bench/dagger_speed.py --scenario freeflyer --model freeflyer-tto-v3 --rollouts 10 --batch 10
 
 Ends with one JSON line, also written to bench/results/dagger_speed_<scenario>.json.
 """
@@ -29,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ttompc.finetune.collect import collect_rollout
+from ttompc.finetune.collect import collect_rollout, collect_rollouts
 from ttompc.finetune.config import ExplorationConfig, LabelConfig
 from ttompc.policy import Planner
 from ttompc.scenarios import get_scenario
@@ -48,7 +51,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenario", default="freeflyer")
     ap.add_argument("--model", default="freeflyer-tto-v3", help="zoo name, bundle folder or checkpoint")
-    ap.add_argument("--rollouts", type=int, default=4, help="rollouts per variant")
+    ap.add_argument("--rollouts", type=int, default=10, help="rollouts per variant")
+    ap.add_argument("--batch", type=int, default=10, help="rollouts in lockstep in the v4-batched variant")
     ap.add_argument("--labels", type=int, default=10, help="labelled steps per rollout of the subsampled variants")
     ap.add_argument("--seed", type=int, default=27)
     ap.add_argument("--out", default=None)
@@ -67,6 +71,16 @@ def main() -> None:
             cpu.setdefault(name, []).append(time.process_time() - t0)
             labels.setdefault(name, []).append(int(out[0]["status"].split("labels=")[1].split(";")[0]))
             rows.setdefault(name, []).append(len(out))
+    explore, label = variants(args.labels)["v4"]
+    for start in range(0, args.rollouts, args.batch):
+        chunk = list(range(start, min(start + args.batch, args.rollouts)))
+        t0 = time.process_time()
+        outs = collect_rollouts(scenario, planner, 0, chunk, args.seed, explore, label)
+        cpu.setdefault("v4-batched", []).extend([(time.process_time() - t0) / len(chunk)] * len(chunk))
+        labels.setdefault("v4-batched", []).extend(
+            int(out[0]["status"].split("labels=")[1].split(";")[0]) for out in outs
+        )
+        rows.setdefault("v4-batched", []).extend(len(out) for out in outs)
     results = {
         name: {
             "cpu_s_per_rollout": float(np.mean(c)),
@@ -87,6 +101,9 @@ def main() -> None:
         "speedup_v4_vs_paper": results["paper"]["cpu_s_per_rollout"] / results["v4"]["cpu_s_per_rollout"],
         "speedup_subsampled_vs_paper": results["paper"]["cpu_s_per_rollout"]
         / results["subsampled"]["cpu_s_per_rollout"],
+        "speedup_batched_vs_paper": results["paper"]["cpu_s_per_rollout"] / results["v4-batched"]["cpu_s_per_rollout"],
+        "speedup_batched_vs_v4": results["v4"]["cpu_s_per_rollout"] / results["v4-batched"]["cpu_s_per_rollout"],
+        "batch": args.batch,
         "load_average": load_start,
         "load_average_end": os.getloadavg(),
         "host": platform.node(),

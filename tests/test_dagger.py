@@ -201,14 +201,14 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     monkeypatch.setattr(L.Trainer, "fit", fit)
 
     # run 1: Ctrl-C while collecting iteration 1, after its shard 0 was written
-    original_rollout = collect.collect_rollout
+    original_rollouts = collect.collect_rollouts
 
-    def rollout(scenario, planner, iteration, index, *args, **kw):  # type: ignore[no-untyped-def]
-        if (iteration, index) == (1, 1):
+    def rollouts(scenario, planner, iteration, indices, *args, **kw):  # type: ignore[no-untyped-def]
+        if iteration == 1 and 1 in indices:
             raise _Interrupt
-        return original_rollout(scenario, planner, iteration, index, *args, **kw)
+        return original_rollouts(scenario, planner, iteration, indices, *args, **kw)
 
-    monkeypatch.setattr(collect, "collect_rollout", rollout)
+    monkeypatch.setattr(collect, "collect_rollouts", rollouts)
     with pytest.raises(_Interrupt):
         finetune(cfg, source)
     state = json.loads((run / "dagger_state.json").read_text())
@@ -217,7 +217,7 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     it0 = _mtimes(run / "dagger" / "iter-000") | _mtimes(run / "checkpoints")
     shard0 = _mtimes(run / "dagger" / "iter-001")
     assert any("dagger-00000" in p.name for p in shard0) and not any("dagger-00001" in p.name for p in shard0)
-    monkeypatch.setattr(collect, "collect_rollout", original_rollout)
+    monkeypatch.setattr(collect, "collect_rollouts", original_rollouts)
 
     # run 2: Ctrl-C in iteration 1's training after step 3 (one step past the parent's 2)
     original_save = SaveLastCheckpoint.on_train_batch_end
@@ -449,6 +449,34 @@ def test_subsampled_and_plan_labels_match_the_expert_from_scratch() -> None:
     for t in (3, 11):  # every-step labels: the full-horizon optimum within 1e-6 of the cost, where the learner was
         label = sc.cost(np.asarray(by_start[t]["actions"])[t:])
         assert label == pytest.approx(sc.cost(_expert_from_scratch(sc, problem, t, X[t])), rel=1e-6)
+
+
+def test_lockstep_rollouts_equal_lone_rollouts(tmp_path: Path) -> None:
+    """Rollouts run in lockstep (one batched transformer rollout per step for all) are the rollouts each gives alone:
+    the same problems, H, expert windows and labelled steps; each row carries its own learner's conditioning
+    (rtg_0 = −κ·J_REL of its problem, then its own executed costs); the visited trajectory equals the lone one up to
+    the rounding of a batched rollout, which the closed loop feeds back (a tiny untrained model here: far from
+    converged SCP steps, so the bound is loose); a chunk never crosses a shard."""
+    from ttompc.finetune.collect import _sample_problem, chunks, collect_rollout, collect_rollouts
+
+    sc = get_scenario(SHORT)
+    planner = mpc_fakes.tiny_planner()
+    explore = ExplorationConfig(horizons=[5, 8], windows=[0, 1], window_length=[4, 6])
+    labels = LabelConfig(kind="step", per_rollout=4)
+    together = collect_rollouts(sc, planner, 2, [0, 1, 2], 11, explore, labels)
+    assert len(together) == 3
+    for index, (row,) in enumerate(together):
+        (alone,) = collect_rollout(sc, planner, 2, index, 11, explore, labels)
+        assert row["problem_id"] == alone["problem_id"] and row["seed"] == alone["seed"]
+        assert row["status"].split(";")[:2] == alone["status"].split(";")[:2]  # H and the expert's windows
+        np.testing.assert_array_equal(np.isfinite(row["target_actions"]), np.isfinite(alone["target_actions"]))
+        rel = _sample_problem(sc, np.random.default_rng(rollout_seed(11, 2, index)))[1]
+        assert row["rtg"][0] == pytest.approx(-planner.rtg_scale * rel.cost, rel=1e-6)
+        np.testing.assert_allclose(np.diff(row["rtg"]), sc.stage_cost(np.asarray(row["actions"]))[:-1], atol=1e-7)
+        np.testing.assert_allclose(row["states"], alone["states"], rtol=0, atol=0.05)  # states reach ~2.6
+        assert row["cost"] == pytest.approx(alone["cost"], rel=0.05)
+    folder = rollout_folder(tmp_path, sc, 23, 10)
+    assert chunks(folder, [0, 2], 4) == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9], [20, 21, 22]]
 
 
 def test_datamodule_masks_unlabelled_steps(tmp_path: Path, dataset: Path) -> None:

@@ -25,13 +25,17 @@ needs corrections.
 Seeds: rollout (i, r) draws everything (problem, H, windows) from ``ttompc.seeding.rollout_seed(seed, i, r)``, never
 the wall clock. Rows go through the same resumable writer as open-loop generation (``ShardedFolder``, shard k =
 rollouts [k·S, (k+1)·S), ``source="dagger"``, ``iteration=i``) into ``<run>/dagger/iter-<i>/``, which the DataModule
-reads like an open-loop folder; each rank collects its own shards with the shared process pool.
+reads like an open-loop folder; each rank collects its own shards with the shared process pool. A worker runs
+``collect.batch`` rollouts of one shard in lockstep (``collect_rollouts``): their learners share one batched
+transformer context, one rollout per step for all (the expert's solves stay per rollout).
 """
 
 from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -47,7 +51,7 @@ from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig
 from ttompc.mpc.loop import MPCController, StepPlan
 from ttompc.mpc.providers import ShiftProvider
 from ttompc.mpc.settings import MPCSettings
-from ttompc.mpc.tto import TTOProvider
+from ttompc.mpc.tto import RolloutGroup, TTOProvider
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -56,7 +60,7 @@ from ttompc.seeding import rollout_seed
 from ttompc.solvers.scp import solve_rel
 
 if TYPE_CHECKING:
-    from ttompc.policy import Planner
+    from ttompc.policy import Planner, RolloutContext
 
 ITERATION_IDS = 10_000_000  # rollout r of iteration i has problem id i·ITERATION_IDS + r
 
@@ -102,6 +106,30 @@ def label_schedule(rng: np.random.Generator, n_steps: int, per_rollout: int) -> 
     return mask
 
 
+@dataclass
+class _Episode:
+    """One rollout's state while it runs in lockstep with others (``collect_rollouts``)."""
+
+    index: int
+    seed: int
+    problem: Problem
+    rel: Any
+    H: int
+    expert_steps: np.ndarray
+    labelled: np.ndarray
+    learner_provider: TTOProvider
+    learner: MPCController
+    shift: ShiftProvider
+    expert: MPCController
+    x: np.ndarray
+    X: list[np.ndarray] = field(default_factory=list)
+    U: list[np.ndarray] = field(default_factory=list)
+    plans: dict[int, StepPlan] = field(default_factory=dict)  # the expert's plan at each labelled step
+    learner_time: float = 0.0
+    expert_time: float = 0.0
+    fallbacks: int = 0
+
+
 def collect_rollout(
     scenario: Scenario,
     planner: Planner,
@@ -113,74 +141,114 @@ def collect_rollout(
     *,
     settings: MPCSettings | None = None,
 ) -> list[dict[str, Any]]:
-    """One DAgger rollout -> its schema rows (see the module docstring for the labels): one row with ``kind="step"``
-    labels, one row per labelled step with ``kind="plan"``. From ``settings`` both controllers take mode, backend and
-    plan reuse (without reuse the labels are the same); the learner runs the paper's fixed H (exploration, Alg. 1)."""
+    """One DAgger rollout -> its schema rows: ``collect_rollouts`` for one index."""
+    return collect_rollouts(scenario, planner, iteration, [index], root_seed, exploration, labels, settings=settings)[0]
+
+
+def collect_rollouts(
+    scenario: Scenario,
+    planner: Planner,
+    iteration: int,
+    indices: Sequence[int],
+    root_seed: int,
+    exploration: ExplorationConfig,
+    labels: LabelConfig | None = None,
+    *,
+    settings: MPCSettings | None = None,
+) -> list[list[dict[str, Any]]]:
+    """The DAgger rollouts ``indices`` of ``iteration``, run in lockstep -> each one's schema rows (see the module
+    docstring for the labels): one row with ``kind="step"`` labels, one row per labelled step with ``kind="plan"``.
+    The learners of all rollouts share one batched transformer context (``RolloutGroup``: one batched rollout per
+    step), so a rollout's learner plans equal its lone run's up to the rounding of the batch. From ``settings`` both
+    controllers take mode, backend and plan reuse (without reuse the labels are the same); the learner runs the
+    paper's fixed H (exploration, Alg. 1)."""
     labels = labels or LabelConfig()
     s = settings or MPCSettings()
     loop = MPCSettings(mode=s.mode, backend=s.backend, reuse=s.reuse)
-    seed = rollout_seed(root_seed, iteration, index)
-    rng = np.random.default_rng(seed)
-    problem, rel = _sample_problem(scenario, rng)
-    N = problem.n_steps
-    H = min(int(rng.choice(exploration.horizons)), N)
-    expert_steps = expert_schedule(rng, N, exploration)
-    labelled = label_schedule(rng, N, labels.per_rollout) | expert_steps
-    learner_provider = TTOProvider(planner)
-    learner = MPCController(scenario, problem, learner_provider, H, loop)
-    shift = ShiftProvider()
-    expert = MPCController(scenario, problem, shift, N, loop)
-    learner_provider.reset(scenario, problem, rel.cost)
-    shift.reset(scenario, problem, rel.cost)
-    x = problem.x0.copy()
-    X, U = [x], []
-    plans: dict[int, StepPlan] = {}  # the expert's plan at each labelled step
-    learner_time = expert_time = 0.0
-    fallbacks = 0
+    group = RolloutGroup(planner)
+    episodes = []
+    for index in indices:
+        seed = rollout_seed(root_seed, iteration, index)
+        rng = np.random.default_rng(seed)
+        problem, rel = _sample_problem(scenario, rng)
+        N = problem.n_steps
+        H = min(int(rng.choice(exploration.horizons)), N)
+        expert_steps = expert_schedule(rng, N, exploration)
+        labelled = label_schedule(rng, N, labels.per_rollout) | expert_steps
+        provider, shift = TTOProvider(planner, group=group), ShiftProvider()
+        learner = MPCController(scenario, problem, provider, H, loop)
+        expert = MPCController(scenario, problem, shift, N, loop)
+        ep = _Episode(index, seed, problem, rel, H, expert_steps, labelled, provider, learner, shift, expert,
+                      problem.x0.copy())  # fmt: skip
+        ep.X.append(ep.x)
+        episodes.append(ep)
+    if len({ep.problem.n_steps for ep in episodes}) > 1:
+        raise ValueError("rollouts run in lockstep need problems of one length N")
+    for ep in episodes:
+        ep.learner_provider.reset(scenario, ep.problem, ep.rel.cost)
+        ep.shift.reset(scenario, ep.problem, ep.rel.cost)
+    N = episodes[0].problem.n_steps if episodes else 0
     for t in range(N):
-        e = None
-        # the expert starts from REL over [t, N) from x_t, as a from-scratch solve does: REL from the straight line,
-        # not warm-started by an earlier step's REL (which can stop at another point, and the label with it)
-        if labelled[t]:
-            t0 = time.perf_counter()
-            rest = Window(t, N - t, N)
-            start = rel if t == 0 else solve_rel(scenario, problem, window=rest, x_start=x, backend=loop.backend)
-            shift.reset_plan(start.X, start.U)
-            expert_time += time.perf_counter() - t0
-            e = plans[t] = expert.plan(t, x)
-            expert_time += e.warm_time + e.solve_time
-        if expert_steps[t]:
-            assert e is not None
-            plan, u = e, e.u
-        else:
-            plan = learner.plan(t, x)
-            learner_time += plan.warm_time + plan.solve_time
-            fallbacks += plan.fallback
-            u = plan.u
-        x_next = scenario.step(problem, t, x, u)
-        if e is not None:
-            expert.observe(e, u, x_next)
-        learner.observe(plan, u, x_next)
-        X.append(x_next)
-        U.append(u)
-        x = x_next
-    Xa, Ua = np.stack(X), np.stack(U)
-    ctx = learner_provider.context
+        steps = [_plan_step(scenario, ep, t, loop.backend) for ep in episodes]
+        for ep, (plan, e) in zip(episodes, steps, strict=True):
+            x_next = scenario.step(ep.problem, t, ep.x, plan.u)
+            if e is not None:
+                ep.expert.observe(e, plan.u, x_next)
+            ep.learner.observe(plan, plan.u, x_next)
+            ep.X.append(x_next)
+            ep.U.append(plan.u)
+            ep.x = x_next
+    ctx = group.context
+    return [_rows(scenario, ep, iteration, labels, ctx) for ep in episodes]
+
+
+def _plan_step(scenario: Scenario, ep: _Episode, t: int, backend: str) -> tuple[StepPlan, StepPlan | None]:
+    """Step t of a rollout: the expert's plan where the step is labelled (None elsewhere) and the plan that acts
+    (the expert's in its windows, the learner's elsewhere)."""
+    e = None
+    # the expert starts from REL over [t, N) from x_t, as a from-scratch solve does: REL from the straight line,
+    # not warm-started by an earlier step's REL (which can stop at another point, and the label with it)
+    if ep.labelled[t]:
+        t0 = time.perf_counter()
+        N = ep.problem.n_steps
+        start = ep.rel if t == 0 else solve_rel(scenario, ep.problem, window=Window(t, N - t, N), x_start=ep.x,
+                                                backend=backend)  # fmt: skip
+        ep.shift.reset_plan(start.X, start.U)
+        ep.expert_time += time.perf_counter() - t0
+        e = ep.plans[t] = ep.expert.plan(t, ep.x)
+        ep.expert_time += e.warm_time + e.solve_time
+    if ep.expert_steps[t]:
+        assert e is not None
+        return e, e
+    plan = ep.learner.plan(t, ep.x)
+    ep.learner_time += plan.warm_time + plan.solve_time
+    ep.fallbacks += plan.fallback
+    return plan, e
+
+
+def _rows(
+    scenario: Scenario, ep: _Episode, iteration: int, labels: LabelConfig, ctx: RolloutContext | None
+) -> list[dict[str, Any]]:
+    """A finished rollout's schema rows (``labels.kind``), its rtg/ctg from its row of the learners' context."""
+    problem, N = ep.problem, ep.problem.n_steps
+    Xa, Ua = np.stack(ep.X), np.stack(ep.U)
     assert ctx is not None
-    rtg, ctg = ctx.rtg[0, :N].double().cpu().numpy(), ctx.ctg[0, :N].double().cpu().numpy()
-    common = dict(problem_id=rollout_id(iteration, index), seed=seed, source="dagger", iteration=iteration,
-                  solve_time=learner_time, solver_time=expert_time)  # fmt: skip
-    status = f"H={H};expert_steps={int(expert_steps.sum())};fallbacks={fallbacks};labels={int(labelled.sum())}"
+    slot = ep.learner_provider.slot
+    rtg, ctg = ctx.rtg[slot, :N].double().cpu().numpy(), ctx.ctg[slot, :N].double().cpu().numpy()
+    common = dict(problem_id=rollout_id(iteration, ep.index), seed=ep.seed, source="dagger", iteration=iteration,
+                  solve_time=ep.learner_time, solver_time=ep.expert_time)  # fmt: skip
+    n_expert, n_labels = int(ep.expert_steps.sum()), int(ep.labelled.sum())
+    status = f"H={ep.H};expert_steps={n_expert};fallbacks={ep.fallbacks};labels={n_labels}"
     if labels.kind == "plan":
         return [
             _plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, status, common, labels.rtg)
-            for t, e in sorted(plans.items())
+            for t, e in sorted(ep.plans.items())
             if not e.fallback
         ]
     m, n = scenario.control_dim, scenario.state_dim
     target_actions = np.full((N, m), np.nan)
     target_next = np.full((N, n), np.nan)
-    for t, e in plans.items():
+    for t, e in ep.plans.items():
         target_actions[t] = e.u
         x_star = scenario.step(problem, t, Xa[t], e.u)
         target_next[t] = scenario.to_model_states(problem, x_star[None], start=t + 1)[0]
@@ -274,19 +342,29 @@ def _init_collector(scenario_name: str, planner_dir: str, cfg: DaggerConfig) -> 
     _W["cfg"] = cfg
 
 
-def _collect_one(task: tuple[int, int]) -> list[dict[str, Any]]:
-    iteration, index = task
+def _collect_chunk(task: tuple[int, list[int]]) -> list[list[dict[str, Any]]]:
+    iteration, indices = task
     cfg: DaggerConfig = _W["cfg"]
-    return collect_rollout(
+    return collect_rollouts(
         _W["scenario"],
         _W["planner"],
         iteration,
-        index,
+        indices,
         cfg.seed,
         cfg.exploration,
         cfg.labels,
         settings=cfg.settings(),
     )
+
+
+def chunks(folder: ShardedFolder, shards: Sequence[int], batch: int) -> list[list[int]]:
+    """The rollout indices of ``shards`` cut into runs of at most ``batch`` that never cross a shard (a shard is
+    written as soon as its chunks are back)."""
+    out = []
+    for k in shards:
+        items = folder.items([k])
+        out += [items[i : i + batch] for i in range(0, len(items), batch)]
+    return out
 
 
 def collect_iteration(
@@ -295,12 +373,13 @@ def collect_iteration(
     """Collect this rank's missing shards of iteration ``iteration`` with the planner in ``planner_dir``; returns
     the shards written (done shards are skipped: an interrupted collection resumes without recollecting)."""
     todo = folder.pending(ranks)
-    tasks = [(iteration, r) for r in folder.items(todo)]
+    tasks = [(iteration, chunk) for chunk in chunks(folder, todo, cfg.collect.batch)]
     workers = cfg.collect.workers or os.cpu_count() or 1
     splits = SplitConfig(train=1.0 - cfg.collect.val_fraction, val=cfg.collect.val_fraction, test=0.0, salt=iteration)
     init = (scenario.name, str(planner_dir), cfg)
-    rows = pool_map(_collect_one, tasks, workers, _init_collector, init, scenarios=[scenario_spec(scenario)])
-    with Bar(len(tasks), f"collect iteration {iteration}", "rollout") as bar:
+    results = pool_map(_collect_chunk, tasks, workers, _init_collector, init, scenarios=[scenario_spec(scenario)])
+    rows = (rollout for chunk in results for rollout in chunk)
+    with Bar(sum(len(c) for _, c in tasks), f"collect iteration {iteration}", "rollout") as bar:
         for k, rollouts, seconds in folder.group(todo, bar.each(rows)):
             shard_rows = [row for rollout in rollouts for row in rollout]
             by_split: dict[str, list[dict[str, Any]]] = {"train": [], "val": []}

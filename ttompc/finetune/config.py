@@ -78,12 +78,13 @@ class CollectConfig:
     rollouts: int = 2000  # closed-loop rollouts per iteration (all ranks together)
     workers: int = 0  # processes per rank (spawn pool); 0 = all cores
     shard_size: int = 50  # rollouts per shard (the unit of resumption and of the rank split)
+    batch: int = 10  # rollouts a worker runs in lockstep (one batched transformer rollout per step for all)
     val_fraction: float = 0.1  # share of rollouts written to the DAgger val split (by rollout index hash)
     wait_s: float = 3600.0  # multi-rank: how long to wait for other ranks' shards and rank 0's decisions
 
     def __post_init__(self) -> None:
-        if self.rollouts < 1 or self.shard_size < 1:
-            raise ValueError("dagger.collect.rollouts and dagger.collect.shard_size must be >= 1")
+        if self.rollouts < 1 or self.shard_size < 1 or self.batch < 1:
+            raise ValueError("dagger.collect.rollouts, dagger.collect.shard_size and dagger.collect.batch must be >= 1")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(f"dagger.collect.val_fraction must be in [0, 1), got {self.val_fraction}")
 
