@@ -121,7 +121,7 @@ class TrajectoryTransformerModule(L.LightningModule):
             [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
             lr=cfg.lr,
             betas=(cfg.betas[0], cfg.betas[1]),
-            fused=True if on_gpu else None,  # one kernel per step on CUDA; on CPU the step is <1% of the time
+            fused=True if on_gpu else None,  # one kernel per step on CUDA; negligible on CPU (docs/design.md)
         )
         total = max(int(self.trainer.estimated_stepping_batches), 1) if cfg.schedule == "cosine" else 0
 
