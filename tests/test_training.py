@@ -19,6 +19,7 @@ from ttompc.config import to_container
 from ttompc.policy import Planner
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import get_scenario
+from ttompc.solvers.backends import backend_chain, default_trust_norm
 from ttompc.training.config import OptimConfig, TrainConfig, load_train_config
 from ttompc.training.module import TrajectoryTransformerModule
 from ttompc.training.run import train
@@ -200,6 +201,11 @@ def test_tiny_run_logs_resumes_and_exports(tmp_path: Path, wandb_offline: Path) 
     np.testing.assert_array_equal(Xa, Xb)
     np.testing.assert_array_equal(Ua, Ub)
     np.testing.assert_allclose(Xa[:, 0], np.stack([p.x0 for p in problems]))  # back in the optimisation frame
+
+    # Checkpoint and bundle record the solver path of the run's backend (the protocol's auto): chain and norm.
+    resolved = {"backend": "auto", "chain": backend_chain("auto", sc), "trust_norm": default_trust_norm("auto", sc)}
+    assert torch.load(second.last_checkpoint, weights_only=True)["hyper_parameters"]["solver"] == resolved
+    assert a.extra["solver"] == b.extra["solver"] == resolved
 
 
 def test_init_from_continues_published_weights(tmp_path: Path) -> None:

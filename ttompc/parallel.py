@@ -4,7 +4,7 @@
 torch or solver state, so results depend only on the task (with ``ttompc.seeding``) and not on the worker count.
 Each worker gets one BLAS/OpenMP thread (``single_threaded_env``) and one torch thread: a pool of one worker per
 core then does not oversubscribe the machine, and batch-1 model rollouts, chains of tiny kernels, run fastest on one
-thread (a 10-step rollout was 100x slower with 2 threads than with 1 on a shared 2-core machine).
+thread (measured in docs/design.md).
 
 A worker that fails while starting (an unknown model in the initializer, a script without
 ``if __name__ == "__main__":`` that re-runs the command when a worker imports it) or dies later ends the whole

@@ -39,7 +39,7 @@ def _config(args: argparse.Namespace) -> TrainConfig:
 
 def check_datasets(data: DataConfig) -> None:
     """Every dataset folder must exist and fit the recipe (``open_loop_manifests``) before anything is created or
-    imported (Lightning takes 10 s)."""
+    imported (Lightning is slow to import; docs/design.md)."""
     paths, dagger_dirs = data.paths, data.dagger_dirs
     if not paths and not dagger_dirs:
         raise UserError(

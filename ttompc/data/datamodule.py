@@ -1,8 +1,8 @@
 """Streaming ``LightningDataModule`` over open-loop datasets and DAgger shard folders.
 
-Measured on our CPUs (``docs/benchmarks.md``), per-row streaming and ``datasets``' own shuffle/interleave run at
-1–5k rows/s, while ``IterableDataset.with_format("numpy").iter(batch)`` runs at ~25k rows/s. So each source is
-read in column batches, rows are shuffled in an in-memory pool per source, sources are mixed per batch
+Per-row streaming and ``datasets``' own shuffle/interleave are much slower than
+``IterableDataset.with_format("numpy").iter(batch)`` (measured in docs/design.md). So each source is read in column
+batches, rows are shuffled in an in-memory pool per source, sources are mixed per batch
 (binomial open-loop count), shard order is permuted every pass, and shards are split by rank and DataLoader
 worker here (``.iter`` does not split by itself).
 
@@ -51,7 +51,7 @@ def _read_file(path: str, read_batch: int, allowed: frozenset[str]) -> Iterator[
     """Column batches of one shard through ``datasets``' fast path, keeping rows whose source is allowed.
 
     Open-loop rows have targets = (actions, states[1:]) by construction, so for them the two target columns are
-    derived instead of read (~40% less decoding)."""
+    derived instead of read (less decoding)."""
     import datasets
 
     open_loop = "dagger" not in allowed
@@ -81,7 +81,7 @@ def _read_file(path: str, read_batch: int, allowed: frozenset[str]) -> Iterator[
 
 def _to_numpy(table: pa.Table) -> Chunk:
     """Arrow batch -> numpy without per-row Python work: fixed-shape nested lists are flattened to their value
-    buffer and reshaped (~2x faster than ``with_format("numpy")`` for our 2-D arrays)."""
+    buffer and reshaped (faster than ``with_format("numpy")`` for our 2-D arrays; docs/design.md)."""
     out = {}
     for name in table.column_names:
         arr = table.column(name).combine_chunks()

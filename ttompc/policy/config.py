@@ -23,12 +23,12 @@ class ModelConfig:
     mlp_ratio: int = 4
     dropout: float = 0.1
     # attention-probability dropout; None = ``dropout`` (the reference). 0 lets CPU training use the fused causal
-    # attention kernel: with dropout, SDPA falls back to the math path (measured 5x slower per step here).
+    # attention kernel: with dropout, SDPA falls back to the slower math path (measured in docs/design.md).
     attn_dropout: float | None = None
     activation: Activation = "relu"  # the reference's HF DecisionTransformerConfig default
     max_steps: int = 100  # timestep-embedding table size = longest context in steps
     # "interleaved" is the paper's five tokens per step (and what bundles without a layout hold); "stacked" embeds
-    # the same five modalities as one token per step: a departure, 5.4x less CPU per training step (docs/scaling.md)
+    # the same five modalities as one token per step: a departure, cheaper to train (measured in docs/design.md)
     layout: Layout = "interleaved"
     bias: bool = True
     init_std: float = 0.02

@@ -14,7 +14,7 @@ goal, rtg, ctg and state of step t), the next-state head reads the *action* toke
     ... | [g_t R_t C_t s_t a_{t-1}] | [g_{t+1} ...] ...           (1 token per step, a_{-1} = 0)
 
 The action head reads that token; the next-state head is a small MLP of [hidden_t, a_t]. Attention over 100
-instead of 500 tokens makes a training step about 5x cheaper on a CPU, and the KV cache and MPC re-plans likewise.
+instead of 500 tokens makes a training step, the KV cache and MPC re-plans cheaper (measured in docs/design.md).
 
 In both layouts a learned timestep embedding (the only positional signal) is added to every token; a LayerNorm
 (``embed_ln``) and dropout follow; then pre-LN transformer blocks with causal ``scaled_dot_product_attention`` and a

@@ -13,7 +13,7 @@ directories)::
                                 "recipe": {training recipe as a plain dict, may be empty},
                                 "code_version": str,                    # ttompc version + git commit of the trainer
                                 "created": ISO-8601 UTC time,
-                                "extra": {free-form metadata: training steps, val loss, dataset ...},
+                                "extra": {free-form metadata: training steps, solver path, dataset ...},
                                 "sha256": {"model.safetensors": hex digest}  # written by save, checked by loads
                               }
 
@@ -315,7 +315,9 @@ class Planner:
                 f"{', '.join(missing)}); {expected}"
             )
         state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-        extra = {"global_step": int(ckpt.get("global_step", 0)), "epoch": int(ckpt.get("epoch", 0))}
+        extra: dict[str, Any] = {"global_step": int(ckpt.get("global_step", 0)), "epoch": int(ckpt.get("epoch", 0))}
+        if "solver" in hp:  # the solver path the run recorded (checkpoints from before it have none)
+            extra["solver"] = hp["solver"]
         return cls._build(
             hp["model_config"],
             {"name": hp["scenario"], "version": hp["scenario_version"], "spec": hp.get("scenario_spec")},

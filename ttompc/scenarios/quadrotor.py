@@ -71,8 +71,8 @@ class Quadrotor(Scenario):
     scp: ClassVar[SCPSettings] = SCPSettings(
         tr_start=10.0, tr_end=0.005, max_iters=20, cost_tol=1e-6, penalty=1e2, feas_tol=1e-6
     )
-    # track: the terminal multipliers of H = 10 windows along open-loop optima reach 1.34 at the end of the braking
-    # phase (bench/tracking_weight.py), above the paper's 1
+    # track: above the terminal multipliers of H = 10 windows along open-loop optima, which exceed the paper's 1 at
+    # the end of the braking phase (bench/tracking_weight.py; measured in docs/evaluation.md, "Tracking weight")
     mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, terminal=1.0, dist=(0.08,) * 6, track=2.0)
     state_scale: ClassVar[tuple[float, ...]] = (1.0, 1.0, 1.0, 0.1, 0.1, 0.1)
     control_scale: ClassVar[tuple[float, ...]] = (0.1, 0.1, 0.1)  # N

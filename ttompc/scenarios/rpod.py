@@ -141,18 +141,18 @@ class Rpod(Scenario):
     )
     # Soft-mode weights of the reference (0.1 fuel, 1 waypoint/docking, 0.1 terminal). DIST uses 0.1 on every ROE
     # component toward the goal (the reference aims at the waypoint's ROE, 30 m further along δλ).
-    # track unset (= terminal): the terminal multipliers of H = 10 windows along open-loop optima are ~1e-3 per metre
-    # of ROE, far below 0.1 (bench/tracking_weight.py)
+    # track unset (= terminal): the terminal multipliers of H = 10 windows along open-loop optima are far below 0.1
+    # (bench/tracking_weight.py; measured in docs/evaluation.md, "Tracking weight")
     mpc: ClassVar[MPCWeights] = MPCWeights(fuel=0.1, end=1.0, terminal=0.1, dist=(0.1,) * 6, waypoint=1.0)
     state_scale: ClassVar[tuple[float, ...]] = (10.0, 100.0, 100.0, 100.0, 100.0, 100.0)  # ROE [m]
     control_scale: ClassVar[tuple[float, ...]] = (0.01, 0.01, 0.01)  # Δv [m/s]
-    # QOCO solved only 7/10 RPOD problems (numerical errors on the cone/waypoint rows); Clarabel 10/10 and as fast
+    # Clarabel alone: QOCO fails on some RPOD problems (numerical errors on the cone/waypoint rows; docs/design.md)
     auto_backends: ClassVar[tuple[str, ...]] = ("clarabel",)
     trust_norm: ClassVar[Literal["l2", "linf"]] = "l2"  # its subproblems have cones anyway (2-norm cost, approach cone)
     terminal_tol: ClassVar[float] = 1.0  # m of ROE at the docking port (the KOZ semi-axes are 60-123 m)
     # 1 m is 1% of the 100 m state scale (free-flyer/quadrotor: 5 cm of 1 m), and the docking burn is the largest of
-    # an episode: the default 5% gain error alone left ORACLE-MPC 3-6 m from the port. A 0.3% gain error, 1e-4 m/s of
-    # actuation noise and 5 cm of ROE process noise per step leave it 0.2-0.6 m from it (docs/evaluation.md).
+    # an episode: the default 5% gain error alone leaves ORACLE-MPC outside the docking tolerance, a 0.3% gain error,
+    # 1e-4 m/s of actuation noise and 5 cm of ROE process noise per step inside it (measured in docs/evaluation.md).
     perturbation: ClassVar[tuple[float, float, float]] = (0.003, 0.01, 0.0005)
     # Labels of the model representation (RTN), which is what datasets store and the transformer sees.
     state_labels = ("r_R [m]", "r_T [m]", "r_N [m]", "v_R [m/s]", "v_T [m/s]", "v_N [m/s]")

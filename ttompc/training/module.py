@@ -57,6 +57,7 @@ class TrajectoryTransformerModule(L.LightningModule):
         code_version: str | None = None,
         plot_trajectories: bool = True,
         scenario_spec: str | None = None,
+        solver: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -120,7 +121,7 @@ class TrajectoryTransformerModule(L.LightningModule):
             [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
             lr=cfg.lr,
             betas=(cfg.betas[0], cfg.betas[1]),
-            fused=True if on_gpu else None,  # one kernel per step on CUDA; on CPU the step is <1% of the time
+            fused=True if on_gpu else None,  # one kernel per step on CUDA; negligible on CPU (docs/design.md)
         )
         total = max(int(self.trainer.estimated_stepping_batches), 1) if cfg.schedule == "cosine" else 0
 
@@ -165,12 +166,15 @@ def build_module(
     *,
     recipe: Any,
     plot_trajectories: bool,
+    backend: str = "auto",
 ) -> TrajectoryTransformerModule:
     """The LightningModule of ``model`` on ``scenario``'s data, built the same way by pre-training and DAgger: typed
     configs in, primitives stored as hyper-parameters (so the checkpoint loads with ``weights_only=True`` and is
-    enough for ``Planner.from_pretrained``), with the recipe (a typed config) and the code version recorded."""
+    enough for ``Planner.from_pretrained``), with the recipe (a typed config), the code version and the solver path
+    of the run's ``backend`` on ``scenario`` (``solver_path``: name, chain, trust-region norm) recorded."""
     from ttompc.config import to_container
     from ttompc.scenarios import scenario_spec as spec_of
+    from ttompc.solvers.backends import solver_path
     from ttompc.version import code_version
 
     return TrajectoryTransformerModule(
@@ -183,4 +187,5 @@ def build_module(
         recipe=to_container(recipe),
         code_version=code_version(),
         plot_trajectories=plot_trajectories,
+        solver=solver_path(backend, scenario),
     )

@@ -91,6 +91,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     import lightning as L
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 
+    from ttompc.mpc.settings import protocol_settings
     from ttompc.policy import Planner
     from ttompc.scenarios import get_scenario
     from ttompc.training.checkpoints import (
@@ -120,7 +121,13 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     cfg = replace(cfg, model=model_cfg)
     recipe = to_container(cfg)
     module = build_module(
-        model_cfg, cfg.optim, scenario, datamodule.stats, recipe=cfg, plot_trajectories=cfg.logger.plot_trajectories
+        model_cfg,
+        cfg.optim,
+        scenario,
+        datamodule.stats,
+        recipe=cfg,
+        plot_trajectories=cfg.logger.plot_trajectories,
+        backend=protocol_settings(cfg.callbacks.eval_mpc.protocol).backend,  # what the run's closed loop solves with
     )
     logger = build_logger(cfg.logger, out, recipe)
     ckpt_dir = out / "checkpoints"

@@ -1,7 +1,7 @@
 """Conic solvers on the conic assembly of the subproblem (``ttompc.solvers.subproblem``), and
 ``AssembledSolver``, which runs them in order (a later one takes the subproblems an earlier one fails on).
 
-* ``qoco``: interior-point conic solver, the fastest measured here on our SOCPs; set up afresh per solve (below).
+* ``qoco``: interior-point conic solver, first in the conic chains (docs/design.md); set up afresh per solve (below).
 * ``clarabel``: interior-point conic solver shipped with cvxpy; handles the SOC trust region, the 2-norm costs
   (RPOD) and the approach cone. Data updates keep the KKT symbolic factorisation.
 """

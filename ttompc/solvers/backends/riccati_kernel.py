@@ -77,7 +77,7 @@ _ENTRY: dict[tuple[int, int], Callable] = {}  # (NX, NU) -> the compiled special
 
 def solve(*args):
     """``solve_stage_qp(*args)`` without numba's literal dispatch, which calling it from Python re-enters every time
-    (measured: +4 ms per call, as much as the solve): the first call per (NX, NU) in a process goes through the
+    (as costly as the solve; measured in docs/design.md): the first call per (NX, NU) in a process goes through the
     dispatcher (compiling the kernel or loading it from the disk cache), later ones through its entry point."""
     n, nu = args[-2], args[-1]
     entry = _ENTRY.get((n, nu))
@@ -313,9 +313,7 @@ _S, _LAM, _E, _MU, _RS, _RE, _IL, _IM, _W, _XI, _DS, _DL, _DE, _DM = range(14)
 @_jit
 def _start(y, k_of, cols, coef, d, rho, z):
     """A strictly interior start: s, e ≥ 0.1 with s − e = d − gᵀy for soft rows (primal residual 0), λ = μ = ρ/2, and
-    s ≥ 0.1, λ = 1 for hard rows. Returns the number of complementarity pairs. (Measured on the 89 subproblems of
-    REL + SCP on free-flyer and quadrotor seeds 0–5: 0.1 takes 20.1 and 9.7 iterations on average, 1.0 21.1 and 11.4
-    with 3 breakdowns near the optimum, 10.0 23.0 and 13.6.)"""
+    s ≥ 0.1, λ = 1 for hard rows. Returns the number of complementarity pairs. (Why 0.1: measured in docs/design.md.)"""
     count = 0
     for i in range(d.shape[0]):
         a = 0.0
