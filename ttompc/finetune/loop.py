@@ -207,7 +207,7 @@ def _train_iteration(
     dm.setup("fit")
     _check_data(dm, source, cfg.data.paths)
     module = build_module(source.model.cfg, cfg.optim, source.scenario, source.stats, recipe=cfg,
-                          plot_trajectories=False)  # fmt: skip
+                          plot_trajectories=False, backend=cfg.dagger.settings().backend)  # fmt: skip
     if resume_from is None:
         module.model.load_state_dict(source.model.state_dict())
     t = cfg.trainer
