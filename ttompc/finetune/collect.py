@@ -6,8 +6,8 @@ state) in expert windows (``exploration``; by default 1–3 windows of 15–25 s
 solves at the labelled steps (``labels``: every step, the paper, or ``labels.per_rollout`` drawn ones) and wherever it
 acts, each time from REL over [t, N) from x_t, as a from-scratch solve does (REL at t = 0); where the expert acts on
 consecutive steps its own converged plan's tail is reused when the state is on it (plan reuse, ``ttompc.mpc.loop``).
-Warm-starting it from its previous plan shifted by one step instead (the reference's expert) was measured to land in
-worse local optima: 3.6% costlier than from scratch at a visited state of the short free-flyer (docs/scaling.md).
+Warm-starting it from its previous plan shifted by one step instead (the reference's expert) lands in worse local
+optima (measured in docs/scaling.md, "Label cost").
 
 Labels (``labels.kind``):
 * ``step`` (the paper): a labelled x_t gets the expert's control u*_t and the state *that control* leads to with the

@@ -311,7 +311,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
             candidate = Planner.from_pretrained(ckpt, scenario)
             # the candidate plans with its source's conditioning (rtg_0 = -rtg_scale * J_REL, chosen for the
             # source and recorded in its bundle): measured against the source at the same rtg_scale, and exported
-            # with it; without this a candidate of a model shipped at rtg_scale 1.15 was measured at 1.0
+            # with it (docs/design.md, "Measurements behind the code")
             inherited = {k: source_planner.extra[k] for k in INHERITED_EXTRA if k in source_planner.extra}
             candidate.extra.update(
                 source="ttompc finetune", dagger_iteration=i, finetuned_from=str(source), **inherited

@@ -63,7 +63,7 @@ from ttompc.solvers.scp import SCPResult, SCPStatus, TerminalCost, solve_scp
 
 # Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol. A goal miss is not the soft end
 # penalty's: tracking an exact plan ends on the goal once the tracking weight exceeds the multiplier of the window's
-# terminal constraint (``MPCWeights.track``); a plan that lags (REL-MPC at H = 10 ended ~0.0105 away) brings the goal
+# terminal constraint (``MPCWeights.track``); a plan that lags (REL-MPC at H = 10, docs/design.md) brings the goal
 # into the window when the control bound no longer lets it be reached (``end_horizon``).
 
 
