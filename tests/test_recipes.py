@@ -59,8 +59,9 @@ def load(path: Path, overrides: list[str] | None = None) -> TrainConfig | Finetu
 
 def source_recipe(path: Path) -> Path:
     """The training recipe of the model a fine-tuning recipe starts from."""
-    if path.parent.name == "zoo":  # <s>-ft-tto-small -> <s>-tto-small
-        return path.with_name(path.name.replace("-ft-tto-", "-tto-"))
+    if path.parent.name == "zoo":  # <s>-ft-tto-small -> <s>-tto-small; the v4+ FT models start from <s>-tto-v3
+        small = path.with_name(path.name.replace("-ft-tto-", "-tto-"))
+        return small if small.is_file() else RECIPES / scenario_of(path) / f"pretrain{path.suffix}"
     if path.parent.name == "paper":
         return path.with_name(path.name.replace("-finetune", "-pretrain"))
     return path.with_name(f"pretrain{path.suffix}")
