@@ -2,7 +2,7 @@
 labels), ``loop`` (iterations, state, ranks, keep/reject), ``config`` (the typed recipe). Importing this package does
 not import Lightning; ``finetune`` does when it trains."""
 
-from ttompc.finetune.collect import collect_rollout, expert_schedule
+from ttompc.finetune.collect import collect_rollout, collect_rollouts, expert_schedule
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
 from ttompc.finetune.loop import FinetuneError, FinetuneResult, finetune, improves
 
@@ -11,6 +11,7 @@ __all__ = [
     "FinetuneError",
     "FinetuneResult",
     "collect_rollout",
+    "collect_rollouts",
     "expert_schedule",
     "finetune",
     "improves",
