@@ -254,8 +254,9 @@ def test_plan_once_tracks_the_plan_and_oracle_replans_from_the_measured_state(se
     np.testing.assert_allclose(ws_once.terminal.target, scp.X[H + 1])
     assert np.linalg.norm(ws_oracle.terminal.target - scp.X[H + 1]) > 1e-3
     np.testing.assert_array_equal(ws_oracle.X[0], x)
-    assert oracle.X.shape == (N, 6)  # the re-solved plan of [1, N], feasible for the rest of the problem
-    assert sc.path_violation(problem, oracle.X, oracle.U, Window(1, N - 1, N)) < 1e-3
+    plan_X, plan_U = oracle.optimum.X, oracle.optimum.U
+    assert plan_X.shape == (N, 6)  # the re-solved plan of [1, N], feasible for the rest of the problem
+    assert sc.path_violation(problem, plan_X, plan_U, Window(1, N - 1, N)) < 1e-3
 
 
 def test_plan_once_and_oracle_mpc_reproduce_the_open_loop_optimum(setup: tuple) -> None:

@@ -31,7 +31,7 @@ SCENARIOS = ("freeflyer", "quadrotor", "rpod")
 GENERIC = [p for p in ALL if p.parent.name == "generic"]
 SCENARIO_RECIPES = [p for p in ALL if p not in GENERIC]
 ARCHITECTURE = ("state_dim", "control_dim", "n_embd", "n_layer", "n_head", "mlp_ratio", "activation", "max_steps")
-JOBS = {"pretrain", "finetune", "tiny"}
+JOBS = {"pretrain", "finetune", "tiny", "value"}
 
 
 def rel(path: Path) -> str:

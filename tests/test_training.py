@@ -164,7 +164,7 @@ def test_loss_decreases_on_synthetic_data() -> None:
     batch = next(iter(dm.train_dataloader()))
     losses = []
     for _ in range(40):
-        loss = module._losses(batch)[0]
+        loss = module._losses(batch)["loss"]
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -55,7 +55,7 @@ from ttompc.mpc.providers import (
     full_horizon_plan,
 )
 from ttompc.mpc.settings import MPCSettings, protocol_settings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider, check_rtg_scale
+from ttompc.mpc.tto import RolloutGroup, TTOProvider, check_rtg_scale, effective_rtg_mode
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -134,12 +134,15 @@ def providers(
     ]
     designs = {"": plain} | ({"R-": TerminalDesign(robust_blend, weights)} if robust_blend > 0 else {})
     for name, planner in models.items():
+        mode = effective_rtg_mode(rtg_mode, planner)
+        # a method fed another rtg than the paper's ledger says so in its name (the oracle's is a ceiling, not a method)
+        suffix = "" if mode == "running" else f"[rtg={mode}]"
         for prefix, design in designs.items():
             group = RolloutGroup(planner)
             out.append([
-                TTOProvider(planner, f"{prefix}{name}-MPC", rtg_scale=rtg_scale, design=design, rtg_mode=rtg_mode,
-                            group=group, backend=backend)
-                for _ in plans
+                TTOProvider(planner, f"{prefix}{name}-MPC{suffix}", rtg_scale=rtg_scale, design=design,
+                            rtg_mode=mode, group=group, backend=backend, plan=plan)
+                for plan in plans
             ])  # fmt: skip
     return out
 
@@ -250,6 +253,11 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
     if settings.rtg_mode != "running":
         out.append(
             f"reward-to-go fed in closed loop: {settings.rtg_mode} (the paper: the running rtg_0 + executed cost)"
+        )
+    if settings.finish > 0:
+        out.append(
+            f"finish cost (weight {settings.finish:g}): windows that stop before N also pay the price of reaching the "
+            "goal from their last state in the steps left (ttompc.mpc.finish; the paper: the terminal target alone)"
         )
     if settings.mode != "soft":
         out.append(f"{settings.mode} end condition (the paper's analyses: soft)")

@@ -19,7 +19,7 @@ from ttompc.mpc.loop import Episode, run_mpc_batch
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import TerminalDesign
 from ttompc.mpc.settings import MPCSettings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider
+from ttompc.mpc.tto import RolloutGroup, TTOProvider, effective_rtg_mode
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -78,8 +78,8 @@ def closed_loop_metrics(
     group = RolloutGroup(planner)
     design = TerminalDesign(weights=None if s.track is None else (s.track,))
     provs = [
-        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design, rtg_mode=s.rtg_mode, group=group,
-                    backend=s.backend)
+        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design,
+                    rtg_mode=effective_rtg_mode(s.rtg_mode, planner), group=group, backend=s.backend)
         for _ in problems
     ]  # fmt: skip
     steps = min(max_steps or sc.n_steps, sc.n_steps)

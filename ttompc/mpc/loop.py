@@ -55,6 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ttompc.mpc.finish import finish_cost
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
 from ttompc.mpc.settings import Mode, MPCSettings
@@ -236,11 +237,17 @@ class MPCController:
                 f"{self.provider.name}: warm start shapes {ws.X.shape}, {ws.U.shape} do not fit window {window}"
             )
         X0, U0, settings = ws.X, ws.U, None
+        terminal = ws.terminal
+        if terminal is not None and self.settings.finish > 0:
+            weight = self.settings.finish * (self.scenario.mpc.fuel if self.mode == "soft" else 1.0)
+            price = finish_cost(self.scenario, self.problem, window, ws.X[-1], weight)
+            if price is not None:
+                terminal = TerminalCost(terminal.target, terminal.weights, price)
         rti = self.rti and self._own is not None
         if rti:
             X0, U0 = self._rti_start(window, ws.X, ws.U)
             settings = dataclasses.replace(self.scenario.scp, max_iters=1)
-        res = self.solve(window, X0, U0, ws.terminal, settings=settings)
+        res = self.solve(window, X0, U0, terminal, settings=settings)
         iterations, soft_end = res.iterations, False
         if not self._usable(res, rti) and self.mode == "hard" and window.reaches_end:
             # x_N = goal is out of reach (the penalised solve misses it): plan this window as soft mode does (the

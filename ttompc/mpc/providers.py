@@ -279,12 +279,50 @@ def full_horizon_plan(scenario: Scenario, problem: Problem, backend: str = "auto
     return best.X, best.U
 
 
+class RemainingOptimum:
+    """The full remaining-horizon SCP optimum [t, N) from a measured state, tracked along an episode: the first plan
+    is given (or REL → SCP from x_0); at each later call the previous plan is moved on to step t, and re-solved from
+    it (SCP, first row replaced by the measured state) whenever the measured state is off it by more than
+    ``REPLAN_TOL`` (in units of the scenario's ``state_scale``, ∞-norm). On the exact plant the optimum's tail stays
+    optimal (principle of optimality), so an episode on it re-solves rarely; on a perturbed plant nearly every step.
+    ``replans`` counts the re-solves. ORACLE-MPC plans with it; TTO-MPC's ``rtg_mode="oracle"`` reads its cost."""
+
+    REPLAN_TOL = 1e-3
+
+    def __init__(self, plan: tuple[np.ndarray, np.ndarray] | None = None, backend: str = "auto") -> None:
+        self._given, self.backend = plan, backend
+
+    def reset(self, scenario: Scenario, problem: Problem) -> None:
+        self.scenario, self.problem = scenario, problem
+        X, U = self._given if self._given is not None else full_horizon_plan(scenario, problem, self.backend)
+        self.X, self.U = np.array(X, dtype=np.float64), np.array(U, dtype=np.float64)
+        self.start = 0  # the step of self.X[0]
+        self._scale = scenario.state_units()
+        self.replans = 0
+
+    def __call__(self, t: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The optimum's plan over [t, N) from ``x``: states (N − t + 1, n) with X[0] = x, controls (N − t, m)."""
+        if not self.start <= t < self.start + len(self.U):
+            raise ValueError(f"the remaining optimum is at step {self.start}, asked for step {t}")
+        self.X, self.U, self.start = self.X[t - self.start :], self.U[t - self.start :], t
+        p = self.problem
+        if np.max(np.abs(x - self.X[0]) / self._scale) > self.REPLAN_TOL:
+            X0 = self.X.copy()
+            X0[0] = x
+            rest = Window(t, p.n_steps - t, p.n_steps)
+            res = solve_scp(self.scenario, p, X0, self.U, window=rest, backend=self.backend)
+            self.replans += 1
+            if res.success:
+                self.X, self.U = res.X, res.U
+        X = self.X.copy()
+        X[0] = x
+        return X, self.U.copy()
+
+
 class OracleProvider:
-    """ORACLE-MPC: the full remaining-horizon SCP optimum from the measured state (the first plan: given, or REL →
-    SCP), as warm start and terminal target. It re-solves [t, N) from its previous plan shifted by one step whenever
-    the measured state is off that plan by more than ``replan_tol`` (in units of the scenario's ``state_scale``,
-    ∞-norm): on the exact plant the optimum's tail stays optimal (and the MPC follows it within the SCP's
-    tolerance), on a perturbed plant it re-plans nearly every step. ``replans`` counts the re-solves."""
+    """ORACLE-MPC (the ceiling): the full remaining-horizon SCP optimum from the measured state
+    (``RemainingOptimum``; the first plan given, or REL → SCP) as warm start and terminal target — what a perfect
+    model could give. ``replans`` counts its re-solves."""
 
     name = "ORACLE-MPC"
 
@@ -293,33 +331,24 @@ class OracleProvider:
         plan: tuple[np.ndarray, np.ndarray] | None = None,
         *,
         backend: str = "auto",
-        replan_tol: float = 1e-3,
         design: TerminalDesign | None = None,
     ) -> None:
-        self._given, self.backend, self.replan_tol = plan, backend, replan_tol
+        self.optimum = RemainingOptimum(plan, backend)
         self.target = TargetFilter(design)
 
+    @property
+    def replans(self) -> int:
+        return self.optimum.replans
+
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
-        self.scenario, self.problem = scenario, problem
-        X, U = self._given if self._given is not None else full_horizon_plan(scenario, problem, self.backend)
-        self.X, self.U = np.array(X, dtype=np.float64), np.array(U, dtype=np.float64)
-        self._scale = scenario.state_units()
-        self.replans = 0
+        self.scenario = scenario
+        self.optimum.reset(scenario, problem)
         self.target.reset()
 
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
-        p = self.problem
-        if np.max(np.abs(x - self.X[0]) / self._scale) > self.replan_tol:
-            X0 = self.X.copy()
-            X0[0] = x
-            rest = Window(window.start, p.n_steps - window.start, p.n_steps)
-            res = solve_scp(self.scenario, p, X0, self.U, window=rest, backend=self.backend)
-            self.replans += 1
-            if res.success:
-                self.X, self.U = res.X, res.U
-        X, U = self.X[: window.length + 1].copy(), self.U[: window.length].copy()
-        X[0] = x
+        X, U = self.optimum(window.start, x)
+        X, U = X[: window.length + 1], U[: window.length]
         return WarmStart(X, U, self.target(self.scenario, window, X))
 
     def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
-        self.X, self.U = self.X[1:], self.U[1:]
+        return None

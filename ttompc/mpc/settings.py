@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 Mode = Literal["soft", "hard"]
-RTGMode = Literal["running", "reanchor"]
-RTG_MODES: tuple[str, ...] = ("running", "reanchor")
+RTGMode = Literal["running", "reanchor", "value", "oracle"]
+RTG_MODES: tuple[str, ...] = ("running", "reanchor", "value", "oracle")
 PRESETS = Path(__file__).with_name("presets")
 # plan reuse: the measured state is the own plan's prediction within this many state_scale units (∞-norm). On an
 # exact plant the two differ by the subproblem solver's residual of the dynamics rows (about 1e-9 here).
@@ -33,7 +33,8 @@ class MPCSettings:
     plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``rtg_mode``:
     the reward-to-go TTO-MPC feeds in closed loop (``TTOProvider``). ``reuse``: plan reuse in windows that reach
     the end (same results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step.
-    ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``)."""
+    ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``). ``finish``: weight of the finish
+    cost that windows stopping before N pay for their last state (``ttompc.mpc.finish``; 0: none, the paper)."""
 
     mode: Mode = "soft"
     end_horizon: int = 0
@@ -42,8 +43,11 @@ class MPCSettings:
     reuse: bool = True
     rti: bool = False
     backend: str = "auto"
+    finish: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.finish < 0:
+            raise ValueError(f"finish must be >= 0 (0: no finish cost), got {self.finish}")
         if self.mode not in ("soft", "hard"):
             raise ValueError(f"mode must be 'soft' or 'hard', got {self.mode!r}")
         if self.end_horizon < 0:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ttompc.mpc.providers import RemainingREL, TargetFilter, TerminalDesign, WarmStart
+from ttompc.mpc.providers import RemainingOptimum, RemainingREL, TargetFilter, TerminalDesign, WarmStart
 from ttompc.mpc.settings import RTG_MODES, RTGMode
 from ttompc.scenarios.base import Problem, Scenario, Window
 
@@ -37,6 +37,12 @@ def check_rtg_scale(value: float, key: str = "rtg_scale") -> None:
         )
 
 
+def effective_rtg_mode(rtg_mode: RTGMode, planner: Planner) -> RTGMode:
+    """The rtg mode a model runs under ``rtg_mode``: ``value`` needs a value output, and a model without one (every
+    bundle from before it) keeps the paper's ledger (``running``)."""
+    return "running" if rtg_mode == "value" and not planner.has_value else rtg_mode
+
+
 class TTOProvider:
     """TTO-MPC: H-step rollout from a persistent rollout context (one per episode, KV cache reused; or one batched
     context shared by the providers of a ``group``), conditioned on rtg_0 = −``rtg_scale``·J_REL (None: the model's
@@ -47,9 +53,16 @@ class TTOProvider:
     * ``running`` (the paper, the default): rtg_t = rtg_0 + the cost executed so far. Closed loop the executed cost
       soon exceeds J_REL and rtg_t turns positive, where no training row lives.
     * ``reanchor``: rtg_t = −κ·J_REL(t), the REL cost of the remaining horizon [t, N) from the measured state (one
-      ``RemainingREL`` per step, as REL-MPC solves; its time counts in the warm start), clipped to
-      [μ − 3σ, −``RTG_FLOOR``·|rtg_0|] (μ, σ: the model's rtg statistics); the running value, clipped, where that
-      REL fails.
+      ``RemainingREL`` per step, as REL-MPC solves; its time counts in the warm start); the running value where
+      that REL fails.
+    * ``value``: rtg_t = −V(x_t, t), the model's own value output (``Planner.cost_to_go``: the learned cost-to-go
+      of an optimal plan from the measured state); a model without one is refused at construction.
+    * ``oracle`` (a diagnostic, the ceiling of ``value``): rtg_t = −J*(x_t, t), the cost of the full remaining-
+      horizon SCP optimum from the measured state (``RemainingOptimum``, from the open-loop optimum ``plan``
+      or REL → SCP at t = 0; its solves count in the warm start).
+
+    Every mode but ``running`` clips its value to [μ − 3σ, −``RTG_FLOOR``·|rtg_0|] (μ, σ: the model's rtg
+    statistics), the range training rows' rtg lie in.
 
     Inside a window the rollout still adds the model's own planned costs to the fed value (the rollout's rule).
     ``use_cache`` configures the provider's own group; a given ``group`` has its own."""
@@ -65,9 +78,15 @@ class TTOProvider:
         rtg_mode: RTGMode = "running",
         group: RolloutGroup | None = None,
         backend: str = "auto",
+        plan: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         if rtg_mode not in RTG_MODES:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {rtg_mode!r}")
+        if rtg_mode == "value" and not planner.has_value:
+            raise ValueError(
+                "rtg_mode=value needs a model with a value output (model.value_width > 0); this one has none: use "
+                "rtg_mode=running (the paper's ledger)"
+            )
         self.planner, self.name = planner, name
         self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
         check_rtg_scale(self.rtg_scale)
@@ -78,6 +97,7 @@ class TTOProvider:
             raise ValueError("the providers of a RolloutGroup must share its planner")
         self.slot = self.group.add(self)
         self.rel = RemainingREL(backend)
+        self.optimum = RemainingOptimum(plan, backend) if rtg_mode == "oracle" else None
 
     @property
     def context(self) -> RolloutContext | None:
@@ -90,6 +110,8 @@ class TTOProvider:
         self.scenario, self.problem = scenario, problem
         self.target.reset()
         self.rel.reset()
+        if self.optimum is not None:
+            self.optimum.reset(scenario, problem)
         self.rtg0 = -self.rtg_scale * rel_cost
         self.spent = 0.0  # Σ c(u) of the executed controls
         self.x = problem.x0
@@ -107,7 +129,11 @@ class TTOProvider:
         if self.rtg_mode == "running":
             return None
         value = self.rtg0 + self.spent  # at t = 0 also reanchor's: rtg_0 = −κ·J_REL(0)
-        if t > 0:
+        if self.rtg_mode == "value":
+            value = -float(self.planner.cost_to_go([self.problem], self.x[None], t)[0])
+        elif self.optimum is not None:  # oracle
+            value = -self.scenario.cost(self.optimum(t, self.x)[1])
+        elif t > 0:
             rel = self.rel(self.scenario, self.problem, t, self.x)
             if rel.success:
                 value = -self.rtg_scale * rel.cost

@@ -32,12 +32,17 @@ class ModelConfig:
     layout: Layout = "interleaved"
     bias: bool = True
     init_std: float = 0.02
+    # width of the value output V(goal, s_t, t) -> rtg_t (two hidden layers); 0: none (bundles from before it).
+    # TTO-MPC's rtg_mode=value feeds it instead of the paper's ledger (ttompc.mpc.tto)
+    value_width: int = 0
 
     def __post_init__(self) -> None:
         if self.n_embd % self.n_head != 0:
             raise ValueError(f"n_embd ({self.n_embd}) must be divisible by n_head ({self.n_head})")
         if min(self.state_dim, self.control_dim, self.n_layer, self.max_steps, self.mlp_ratio) < 1:
             raise ValueError(f"model dimensions must be positive: {self}")
+        if self.value_width < 0:
+            raise ValueError(f"value_width must be >= 0 (0: no value output), got {self.value_width}")
         if self.layout not in TOKENS_PER_STEP:
             raise ValueError(f"layout must be one of {sorted(TOKENS_PER_STEP)}, got {self.layout!r}")
         for name, p in (("dropout", self.dropout), ("attn_dropout", self.attn_dropout)):

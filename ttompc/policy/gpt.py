@@ -16,6 +16,10 @@ goal, rtg, ctg and state of step t), the next-state head reads the *action* toke
 The action head reads that token; the next-state head is a small MLP of [hidden_t, a_t]. Attention over 100
 instead of 500 tokens makes a training step, the KV cache and MPC re-plans cheaper (measured in docs/design.md).
 
+An optional value output (``value_width`` > 0, a departure: the paper feeds a ledger) predicts the reward-to-go
+of step t from (goal, s_t, t) alone, an MLP beside the trunk: the optimal cost-to-go is a function of the state and
+the time left, not of the history, and a Markov estimate cannot feed on its own earlier outputs.
+
 In both layouts a learned timestep embedding (the only positional signal) is added to every token; a LayerNorm
 (``embed_ln``) and dropout follow; then pre-LN transformer blocks with causal ``scaled_dot_product_attention`` and a
 final LayerNorm. ``embed_steps`` makes the tokens that decide the actions of a run of steps, whatever the layout:
@@ -166,6 +170,10 @@ class TrajectoryGPT(nn.Module):
             self.state_head = nn.Linear(d, n)
         else:  # the step's token has not seen a_t: the head reads it beside the hidden state
             self.state_head = nn.Sequential(nn.Linear(d + m, d), _ACTIVATIONS[cfg.activation](), nn.Linear(d, n))
+        self.value_head: nn.Module | None = None
+        if cfg.value_width > 0:
+            w, act = cfg.value_width, _ACTIVATIONS[cfg.activation]
+            self.value_head = nn.Sequential(nn.Linear(2 * n + 1, w), act(), nn.Linear(w, w), act(), nn.Linear(w, 1))
         self.apply(self._init_weights)
         # GPT-2 scaled init of residual projections keeps the residual stream's variance independent of depth.
         for name, p in self.named_parameters():
@@ -180,6 +188,14 @@ class TrajectoryGPT(nn.Module):
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+    def value(self, goals: Tensor, states: Tensor, timesteps: Tensor) -> Tensor:
+        """The value output: normalised goals/states (B, L, n), timesteps (B, L) int -> the predicted normalised
+        reward-to-go (B, L, 1) of an optimal plan from s_t at step t. Raises if the model has none."""
+        if self.value_head is None:
+            raise ValueError("this model has no value output (model.value_width = 0)")
+        t = (timesteps.to(states.dtype) / self.cfg.max_steps).unsqueeze(-1)  # (B, L, 1), in [0, 1)
+        return self.value_head(torch.cat([goals, states, t], dim=-1))
 
     # ------------------------------------------------------------------------------------------ token embeddings
     def embed_steps(

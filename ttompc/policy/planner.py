@@ -94,6 +94,24 @@ class Planner:
         return float(self.extra.get("rtg_scale", 1.0))
 
     @property
+    def has_value(self) -> bool:
+        """Whether the model has a value output (``ModelConfig.value_width`` > 0)."""
+        return self.model.value_head is not None
+
+    @torch.no_grad()
+    def cost_to_go(self, problems: Sequence[Problem], X: np.ndarray, t: int) -> np.ndarray:
+        """The value output's cost-to-go V(x_t, t) = −rtg_t (B,) of B problems from their states ``X`` (B, n) at step
+        ``t``, in the optimisation representation; raises ``ValueError`` for a model without a value output."""
+        sc = self.scenario
+        S = np.stack([sc.to_model_states(p, np.asarray(x)[None], start=t)[0] for p, x in zip(problems, X, strict=True)])
+        goal = np.stack([sc.model_goal(p) for p in problems])
+        dtype = next(self.model.parameters()).dtype
+        as_t = lambda a: torch.as_tensor(a[:, None], dtype=dtype, device=self.device)  # noqa: E731  (B, 1, n)
+        steps = torch.full((len(problems), 1), t, dtype=torch.long, device=self.device)
+        v = self.model.value(self.stats.normalize("goals", as_t(goal)), self.stats.normalize("states", as_t(S)), steps)
+        return -self.stats.denormalize("rtg", v.double())[:, 0, 0].cpu().numpy()
+
+    @property
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
 

@@ -85,6 +85,7 @@ def run_scp(
                 vc_rows=tuple(scenario.approximate_rows),
                 trust=trust_norm if use_tr else "none",
                 terminal="hard" if terminal is None else "soft",
+                finish=finish_kind(terminal),
                 soft_equalities=soft_equalities,
                 penalty=float(settings.penalty),
                 blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
@@ -110,6 +111,7 @@ def run_scp(
             goal=problem.goal,
             terminal_target=None if terminal is None else terminal.target,
             terminal_weights=None if terminal is None else terminal.weights,
+            finish=None if terminal is None else terminal.finish,
         )
         X, U, sol = solver.solve(data)
         solver_time += sol.solve_time
@@ -193,9 +195,14 @@ def _hard(block: ConstraintBlock) -> ConstraintBlock:
 
 
 def _terminal_term(X: np.ndarray, terminal: TerminalCost | None) -> float:
-    if terminal is None:
-        return 0.0
-    return float(np.linalg.norm(terminal.weights * (X[-1] - terminal.target)))
+    return 0.0 if terminal is None else terminal(X[-1])
+
+
+def finish_kind(terminal: TerminalCost | None) -> str:
+    """The subproblem's finish-cost structure: "none", "quad" (squared norm) or "norm"."""
+    if terminal is None or terminal.finish is None:
+        return "none"
+    return "quad" if terminal.finish.squared else "norm"
 
 
 def _eq_rows(block: ConstraintBlock, X: np.ndarray, U: np.ndarray) -> np.ndarray:

@@ -6,7 +6,10 @@ Batch contract (from ``ttompc.data.datamodule.TrajectoryDataModule``; float32, a
     target_actions (B, L, m)   target_next_states (B, L, n)   mask (B, L) float, 1 = valid step
     state_mask (B, L) float, optional: validity of target_next_states (default: mask)
 
-loss = masked MSE(â, target_actions) + masked MSE(ŝ, target_next_states), equal weights like the reference.
+loss = masked MSE(â, target_actions) + masked MSE(ŝ, target_next_states), equal weights like the reference; a model
+with a value output adds ``optim.value_weight`` × masked MSE(V̂, rtg) over the steps of rows whose rtg is an optimum's
+cost-to-go (``VALUE_SOURCES``: SCP and DAgger rows, which need ``source`` (B,) in the batch). With
+``optim.trainable: value`` the policy's parameters are frozen and the loss is the value term alone.
 Hyper-parameters are primitives only (dicts of numbers/strings), so the checkpoint loads with ``weights_only=True``
 and is enough to build a ``Planner`` (``Planner.from_pretrained``).
 """
@@ -23,6 +26,7 @@ from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from torch import Tensor
 
 from ttompc.config import from_container
+from ttompc.data.schema import SOURCE_CODES
 from ttompc.policy.config import ModelConfig
 from ttompc.policy.gpt import TrajectoryGPT
 from ttompc.policy.stats import NormStats
@@ -31,6 +35,10 @@ from ttompc.training.loggers import log_figure, trajectory_figure
 
 if TYPE_CHECKING:
     from ttompc.scenarios.base import Scenario
+
+# rows whose rtg_t is the cost-to-go of an optimal (or expert) plan from s_t: the value output's targets. REL rows
+# solve the relaxation, whose cost-to-go is lower than any feasible plan's.
+VALUE_SOURCES = (SOURCE_CODES["scp"], SOURCE_CODES["dagger"])
 
 
 def masked_mse(pred: Tensor, target: Tensor, mask: Tensor | None, delta: float | None = None) -> Tensor:
@@ -64,6 +72,11 @@ class TrajectoryTransformerModule(L.LightningModule):
         self.model = TrajectoryGPT(from_container(ModelConfig, model_config))
         self.optim_cfg = from_container(OptimConfig, optim)
         self.stats = NormStats.from_dict(norm_stats)
+        if self.optim_cfg.trainable == "value":
+            if self.model.value_head is None:
+                raise ValueError("optim.trainable=value needs a value output (model.value_width > 0)")
+            for name, p in self.model.named_parameters():
+                p.requires_grad_(name.startswith("value_head."))
         self._plot_batch: dict[str, Tensor] | None = None
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
@@ -71,28 +84,44 @@ class TrajectoryTransformerModule(L.LightningModule):
             batch["goals"], batch["rtg"], batch["ctg"], batch["states"], batch["actions"], batch["timesteps"]
         )
 
-    def _losses(
-        self, batch: dict[str, Tensor], delta: float | None = None
-    ) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor]]:
-        a_pred, s_pred = self(batch)
-        mask = batch.get("mask")
-        loss_a = masked_mse(a_pred, batch["target_actions"], mask, delta)
-        loss_s = masked_mse(s_pred, batch["target_next_states"], batch.get("state_mask", mask), delta)
-        return loss_a + loss_s, loss_a, loss_s, (a_pred, s_pred)
+    def value_loss(self, batch: dict[str, Tensor]) -> Tensor:
+        """Masked MSE of the value output against the normalised rtg, over the valid steps of ``VALUE_SOURCES``
+        rows (0 when the batch has none)."""
+        v = self.model.value(batch["goals"], batch["states"], batch["timesteps"])  # (B, L, 1)
+        rows = torch.isin(batch["source"], torch.as_tensor(VALUE_SOURCES, device=v.device))  # (B,)
+        mask = batch.get("mask", torch.ones_like(batch["timesteps"], dtype=v.dtype))
+        return masked_mse(v, batch["rtg"], mask * rows[:, None].to(mask.dtype))
+
+    def _losses(self, batch: dict[str, Tensor], delta: float | None = None) -> dict[str, Tensor]:
+        """The training loss ("loss") and its terms; "pred" holds the teacher-forced (actions, states)."""
+        out: dict[str, Tensor] = {}
+        if self.optim_cfg.trainable == "all":
+            a_pred, s_pred = self(batch)
+            mask = batch.get("mask")
+            out["loss_action"] = masked_mse(a_pred, batch["target_actions"], mask, delta)
+            out["loss_state"] = masked_mse(s_pred, batch["target_next_states"], batch.get("state_mask", mask), delta)
+            out["loss"] = out["loss_action"] + out["loss_state"]
+            out["pred"] = s_pred
+        if self.model.value_head is not None:
+            out["loss_value"] = self.value_loss(batch)
+            w = 1.0 if self.optim_cfg.trainable == "value" else self.optim_cfg.value_weight
+            out["loss"] = out.get("loss", 0.0) + w * out["loss_value"]
+        return out
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        loss, loss_a, loss_s, _ = self._losses(batch, self.optim_cfg.huber_delta)  # validation stays plain MSE
+        out = self._losses(batch, self.optim_cfg.huber_delta)  # validation stays plain MSE
         B = batch["states"].shape[0]
-        self.log("train/loss", loss, prog_bar=True, batch_size=B)
-        self.log_dict({"train/loss_action": loss_a, "train/loss_state": loss_s}, batch_size=B)
-        return loss
+        self.log("train/loss", out["loss"], prog_bar=True, batch_size=B)
+        self.log_dict({f"train/{k}": v for k, v in out.items() if k.startswith("loss_")}, batch_size=B)
+        return out["loss"]
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        loss, loss_a, loss_s, (_, s_pred) = self._losses(batch)
+        out = self._losses(batch)
         B = batch["states"].shape[0]
-        self.log("val/loss", loss, prog_bar=True, sync_dist=True, batch_size=B)
-        self.log_dict({"val/loss_action": loss_a, "val/loss_state": loss_s}, sync_dist=True, batch_size=B)
-        if batch_idx == 0 and self.hparams["plot_trajectories"]:
+        self.log("val/loss", out["loss"], prog_bar=True, sync_dist=True, batch_size=B)
+        self.log_dict({f"val/{k}": v for k, v in out.items() if k.startswith("loss_")}, sync_dist=True, batch_size=B)
+        if batch_idx == 0 and self.hparams["plot_trajectories"] and "pred" in out:
+            s_pred = out["pred"]
             k = min(4, B)
             self._plot_batch = {
                 "states": batch["states"][:k].detach().cpu(),

@@ -115,6 +115,8 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     scenario = get_scenario(datamodule.scenario_name)
     # The data fixes the token dimensions; the recipe fixes everything else.
     model_cfg = replace(cfg.model, state_dim=scenario.state_dim, control_dim=scenario.control_dim)
+    if cfg.optim.trainable == "value" and not cfg.init_from:
+        raise ConfigError("optim.trainable=value trains a value output on a frozen policy: give init_from=MODEL")
     source = _init_source(cfg.init_from, model_cfg, scenario.name) if cfg.init_from else None
     if source is not None:  # the source's input scaling goes with its weights
         datamodule.use_stats(source.stats)
@@ -167,7 +169,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     if resume_from is not None and trainer.is_global_zero:
         print(f"ttompc: resuming from {resume_from} (step {start_step})", file=sys.stderr)
     elif source is not None:
-        module.model.load_state_dict(source.model.state_dict())
+        load_source_weights(module.model, source.model.state_dict())
         if trainer.is_global_zero:
             print(f"ttompc: starting from the weights of {cfg.init_from} (fresh optimiser)", file=sys.stderr)
     fit(trainer, module, datamodule, resume_from)
@@ -182,6 +184,16 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         planner_dir = planner.save(out / "planner")
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     return TrainResult(out, last_checkpoint(out), planner_dir, start_step, global_step, metrics)
+
+
+def load_source_weights(model: Any, state: dict[str, Any]) -> None:
+    """``init_from``'s weights into ``model``; a value output the source lacks (``model.value_width`` added to a
+    published model) keeps its fresh initialisation, any other mismatch raises ``ConfigError``."""
+    if model.value_head is None and any(k.startswith("value_head.") for k in state):
+        raise ConfigError("init_from has a value output: keep model.value_width as in its bundle")
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if unexpected or any(not k.startswith("value_head.") for k in missing):
+        raise ConfigError(f"init_from's weights do not fit the model: missing {missing}, unexpected {unexpected}")
 
 
 # the fields that shape the weights: a continued run must keep them

@@ -1,0 +1,165 @@
+"""The value output (a learned cost-to-go fed as rtg, ``rtg_mode=value``), its loss and masking, value-only training
+on a frozen policy, and old bundles that keep the paper's ledger."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from test_training import ToyDataModule, tiny_config
+
+from ttompc.config import ConfigError, to_container
+from ttompc.data.schema import SOURCE_CODES
+from ttompc.mpc.providers import RemainingOptimum
+from ttompc.mpc.tto import TTOProvider, effective_rtg_mode
+from ttompc.policy import Planner
+from ttompc.policy.config import ModelConfig
+from ttompc.policy.gpt import TrajectoryGPT
+from ttompc.policy.stats import NormStats
+from ttompc.scenarios import get_scenario
+from ttompc.scenarios.base import Window
+from ttompc.solvers.scp import solve_problem
+from ttompc.training.module import TrajectoryTransformerModule
+from ttompc.training.run import load_source_weights, train
+
+SCP, REL = SOURCE_CODES["scp"], SOURCE_CODES["rel"]
+
+
+class SourcedToyData(ToyDataModule):
+    """The toy batches with a ``source`` per row: every other row REL (no optimum's cost-to-go), the rest SCP."""
+
+    def setup(self, stage: str | None = None) -> None:
+        super().setup(stage)
+        for ds in (self.train_set, self.val_set):
+            n = len(ds)
+            ds.items["source"] = torch.where(torch.arange(n) % 2 == 0, REL, SCP)
+
+
+def _module(*overrides: str) -> tuple[TrajectoryTransformerModule, dict[str, torch.Tensor]]:
+    dm = SourcedToyData(n=32, batch_size=16)
+    dm.setup("fit")
+    cfg = tiny_config(Path("unused"), "model.layout=stacked", "model.value_width=16", *overrides)
+    assert dm.stats is not None
+    module = TrajectoryTransformerModule(
+        to_container(cfg.model), to_container(cfg.optim), "toy", "0.1", dm.stats.to_dict()
+    )
+    return module, next(iter(dm.train_dataloader()))
+
+
+def test_value_loss_reads_only_valid_steps_of_rows_with_an_optimum() -> None:
+    torch.manual_seed(0)
+    module, batch = _module()
+    base = module.value_loss(batch).item()
+    assert base > 0
+    rel = batch["source"] == REL
+    assert rel.any() and (~rel).any()
+    moved = dict(batch, rtg=batch["rtg"] + 5.0 * rel[:, None, None])  # REL rows' rtg: not a target
+    assert module.value_loss(moved).item() == pytest.approx(base)
+    padded = dict(batch, rtg=batch["rtg"] + 5.0 * (batch["mask"] == 0)[..., None])  # padded steps: not a target
+    assert module.value_loss(padded).item() == pytest.approx(base)
+    scp = dict(batch, rtg=batch["rtg"] + 5.0 * (~rel)[:, None, None])
+    assert module.value_loss(scp).item() > base + 1.0
+    none = dict(batch, source=torch.full_like(batch["source"], REL))
+    assert module.value_loss(none).item() == 0.0
+    # the training loss adds it with optim.value_weight to the policy's terms
+    out = module._losses(batch)
+    assert out["loss"].item() == pytest.approx((out["loss_action"] + out["loss_state"] + out["loss_value"]).item())
+
+
+def test_value_only_training_leaves_the_policy_as_it_was() -> None:
+    torch.manual_seed(0)
+    module, batch = _module("optim.trainable=value", "optim.lr=1e-2", "optim.warmup_steps=0", "optim.schedule=constant")
+    before = {k: v.clone() for k, v in module.model.state_dict().items()}
+    out = module._losses(batch)
+    assert set(out) == {"loss", "loss_value"}  # the transformer is not run
+    opt = module.configure_optimizers()["optimizer"]
+    for _ in range(3):
+        loss = module._losses(batch)["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    after = module.model.state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed and all(k.startswith("value_head.") for k in changed)
+    assert module._losses(batch)["loss"].item() < out["loss"].item()
+    with pytest.raises(ValueError, match="needs a value output"):
+        _module("optim.trainable=value", "model.value_width=0")
+
+
+@pytest.mark.slow  # two tiny training runs (~20 s)
+def test_value_head_added_to_published_weights(tmp_path: Path) -> None:
+    """init_from a bundle without a value output + model.value_width: the policy's weights are the source's exactly
+    (frozen), the value head is new, the exported bundle has one and prices states as its head does."""
+    common = ("logger.kind=none", "model.layout=stacked", "trainer.checkpoint_every_n_steps=100")
+    src = train(tiny_config(tmp_path / "src", "trainer.max_steps=3", *common), SourcedToyData(n=32))
+    assert src.planner_dir is not None
+    source = Planner.from_pretrained(src.planner_dir)
+    assert not source.has_value
+    value = ("model.value_width=16", "optim.trainable=value", "trainer.max_steps=4", f"init_from={src.planner_dir}")
+    run = train(tiny_config(tmp_path / "value", *common, *value), SourcedToyData(n=32))
+    assert run.planner_dir is not None
+    planner = Planner.from_pretrained(run.planner_dir)
+    assert planner.has_value
+    want, got = source.model.state_dict(), planner.model.state_dict()
+    assert all(torch.equal(got[k], want[k]) for k in want)
+    assert {k for k in got if k not in want} == {k for k in got if k.startswith("value_head.")}
+    sc = planner.scenario
+    p = sc.sample(np.random.default_rng(0))
+    X = np.stack([p.x0, p.goal])
+    ctg = planner.cost_to_go([p, p], X, 3)
+    st = planner.stats
+    norm = lambda k, a: torch.as_tensor(st.normalize(k, a), dtype=torch.float32)[:, None]  # noqa: E731
+    v = planner.model.value(norm("goals", np.stack([p.goal, p.goal])), norm("states", X), torch.full((2, 1), 3))
+    assert ctg == pytest.approx(-st.denormalize("rtg", v.double().detach().numpy())[:, 0, 0], rel=1e-3)  # float32
+
+
+def test_init_from_weights_must_fit_but_for_a_new_value_head() -> None:
+    cfg = ModelConfig(state_dim=6, control_dim=3, n_embd=16, n_layer=1, n_head=2, max_steps=12, layout="stacked")
+    plain = TrajectoryGPT(cfg)
+    valued = TrajectoryGPT(ModelConfig(**{**cfg.__dict__, "value_width": 8}))
+    load_source_weights(valued, plain.state_dict())  # a value head the source lacks: fine
+    assert all(torch.equal(valued.state_dict()[k], v) for k, v in plain.state_dict().items())
+    with pytest.raises(ConfigError, match="has a value output"):
+        load_source_weights(TrajectoryGPT(cfg), valued.state_dict())
+    partial = {k: v for k, v in plain.state_dict().items() if not k.startswith("action_head")}
+    with pytest.raises(ConfigError, match="missing"):
+        load_source_weights(TrajectoryGPT(cfg), partial)
+
+
+def test_models_without_a_value_output_keep_the_ledger(toy, toy_stats: NormStats) -> None:
+    cfg = ModelConfig(state_dim=6, control_dim=3, n_embd=16, n_layer=1, n_head=2, max_steps=12, layout="stacked")
+    planner = Planner(TrajectoryGPT(cfg), toy, toy_stats)
+    assert not planner.has_value
+    assert effective_rtg_mode("value", planner) == "running"
+    assert effective_rtg_mode("oracle", planner) == "oracle"
+    with pytest.raises(ValueError, match="value output"):
+        TTOProvider(planner, rtg_mode="value")
+    with pytest.raises(ValueError, match="no value output"):
+        planner.cost_to_go([toy.sample(np.random.default_rng(0))], np.zeros((1, 6)), 0)
+    valued = Planner(TrajectoryGPT(ModelConfig(**{**cfg.__dict__, "value_width": 8})), toy, toy_stats)
+    assert effective_rtg_mode("value", valued) == "value"
+
+
+def test_remaining_optimum_is_the_tail_of_the_optimum_on_its_own_path() -> None:
+    """The oracle rtg's cost-to-go: along the optimum's own states the remaining optimum is its tail (no re-solve,
+    cost-to-go falls by exactly each executed stage cost); off it, it re-plans from the measured state."""
+    sc = get_scenario("quadrotor")
+    p = sc.sample(np.random.default_rng(5))
+    _, scp = solve_problem(sc, p)
+    assert scp is not None and scp.success
+    opt = RemainingOptimum((scp.X, scp.U))
+    opt.reset(sc, p)
+    X, U = opt(0, p.x0)
+    assert np.array_equal(X[0], p.x0) and sc.cost(U) == pytest.approx(sc.cost(scp.U))
+    X5, U5 = opt(5, scp.X[5])
+    assert opt.replans == 0 and np.allclose(X5, scp.X[5:]) and len(U5) == p.n_steps - 5
+    assert sc.cost(U5) == pytest.approx(sc.cost(scp.U) - sc.cost(scp.U[:5]))
+    off = scp.X[6] + 0.05 * sc.state_units()
+    X6, U6 = opt(6, off)
+    assert opt.replans == 1 and np.array_equal(X6[0], off) and len(U6) == p.n_steps - 6
+    assert np.max(np.abs(sc.rollout(p, U6, start=6, x=off)[-1] - p.goal)) < 1e-3
+    with pytest.raises(ValueError, match="at step 6"):
+        opt(2, p.x0)
+    assert Window(6, p.n_steps - 6, p.n_steps).reaches_end
