@@ -102,6 +102,30 @@ def test_closed_loop_rows_pair_each_method_with_rel_mpc_on_the_problems_both_ran
     assert "-33.3 ± " in format_table(list(rows.values())) and "(3)" in format_table(list(rows.values()))
 
 
+def test_headline_pairs_the_short_horizon_with_rel_mpc_at_the_long_one() -> None:
+    """The paper's headline row: a method at the shortest H against REL-MPC at the longest, paired over the
+    problems both reach feasibly, with the step-time ratio; nothing for a single horizon."""
+    from ttompc.evaluation.closed_loop import format_headline, headline
+
+    def rec(p: int, m: str, H: int, inc: float | None, step: float) -> dict:
+        return {"problem": p, "method": m, "horizon": H, "plant": "nominal", "feasible": inc is not None,
+                "rel_increment": float("nan") if inc is None else inc, "mean_step_time": step}  # fmt: skip
+
+    recs = [
+        rec(0, "REL-MPC", 30, 0.5, 0.04), rec(1, "REL-MPC", 30, 0.7, 0.02), rec(2, "REL-MPC", 30, None, 0.03),
+        rec(0, "REL-MPC", 10, 1.5, 0.01), rec(1, "REL-MPC", 10, 1.0, 0.01), rec(2, "REL-MPC", 10, 2.0, 0.01),
+        rec(0, "TTO-MPC", 10, 0.4, 0.006), rec(1, "TTO-MPC", 10, None, 0.006), rec(2, "TTO-MPC", 10, 0.1, 0.006),
+    ]  # fmt: skip
+    rows = {r["method"]: r for r in headline(recs)}
+    tto = rows["TTO-MPC"]
+    assert (tto["horizon"], tto["baseline_horizon"], tto["feasible"], tto["baseline_feasible"]) == (10, 30, 2, 2)
+    assert tto["vs_baseline"]["n"] == 1 and tto["vs_baseline"]["mean"] == pytest.approx(-0.1)  # problem 0 only
+    assert tto["step_ratio"] == pytest.approx(0.03 / 0.006)
+    assert rows["REL-MPC"]["vs_baseline"]["n"] == 2 and rows["REL-MPC"]["vs_baseline"]["mean"] == pytest.approx(0.65)
+    assert "| nominal | TTO-MPC | 2/3 | 2/3 | -10 " in format_headline(list(rows.values()))
+    assert headline([r for r in recs if r["horizon"] == 10]) == [] and format_headline([]) == ""
+
+
 def test_share_of_reachable_gain() -> None:
     base, model, ceil = np.array([2.0, 3.0, 9.0]), np.array([1.5, 2.0, np.nan]), np.array([1.0, 1.0, 1.0])
     g = gain_share(base, model, ceil, seed=0)  # problem 2 (model unsolved) is dropped: (2.5 − 1.75)/(2.5 − 1)
