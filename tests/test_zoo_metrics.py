@@ -84,6 +84,30 @@ def test_metrics_are_the_reports_numbers_with_their_command() -> None:
     assert "rtg_scale=" not in how  # None: the model's own, not on the command line
 
 
+def test_metrics_read_rtg_labelled_rows_and_the_headline() -> None:
+    """A report run under another rtg mode labels its TTO rows (FT-TTO-MPC[rtg=value]); the card reads them as the
+    model's, and takes the headline rows (against REL-MPC at the longest horizon) with their command."""
+    report = {
+        "config": {**MPC["config"], "ft_model": "m-ft", "horizons": [10, 30], "protocol": "recommended", "mpc": {}},
+        "summary": [_row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.3), _row("nominal", "REL-MPC", 4, 0.9)],
+        "headline": [
+            {"plant": "nominal", "method": "R-FT-TTO-MPC[rtg=value]", "horizon": 10, "baseline_horizon": 30,
+             "runs": 4, "feasible": 4, "baseline_feasible": 4, "vs_baseline": _iv(0.05, 0.02), "step_ratio": 3.5},
+            {"plant": "nominal", "method": "REL-MPC", "horizon": 10, "baseline_horizon": 30, "runs": 4,
+             "feasible": 4, "baseline_feasible": 4, "vs_baseline": _iv(0.9), "step_ratio": 1.5},
+        ],
+    }  # fmt: skip
+    m = validate_metrics(card_metrics("FT-TTO", mpc=report))
+    assert m["mpc10_nominal_model_rel_increment"]["value"] == pytest.approx(0.3)
+    assert m["mpc10_nominal_robust_vs_rel30"]["value"] == pytest.approx(0.05)
+    assert m["mpc10_nominal_robust_vs_rel30_se"]["value"] == pytest.approx(0.02)
+    assert m["mpc10_nominal_robust_vs_rel30_step_ratio"]["value"] == pytest.approx(3.5)
+    assert "mpc10_nominal_rel_vs_rel30" not in m
+    assert (
+        "horizons=[10,30] plants=[nominal,perturbed] protocol=recommended`" in m["mpc10_nominal_robust_vs_rel30"]["how"]
+    )
+
+
 def test_ft_metrics_pick_the_ft_rows() -> None:
     m = card_metrics("FT-TTO", warmstart=WS)
     assert m["ws_suboptimality"]["value"] == pytest.approx(0.45)
