@@ -163,3 +163,22 @@ def test_remaining_optimum_is_the_tail_of_the_optimum_on_its_own_path() -> None:
     with pytest.raises(ValueError, match="at step 6"):
         opt(2, p.x0)
     assert Window(6, p.n_steps - 6, p.n_steps).reaches_end
+
+
+def test_dagger_refuses_value_targets_that_are_not_a_cost_to_go(toy, toy_stats: NormStats) -> None:
+    """A model with a value output learns DAgger rows' rtg too: only plan rows with the expert's cost-to-go are a
+    cost-to-go from the labelled step on; the paper's step labels carry the learner's ledger."""
+    from ttompc.finetune.config import load_finetune_config
+    from ttompc.finetune.loop import FinetuneError, check_value_labels
+
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "freeflyer" / "finetune.yaml"
+    cfg = ModelConfig(state_dim=6, control_dim=3, n_embd=16, n_layer=1, n_head=2, max_steps=12, value_width=8)
+    valued = Planner(TrajectoryGPT(cfg), toy, toy_stats)
+    plain = Planner(TrajectoryGPT(ModelConfig(**{**cfg.__dict__, "value_width": 0})), toy, toy_stats)
+    ok = load_finetune_config(recipe, [])
+    assert (ok.dagger.labels.kind, ok.dagger.labels.rtg) == ("plan", "expert")
+    check_value_labels(ok, valued)
+    for bad in (["dagger.labels.rtg=learner"], ["dagger.labels.kind=step"]):
+        with pytest.raises(FinetuneError, match="value output"):
+            check_value_labels(load_finetune_config(recipe, bad), valued)
+        check_value_labels(load_finetune_config(recipe, bad), plain)  # no value output: any labels

@@ -51,7 +51,7 @@ from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig
 from ttompc.mpc.loop import MPCController, StepPlan
 from ttompc.mpc.providers import ShiftProvider
 from ttompc.mpc.settings import MPCSettings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider
+from ttompc.mpc.tto import RolloutGroup, TTOProvider, effective_rtg_mode
 from ttompc.parallel import pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -160,11 +160,13 @@ def collect_rollouts(
     docstring for the labels): one row with ``kind="step"`` labels, one row per labelled step with ``kind="plan"``.
     The learners of all rollouts share one batched transformer context (``RolloutGroup``: one batched rollout per
     step), so a rollout's learner plans equal its lone run's up to the rounding of the batch. From ``settings`` both
-    controllers take mode, backend and plan reuse (without reuse the labels are the same); the learner runs the
-    paper's fixed H (exploration, Alg. 1)."""
+    controllers take mode, backend, plan reuse (without reuse the labels are the same) and the finish cost, the
+    learner its rtg mode (a model without a value output keeps the ledger); the learner runs the paper's fixed H
+    (exploration, Alg. 1)."""
     labels = labels or LabelConfig()
     s = settings or MPCSettings()
-    loop = MPCSettings(mode=s.mode, backend=s.backend, reuse=s.reuse)
+    loop = MPCSettings(mode=s.mode, backend=s.backend, reuse=s.reuse, finish=s.finish)
+    rtg_mode = effective_rtg_mode(s.rtg_mode, planner)
     group = RolloutGroup(planner)
     episodes = []
     for index in indices:
@@ -175,7 +177,7 @@ def collect_rollouts(
         H = min(int(rng.choice(exploration.horizons)), N)
         expert_steps = expert_schedule(rng, N, exploration)
         labelled = label_schedule(rng, N, labels.per_rollout) | expert_steps
-        provider, shift = TTOProvider(planner, group=group), ShiftProvider()
+        provider, shift = TTOProvider(planner, group=group, rtg_mode=rtg_mode, backend=s.backend), ShiftProvider()
         learner = MPCController(scenario, problem, provider, H, loop)
         expert = MPCController(scenario, problem, shift, N, loop)
         ep = _Episode(index, seed, problem, rel, H, expert_steps, labelled, provider, learner, shift, expert,

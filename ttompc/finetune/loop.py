@@ -157,6 +157,19 @@ def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) 
     return metrics
 
 
+def check_value_labels(cfg: FinetuneConfig, planner: Planner) -> None:
+    """A model with a value output learns it from DAgger rows too, whose rtg must then be a cost-to-go from the
+    labelled steps on: plan labels with the expert's rtg (``labels.kind=plan``, ``labels.rtg=expert``); raises
+    ``FinetuneError`` otherwise."""
+    labels = cfg.dagger.labels
+    if planner.has_value and (labels.kind, labels.rtg) != ("plan", "expert"):
+        raise FinetuneError(
+            f"the model has a value output, which learns the rtg of DAgger rows as a cost-to-go, but "
+            f"dagger.labels.kind={labels.kind} dagger.labels.rtg={labels.rtg} rows carry the learner's running value",
+            "use dagger.labels.kind=plan dagger.labels.rtg=expert",
+        )
+
+
 def _model_name(iteration: int) -> str:
     """How messages name a DAgger model: iteration -1 of the state file is the pretrained model."""
     return "the pretrained model" if iteration < 0 else f"iteration {iteration}"
@@ -276,6 +289,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     wait_s = cfg.dagger.collect.wait_s
     _wait(lambda: (src_dir / "config.json").is_file(), wait_s, "the source planner")
     source_planner = Planner.from_pretrained(src_dir)
+    check_value_labels(cfg, source_planner)
     scenario = source_planner.scenario
     logger = build_logger(cfg.logger, run, to_container(cfg)) if ranks.is_main else None
     problems = _eval_problems(cfg, scenario) if ranks.is_main else []
