@@ -102,6 +102,8 @@ def test_value_head_added_to_published_weights(tmp_path: Path) -> None:
     assert run.planner_dir is not None
     planner = Planner.from_pretrained(run.planner_dir)
     assert planner.has_value
+    assert planner.extra["value_added_to"] == str(src.planner_dir) and "finetuned_from" not in planner.extra
+    assert planner.rtg_scale == source.rtg_scale
     want, got = source.model.state_dict(), planner.model.state_dict()
     assert all(torch.equal(got[k], want[k]) for k in want)
     assert {k for k in got if k not in want} == {k for k in got if k.startswith("value_head.")}

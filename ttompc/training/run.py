@@ -181,9 +181,21 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     if trainer.is_global_zero and t.export_planner:
         planner = Planner.from_pretrained(last_checkpoint(out), scenario)
         planner.extra["source"] = "ttompc train"
+        if cfg.optim.trainable == "value" and source is not None:
+            planner.extra.update(value_lineage(source, str(cfg.init_from)))
         planner_dir = planner.save(out / "planner")
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     return TrainResult(out, last_checkpoint(out), planner_dir, start_step, global_step, metrics)
+
+
+def value_lineage(source: Any, name: str) -> dict[str, Any]:
+    """What a bundle whose value output was added to ``source`` (published as ``name``) inherits: the policy is the
+    source's, so its conditioning scale; the source as its parent (``value_added_to``), and for a fine-tuned source
+    also as the model it was fine-tuned from (its kind stays FT-TTO, the card's base model is the source)."""
+    out: dict[str, Any] = {"rtg_scale": source.rtg_scale, "value_added_to": name}
+    if "finetuned_from" in source.extra:
+        out["finetuned_from"] = name
+    return out
 
 
 def load_source_weights(model: Any, state: dict[str, Any]) -> None:
