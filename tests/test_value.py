@@ -184,3 +184,26 @@ def test_dagger_refuses_value_targets_that_are_not_a_cost_to_go(toy, toy_stats: 
         with pytest.raises(FinetuneError, match="value output"):
             check_value_labels(load_finetune_config(recipe, bad), valued)
         check_value_labels(load_finetune_config(recipe, bad), plain)  # no value output: any labels
+
+
+def test_value_mode_feeds_the_models_cost_to_go_from_the_measured_state(toy, toy_stats: NormStats) -> None:
+    """rtg_mode=value: the rtg fed at step t is −V(x_t, t) of the measured state, clipped to the training range;
+    the ledger mode feeds nothing of its own (the context runs its running value)."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(state_dim=6, control_dim=3, n_embd=16, n_layer=1, n_head=2, max_steps=12, value_width=8)
+    planner = Planner(TrajectoryGPT(cfg), toy, toy_stats)
+    p = toy.sample(np.random.default_rng(1))
+    value, ledger = TTOProvider(planner, rtg_mode="value"), TTOProvider(planner)
+    for prov in (value, ledger):
+        prov.reset(toy, p, rel_cost=2.0)
+    x = p.x0 + 0.3
+    value.x = x
+    lo, hi = value.rtg_range()
+    want = float(np.clip(-planner.cost_to_go([p], x[None], 4)[0], lo, hi))
+    assert value.conditioning(4) == pytest.approx(want)
+    assert ledger.conditioning(4) is None
+    with torch.no_grad():  # a value head that predicts a cost in range is fed as is
+        planner.model.value_head[-1].bias.fill_(0.0)
+        planner.model.value_head[-1].weight.zero_()
+    mid = -float(planner.stats.denormalize("rtg", np.zeros(1))[0])  # V = the rtg mean's cost
+    assert lo <= -mid <= hi and value.conditioning(4) == pytest.approx(-mid, rel=1e-5)
