@@ -453,6 +453,32 @@ def test_subsampled_and_plan_labels_match_the_expert_from_scratch() -> None:
         assert label == pytest.approx(sc.cost(_expert_from_scratch(sc, problem, t, X[t])), rel=1e-6)
 
 
+def test_rollouts_feed_the_learners_rtg_mode() -> None:
+    """Under rtg_mode=value the learner of a rollout is fed its model's cost-to-go, so its row's rtg is no ledger
+    (rtg_(t+1) − rtg_t = c(u_t)); a model without a value output runs the ledger under the same settings."""
+    import torch
+
+    from ttompc.finetune.collect import collect_rollouts
+    from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
+
+    sc = get_scenario(SHORT)
+    plain = mpc_fakes.tiny_planner()
+    torch.manual_seed(1)
+    valued_model = TrajectoryGPT(ModelConfig(**{**plain.model.cfg.__dict__, "value_width": 8}))
+    valued_model.load_state_dict(plain.model.state_dict(), strict=False)
+    valued = Planner(valued_model.eval(), sc, plain.stats)
+    explore = ExplorationConfig(horizons=[5], windows=[0, 0], window_length=[4, 6])
+    labels = LabelConfig(kind="step", per_rollout=2)
+    settings = MPCSettings(rtg_mode="value")
+
+    def ledger_gap(planner: Planner) -> float:
+        ((row,),) = collect_rollouts(sc, planner, 0, [0], 5, explore, labels, settings=settings)
+        return float(np.max(np.abs(np.diff(row["rtg"]) - sc.stage_cost(np.asarray(row["actions"]))[:-1])))
+
+    assert ledger_gap(plain) < 1e-6
+    assert ledger_gap(valued) > 1e-3
+
+
 def test_lockstep_rollouts_equal_lone_rollouts(tmp_path: Path) -> None:
     """Rollouts run in lockstep (one batched transformer rollout per step for all) are the rollouts each gives alone:
     the same problems, H, expert windows and labelled steps; each row carries its own learner's conditioning
