@@ -207,3 +207,19 @@ def test_value_mode_feeds_the_models_cost_to_go_from_the_measured_state(toy, toy
         planner.model.value_head[-1].weight.zero_()
     mid = -float(planner.stats.denormalize("rtg", np.zeros(1))[0])  # V = the rtg mean's cost
     assert lo <= -mid <= hi and value.conditioning(4) == pytest.approx(-mid, rel=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("model", "parent"),
+    [("freeflyer-ft-tto-v5", "freeflyer-ft-tto-v4"), ("quadrotor-ft-tto-v6", "quadrotor-ft-tto-v5"),
+     ("rpod-tto-v4", "rpod-tto-v3")],
+)  # fmt: skip
+def test_shipped_value_models_plan_as_their_parents(model: str, parent: str) -> None:
+    """The zoo's value models are their parents' policies with a value output added (their cards' claim): every
+    policy weight equal, the parent's conditioning scale kept, and a value output the parent lacks."""
+    new, old = Planner.from_pretrained(model), Planner.from_pretrained(parent)
+    assert new.has_value and not old.has_value
+    assert new.rtg_scale == old.rtg_scale and new.extra["value_added_to"] == parent
+    want, got = old.model.state_dict(), new.model.state_dict()
+    assert all(torch.equal(got[k], want[k]) for k in want)
+    assert effective_rtg_mode("value", new) == "value" and effective_rtg_mode("value", old) == "running"
