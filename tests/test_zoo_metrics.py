@@ -147,3 +147,16 @@ def test_an_undefined_gain_share_is_left_off_the_card(tmp_path: Path) -> None:
     assert report["methods"][1]["gain_share"]["mean"] is None
     m = validate_metrics(card_metrics("TTO", warmstart=report))
     assert "ws_gain_share" not in m and m["ws_suboptimality"]["value"] == pytest.approx(0.35)
+
+
+def test_card_inference_names_the_value_rtg_of_a_model_with_a_value_output() -> None:
+    from ttompc.zoo.publish import inference_settings
+
+    plain = inference_settings({"model": {"n_embd": 8}, "extra": {"rtg_scale": 1.15}}, {})
+    valued = inference_settings({"model": {"n_embd": 8, "value_width": 16}, "extra": {"rtg_scale": 1.15}}, {})
+    assert plain == {
+        "rtg_scale": 1.15,
+        "conditioning": "rtg_0 = -rtg_scale * J_REL (cost of the relaxed problem), ctg_0 = 0",
+    }
+    assert valued["conditioning"].startswith("rtg_t = -V(x_t, t)") and "rtg_mode=value" in valued["conditioning"]
+    assert plain["conditioning"] in valued["conditioning"]  # the ledger it keeps under protocol=paper

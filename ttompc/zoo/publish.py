@@ -205,10 +205,13 @@ def inference_settings(config: dict[str, Any], metrics: dict[str, dict[str, Any]
     bundle's ``extra``, else the paper's 1) and the evaluation commands its metrics came from (the protocol)."""
     extra = _extra(config)
     commands = dict.fromkeys(c for m in metrics.values() for c in _COMMAND_RE.findall(m["how"]))
-    settings: dict[str, Any] = {
-        "rtg_scale": float(extra.get("rtg_scale", 1.0)),
-        "conditioning": "rtg_0 = -rtg_scale * J_REL (cost of the relaxed problem), ctg_0 = 0",
-    }
+    conditioning = "rtg_0 = -rtg_scale * J_REL (cost of the relaxed problem), ctg_0 = 0"
+    if int((config.get("model") or {}).get("value_width", 0) or 0) > 0:
+        conditioning = (
+            "rtg_t = -V(x_t, t), the model's value output at the measured state (protocol=recommended, "
+            f"rtg_mode=value); under the paper's ledger {conditioning}"
+        )
+    settings: dict[str, Any] = {"rtg_scale": float(extra.get("rtg_scale", 1.0)), "conditioning": conditioning}
     if commands:
         settings["protocol"] = list(commands)
     return settings
