@@ -211,9 +211,8 @@ def test_value_mode_feeds_the_models_cost_to_go_from_the_measured_state(toy, toy
 
 @pytest.mark.parametrize(
     ("model", "parent"),
-    [("freeflyer-ft-tto-v5", "freeflyer-ft-tto-v4"), ("quadrotor-ft-tto-v6", "quadrotor-ft-tto-v5"),
-     ("rpod-tto-v4", "rpod-tto-v3")],
-)  # fmt: skip
+    [("freeflyer-ft-tto-v5", "freeflyer-ft-tto-v4"), ("quadrotor-ft-tto-v6", "quadrotor-ft-tto-v5")],
+)
 def test_shipped_value_models_plan_as_their_parents(model: str, parent: str) -> None:
     """The zoo's value models are their parents' policies with a value output added (their cards' claim): every
     policy weight equal, the parent's conditioning scale kept, and a value output the parent lacks."""
