@@ -5,10 +5,10 @@ At each step t (settings: ``MPCSettings``, ``ttompc.mpc.settings``) the provider
 scenario supplies the full problem's constraints inside the window); the first control is applied with the
 *exact* dynamics ``scenario.step``. Soft mode (all paper analyses): fuel weight ``mpc.fuel``, soft equalities, the
 provider's terminal cost when the window stops early (plus, with ``finish`` > 0, the price of finishing from its last
-state, ``ttompc.mpc.finish``) and ‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the end. Hard mode keeps x_N = goal at the end while the goal
-is reachable from the window; where it is not (the penalised solve misses it by more than the SCP's feasibility
-tolerance), that window is solved as in soft mode (the soft end term) instead of discarding its plan (counted in
-``soft_ends``).
+state, ``ttompc.mpc.finish``) and ‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the end. Hard mode keeps
+x_N = goal at the end while the goal is reachable from the window; where it is not (the penalised solve misses it by
+more than the SCP's feasibility tolerance), that window is solved as in soft mode (the soft end term) instead of
+discarding its plan (counted in ``soft_ends``).
 
 ``end_horizon`` (default 0: the paper's fixed H, windows truncated at N) is a departure from the paper and the
 reference: once N − t ≤ end_horizon the window runs to N (a shrinking horizon at the end), so the goal enters the
