@@ -63,7 +63,7 @@ def test_value_loss_reads_only_valid_steps_of_rows_with_an_optimum() -> None:
     assert module.value_loss(scp).item() > base + 1.0
     none = dict(batch, source=torch.full_like(batch["source"], REL))
     assert module.value_loss(none).item() == 0.0
-    # the training loss adds it with optim.value_weight to the policy's terms
+    # the training loss adds it to the policy's terms, equally weighted
     out = module._losses(batch)
     assert out["loss"].item() == pytest.approx((out["loss_action"] + out["loss_state"] + out["loss_value"]).item())
 

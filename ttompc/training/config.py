@@ -39,16 +39,11 @@ class OptimConfig:
     accumulate: int = 1  # micro-batches per optimiser step
     # training loss: None = MSE (the paper); a number = Huber beyond that many normalised units (docs/training.md)
     huber_delta: float | None = None
-    # weight of the value output's loss (models with model.value_width > 0): masked MSE of V(goal, s_t, t) against
-    # the rtg of rows that hold an optimum's cost-to-go (SCP and DAgger rows; REL rows are relaxed, left out)
-    value_weight: float = 1.0
     # "all", or "value": train the value output alone on a frozen policy (adds a value to a published model without
     # changing its plans; the transformer is not run)
     trainable: Literal["all", "value"] = "all"
 
     def __post_init__(self) -> None:
-        if self.value_weight < 0:
-            raise ValueError(f"optim.value_weight must be >= 0, got {self.value_weight}")
         if self.trainable not in ("all", "value"):
             raise ValueError(f"optim.trainable must be 'all' or 'value', got {self.trainable!r}")
         if len(self.betas) != 2:

@@ -7,7 +7,7 @@ Batch contract (from ``ttompc.data.datamodule.TrajectoryDataModule``; float32, a
     state_mask (B, L) float, optional: validity of target_next_states (default: mask)
 
 loss = masked MSE(â, target_actions) + masked MSE(ŝ, target_next_states), equal weights like the reference; a model
-with a value output adds ``optim.value_weight`` × masked MSE(V̂, rtg) over the steps of rows whose rtg is an optimum's
+with a value output adds masked MSE(V̂, rtg), equally weighted, over the steps of rows whose rtg is an optimum's
 cost-to-go (``VALUE_SOURCES``: SCP and DAgger rows, which need ``source`` (B,) in the batch). With
 ``optim.trainable: value`` the policy's parameters are frozen and the loss is the value term alone.
 Hyper-parameters are primitives only (dicts of numbers/strings), so the checkpoint loads with ``weights_only=True``
@@ -104,8 +104,7 @@ class TrajectoryTransformerModule(L.LightningModule):
             out["pred"] = s_pred
         if self.model.value_head is not None:
             out["loss_value"] = self.value_loss(batch)
-            w = 1.0 if self.optim_cfg.trainable == "value" else self.optim_cfg.value_weight
-            out["loss"] = out.get("loss", 0.0) + w * out["loss_value"]
+            out["loss"] = out.get("loss", 0.0) + out["loss_value"]
         return out
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
