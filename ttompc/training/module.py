@@ -93,7 +93,8 @@ class TrajectoryTransformerModule(L.LightningModule):
         return masked_mse(v, batch["rtg"], mask * rows[:, None].to(mask.dtype))
 
     def _losses(self, batch: dict[str, Tensor], delta: float | None = None) -> dict[str, Tensor]:
-        """The training loss ("loss") and its terms; "pred" holds the teacher-forced (actions, states)."""
+        """The training loss ("loss") and its terms; "pred" holds the teacher-forced next states (not with
+        ``optim.trainable: value``, which does not run the transformer)."""
         out: dict[str, Tensor] = {}
         if self.optim_cfg.trainable == "all":
             a_pred, s_pred = self(batch)

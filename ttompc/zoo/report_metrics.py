@@ -91,11 +91,12 @@ def mpc_metrics(report: dict[str, Any], method: str, horizon: int = 10) -> dict[
         "oracle": "ORACLE-MPC",
         "planonce": "PLAN-ONCE",
     }
-    if not any(base_method(r["method"]) == names["model"] for r in report["summary"]):
+    tags = {m: t for t, m in names.items()}  # a report's method (without its rtg label) -> the metric's tag
+    if names["model"] not in {base_method(r["method"]) for r in report["summary"]}:
         raise KeyError(f"the closed-loop report has no method {names['model']!r}")
     out: dict[str, dict[str, Any]] = {}
     for row in report["summary"]:
-        tag = next((t for t, m in names.items() if m == base_method(row["method"])), None)
+        tag = tags.get(base_method(row["method"]))
         if tag is None or row["horizon"] != horizon:
             continue
         what = f"`{cmd}`: {n} held-out non-convex problems, {row['plant']} plant, {row['method']} at H={horizon}"
@@ -122,7 +123,7 @@ def mpc_metrics(report: dict[str, Any], method: str, horizon: int = 10) -> dict[
             _put(out, f"{key}_vs_rel_mpc_se", vs["se"], f"{how}, standard error of the mean (negative: cheaper)")
         _put(out, f"{key}_step_time_s", row["mean_step_time"], f"{what}: mean MPC step time [s], shared 2-core CPU")
     for row in report.get("headline", []):  # the paper's headline: against REL-MPC at the longest horizon
-        tag = next((t for t, m in names.items() if m == base_method(row["method"])), None)
+        tag = tags.get(base_method(row["method"]))
         if tag is None or tag == "rel" or row["horizon"] != horizon:
             continue
         long = row["baseline_horizon"]
