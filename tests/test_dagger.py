@@ -389,6 +389,27 @@ def test_label_schedule_draws_distinct_steps_or_none() -> None:
         LabelConfig(per_rollout=-1)
     with pytest.raises(ValueError, match="kind"):
         LabelConfig(kind="suffix")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="late"):
+        LabelConfig(late=-1.0)
+
+
+def test_late_labels_favour_the_end_of_the_episode() -> None:
+    """``labels.late`` tilts the draw toward late steps (weights e^{late·t/(N-1)}): still k distinct steps, the same
+    draw as before when 0, and under late = 2 the last quarter is labelled far more often than the first."""
+    from ttompc.finetune.collect import label_schedule
+
+    assert (
+        label_schedule(np.random.default_rng(3), 40, 6, 0.0) == label_schedule(np.random.default_rng(3), 40, 6)
+    ).all()
+    counts = {late: np.zeros(40) for late in (0.0, 2.0)}
+    for seed in range(400):
+        for late in counts:
+            mask = label_schedule(np.random.default_rng(seed), 40, 6, late)
+            assert mask.sum() == 6
+            counts[late] += mask
+    uniform, tilted = counts[0.0], counts[2.0]
+    assert 0.8 < uniform[30:].sum() / uniform[:10].sum() < 1.25
+    assert tilted[30:].sum() > 3 * tilted[:10].sum()
 
 
 def _expert_from_scratch(sc: object, problem: object, t: int, x: np.ndarray) -> np.ndarray:

@@ -137,6 +137,7 @@ class Bar:
         for thread in self._threads:
             thread.join()
         self._threads.clear()
+        self._drain()  # what the listener left (it stops at the first empty poll after the stop)
         self._bar.close()
 
     def _start(self, target: Callable[[], None]) -> None:
@@ -150,10 +151,10 @@ class Bar:
                 self._bar.refresh()
 
     def _listen(self) -> None:
-        while True:
-            if not self._queue.empty():
-                self.update(self._queue.get())
-            elif self._stop.is_set():
-                return
-            else:
-                self._stop.wait(0.05)
+        while not self._stop.wait(0.05):
+            self._drain()
+
+    def _drain(self) -> None:
+        """Count every tick queued so far (each ``put`` is in the pipe before it returns)."""
+        while self._queue is not None and not self._queue.empty():
+            self.update(self._queue.get())

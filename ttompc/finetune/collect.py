@@ -3,7 +3,8 @@
 A rollout runs one episode in which the exploration policy alternates between the learner (TTO-MPC with the current
 model, H drawn per rollout from ``exploration.horizons``) and the expert (full-horizon SCP over [t, N) from the true
 state) in expert windows (``exploration``; by default 1–3 windows of 15–25 steps, one covering the end). The expert
-solves at the labelled steps (``labels``: every step, the paper, or ``labels.per_rollout`` drawn ones) and wherever it
+solves at the labelled steps (``labels``: every step, the paper, or ``labels.per_rollout`` drawn ones, tilted toward
+late steps by ``labels.late``) and wherever it
 acts, each time from REL over [t, N) from x_t, as a from-scratch solve does (REL at t = 0); where the expert acts on
 consecutive steps its own converged plan's tail is reused when the state is on it (plan reuse, ``ttompc.mpc.loop``).
 Warm-starting it from its previous plan shifted by one step instead (the reference's expert) lands in worse local
@@ -96,13 +97,19 @@ def _sample_problem(scenario: Scenario, rng: np.random.Generator, attempts: int 
     return found[1], found[2]
 
 
-def label_schedule(rng: np.random.Generator, n_steps: int, per_rollout: int) -> np.ndarray:
-    """Steps (N,) bool that get an expert label: ``per_rollout`` distinct steps drawn uniformly (0 or >= N: every
-    step, the paper). Draws nothing from ``rng`` when every step is labelled, so such rollouts keep their seeds."""
+def label_schedule(rng: np.random.Generator, n_steps: int, per_rollout: int, late: float = 0.0) -> np.ndarray:
+    """Steps (N,) bool that get an expert label: ``per_rollout`` distinct steps drawn without replacement with
+    weights exp(late · t/(N − 1)) (0: uniform; 2: the last step ~7× as likely as the first), or every step when
+    ``per_rollout`` is 0 or >= N (the paper). Draws nothing from ``rng`` when every step is labelled, so such
+    rollouts keep their seeds."""
     if per_rollout <= 0 or per_rollout >= n_steps:
         return np.ones(n_steps, dtype=bool)
+    weights = None
+    if late:
+        w = np.exp(late * np.arange(n_steps) / max(n_steps - 1, 1))
+        weights = w / w.sum()
     mask = np.zeros(n_steps, dtype=bool)
-    mask[rng.choice(n_steps, size=per_rollout, replace=False)] = True
+    mask[rng.choice(n_steps, size=per_rollout, replace=False, p=weights)] = True
     return mask
 
 
@@ -176,7 +183,7 @@ def collect_rollouts(
         N = problem.n_steps
         H = min(int(rng.choice(exploration.horizons)), N)
         expert_steps = expert_schedule(rng, N, exploration)
-        labelled = label_schedule(rng, N, labels.per_rollout) | expert_steps
+        labelled = label_schedule(rng, N, labels.per_rollout, labels.late) | expert_steps
         provider, shift = TTOProvider(planner, group=group, rtg_mode=rtg_mode, backend=s.backend), ShiftProvider()
         learner = MPCController(scenario, problem, provider, H, loop)
         expert = MPCController(scenario, problem, shift, N, loop)

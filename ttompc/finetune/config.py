@@ -51,9 +51,10 @@ class ExplorationConfig:
 class LabelConfig:
     """Which visited states get an expert label, and what a label is (``ttompc.finetune.collect``).
 
-    ``per_rollout``: labelled visited steps per rollout, drawn uniformly without replacement (0: every step, the
-    paper); steps where the expert acts are labelled too. The loss skips unlabelled steps (a departure when > 0: the
-    expert's full-horizon solve at every visited state is most of a rollout's cost, docs/scaling.md).
+    ``per_rollout``: labelled visited steps per rollout, drawn without replacement (0: every step, the paper); steps
+    where the expert acts are labelled too. The loss skips unlabelled steps (a departure when > 0: the expert's
+    full-horizon solve at every visited state is most of a rollout's cost, docs/scaling.md). ``late`` tilts the draw
+    toward the end of the episode, where the closed loop fails (weights exp(late · t/(N − 1)); 0: uniform).
     ``kind``: ``step`` (the paper) labels the visited state x_t with the expert's control u*_t and f(x_t, u*_t), one
     row per rollout; ``plan`` (a departure) writes one row per labelled step: the visited prefix up to x_t followed by
     the expert's whole plan from x_t, so the model learns the plan it should generate from where the learner is.
@@ -63,8 +64,11 @@ class LabelConfig:
     kind: Literal["step", "plan"] = "step"
     per_rollout: int = 0
     rtg: Literal["learner", "expert"] = "learner"
+    late: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.late < 0:
+            raise ValueError(f"dagger.labels.late must be >= 0 (0: uniform), got {self.late}")
         if self.kind not in ("step", "plan"):
             raise ValueError(f"dagger.labels.kind must be 'step' or 'plan', got {self.kind!r}")
         if self.per_rollout < 0:
