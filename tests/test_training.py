@@ -373,12 +373,15 @@ def test_paper_recipes_pick_the_gpu_when_present_and_bf16_on_either(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cuda: bool
 ) -> None:
     """The paper-size recipes train on a CUDA GPU when one is visible and on the CPU otherwise, in bf16 autocast on
-    both. No GPU is needed: CUDA availability is faked, and only the Trainer is built (nothing runs on it)."""
+    both where they compute bf16 natively (``precision: auto``). No GPU is needed: CUDA availability and bf16 support
+    are faked, and only the Trainer is built (nothing runs on it)."""
     from lightning.pytorch.accelerators import CPUAccelerator, CUDAAccelerator
     from lightning.pytorch.plugins.precision import MixedPrecision
 
     from ttompc.training.run import build_trainer
 
+    monkeypatch.setattr("ttompc.training.precision.read_cpu_flags", lambda: frozenset({"avx2", "amx_bf16"}))
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda including_emulation=True: True)
     if cuda:
         monkeypatch.setattr(CUDAAccelerator, "is_available", staticmethod(lambda: True))
         monkeypatch.setattr("lightning.fabric.accelerators.cuda.num_cuda_devices", lambda: 1)
@@ -392,22 +395,26 @@ def test_paper_recipes_pick_the_gpu_when_present_and_bf16_on_either(
         plugin = trainer.precision_plugin
         assert isinstance(plugin, MixedPrecision) and plugin.precision == "bf16-mixed", path
         assert plugin.device == ("cuda" if cuda else "cpu"), path
-    # the schema default (a recipe that says nothing) stays full precision
-    assert TrainConfig().trainer.precision == "32-true"
+    # the schema default (a recipe that says nothing) fits the machine too
+    assert TrainConfig().trainer.precision == "auto"
 
 
-def test_bf16_mixed_cpu_run_keeps_fp32_weights(tmp_path: Path) -> None:
+def test_bf16_mixed_cpu_run_keeps_fp32_weights(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """bf16 autocast on the CPU trains (finite loss) and keeps fp32 master weights, so checkpoints
-    and exported planners are the same fp32 models as from a 32-true run."""
+    and exported planners are the same fp32 models as from a 32-true run. ``precision: auto`` on a CPU with native
+    bf16 (faked flags) resolves to it; the recipe keeps ``auto``, the checkpoint and the bundle record what ran."""
+    monkeypatch.setattr("ttompc.training.precision.read_cpu_flags", lambda: frozenset({"avx2", "avx512_bf16"}))
     torch.manual_seed(0)
     res = train(
-        tiny_config(tmp_path / "run", "trainer.max_steps=3", "trainer.precision=bf16-mixed", "logger.kind=none"),
+        tiny_config(tmp_path / "run", "trainer.max_steps=3", "trainer.precision=auto", "logger.kind=none"),
         ToyDataModule(n=32),
     )
     assert res.global_step == 3 and np.isfinite(res.metrics["train/loss"])
     ckpt = torch.load(res.last_checkpoint, map_location="cpu", weights_only=True)
-    assert ckpt["hyper_parameters"]["recipe"]["trainer"]["precision"] == "bf16-mixed"
+    assert ckpt["hyper_parameters"]["recipe"]["trainer"]["precision"] == "auto"
+    assert ckpt["precision"] == "bf16-mixed"
     weights = ckpt["state_dict"]
     assert all(w.dtype == torch.float32 for w in weights.values() if w.is_floating_point())
     planner = Planner.from_pretrained(res.planner_dir, get_scenario("toy"))
     assert next(planner.model.parameters()).dtype == torch.float32
+    assert planner.extra["precision"] == "bf16-mixed"  # the exported bundle's record

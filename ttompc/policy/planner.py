@@ -336,6 +336,8 @@ class Planner:
         extra: dict[str, Any] = {"global_step": int(ckpt.get("global_step", 0)), "epoch": int(ckpt.get("epoch", 0))}
         if "solver" in hp:  # the solver path the run recorded (checkpoints from before it have none)
             extra["solver"] = hp["solver"]
+        if "precision" in ckpt:  # the training precision that ran (ttompc.training.precision)
+            extra["precision"] = ckpt["precision"]
         return cls._build(
             hp["model_config"],
             {"name": hp["scenario"], "version": hp["scenario_version"], "spec": hp.get("scenario_spec")},

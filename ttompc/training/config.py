@@ -19,10 +19,12 @@ from ttompc.data.config import DataConfig
 from ttompc.policy.config import ModelConfig
 
 # what ``lightning.Trainer(precision=...)`` accepts (checked when the recipe loads, not when training starts)
-Precision = Literal[
+LightningPrecision = Literal[
     "64-true", "32-true", "16-true", "bf16-true", "16-mixed", "bf16-mixed", "transformer-engine",
     "transformer-engine-float16", "64", "32", "16", "bf16",
 ]  # fmt: skip
+# and "auto": bf16-mixed where the training device computes bf16 natively, else 32-true (ttompc.training.precision)
+Precision = Literal["auto", LightningPrecision]
 
 
 @dataclass
@@ -67,7 +69,7 @@ class TrainerConfig:
     num_nodes: int = 1
     accelerator: str = "auto"
     strategy: str = "auto"  # e.g. ddp, ddp_spawn, fsdp
-    precision: Precision = "32-true"  # e.g. bf16-mixed on GPUs
+    precision: Precision = "auto"  # resolved when the Trainer is built; the checkpoint records what ran
     num_sanity_val_steps: int = 0
     seed: int = 0
     out_dir: str = "runs/freeflyer-pretrain"

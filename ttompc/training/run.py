@@ -49,10 +49,13 @@ def build_trainer(
     num_sanity_val_steps: int = 0,
     enable_checkpointing: bool = True,
 ) -> Any:
-    """The Lightning Trainer of a recipe's ``trainer``/``optim`` sections (pre-training and DAgger share it)."""
+    """The Lightning Trainer of a recipe's ``trainer``/``optim`` sections (pre-training and DAgger share it). A
+    ``precision`` of ``auto`` is resolved for the machine (``ttompc.training.precision``); its checkpoints record the
+    precision that ran (``checkpoint["precision"]``)."""
     import lightning as L
 
     from ttompc.training.checkpoints import AtomicCheckpointIO
+    from ttompc.training.precision import RecordPrecision, resolve_precision
     from ttompc.training.progress import StepProgressBar, progress_enabled, quiet_lightning
 
     quiet_lightning()
@@ -68,14 +71,14 @@ def build_trainer(
         devices=t.devices,
         num_nodes=t.num_nodes,
         strategy=t.strategy,
-        precision=t.precision,
+        precision=resolve_precision(t.precision, accelerator=t.accelerator, strategy=t.strategy),
         gradient_clip_val=optim.grad_clip or None,
         accumulate_grad_batches=optim.accumulate,
         log_every_n_steps=t.log_every_n_steps,
         num_sanity_val_steps=num_sanity_val_steps,
         default_root_dir=str(out),
         logger=logger if logger is not None else False,
-        callbacks=[*(callbacks or []), *([StepProgressBar()] if progress else [])],
+        callbacks=[*(callbacks or []), RecordPrecision(), *([StepProgressBar()] if progress else [])],
         plugins=[AtomicCheckpointIO()],
         enable_checkpointing=enable_checkpointing,
         enable_progress_bar=progress,
