@@ -366,6 +366,67 @@ def test_batched_tto_episodes_equal_single_ones(setup: tuple) -> None:
         run_mpc_batch(sc, problems, [PlanProvider((scp.X, scp.U))], 5, rel_costs=costs)
 
 
+def test_group_members_asking_other_lengths_share_one_rollout(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Members of a RolloutGroup asking windows of different lengths at one step (DAgger draws H per rollout) get
+    the rollout each gets alone: bitwise the rows of a group asking the longest window, cut (a step of the rollout
+    never sees how many follow), and a lone provider's up to the rounding of a batch. Each member's conditioning is
+    computed once per step; the batched rollout runs once per step when the longest window is ``expect``ed, else
+    once per longer request (3, then 7; the 5 is the 7's prefix)."""
+    from ttompc.policy.rollout import RolloutContext
+
+    sc, problem, rel, _ = setup
+    planner = mpc_fakes.tiny_planner()
+    N, T = problem.n_steps, 3
+    problems = [problem, sc.sample(np.random.default_rng(2)), sc.sample(np.random.default_rng(3))]
+    costs, modes = [rel.cost, 1.5 * rel.cost, 0.8 * rel.cost], ("running", "reanchor", "running")
+    horizons: list[int] = []  # the length of every rollout run
+    conditioned: list[int] = []  # the step of every conditioning computed
+    rollout, conditioning = RolloutContext.rollout, TTOProvider.conditioning
+    monkeypatch.setattr(RolloutContext, "rollout", lambda self, h: horizons.append(h) or rollout(self, h))
+    monkeypatch.setattr(TTOProvider, "conditioning", lambda self, t: conditioned.append(t) or conditioning(self, t))
+
+    def run(lengths: tuple[int, ...], grouped: bool = True, expect: bool = False) -> list[list[tuple]]:
+        """Each member's warm starts (X, U) over T steps, executing their first controls."""
+        group = RolloutGroup(planner) if grouped else None
+        provs = [TTOProvider(planner, rtg_mode=mode, group=group) for mode in modes]
+        for prov, p, c in zip(provs, problems, costs, strict=True):
+            prov.reset(sc, p, c)
+        xs, out = [p.x0 for p in problems], [[] for _ in provs]
+        for t in range(T):
+            if group is not None and expect:
+                group.expect(t, max(lengths))
+            wss = [prov.warm_start(Window(t, L, N), x) for prov, L, x in zip(provs, lengths, xs, strict=True)]
+            for b, (prov, p, ws) in enumerate(zip(provs, problems, wss, strict=True)):
+                assert ws.seconds is not None and ws.seconds > 0
+                out[b].append((ws.X, ws.U))
+                xs[b] = sc.step(p, t, xs[b], ws.U[0])
+                prov.observe(ws.U[0], xs[b], ws.X, ws.U)
+        return out
+
+    mixed = (3, 7, 5)
+    expected = run(mixed, expect=True)
+    assert horizons == [7] * T and conditioned == [t for t in range(T) for _ in modes]
+    horizons.clear()
+    conditioned.clear()
+    lazy = run(mixed)
+    assert horizons == [3, 7] * T and conditioned == [t for t in range(T) for _ in modes]
+    longest = run((7, 7, 7))
+    alone = run(mixed, grouped=False)
+    for b, L in enumerate(mixed):
+        for t in range(T):
+            (X, U), (Xl, Ul), (Xa, Ua) = expected[b][t], lazy[b][t], alone[b][t]
+            np.testing.assert_array_equal(X, Xl)
+            np.testing.assert_array_equal(U, Ul)
+            np.testing.assert_array_equal(X, longest[b][t][0][: L + 1])
+            np.testing.assert_array_equal(U, longest[b][t][1][:L])
+            np.testing.assert_allclose(X, Xa, rtol=0, atol=1e-6)
+            np.testing.assert_allclose(U, Ua, rtol=0, atol=1e-9)
+    group = RolloutGroup(planner)
+    TTOProvider(planner, group=group).reset(sc, problem, rel.cost)
+    with pytest.raises(RuntimeError, match="not 1"):
+        group.expect(1, 7)
+
+
 def test_plan_noise_is_seeded_and_drift_is_correlated(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
     """The noisy oracle of ``bench/tto_mpc_robustness.py``."""
     import importlib.util

@@ -197,7 +197,8 @@ def collect_rollouts(
         ep.learner_provider.reset(scenario, ep.problem, ep.rel.cost)
         ep.shift.reset(scenario, ep.problem, ep.rel.cost)
     N = episodes[0].problem.n_steps if episodes else 0
-    for t in range(N):
+    for t in range(N):  # the learners' longest window: one batched rollout serves them all
+        group.expect(t, max((ep.learner.window(t).length for ep in episodes if not ep.expert_steps[t]), default=0))
         steps = [_plan_step(scenario, ep, t, loop.backend) for ep in episodes]
         for ep, (plan, e) in zip(episodes, steps, strict=True):
             x_next = scenario.step(ep.problem, t, ep.x, plan.u)

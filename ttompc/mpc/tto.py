@@ -162,8 +162,14 @@ class RolloutGroup:
     as much as one), and the context advances once every episode has executed its control. Each episode is charged
     its share of the rollout (``WarmStart.seconds``). A ``TTOProvider`` made without a group has one of its own.
 
+    Members may ask windows of different lengths at one step (DAgger draws H per rollout). Each member's
+    conditioning is computed once per step, and a window is the prefix of the step's longest rollout: exactly the
+    rollout of its own length, since step k of the autoregressive rollout reads the context and the steps before
+    it, never how many follow (``RolloutContext.rollout``: no time-to-go, no terminal step). The rollout runs as far
+    as the first request or the step's ``expect``, whichever is longer; a request beyond it runs a longer one.
+
     Lifecycle: providers join at construction (``add``: their slot is their row), the context is built when all of
-    them have been ``reset`` for an episode, and every member plans and observes once per step."""
+    them have been ``reset`` for an episode, and every member observes once per step (planning before it or not)."""
 
     def __init__(self, planner: Planner, *, use_cache: bool = True) -> None:
         self.planner, self.use_cache = planner, use_cache
@@ -171,7 +177,12 @@ class RolloutGroup:
         self.context: RolloutContext | None = None
         self._joined: set[int] = set()
         self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._plan: tuple[tuple[int, int], np.ndarray, np.ndarray, list[float], float] | None = None
+        # the current step's shared work: each member's time computing its conditioning ([] before the step's
+        # first request), the longest window expected (``expect``), and the longest rollout so far: states
+        # (B, L+1, n), actions (B, L, m) and 1/B of its time
+        self._own: list[float] = []
+        self._expected = 0
+        self._plan: tuple[np.ndarray, np.ndarray, float] | None = None
 
     @property
     def t(self) -> int:
@@ -193,39 +204,52 @@ class RolloutGroup:
             return
         self._joined.clear()
         self._pending.clear()
-        self._plan = None
+        self._new_step()
         rtg0 = [m.rtg0 for m in self.members]
         self.context = self.planner.context(
             [m.problem for m in self.members], rtg0=rtg0, ctg0=0.0, use_cache=self.use_cache
         )
 
+    def expect(self, start: int, length: int) -> None:
+        """The members will ask windows of at most ``length`` steps at step ``start`` (the longest of the lockstep
+        windows; 0: no hint): that step's batched rollout runs that far at once, so members asking shorter windows
+        share it instead of each running a longer one. A hint only: it changes how many rollouts a step runs, never
+        what a window gets. Call it at step ``start``, before its first request."""
+        if self.context is None or self.context.t != start:
+            raise RuntimeError(f"rollout context is at step {getattr(self.context, 't', None)}, not {start}")
+        if length < 0:
+            raise ValueError(f"expected window length must be >= 0, got {length}")
+        self._expected = length
+
     def rollout(self, slot: int, window: Window) -> tuple[np.ndarray, np.ndarray, float, float]:
-        """Row ``slot`` of this step's batched rollout (run by the first member to ask): its states (H+1, n) and
-        actions (H, m) in the model representation, the member's share of the time (its own conditioning plus
-        1/B of the rollout) and the time this call spent on the shared work (0 for all but the first caller)."""
+        """Row ``slot`` of this step's batched rollout, cut to the window: its states (H+1, n) and actions (H, m) in
+        the model representation (copies), the member's share of the time (its own conditioning plus 1/B of the
+        rollout that serves it) and the time this call spent on the shared work (the members' conditioning and the
+        rollout; 0 for a call served by an earlier one's work)."""
         ctx = self.context
         if ctx is None or ctx.t != window.start:
             raise RuntimeError(f"rollout context is at step {getattr(ctx, 't', None)}, not {window.start}")
-        key = (window.start, window.length)
-        shared = 0.0
-        if self._plan is None or self._plan[0] != key:
-            t0 = time.perf_counter()
-            own = []
+        t0 = time.perf_counter()
+        ran = False
+        if not self._own:  # the step's first request: every member's conditioning, once
             for m in self.members:
                 t1 = time.perf_counter()
                 value = m.conditioning(window.start)
                 if value is not None:
                     ctx.rtg[m.slot, -1] = value
-                own.append(time.perf_counter() - t1)
+                self._own.append(time.perf_counter() - t1)
+            ran = True
+        if self._plan is None or self._plan[1].shape[1] < window.length:
             t1 = time.perf_counter()
-            res = ctx.rollout(window.length)
+            res = ctx.rollout(max(window.length, self._expected))
             self._sync()
             S, A = res.states.double().cpu().numpy(), res.actions.double().cpu().numpy()
-            rollout_time = time.perf_counter() - t1
-            shared = time.perf_counter() - t0
-            self._plan = (key, S, A, own, rollout_time / len(self.members))
-        _, S, A, own, share = self._plan
-        return S[slot], A[slot], own[slot] + share, shared
+            self._plan = (S, A, (time.perf_counter() - t1) / len(self.members))
+            ran = True
+        shared = time.perf_counter() - t0 if ran else 0.0
+        S, A, share = self._plan
+        # copies: a caller may write into its window (X[0] = x) and the rollout serves other windows of this row
+        return S[slot, : window.length + 1].copy(), A[slot, : window.length].copy(), self._own[slot] + share, shared
 
     def advance(self, slot: int, u: np.ndarray, s_next: np.ndarray) -> None:
         """Member ``slot`` executed ``u`` and measured ``s_next`` (model representation); the context advances
@@ -239,8 +263,12 @@ class RolloutGroup:
         self.context.advance(np.stack([self._pending[b][0] for b in order]),
                              np.stack([self._pending[b][1] for b in order]))  # fmt: skip
         self._pending.clear()
-        self._plan = None
+        self._new_step()
         self._sync()
+
+    def _new_step(self) -> None:
+        """Forget the previous step's conditioning, rollout and hint."""
+        self._own, self._expected, self._plan = [], 0, None
 
     def _sync(self) -> None:
         if self.planner.device.type == "cuda":
