@@ -63,6 +63,9 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
         (["generate", "problems=0", "out=out"], ["problems and shard_size must be at least 1, got 0 and 500"]),
         (["generate", "--problems", "-3", "--out", "out"], ["problems and shard_size must be at least 1, got -3"]),
         (["generate", "shard_size=0", "out=out"], ["problems and shard_size must be at least 1"]),
+        (["generate", "solver=nope:solve", "out=out"], ["solver=nope:solve: cannot import nope", "solve_problem"]),
+        (["generate", "solver=ttompc.solvers.scp:nope", "out=out"], ["ttompc.solvers.scp has no function 'nope'"]),
+        (["generate", "solver=nocolon", "out=out"], ["solver='nocolon' is not 'module:function'"]),
         (
             ["train", TINY, "data.paths=[no/such/data]", "trainer.out_dir=out"],
             ["dataset folder no/such/data does not exist", "ttompc generate"],
@@ -337,6 +340,51 @@ def test_evaluate_with_a_model_not_in_the_zoo_stops_before_any_worker(
     assert list(work.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    ("model", "needles"),
+    [
+        (  # before: the 100-problem measurement and 1,000 rollouts (~40 CPU-minutes), then the first training step
+            "freeflyer-tto-v3",
+            ["the model freeflyer-tto-v3 is a freeflyer model but the recipe is for quadrotor (data.scenario)",
+             "recipes/freeflyer/"],
+        ),
+        (  # the right model, but the recipe's data folder is not here: refused before the measurement too
+            "quadrotor-tto-v3",
+            ["data.paths: dataset folder data/quadrotor-v3 does not exist", "the open-loop dataset the model was"],
+        ),
+    ],
+)  # fmt: skip
+def test_finetune_checks_model_recipe_and_data_before_it_measures_or_collects(
+    tmp_path: Path, model: str, needles: list[str]
+) -> None:
+    """`ttompc finetune recipes/quadrotor/finetune.yaml --model M`, run as a new user runs it (no data here)."""
+    work, cache = tmp_path / "work", str(tmp_path / "cache")
+    work.mkdir()
+    res = ttompc("finetune", str(REPO / "recipes/quadrotor/finetune.yaml"), "--model", model, cwd=work,
+                 TTOMPC_HOME=cache)  # fmt: skip
+    assert_user_error(res, "ttompc finetune: error: ", *needles)
+    assert not (work / "runs" / "quadrotor-ft-tto-v5" / "dagger").exists()  # no rollout shard
+    assert list(work.iterdir()) == []  # no run folder, no source planner, no state file
+
+
+@pytest.mark.parametrize(
+    ("bundle", "needles"),
+    [
+        ("freeflyer-tto-small", ["ttompc evaluate warmstart --model MODEL", "ttompc zoo metrics --method TTO "]),
+        ("freeflyer-ft-tto-v4", ["ttompc evaluate mpc --ft-model MODEL", "ttompc zoo metrics --method FT-TTO "]),
+    ],
+)
+def test_zoo_publish_without_metrics_says_how_to_make_them(tmp_path: Path, bundle: str, needles: list[str]) -> None:
+    """Before: "the standard evaluation is not wired into publish yet"."""
+    res = ttompc(
+        "zoo", "publish", str(REPO / "zoo" / "models" / bundle), "--name", "m", "--to", str(tmp_path / "to"),
+        "--zoo-dir", str(tmp_path / "zoo"), cwd=tmp_path,
+    )  # fmt: skip
+    line = assert_user_error(res, "ttompc zoo: error: no metrics for the card of m", *needles)
+    assert "--card-metrics metrics.json" in line and "--skip-eval" in line and "wired" not in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.timeout(300)  # before the fix: the spawn error, from every replacement worker, forever
 def test_a_script_that_runs_a_pool_command_without_a_main_guard_ends_with_one_line(tmp_path: Path) -> None:
     """Each spawned worker imports the parent's script; one that calls ``ttompc.cli.main()`` unguarded would run the
@@ -421,6 +469,7 @@ def _unusable_output(tmp_path: Path, kind: str) -> Path:
         "generate",
         "solve --plot",
         "zoo publish",
+        "demo",
         pytest.param("evaluate", marks=pytest.mark.slow),
         "train",
     ],
@@ -437,6 +486,7 @@ def test_an_output_the_command_may_not_write_is_one_line(
         "solve --plot": ["solve", "--plot", str(out / "solve.png")],
         "zoo publish": ["zoo", "publish", bundle, "--name", "m", "--to", str(out), "--skip-eval", "--zoo-dir",
                         str(tmp_path / "zoo")],
+        "demo": ["demo", "--model", bundle, "--no-mpc", f"out={out}"],  # before: refused after planning
         "evaluate": ["evaluate", "warmstart", "--model", bundle, "problems=1", "workers=1", "oracle_detours=0",
                      f"out={out}"],
     }.get(command)  # fmt: skip

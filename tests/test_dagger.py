@@ -330,6 +330,46 @@ def test_run_folder_of_another_fine_tuning_is_refused(tmp_path: Path, dataset: P
         finetune(cfg, "a")
 
 
+def test_inputs_that_do_not_belong_together_are_refused_before_anything_is_written(
+    tmp_path: Path, dataset: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before: a model, recipe and dataset that do not belong together were refused at the first training step, after
+    the pretrained model's measurement and a whole collection. Now nothing is written, measured or collected."""
+    import helpers
+
+    import ttompc.finetune.loop as loop
+    from ttompc.data.generate import load_manifest
+    from ttompc.finetune import FinetuneError
+    from ttompc.policy import Planner
+
+    def spent(*args: object, **kwargs: object) -> None:
+        raise AssertionError("measured or collected before the inputs were checked")
+
+    monkeypatch.setattr(loop, "_eval_problems", spent)
+    monkeypatch.setattr(loop, "collect_iteration", spent)
+    tiny = mpc_fakes.tiny_planner()
+    own = NormStats.from_dict(load_manifest(dataset)["norm_stats"])
+    other = NormStats(own.mean, {k: 2 * v for k, v in own.std.items()})
+    models = {
+        "own": Planner(tiny.model, tiny.scenario, own).save(tmp_path / "own"),
+        "other-stats": Planner(tiny.model, tiny.scenario, other).save(tmp_path / "other-stats"),
+        "toy": helpers.tiny_toy_planner().save(tmp_path / "toy"),
+    }
+    run = tmp_path / "run"
+    for model, data, match in [
+        ("own", {"scenario": "quadrotor"}, f"{models['own']} is a {SHORT} model but the recipe is for quadrotor"),
+        ("own", {"paths": [str(tmp_path / "nope")]}, "dataset folder .*nope does not exist.*the model was trained on"),
+        ("toy", {}, f"holds {SHORT} trajectories but the model .* is a toy model"),
+        ("other-stats", {}, r"normalisation statistics of .* \(states\) differ from those of the model"),
+    ]:
+        cfg = _config(dataset, run)
+        for key, value in data.items():
+            setattr(cfg.data, key, value)
+        with pytest.raises(FinetuneError, match=match):
+            finetune(cfg, str(models[model]))
+        assert not run.exists()
+
+
 def test_expert_labels_with_plan_reuse_are_the_re_solved_optimum(monkeypatch: pytest.MonkeyPatch) -> None:
     """After every step the expert acted in, the visited state is the expert's own prediction and its plan's tail is
     the label of the next state (plan reuse, when that plan met the SCP's stopping rule): at every such state a

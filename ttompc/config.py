@@ -13,7 +13,7 @@ unpickles a config class.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -124,16 +124,18 @@ def add_config_arguments(parser: argparse.ArgumentParser, example: str) -> None:
     parser.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
 
 
-def shortcut_overrides(args: argparse.Namespace, flags: Mapping[str, str]) -> list[str]:
-    """``key=value`` overrides for the shortcut flags that were given (``flags``: argparse dest -> config key)."""
-    return [f"{key}={getattr(args, dest)}" for dest, key in flags.items() if getattr(args, dest, None) is not None]
+def shortcut_overrides(args: argparse.Namespace, flags: Mapping[str, str] | Iterable[str]) -> list[str]:
+    """``key=value`` overrides for the shortcut flags that were given (``flags``: argparse dest -> config key, or the
+    dests of flags named like their config keys)."""
+    pairs = flags.items() if isinstance(flags, Mapping) else ((name, name) for name in flags)
+    return [f"{key}={getattr(args, dest)}" for dest, key in pairs if getattr(args, dest, None) is not None]
 
 
-def command_config(schema_cls: type[T], args: argparse.Namespace, flags: Mapping[str, str] | None = None) -> T:
+def command_config(schema_cls: type[T], args: argparse.Namespace, flags: Mapping[str, str] | Iterable[str] = ()) -> T:
     """The config of a command whose parser used ``add_config_arguments``: recipe, then shortcut flags, then the
     explicit ``key=value`` overrides (the last word wins)."""
     recipe, overrides = split_recipe(args.settings)
-    return load_command_config(schema_cls, recipe, [*shortcut_overrides(args, flags or {}), *overrides])
+    return load_command_config(schema_cls, recipe, [*shortcut_overrides(args, flags), *overrides])
 
 
 def from_container(schema: type[T], data: dict[str, Any]) -> T:

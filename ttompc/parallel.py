@@ -10,6 +10,8 @@ A worker that fails while starting (an unknown model in the initializer, a scrip
 ``if __name__ == "__main__":`` that re-runs the command when a worker imports it) or dies later ends the whole
 ``pool_map`` with a ``WorkerError`` (one line through the CLI): ``concurrent.futures`` marks the pool broken instead
 of starting replacement workers that fail the same way forever, as ``multiprocessing.Pool`` does.
+
+What an initializer loads once per worker for its tasks (a scenario, a model) lives in a ``WorkerState``.
 """
 
 from __future__ import annotations
@@ -23,9 +25,11 @@ import signal
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from ttompc.errors import UserError
+
+T = TypeVar("T")
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _STARTING = "TTOMPC_POOL_WORKER_STARTING"  # set for spawned workers until they have started (``starting_worker``)
@@ -114,6 +118,26 @@ def _run_task(fn: Callable[[Any], Any], task: Any) -> Any:
         reason = " ".join(f"{type(err).__name__}: {err}".split())
         raise WorkerError(f"a worker process failed while starting ({reason})", "--debug shows where") from err
     return fn(task)
+
+
+class WorkerState(Generic[T]):
+    """What a ``pool_map`` initializer builds once per worker (a scenario, a loaded model, the config) for that
+    worker's tasks: the initializer ``set``s it, each task ``get``s it. Create one at module level, next to the
+    initializer and the task function. Every process holds its own value: each spawned worker, and this process when
+    ``pool_map`` runs inline (``workers <= 1``), where a later run's initializer replaces the value."""
+
+    def __init__(self) -> None:
+        self._value: list[T] = []  # empty until ``set``
+
+    def set(self, value: T) -> None:
+        self._value[:] = [value]
+
+    def get(self) -> T:
+        """The value of the last ``set`` in this process; ``RuntimeError`` if there was none (a task called
+        without the initializer ``pool_map`` runs first)."""
+        if not self._value:
+            raise RuntimeError("no worker state in this process: run the task through pool_map with its initializer")
+        return self._value[0]
 
 
 def pool_map(

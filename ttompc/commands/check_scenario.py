@@ -1,5 +1,5 @@
 """``ttompc check-scenario SPEC [key=value ...]``: check a scenario against the contract the engine, the datasets,
-the rollout and MPC rely on (``ttompc.evaluation.scenario_check``), one line per check, before generating data with it.
+the rollout and MPC rely on (``ttompc.scenario_check``), one line per check, before generating data with it.
 
 SPEC is any scenario spec: a name, ``module:Class``, ``path/to/file.py:Class`` or an entry point. Settings are
 ``CheckConfig`` keys (``problems``, ``seed``, ``backend``). Exit status 0 when every check passes, 1 otherwise; a
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     if cfg.problems < 1:
         raise UserError(f"problems must be at least 1, got {cfg.problems}")
     scenario = checks.scenario(cfg.scenario)
-    from ttompc.evaluation.scenario_check import check_scenario
+    from ttompc.scenario_check import check_scenario
     from ttompc.scenarios import scenario_spec
 
     print(f"{scenario.name} v{scenario.version} ({scenario_spec(scenario)}), {cfg.problems} problems, seed {cfg.seed}")

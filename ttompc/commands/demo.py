@@ -18,6 +18,7 @@ from typing import Any
 
 from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
+from ttompc.errors import UserError
 
 
 @dataclass
@@ -55,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
     checks.seed(cfg.seed)
+    checks.writable(cfg.out)
     from ttompc.evaluation.closed_loop import ClosedLoopConfig, episodes_per_problem, run_problem
     from ttompc.evaluation.plots import Panel, save_figure, trajectory_figure
     from ttompc.evaluation.problems import eval_problem
@@ -65,6 +67,11 @@ def run(args: argparse.Namespace) -> int:
 
     planner = Planner.from_pretrained(cfg.model)
     scenario = planner.scenario
+    if cfg.mpc and cfg.horizon > scenario.n_steps:  # refused as `evaluate mpc` does, not clipped under its label
+        raise UserError(
+            f"horizon {cfg.horizon} exceeds the horizon of {scenario.name}, N = {scenario.n_steps} steps",
+            f"pass --horizon {scenario.n_steps} or less (or --no-mpc)",
+        )
     print(
         f"model {cfg.model}: {scenario.name} v{scenario.version}, "
         f"{sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M parameters"

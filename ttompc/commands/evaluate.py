@@ -26,15 +26,7 @@ if TYPE_CHECKING:
     from ttompc.evaluation.closed_loop import ClosedLoopConfig
     from ttompc.evaluation.warmstart import WarmStartConfig
 
-_FLAGS = {
-    "model": "model",
-    "ft_model": "ft_model",
-    "scenario": "scenario",
-    "problems": "problems",
-    "seed": "seed",
-    "workers": "workers",
-    "out": "out",
-}
+_FLAGS = ("model", "ft_model", "scenario", "problems", "seed", "workers", "out")  # shortcut flags, dest = config key
 
 
 def _shortcuts(p: argparse.ArgumentParser, example: str, problems: int) -> None:
@@ -79,6 +71,12 @@ def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
     checks.backend(cfg.backend if isinstance(cfg, WarmStartConfig) else cfg.settings().backend)
 
 
+def _check_output(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
+    """The report folder (``out``, else ``outputs/evaluate/<kind>-<scenario>`` as the evaluation names it) must be
+    writable before any problem is solved, not after the whole evaluation."""
+    checks.writable(cfg.out or f"outputs/evaluate/{kind}-{checks.scenario(str(cfg.scenario)).name}")
+
+
 def _announce(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
     """Loading the models and starting the workers takes a while before the progress bar appears: say so at once."""
     models = " and ".join(source for source in (cfg.model, cfg.ft_model) if source) or "no model (baselines only)"
@@ -99,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
             )
         _announce("warmstart", cfg)
         _resolve_scenario(cfg)
+        _check_output("warmstart", cfg)
         report = run_warmstart(cfg)
     else:
         from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
@@ -109,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         _announce("mpc", cfg_m)
         _resolve_scenario(cfg_m)
+        _check_output("mpc", cfg_m)
         report = run_closed_loop(cfg_m)
     print(report["table"])
     print(f"report: {report['out']}")

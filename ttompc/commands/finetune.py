@@ -1,7 +1,9 @@
 """``ttompc finetune [RECIPE.yaml] --model MODEL key=value ...``: DAgger fine-tuning for MPC (paper Alg. 1).
 
 Settings are ``FinetuneConfig`` keys. MODEL is a zoo model name, hf://ORG/NAME[@REV], a planner bundle directory or
-a Lightning checkpoint. Re-running the same command with the same ``trainer.out_dir`` resumes after the last finished
+a Lightning checkpoint. The model, the recipe and the open-loop data are checked against each other (scenario,
+normalisation statistics, labels: ``ttompc.finetune.loop.check_inputs``) before anything is written, measured or
+collected. Re-running the same command with the same ``trainer.out_dir`` resumes after the last finished
 iteration (collected shards are not recollected).
 Under torchrun/SLURM every rank collects its own slice of the rollouts."""
 

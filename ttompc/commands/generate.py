@@ -62,6 +62,7 @@ def config_from_args(args: argparse.Namespace) -> GenerateConfig:
     checks.scenario(cfg.scenario)
     checks.seed(cfg.seed)
     checks.backend(cfg.backend)
+    checks.solver(cfg.solver)
     return cfg
 
 

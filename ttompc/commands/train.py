@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 
 from ttompc.config import add_config_arguments, split_recipe, to_container
-from ttompc.data.config import DataConfig
 from ttompc.errors import UserError
 from ttompc.progress import status
 from ttompc.training.config import TrainConfig, load_train_config
@@ -37,41 +36,6 @@ def _config(args: argparse.Namespace) -> TrainConfig:
     return load_train_config(recipe, overrides)
 
 
-def check_datasets(data: DataConfig) -> None:
-    """Every dataset folder must exist and fit the recipe (``open_loop_manifests``) before anything is created or
-    imported (Lightning is slow to import; docs/design.md)."""
-    paths, dagger_dirs = data.paths, data.dagger_dirs
-    if not paths and not dagger_dirs:
-        raise UserError(
-            "no training data: data.paths is empty (the recipe leaves it to the command line)",
-            "pass data.paths=[FOLDER], a dataset written by `ttompc generate`",
-        )
-    for key, folders in (("data.paths", paths), ("data.dagger_dirs", dagger_dirs)):
-        missing = [p for p in folders if not Path(p).is_dir()]
-        if missing:
-            raise UserError(
-                f"{key}: dataset folder {missing[0]} does not exist",
-                f"make it with `ttompc generate out={missing[0]} ...` or point {key}=[...] at existing folders",
-            )
-    from ttompc.data.generate import MANIFEST, open_loop_manifests
-    from ttompc.data.resumable import META_DIR
-
-    for folder in map(Path, paths):
-        if (folder / MANIFEST).is_file():
-            continue
-        if (folder / META_DIR).is_dir():
-            raise UserError(
-                f"data.paths: the generation of {folder} is not finished (no {MANIFEST})",
-                "re-run the same `ttompc generate` command (add --finalize once every rank's shards exist)",
-            )
-        raise UserError(
-            f"data.paths: {folder} is not a dataset made by `ttompc generate` (no {MANIFEST})",
-            "point data.paths=[...] at a folder written by `ttompc generate`",
-        )
-    if paths:
-        open_loop_manifests(data)
-
-
 def output_dir(args: argparse.Namespace) -> str:
     return _config(args).trainer.out_dir
 
@@ -90,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(to_container(cfg), indent=2))
         print(f"# {MAX_STEPS_HELP}", file=sys.stderr)  # JSON has no comments; stdout stays the config alone
         return 0
+    from ttompc.data.generate import check_datasets  # every folder, before anything is created or Lightning imported
+
     check_datasets(cfg.data)
     # an out_dir the user may not write fails here, in one line, not after Lightning and the shard checksums
     Path(cfg.trainer.out_dir).mkdir(parents=True, exist_ok=True)

@@ -393,3 +393,36 @@ def open_loop_manifests(cfg: DataConfig) -> list[dict[str, Any]]:
             f"set data.context_length within [1, {steps}]",
         )
     return manifests
+
+
+def check_datasets(cfg: DataConfig) -> list[dict[str, Any]]:
+    """Every dataset folder of ``cfg`` exists, is a finished ``ttompc generate`` dataset and fits the recipe
+    (``open_loop_manifests``): checked from the manifests alone (no shard is read), before a command creates,
+    imports or computes anything. Returns the manifests of ``cfg.paths``; raises ``ConfigError`` (one line naming the
+    folder and what to do)."""
+    paths, dagger_dirs = cfg.paths, cfg.dagger_dirs
+    if not paths and not dagger_dirs:
+        raise ConfigError(
+            "no training data: data.paths is empty (the recipe leaves it to the command line)",
+            "pass data.paths=[FOLDER], a dataset written by `ttompc generate`",
+        )
+    for key, folders in (("data.paths", paths), ("data.dagger_dirs", dagger_dirs)):
+        missing = [p for p in folders if not Path(p).is_dir()]
+        if missing:
+            raise ConfigError(
+                f"{key}: dataset folder {missing[0]} does not exist",
+                f"make it with `ttompc generate out={missing[0]} ...` or point {key}=[...] at existing folders",
+            )
+    for folder in map(Path, paths):
+        if (folder / MANIFEST).is_file():
+            continue
+        if (folder / META_DIR).is_dir():
+            raise ConfigError(
+                f"data.paths: the generation of {folder} is not finished (no {MANIFEST})",
+                "re-run the same `ttompc generate` command (add --finalize once every rank's shards exist)",
+            )
+        raise ConfigError(
+            f"data.paths: {folder} is not a dataset made by `ttompc generate` (no {MANIFEST})",
+            "point data.paths=[...] at a folder written by `ttompc generate`",
+        )
+    return open_loop_manifests(cfg) if paths else []

@@ -56,7 +56,7 @@ from ttompc.mpc.providers import (
 )
 from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.mpc.tto import RolloutGroup, TTOProvider, check_rtg_scale, effective_rtg_mode
-from ttompc.parallel import pool_map
+from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario
@@ -206,29 +206,39 @@ def episodes_per_problem(cfg: ClosedLoopConfig, models: int) -> int:
     return len(cfg.plants) * len(cfg.horizons) * methods
 
 
-_W: dict[str, Any] = {}
+@dataclass
+class _Worker:
+    """What ``_init`` loads once per pool worker for ``_run``."""
+
+    cfg: ClosedLoopConfig
+    scenario: Scenario
+    models: dict[str, Planner]
+    tick: Callable[[], None]
+
+
+_WORKER: WorkerState[_Worker] = WorkerState()
 
 
 def _init(cfg: dict[str, Any], tick: Callable[[], None]) -> None:
     from ttompc.config import from_container
     from ttompc.policy import Planner
 
-    _W["cfg"] = c = from_container(ClosedLoopConfig, cfg)
-    _W["tick"] = tick
+    c = from_container(ClosedLoopConfig, cfg)
     assert c.scenario is not None  # the caller resolved it before starting the workers
-    _W["scenario"] = scenario = get_scenario(c.scenario)
-    _W["models"] = {
+    scenario = get_scenario(c.scenario)
+    models = {
         name: Planner.from_pretrained(src, scenario, device=c.device)
         for name, src in (("TTO", c.model), ("FT-TTO", c.ft_model))
         if src
     }
+    _WORKER.set(_Worker(c, scenario, models, tick))
 
 
 def _run(indices: tuple[int, ...]) -> list[dict[str, Any]]:
-    cfg: ClosedLoopConfig = _W["cfg"]
-    sc = _W["scenario"]
+    w = _WORKER.get()
+    cfg, sc = w.cfg, w.scenario
     eps = [eval_problem(sc, cfg.seed, i, nonconvex_only=True, backend=cfg.settings().backend) for i in indices]
-    return run_problems(sc, eps, _W["models"], cfg, _W["tick"])[0]
+    return run_problems(sc, eps, w.models, cfg, w.tick)[0]
 
 
 def tasks(problems: int, batch: int) -> list[tuple[int, ...]]:

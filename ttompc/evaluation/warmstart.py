@@ -35,7 +35,7 @@ from ttompc.evaluation.metrics import (
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.stats import format_interval, interval
 from ttompc.mpc.tto import check_rtg_scale
-from ttompc.parallel import pool_map
+from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario, Window
@@ -144,27 +144,36 @@ def evaluate_problem(
     return row, trajectories
 
 
-_W: dict[str, Any] = {}
+@dataclass
+class _Worker:
+    """What ``_init`` loads once per pool worker for ``_run_problem``."""
+
+    cfg: WarmStartConfig
+    scenario: Scenario
+    models: dict[str, Planner]
+
+
+_WORKER: WorkerState[_Worker] = WorkerState()
 
 
 def _init(cfg: dict[str, Any]) -> None:
     from ttompc.policy import Planner
 
-    _W["cfg"] = WarmStartConfig(**cfg)
-    _W["scenario"] = scenario = get_scenario(cfg["scenario"])
-    _W["models"] = {
+    scenario = get_scenario(cfg["scenario"])
+    models = {
         name: Planner.from_pretrained(cfg[key], scenario, device=cfg["device"])
         for name, key in (("TTO", "model"), ("FT-TTO", "ft_model"))
         if cfg[key]
     }
+    _WORKER.set(_Worker(WarmStartConfig(**cfg), scenario, models))
 
 
 def _run_problem(index: int) -> dict[str, Any]:
-    cfg: WarmStartConfig = _W["cfg"]
-    sc = _W["scenario"]
+    w = _WORKER.get()
+    cfg, sc = w.cfg, w.scenario
     ep = eval_problem(sc, cfg.seed, index, nonconvex_only=cfg.nonconvex_only, backend=cfg.backend)
     row, _ = evaluate_problem(
-        sc, ep, _W["models"], rtg_scale=cfg.rtg_scale, oracle_detours=cfg.oracle_detours, backend=cfg.backend
+        sc, ep, w.models, rtg_scale=cfg.rtg_scale, oracle_detours=cfg.oracle_detours, backend=cfg.backend
     )
     return row
 

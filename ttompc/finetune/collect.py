@@ -53,7 +53,7 @@ from ttompc.mpc.loop import MPCController, StepPlan
 from ttompc.mpc.providers import ShiftProvider
 from ttompc.mpc.settings import MPCSettings
 from ttompc.mpc.tto import RolloutGroup, TTOProvider, effective_rtg_mode
-from ttompc.parallel import pool_map
+from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Problem, Scenario, Window
@@ -340,24 +340,33 @@ def rollout_folder(folder: str | Path, scenario: Scenario, rollouts: int, shard_
     return ShardedFolder(folder, trajectory_features(scenario), rollouts, shard_size, prefix="dagger")
 
 
-_W: dict[str, Any] = {}
+@dataclass
+class _Collector:
+    """What ``_init_collector`` loads once per pool worker for ``_collect_chunk``."""
+
+    scenario: Scenario
+    planner: Planner
+    cfg: DaggerConfig
+
+
+_COLLECTOR: WorkerState[_Collector] = WorkerState()
 
 
 def _init_collector(scenario_name: str, planner_dir: str, cfg: DaggerConfig) -> None:
     """Runs once per worker: the scenario (its module is imported by the pool) and the planner, loaded once."""
     from ttompc.policy import Planner
 
-    _W["scenario"] = scenario = get_scenario(scenario_name)
-    _W["planner"] = Planner.from_pretrained(planner_dir, scenario)
-    _W["cfg"] = cfg
+    scenario = get_scenario(scenario_name)
+    _COLLECTOR.set(_Collector(scenario, Planner.from_pretrained(planner_dir, scenario), cfg))
 
 
 def _collect_chunk(task: tuple[int, list[int]]) -> list[list[dict[str, Any]]]:
     iteration, indices = task
-    cfg: DaggerConfig = _W["cfg"]
+    w = _COLLECTOR.get()
+    cfg = w.cfg
     return collect_rollouts(
-        _W["scenario"],
-        _W["planner"],
+        w.scenario,
+        w.planner,
         iteration,
         indices,
         cfg.seed,

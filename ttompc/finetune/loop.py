@@ -1,5 +1,8 @@
 """The DAgger iteration loop (paper Alg. 1): collect, aggregate, train, measure, keep or reject; resumable, multi-rank.
 
+Before it writes, measures or collects anything, ``check_inputs`` refuses a model, recipe and open-loop dataset that
+do not belong together (scenario, normalisation statistics, labels), on a resumed run too.
+
 Iteration i starts from its *parent*, the best model so far (the pretrained model, or the last kept iteration):
 
 1. **Collect** ``dagger.collect.rollouts`` rollouts with the parent into ``<run>/dagger/iter-<i>/``
@@ -175,18 +178,49 @@ def _model_name(iteration: int) -> str:
     return "the pretrained model" if iteration < 0 else f"iteration {iteration}"
 
 
-def _check_data(dm: Any, planner: Planner, paths: list[str]) -> None:
-    """The open-loop data must be the model's: same scenario and normalisation statistics."""
-    if dm.scenario_name != planner.scenario.name:
-        raise FinetuneError(f"open-loop data is for {dm.scenario_name!r}, the model for {planner.scenario.name!r}")
+def check_inputs(cfg: FinetuneConfig, planner: Planner, source: str) -> None:
+    """Whether ``cfg`` can fine-tune ``planner`` (loaded from ``source``), decided from the recipe, the model and the
+    datasets' manifests alone (no shard is read), so that a mismatch costs seconds, not a measurement and a
+    collection: the recipe's scenario (``data.scenario``, when set) is the model's; every ``data.paths`` folder
+    exists, is a finished dataset that fits the recipe (``ttompc.data.generate.check_datasets``) and holds the
+    model's scenario with its normalisation statistics (the data it was trained on); the labels suit its outputs
+    (``check_value_labels``). Raises a ``UserError`` (one line naming the mismatch and what to do)."""
+    from ttompc.data.generate import check_datasets
+    from ttompc.policy.stats import NormStats
+
+    model = planner.scenario.name
+    if cfg.data.scenario is not None and cfg.data.scenario != model:
+        raise FinetuneError(
+            f"the model {source} is a {model} model but the recipe is for {cfg.data.scenario} (data.scenario)",
+            f"fine-tune it with a recipe of recipes/{model}/, or pick a {cfg.data.scenario} model (`ttompc zoo list`)",
+        )
+    missing = [p for p in cfg.data.paths if not Path(p).is_dir()]
+    if missing:  # generating a new dataset would not do: its normalisation statistics would not be the model's
+        recorded = (planner.recipe.get("data") or {}).get("paths") or []
+        trained_on = f" (recorded in the model: {', '.join(map(str, recorded))})" if recorded else ""
+        raise FinetuneError(
+            f"data.paths: dataset folder {missing[0]} does not exist",
+            f"fine-tuning needs the open-loop dataset the model was trained on{trained_on}: point data.paths=[...] "
+            "at it, or remake it with the `ttompc generate` command of the model's recipe or data card (the same "
+            "settings make the same data)",
+        )
+    first = check_datasets(cfg.data)[0]
+    path, data = cfg.data.paths[0], first["scenario"]["name"]
+    if data != model:
+        raise FinetuneError(
+            f"data.paths: {path} holds {data} trajectories but the model {source} is a {model} model",
+            "point data.paths at the open-loop dataset the model was trained on",
+        )
+    stats = NormStats.from_dict(first["norm_stats"])
     for key in ("states", "actions", "rtg", "ctg"):
-        if not np.allclose(dm.stats.mean[key], planner.stats.mean[key], rtol=1e-4, atol=1e-6) or not np.allclose(
-            dm.stats.std[key], planner.stats.std[key], rtol=1e-4, atol=1e-6
+        if not np.allclose(stats.mean[key], planner.stats.mean[key], rtol=1e-4, atol=1e-6) or not np.allclose(
+            stats.std[key], planner.stats.std[key], rtol=1e-4, atol=1e-6
         ):
             raise FinetuneError(
-                f"normalisation statistics of {paths} differ from the model's ({key}); fine-tune on the open-loop "
-                "dataset the model was trained on"
+                f"data.paths: the normalisation statistics of {path} ({key}) differ from those of the model {source}",
+                "fine-tune on the open-loop dataset the model was trained on",
             )
+    check_value_labels(cfg, planner)
 
 
 def _train_iteration(
@@ -218,7 +252,6 @@ def _train_iteration(
     L.seed_everything(cfg.trainer.seed + iteration, workers=True, verbose=False)
     dm = TrajectoryDataModule(replace(cfg.data, dagger_dirs=dagger_dirs, seed=cfg.data.seed + iteration))
     dm.setup("fit")
-    _check_data(dm, source, cfg.data.paths)
     module = build_module(source.model.cfg, cfg.optim, source.scenario, source.stats, recipe=cfg,
                           plot_trajectories=False, backend=cfg.dagger.settings().backend)  # fmt: skip
     if resume_from is None:
@@ -272,24 +305,26 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     """Run (or resume) DAgger fine-tuning of ``source`` (zoo name, bundle folder or checkpoint) in
     ``cfg.trainer.out_dir``; see the module docstring."""
     from ttompc.policy import Planner
-    from ttompc.training.loggers import build_logger
-    from ttompc.training.run import _finish_wandb
+    from ttompc.training.loggers import build_logger, finish_logger
 
     ranks = ranks or rank_info()
     run = Path(cfg.trainer.out_dir)
-    run.mkdir(parents=True, exist_ok=True)
     state = _load_state(run)
     if state is not None and state["source"] != str(source):
         raise FinetuneError(f"{run} fine-tunes {state['source']!r}, not {source!r}", "use another trainer.out_dir")
     if state is not None and state["seed"] != cfg.dagger.seed:  # its rollouts so far were drawn with that seed
         raise FinetuneError(f"{run} was collected with dagger.seed={state['seed']}", "keep it or use another out_dir")
     src_dir = run / SOURCE_PLANNER
-    if ranks.is_main and not (src_dir / "config.json").is_file():
-        Planner.from_pretrained(source).save(src_dir)
+    if ranks.is_main:  # checked before anything is written, measured or collected (a resumed run's data too)
+        saved = (src_dir / "config.json").is_file()
+        pretrained = Planner.from_pretrained(src_dir if saved else source)
+        check_inputs(cfg, pretrained, str(source))
+        run.mkdir(parents=True, exist_ok=True)
+        if not saved:
+            pretrained.save(src_dir)
     wait_s = cfg.dagger.collect.wait_s
     _wait(lambda: (src_dir / "config.json").is_file(), wait_s, "the source planner")
     source_planner = Planner.from_pretrained(src_dir)
-    check_value_labels(cfg, source_planner)
     scenario = source_planner.scenario
     logger = build_logger(cfg.logger, run, to_container(cfg)) if ranks.is_main else None
     problems = _eval_problems(cfg, scenario) if ranks.is_main else []
@@ -355,5 +390,5 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     planner_dir = _export(run, state, str(source)) if ranks.is_main else None
     if logger is not None:
         logger.finalize("success")
-        _finish_wandb(logger)  # close the run so a later fine-tuning in this process starts or resumes its own
+        finish_logger(logger)  # close the run so a later fine-tuning in this process starts or resumes its own
     return FinetuneResult(run, state["completed"], state["baseline_metrics"], state["best"]["iteration"], planner_dir)

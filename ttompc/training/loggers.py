@@ -53,6 +53,15 @@ def build_logger(cfg: LoggerConfig, out_dir: Path, config: dict[str, Any]) -> An
     return logger
 
 
+def finish_logger(logger: Any) -> None:
+    """Close ``logger``'s wandb run, if it is a wandb logger that started one, so that a later run in the same
+    process starts (or resumes) its own; any other logger (or None) is left as it is."""
+    from lightning.pytorch.loggers import WandbLogger
+
+    if isinstance(logger, WandbLogger) and logger._experiment is not None:
+        logger.experiment.finish()
+
+
 def trajectory_figure(target: np.ndarray, pred: np.ndarray, mask: np.ndarray, title: str = "") -> Any:
     """Position traces (first two state dims) of target vs predicted next states, (k, L, n) each."""
     import matplotlib

@@ -104,7 +104,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         last_checkpoint,
         resume_checkpoint,
     )
-    from ttompc.training.loggers import build_logger
+    from ttompc.training.loggers import build_logger, finish_logger
     from ttompc.training.module import SaveLastCheckpoint, build_module
 
     L.seed_everything(cfg.trainer.seed, workers=True, verbose=False)
@@ -176,7 +176,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         if trainer.is_global_zero:
             print(f"ttompc: starting from the weights of {cfg.init_from} (fresh optimiser)", file=sys.stderr)
     fit(trainer, module, datamodule, resume_from)
-    _finish_wandb(logger)
+    finish_logger(logger)
     exception_checkpoint(out).unlink(missing_ok=True)  # last.ckpt is newer; a stale one would only confuse
     # Read the outcome from the checkpoint: with spawn-based strategies the workers, not this process, trained.
     global_step = checkpoint_step(last_checkpoint(out))
@@ -245,11 +245,3 @@ def fit(trainer: Any, module: Any, datamodule: Any, ckpt_path: Path | None) -> N
     finally:
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, sigint)
-
-
-def _finish_wandb(logger: Any) -> None:
-    """Close the wandb run so that a later ``train`` in the same process starts (or resumes) its own."""
-    from lightning.pytorch.loggers import WandbLogger
-
-    if isinstance(logger, WandbLogger) and logger._experiment is not None:
-        logger.experiment.finish()

@@ -173,10 +173,7 @@ def _card(
         if previous is not None and same_files:
             metrics = previous.metrics
         elif evaluate is None:
-            raise PublishError(
-                "no metrics: pass metrics (--card-metrics FILE) or skip_eval (--skip-eval); the "
-                "standard evaluation is not wired into publish yet"
-            )
+            raise PublishError(f"no metrics for the card of {name}", _metrics_hint(config, card_fields))
         else:
             metrics = evaluate(bundle)
     metrics = validate_metrics(metrics or {})
@@ -198,6 +195,20 @@ def _card(
     card = ModelCard.from_dict(fields, body=previous.body if previous else "")
     card.body = card.body or _default_body(card, load_as)
     return card
+
+
+def _metrics_hint(config: dict[str, Any], card_fields: dict[str, Any] | None) -> str:
+    """How to make the card metrics of the bundle with ``config``: evaluate it (as ``--ft-model`` when it is
+    fine-tuned), turn the two reports into card metrics with ``ttompc zoo metrics`` and publish with them."""
+    kind = (card_fields or {}).get("kind") or _from_config(config)["kind"] or "TTO"
+    flag = "--ft-model" if kind == "FT-TTO" else "--model"
+    return (
+        f"make them with `ttompc evaluate warmstart {flag} MODEL --out eval/ws` and `ttompc evaluate mpc {flag} MODEL "
+        f"--out eval/mpc` (MODEL: the bundle folder or .ckpt you publish), then `ttompc zoo metrics --method {kind} "
+        "--warmstart eval/ws/warmstart.json --mpc eval/mpc/mpc.json --out metrics.json`, and publish with "
+        "--card-metrics metrics.json (metrics=... in Python), or with --skip-eval (skip_eval=True) for a card without "
+        "metrics"
+    )
 
 
 def inference_settings(config: dict[str, Any], metrics: dict[str, dict[str, Any]]) -> dict[str, Any]:

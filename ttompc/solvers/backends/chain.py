@@ -25,8 +25,8 @@ def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
     no cone, else QOCO, with Clarabel as the fallback on a numerical failure); ``conic`` = QOCO then Clarabel on
     every subproblem (the default before the QP path, kept for comparisons). PIQP and QOCO are dependencies, so a
     chain does not depend on what is installed. ``riccati`` = the stage-wise interior-point kernel (``riccati.py``)
-    ahead of the ``auto`` chain where that chain starts with PIQP, the ``auto`` chain elsewhere. Other names
-    alone."""
+    ahead of the ``auto`` chain where that chain starts with PIQP, the ``auto`` chain elsewhere. Other names of
+    ``BACKEND_NAMES`` alone; any other name is a ``ValueError``."""
     if name == "riccati":
         if not _installed("numba"):
             raise ValueError("backend 'riccati' needs numba: pip install 'ttompc[fast]'")
@@ -36,8 +36,10 @@ def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
         chain = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
     elif name == "conic":
         chain = ["qoco", "clarabel"]
-    else:
+    elif name in BACKEND_NAMES:
         return [name]
+    else:
+        raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}")
     return chain
 
 

@@ -123,12 +123,12 @@ BACKENDS: dict[str, type[ClarabelBackend | QOCOBackend]] = {"clarabel": Clarabel
 
 
 def make_backend(name: str, sub: AssembledSubproblem) -> ClarabelBackend | QOCOBackend:
+    """The conic solver ``name`` (a key of ``BACKENDS``) on ``sub``; any other name is a ``ValueError``. Which
+    names ``backend=`` takes is ``chain.BACKEND_NAMES``."""
     try:
         cls = BACKENDS[name]
     except KeyError:
-        from ttompc.solvers.backends.chain import BACKEND_NAMES
-
-        raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}") from None
+        raise ValueError(f"unknown conic solver {name!r}; choose from {list(BACKENDS)}") from None
     return cls(sub)
 
 

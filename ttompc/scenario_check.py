@@ -1,5 +1,7 @@
 """``check_scenario``: the contract of ``Scenario`` (docs/scenarios.md) checked on sampled problems, each failure
-named in one line, so that a new scenario's mistakes surface before a dataset or a model is built on them.
+named in one line, so that a new scenario's mistakes surface before a dataset or a model is built on them (the
+command: ``ttompc check-scenario``). It sits beside ``ttompc.scenarios``, not in it: the ``solve`` check runs
+``ttompc.solvers``, which is built on the scenarios.
 
 The checks are what the engine, the datasets, the rollout and MPC rely on without checking:
 
