@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import pytest
 import torch
 
-from ttompc.policy import ModelConfig, TrajectoryGPT
+from ttompc.policy import Decoder, ModelConfig, TrajectoryGPT
 
 N, M, L, B = 6, 3, 7, 2
 
@@ -79,30 +81,56 @@ def test_causality(field: str, layout: str) -> None:
 @LAYOUTS
 @pytest.mark.parametrize(("dtype", "atol"), [(torch.float32, 1e-5), (torch.float64, 1e-10)])
 def test_kv_cache_matches_full_forward(dtype: torch.dtype, atol: float, layout: str) -> None:
-    """Feeding the tokens in uneven chunks through the cache gives the full forward's hidden states."""
+    """Feeding the tokens in uneven chunks through the cache, by ``encode`` or by a ``Decoder`` (of a model left in
+    train mode: it never drops out), gives the full forward's hidden states."""
     model, x = _model(dtype, layout=layout), _inputs(dtype)
     x["prev_actions"] = x.pop("actions")[:, :-1]
     tokens = model.embed_steps(**x)  # (B, 5L-1, d) interleaved, (B, L, d) stacked
     full = model.encode(tokens)
-    cache = model.new_cache(B)
-    chunks, i = [], 0
     sizes = (4, 1, 5, 2, 3, 1, 9, 9) if layout == "interleaved" else (1, 2, 1, 3)
-    for size in sizes:
-        chunks.append(model.encode(tokens[:, i : i + size], cache))
-        i += size
-    assert i == tokens.shape[1] == L * model.cfg.tokens_per_step - (layout == "interleaved")
-    assert cache.length == i
-    torch.testing.assert_close(torch.cat(chunks, dim=1), full, rtol=0, atol=atol)
-    # A fork continues independently of its parent.
-    fork = cache.fork()
-    extra = torch.randn(B, 1, model.cfg.n_embd, dtype=dtype)
-    model.encode(extra, fork)
-    assert fork.length == cache.length + 1
-    torch.testing.assert_close(fork.k[:, :, :, : cache.length], cache.k[:, :, :, : cache.length], rtol=0, atol=0)
+    assert sum(sizes) == tokens.shape[1] == L * model.cfg.tokens_per_step - (layout == "interleaved")
+    for decoded in ("encode", "decoder"):
+        cache = model.new_cache(B)
+        decode = Decoder(model.train(), cache) if decoded == "decoder" else partial(model.eval().encode, cache=cache)
+        chunks, i = [], 0
+        for size in sizes:
+            chunks.append(decode(tokens[:, i : i + size]))
+            i += size
+        assert cache.length == i
+        torch.testing.assert_close(torch.cat(chunks, dim=1), full, rtol=0, atol=atol, msg=decoded)
+    # Truncated back, the cache continues as if the dropped tokens had never been fed.
+    cache.truncate(i - 3)
+    torch.testing.assert_close(decode(tokens[:, i - 3 :]), full[:, i - 3 :], rtol=0, atol=atol)
+    with pytest.raises(ValueError, match="truncate"):
+        cache.truncate(i + 1)
+
+
+@LAYOUTS
+@pytest.mark.parametrize("start", [0, 3])
+def test_step_embedding_is_embed_steps_of_a_window(layout: str, start: int) -> None:
+    """base + z @ W reproduces ``embed_steps`` of a window that holds goal and ctg, step by step (a zero a_{-1} at
+    step 0, whose interleaved first token is dropped)."""
+    model, x = _model(torch.float64, layout=layout), _inputs(torch.float64)
+    H, T = 4, model.cfg.tokens_per_step
+    goal, ctg = x["goals"][:, 0], x["ctg"][:, 0]
+    base, W = model.step_embedding(goal, ctg, start, H)
+    assert base.shape == (B, H, T * model.cfg.n_embd) and W.shape == (1 + N + M, T * model.cfg.n_embd)
+    for j in range(H):
+        k = start + j
+        prev = x["actions"][:, j : j + 1] if k > 0 else torch.zeros(B, 1, M, dtype=torch.float64)
+        z = torch.cat([x["rtg"][:, j], x["states"][:, j], prev[:, 0]], dim=1)  # (B, 1+n+m)
+        tok = (base[:, j] + z @ W).view(B, T, -1)
+        steps = torch.full((B, 1), k)
+        ref = model.embed_steps(
+            goal[:, None], x["rtg"][:, j : j + 1], ctg[:, None], x["states"][:, j : j + 1], prev[:, k == 0 :], steps
+        )
+        torch.testing.assert_close(tok[:, 1:] if k == 0 and layout == "interleaved" else tok, ref, rtol=0, atol=1e-12)
 
 
 def test_cache_overflow_is_an_error() -> None:
     model = _model()
-    cache = model.new_cache(1)
+    too_long = torch.zeros(1, model.cfg.max_tokens + 1, model.cfg.n_embd)
     with pytest.raises(ValueError, match="overflow"):
-        model.encode(torch.zeros(1, model.cfg.max_tokens + 1, model.cfg.n_embd), cache)
+        model.encode(too_long, model.new_cache(1))
+    with pytest.raises(ValueError, match="overflow"):
+        Decoder(model, model.new_cache(1))(too_long)

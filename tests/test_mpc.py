@@ -116,19 +116,21 @@ def test_providers_respect_the_window(setup: tuple) -> None:
         _check(prov.warm_start(w, scp.X[N - 3]), w, scp.X[N - 3], sc)
 
 
-def test_tto_context_is_advanced_not_recomputed(setup: tuple) -> None:
+def test_tto_context_is_advanced_not_recomputed(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
     """Per MPC step the model encodes O(H) new tokens (not the growing prefix), and the cached warm starts equal
     the reference-style full recomputation."""
+    from ttompc.policy import Decoder
+
     sc, problem, rel, _ = setup
     planner = mpc_fakes.tiny_planner()
     counts: list[int] = []
-    encode = planner.model.encode
+    decode = Decoder.__call__
 
-    def counting(tokens, cache=None):
+    def counting(self, tokens):
         counts.append(tokens.shape[1])
-        return encode(tokens, cache)
+        return decode(self, tokens)
 
-    planner.model.encode = counting  # type: ignore[method-assign]
+    monkeypatch.setattr(Decoder, "__call__", counting)
     H = 5
     cached, full = TTOProvider(planner), TTOProvider(planner, use_cache=False)
     for prov in (cached, full):

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
 
-from ttompc.policy import ModelConfig, TrajectoryGPT
+from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.policy.rollout import RolloutContext, rollout
 from ttompc.policy.stats import NormStats
 
 B, STEPS = 3, 12
+ZOO = Path(__file__).resolve().parents[1] / "zoo" / "models"
 
 
 @pytest.fixture(params=["interleaved", "stacked"])
@@ -107,6 +111,30 @@ def test_mpc_context_reuses_cache_correctly(toy, toy_stats: NormStats, layout: s
     torch.testing.assert_close(a.actions, b.actions, rtol=0, atol=1e-10)
     # The MPC context subtracts measured violations from ctg (reference behaviour) and adds c(a) to rtg.
     torch.testing.assert_close(ctx.rtg[:, 1:] - ctx.rtg[:, :-1], ctx.actions.abs().sum(-1))
+
+
+@pytest.mark.parametrize("name", ["quadrotor-ft-tto-v6", "quadrotor-tto-small"])  # stacked, interleaved
+def test_shipped_model_mpc_window_equals_full_recompute(name: str) -> None:
+    """What TTO-MPC runs, on shipped float32 weights: 4 episodes advanced 20 steps, then a 10-step window from the
+    cached history (folded normalisation, ``Decoder``) equals the reference's full recompute within float32
+    rounding, leaves the cached history as it was and returns ordinary tensors (not ``inference_mode`` ones)."""
+    planner = Planner.from_pretrained(ZOO / name)
+    problems = [planner.scenario.sample(np.random.default_rng(seed)) for seed in range(4)]
+    ctx = planner.context(problems, rtg0=float(planner.stats.mean["rtg"][0]))
+    for _ in range(20):
+        plan = ctx.rollout(1)
+        ctx.advance(plan.actions[:, 0], plan.states[:, 1])
+    assert ctx._cache is not None
+    history = ctx._cache.length
+    executed = (ctx.states, ctx.goals, ctx.rtg, ctx.ctg, ctx.actions)
+    fresh = RolloutContext(planner.model, planner.stats, ctx.dynamics, ctx.cost_norm, *executed, use_cache=False)
+    fast, slow = ctx.rollout(10), fresh.rollout(10)
+    assert fast.states.dtype == torch.float32 and fast.start == slow.start == 20
+    assert not any(getattr(fast, part).is_inference() for part in ("states", "actions", "rtg", "ctg"))
+    assert ctx._cache.length == history
+    for part in ("states", "actions", "rtg", "ctg"):
+        a, b = getattr(fast, part), getattr(slow, part)
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()), msg=part)
 
 
 def test_rejects_horizon_beyond_model(toy, toy_stats: NormStats) -> None:

@@ -13,13 +13,14 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from ttompc.policy.config import ModelConfig
-    from ttompc.policy.gpt import KVCache, TrajectoryGPT
+    from ttompc.policy.gpt import Decoder, KVCache, TrajectoryGPT
     from ttompc.policy.planner import Planner
     from ttompc.policy.rollout import RolloutContext, RolloutResult
     from ttompc.policy.stats import NormStats
 
 _LAZY = {
     "ModelConfig": "ttompc.policy.config",
+    "Decoder": "ttompc.policy.gpt",
     "KVCache": "ttompc.policy.gpt",
     "TrajectoryGPT": "ttompc.policy.gpt",
     "NormStats": "ttompc.policy.stats",
@@ -36,6 +37,7 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
+    "Decoder",
     "KVCache",
     "ModelConfig",
     "NormStats",

@@ -26,12 +26,17 @@ final LayerNorm. ``embed_steps`` makes the tokens that decide the actions of a r
 the last token's hidden state always decides the last step's action. Because positions are carried by the timestep
 embedding only, the token stream can be fed in any chunks: a ``KVCache`` keeps the keys/values of the tokens seen
 so far and ``encode(tokens, cache)`` processes only the new ones. That is what makes a 100-step rollout cost
-O(steps) forward work instead of O(steps²) (the reference re-encodes the whole prefix every step).
+O(steps) forward work instead of O(steps²) (the reference re-encodes the whole prefix every step). ``Decoder`` is
+the same cached pass for inference in functional ops, what rollouts run (``encode`` with a cache is its readable
+reference, and the baseline of ``bench/rollout_speed.py``); ``step_embedding`` is ``embed_steps`` of a planning
+window as one affine map, so a rollout step embeds its tokens with one matmul.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any, cast
 
 import torch
 import torch.nn.functional as F
@@ -40,27 +45,18 @@ from torch import Tensor, nn
 from ttompc.policy.config import ModelConfig
 
 _ACTIVATIONS = {"relu": nn.ReLU, "gelu": nn.GELU, "silu": nn.SiLU}
+# the same, as functions (``Decoder``)
+_ACTIVATION_FNS: dict[str, Callable[[Tensor], Tensor]] = {"relu": F.relu, "gelu": F.gelu, "silu": F.silu}
 
 
 class KVCache:
-    """Preallocated keys/values per layer, (B, heads, capacity, head_dim) with capacity ``cfg.max_tokens`` (tokens
-    per step × max_steps) unless given, and the number of tokens filled.
+    """Preallocated keys/values per layer, (n_layer, B, heads, capacity, head_dim) with capacity ``cfg.max_tokens``
+    (tokens per step × max_steps), and the number of tokens filled. Appends write in place; nothing grows."""
 
-    ``fork()`` copies the filled prefix so a speculative rollout can extend the copy while the original (e.g. the
-    executed MPC history) stays untouched.
-    """
-
-    def __init__(
-        self,
-        cfg: ModelConfig,
-        batch: int,
-        dtype: torch.dtype,
-        device: torch.device | str,
-        capacity: int | None = None,
-    ) -> None:
+    def __init__(self, cfg: ModelConfig, batch: int, dtype: torch.dtype, device: torch.device | str) -> None:
         head_dim = cfg.n_embd // cfg.n_head
         self.cfg = cfg
-        shape = (cfg.n_layer, batch, cfg.n_head, capacity or cfg.max_tokens, head_dim)
+        shape = (cfg.n_layer, batch, cfg.n_head, cfg.max_tokens, head_dim)
         self.k = torch.zeros(shape, dtype=dtype, device=device)
         self.v = torch.zeros(shape, dtype=dtype, device=device)
         self.length = 0
@@ -82,15 +78,12 @@ class KVCache:
     def advance(self, n_tokens: int) -> None:
         self.length += n_tokens
 
-    def fork(self, extra_tokens: int | None = None) -> KVCache:
-        """A copy of the filled prefix with room for ``extra_tokens`` more (default: the parent's capacity), so
-        short MPC rollouts do not allocate a full-length cache."""
-        capacity = self.capacity if extra_tokens is None else min(self.length + extra_tokens, self.cfg.max_tokens)
-        new = KVCache(self.cfg, self.k.shape[1], self.k.dtype, self.k.device, capacity=capacity)
-        new.k[:, :, :, : self.length] = self.k[:, :, :, : self.length]
-        new.v[:, :, :, : self.length] = self.v[:, :, :, : self.length]
-        new.length = self.length
-        return new
+    def truncate(self, length: int) -> None:
+        """Forget the tokens after the first ``length``: a speculative rollout appends after the executed history and
+        then truncates back to it (the slots past ``length`` are scratch, overwritten by the next append)."""
+        if not 0 <= length <= self.length:
+            raise ValueError(f"cannot truncate a cache of {self.length} tokens to {length}")
+        self.length = length
 
 
 class CausalSelfAttention(nn.Module):
@@ -143,9 +136,58 @@ class Block(nn.Module):
         return x + self.mlp(self.ln_2(x))
 
 
+class Decoder:
+    """The trunk over a ``KVCache``, for inference: ``decoder(tokens)`` computes what ``model.encode(tokens, cache)``
+    of an eval-mode model computes (no dropout, whatever the model's mode), in functional ops. Call it under
+    ``torch.no_grad`` or ``inference_mode``.
+
+    A rollout step of a small model is dispatch-bound at batch 1: ~20 small ops per layer, where a module call costs
+    ~5 µs and a parameter look-up ~1.5 µs beside ~7 µs for a 128×384 matvec (measured on the 2-core dev VM). So the
+    decoder looks the parameters up once, at construction, and holds the model's parameter tensors: in-place updates
+    (an optimizer step, ``load_state_dict``) are seen; replaced parameters (a model moved to another device or
+    dtype) need a new decoder.
+    """
+
+    def __init__(self, model: TrajectoryGPT, cache: KVCache) -> None:
+        cfg = model.cfg
+        self.cache = cache
+        self.n_head, self.act = cfg.n_head, _ACTIVATION_FNS[cfg.activation]
+        self.embed_ln = (model.embed_ln.weight, model.embed_ln.bias)
+        self.ln_f = (model.ln_f.weight, model.ln_f.bias)
+        # per layer: weight and bias of ln_1, qkv, proj, ln_2, mlp in, mlp out (a bias None without cfg.bias), and the
+        # layer's cache slices k, v (B, h, capacity, hd)
+        self.layers: list[tuple[tuple[Any, ...], Tensor, Tensor]] = []
+        for i, block in enumerate(cast(list[Block], model.blocks)):
+            mods = (block.ln_1, block.attn.qkv, block.attn.proj, block.ln_2, block.mlp[0], block.mlp[2])
+            self.layers.append((tuple(t for mod in mods for t in (mod.weight, mod.bias)), cache.k[i], cache.v[i]))
+
+    def __call__(self, tokens: Tensor) -> Tensor:
+        """Embedded tokens (B, T, d) -> final hidden states (B, T, d); the T tokens are appended after the cached ones,
+        attend to them and to each other causally, and the cache length advances by T."""
+        B, T, C = tokens.shape
+        start, end = self.cache.length, self.cache.length + T
+        if end > self.cache.capacity:
+            raise ValueError(f"KV cache overflow: {end} tokens > capacity {self.cache.capacity} (max_steps too small)")
+        # query i (absolute start+i) sees keys 0..start+i; one new token sees everything (no mask needed)
+        mask = None if T == 1 else torch.ones(T, end, dtype=torch.bool, device=tokens.device).tril(diagonal=start)
+        x = F.layer_norm(tokens, (C,), *self.embed_ln)
+        for weights, k_cache, v_cache in self.layers:
+            ln1_w, ln1_b, qkv_w, qkv_b, proj_w, proj_b, ln2_w, ln2_b, fc_w, fc_b, out_w, out_b = weights
+            qkv = F.linear(F.layer_norm(x, (C,), ln1_w, ln1_b), qkv_w, qkv_b)  # (B, T, 3C)
+            q, k, v = qkv.view(B, T, 3, self.n_head, C // self.n_head).permute(2, 0, 3, 1, 4).unbind(0)  # (B, h, T, hd)
+            k_cache.narrow(2, start, T).copy_(k)
+            v_cache.narrow(2, start, T).copy_(v)
+            y = F.scaled_dot_product_attention(q, k_cache.narrow(2, 0, end), v_cache.narrow(2, 0, end), attn_mask=mask)
+            x = x + F.linear(y.transpose(1, 2).reshape(B, T, C), proj_w, proj_b)
+            x = x + F.linear(self.act(F.linear(F.layer_norm(x, (C,), ln2_w, ln2_b), fc_w, fc_b)), out_w, out_b)
+        self.cache.length = end
+        return F.layer_norm(x, (C,), *self.ln_f)
+
+
 class TrajectoryGPT(nn.Module):
-    """The trajectory transformer. ``forward`` is the teacher-forced training path over full steps; ``encode`` with
-    ``embed_steps`` is the token-level path used (with a ``KVCache``) by the autoregressive rollout."""
+    """The trajectory transformer. ``forward`` is the teacher-forced training path over full steps; ``embed_steps``
+    and ``encode`` (with a ``KVCache``; ``Decoder`` is its fast twin) are the token-level path of the autoregressive
+    rollout, ``step_embedding`` the embedding of a planning window as one affine map."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -222,6 +264,31 @@ class TrajectoryGPT(nn.Module):
         x = torch.stack([*toks, self.embed_state(states) + t], dim=2).flatten(1, 2)  # (B, 5L, d)
         return x[:, 1:] if first_missing else x
 
+    def step_embedding(self, goal: Tensor, ctg: Tensor, start: int, horizon: int) -> tuple[Tensor, Tensor]:
+        """``embed_steps`` of the steps k = start..start+horizon-1 of a window that holds goal (B, n) and ctg (B, 1)
+        (normalised), as an affine map of what changes from step to step, z_k = [rtg_k, state_k, a_{k-1}]
+        (B, 1+n+m, normalised): the T = ``tokens_per_step`` tokens of step k are (base[:, k-start] + z_k @ W) viewed
+        (B, T, d). At step 0 (no a_{-1}) feed a zero a_{-1}; the interleaved layout then drops the first token.
+
+        -> base (B, horizon, T·d), W (1+n+m, T·d)."""
+        n, m, d = self.cfg.state_dim, self.cfg.control_dim, self.cfg.n_embd
+        steps = torch.arange(start, start + horizon, device=goal.device)
+        t = self.embed_timestep(steps)  # (H, d)
+        if self.cfg.layout == "stacked":  # one token [g, R, C, s, a_{k-1}]
+            w_g, w_r, w_c, w_s, w_a = self.embed_stacked.weight.split([n, 1, 1, n, m], dim=1)  # (d, ·) each
+            base = (F.linear(goal, w_g) + F.linear(ctg, w_c, self.embed_stacked.bias))[:, None] + t  # (B, H, d)
+            return base, torch.cat([w_r, w_s, w_a], dim=1).T
+        # interleaved: tokens a_{k-1} g_k R_k C_k s_k, the action token at step k-1
+        act = self.embed_action.bias + self.embed_timestep((steps - 1).clamp_min(0))
+        B = goal.shape[0]
+        toks = (act, self.embed_goal(goal)[:, None] + t, self.embed_rtg.bias + t, self.embed_ctg(ctg)[:, None] + t)
+        base = torch.stack([x.expand(B, horizon, d) for x in (*toks, self.embed_state.bias + t)], dim=2)  # (B, H, 5, d)
+        W = goal.new_zeros(1 + n + m, 5, d)
+        W[0, 2] = self.embed_rtg.weight[:, 0]
+        W[1 : 1 + n, 4] = self.embed_state.weight.T
+        W[1 + n :, 0] = self.embed_action.weight.T
+        return base.flatten(2), W.flatten(1)
+
     # ------------------------------------------------------------------------------------------------- trunk
     def encode(self, tokens: Tensor, cache: KVCache | None = None) -> Tensor:
         """Embedded tokens (B, T, d) -> final hidden states (B, T, d). With a cache the T tokens are appended after
@@ -233,9 +300,9 @@ class TrajectoryGPT(nn.Module):
             cache.advance(tokens.shape[1])
         return self.ln_f(x)
 
-    def new_cache(self, batch: int, capacity: int | None = None) -> KVCache:
+    def new_cache(self, batch: int) -> KVCache:
         p = next(self.parameters())
-        return KVCache(self.cfg, batch, dtype=p.dtype, device=p.device, capacity=capacity)
+        return KVCache(self.cfg, batch, dtype=p.dtype, device=p.device)
 
     # ------------------------------------------------------------------------------------------ training path
     def forward(

@@ -8,9 +8,14 @@ ctg_{k+1} = ctg_k: a plan does not foresee its own violations) and the target is
 
 One implementation serves open-loop warm starts (start at step 0) and MPC (start at step t after an executed
 prefix). ``RolloutContext`` keeps the executed history of B episodes and, with ``use_cache=True``, the KV cache of
-that history: each receding-horizon rollout forks the cache and only encodes the new tokens, so neither the prefix
-nor earlier generated steps are ever re-encoded. ``use_cache=False`` re-encodes the whole prefix at every step like
-the reference (for timing parity and tests).
+that history: each receding-horizon rollout appends its new tokens after the cached history and truncates back to it
+at the end, so neither the prefix nor earlier generated steps are ever re-encoded. ``use_cache=False`` re-encodes the
+whole prefix at every step like the reference (for timing parity and tests).
+
+The cached rollout is written for batch-1 latency (a 0.6M-parameter model's step is dispatch-bound, measured in
+``bench/rollout_speed.py``): the normalisation is folded into the window's embedding and action head once per
+rollout, so a step is one matmul to embed, a ``Decoder`` pass (functional ops, parameters looked up once) and the
+dynamics; no module calls, no per-step allocation of the cache.
 
 All tensors going in and out are *un-normalised* and in the scenario's *model* representation; the context
 normalises with ``NormStats`` (keys states, actions, goals, rtg, ctg) internally.
@@ -22,9 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
-from ttompc.policy.gpt import KVCache, TrajectoryGPT
+from ttompc.policy.gpt import Decoder, KVCache, TrajectoryGPT
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios.base import BatchedModel, CostNorm
 
@@ -93,6 +99,7 @@ class RolloutContext:
         if self.actions.shape != (B, T - 1, m):
             raise ValueError(f"actions must be (B, {T - 1}, {m}) for {T} states, got {tuple(self.actions.shape)}")
         self._cache: KVCache | None = None  # tokens of the completed steps 0..t-1, built on first use
+        self._decoder: Decoder | None = None  # the trunk over that cache
 
     @classmethod
     def start(
@@ -156,45 +163,99 @@ class RolloutContext:
         g, r, c, s = self._norm_step(goals, rtg, ctg, states)
         return self.model.embed_steps(g, r, c, s, self.stats.normalize("actions", prev_actions), ts)
 
-    def _history_cache(self) -> KVCache:
-        """The KV cache of the deciding tokens of steps 0..t-1 (built once, then extended by ``advance``)."""
-        if self._cache is None:
+    def _history(self) -> Decoder:
+        """The decoder over the KV cache of the deciding tokens of steps 0..t-1 (built once, then extended by
+        ``advance``). Its parameter look-ups are made once per context, which lives for an episode: the model's
+        weights may change in place, not be replaced, while it lives."""
+        if self._decoder is None:
             self._cache = self.model.new_cache(self.batch)
+            self._decoder = Decoder(self.model, self._cache)
             t = self.t
             if t > 0:
                 tok = self._embed_steps(
                     self.goals[:, :t], self.rtg[:, :t], self.ctg[:, :t], self.states[:, :t], self.actions[:, : t - 1], 0
                 )
-                self.model.encode(tok, self._cache)
-        return self._cache
+                self._decoder(tok)
+        return self._decoder
+
+    def _window_maps(self, horizon: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The window's embedding and action head with the normalisation folded in, built once per rollout: the
+        tokens of step t+j are ``base[:, j] + z @ W`` for the *un-normalised* z = [rtg, state, a_prev] (B, 1+n+m)
+        (``TrajectoryGPT.step_embedding``), and ``F.linear(h, head_w, head_b)`` is the un-normalised action of a
+        hidden state h (B, d). -> base (B, H, T·d), W (1+n+m, T·d), head_w (m, d), head_b (m,)."""
+        model, stats = self.model, self.stats
+        goal = stats.normalize("goals", self.goals[:, -1])
+        ctg = stats.normalize("ctg", self.ctg[:, -1:])
+        base, W = model.step_embedding(goal, ctg, self.t, horizon)
+        # z_norm = (z − μ)/σ, so base + z_norm @ W = (base − (μ/σ) @ W) + z @ (W/σ)
+        moments = [stats.mean_std(key, goal) for key in ("rtg", "states", "actions")]
+        mu, sd = (torch.cat(parts) for parts in zip(*moments, strict=True))  # (1+n+m,) each
+        W = W / sd[:, None]
+        base = base - mu @ W
+        # a = a_norm·σ_a + μ_a with a_norm = h @ Wᵀ + b
+        mu_a, sd_a = stats.mean_std("actions", goal)
+        head = model.action_head
+        return base, W, head.weight * sd_a[:, None], head.bias * sd_a + mu_a
 
     # -------------------------------------------------------------------------------------------------- public
     @torch.no_grad()
     def rollout(self, horizon: int) -> RolloutResult:
-        """Generate ``horizon`` steps from the current step t on a fork of the history (the context is unchanged)."""
+        """Generate ``horizon`` steps from the current step t after the history (the context is unchanged).
+
+        With the cache, each step embeds its tokens with one matmul (``_window_maps``), runs them through the
+        ``Decoder`` after the cached history and truncates the cache back to the history at the end; without it,
+        every step re-encodes the whole prefix (``_rollout_full_recompute``). The returned tensors are ordinary
+        tensors (the step loop runs under ``inference_mode``; its outputs are stacked outside it)."""
         t0, model = self.t, self.model
         if horizon < 1 or t0 + horizon > model.cfg.max_steps:
             raise ValueError(f"rollout [{t0}, {t0 + horizon}) outside the model's {model.cfg.max_steps} steps")
+        if not self.use_cache:
+            return self._rollout_full_recompute(horizon)
+        decode = self._history()  # outside inference_mode: the cache is written in place by ``advance`` too
+        history = decode.cache.length
+        B, T = self.batch, model.cfg.tokens_per_step
+        s, r = self.states[:, -1], self.rtg[:, -1:]  # (B, n), (B, 1)
+        # a_{t0-1}; at the episode start the action's mean (a normalised zero, like ``embed_steps``)
+        a = self.actions[:, -1] if t0 > 0 else self.stats.mean_std("actions", s)[0].expand(B, -1)
+        S, A, R = [s], [], [r]
+        try:
+            with torch.inference_mode():  # the loop's temporaries only; the cache is written in place
+                base, W, head_w, head_b = self._window_maps(horizon)
+                for j in range(horizon):
+                    k = t0 + j
+                    tok = torch.addmm(base[:, j], torch.cat([r, s, a], dim=1), W).view(B, T, -1)  # (B, T, d)
+                    if k == 0 and model.cfg.layout == "interleaved":
+                        tok = tok[:, 1:]  # step 0 has no a_{-1} token
+                    a = F.linear(decode(tok)[:, -1], head_w, head_b)  # (B, m), un-normalised
+                    s = self.dynamics.step(s, a, k).to(a.dtype)
+                    r = r + stage_cost_torch(a, self.cost_norm)[:, None]
+                    S.append(s)
+                    A.append(a)
+                    R.append(r)
+        finally:
+            decode.cache.truncate(history)
+        return RolloutResult(
+            states=torch.stack(S, dim=1),
+            actions=torch.stack(A, dim=1),
+            rtg=torch.cat(R, dim=1),
+            ctg=self.ctg[:, -1:].repeat(1, horizon + 1),
+            start=t0,
+        )
+
+    def _rollout_full_recompute(self, horizon: int) -> RolloutResult:
+        """The reference's rollout: every step re-encodes history + generated steps from scratch (teacher-forced
+        ``forward``) and reads the action at the last step."""
+        t0, model = self.t, self.model
         was_training = model.training
         model.eval()
         try:
             S, R, C = [self.states[:, -1]], [self.rtg[:, -1]], [self.ctg[:, -1]]
             A: list[Tensor] = []
             goal = self.goals[:, -1]  # the target is held over the generated window
-            cache = self._history_cache().fork(model.cfg.tokens_per_step * horizon) if self.use_cache else None
-            prev = self.actions[:, -1:]  # a_{t0-1} (B, 1, m), or (B, 0, m) at the episode start
             for j in range(horizon):
-                k = t0 + j
-                if cache is not None:
-                    tok = self._embed_steps(goal[:, None], R[-1][:, None], C[-1][:, None], S[-1][:, None], prev, k)
-                    a_norm = model.action_head(model.encode(tok, cache)[:, -1])  # (B, m)
-                else:
-                    a_norm = self._full_recompute(S, A, R, C, goal)
-                a = self.stats.denormalize("actions", a_norm)
-                s_next = self.dynamics.step(S[-1], a, k).to(a.dtype)
+                a = self.stats.denormalize("actions", self._full_recompute(S, A, R, C, goal))
                 A.append(a)
-                prev = a[:, None]
-                S.append(s_next)
+                S.append(self.dynamics.step(S[-1], a, t0 + j).to(a.dtype))
                 R.append(R[-1] + stage_cost_torch(a, self.cost_norm))
                 C.append(C[-1])
         finally:
@@ -239,16 +300,11 @@ class RolloutContext:
         action = torch.as_tensor(action, dtype=p.dtype, device=p.device).reshape(self.batch, -1)
         next_state = torch.as_tensor(next_state, dtype=p.dtype, device=p.device).reshape(self.batch, -1)
         goal = self.goals[:, -1] if goal is None else torch.as_tensor(goal, dtype=p.dtype, device=p.device)
-        if self._cache is not None:
+        if self._decoder is not None:
             tok = self._embed_steps(
                 self.goals[:, -1:], self.rtg[:, -1:], self.ctg[:, -1:], self.states[:, -1:], self.actions[:, -1:], t
             )
-            was_training = self.model.training
-            self.model.eval()
-            try:
-                self.model.encode(tok, self._cache)
-            finally:
-                self.model.train(was_training)
+            self._decoder(tok)
         rtg = self.rtg[:, -1] + stage_cost_torch(action, self.cost_norm)
         ctg = self.ctg[:, -1] - self.dynamics.violations(next_state, t + 1).to(p.dtype)
         self.actions = torch.cat([self.actions, action[:, None]], dim=1)

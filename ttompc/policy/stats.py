@@ -37,15 +37,16 @@ class NormStats:
 
     def normalize(self, key: str, x: Any) -> Any:
         """(x − μ)/(σ + ε) for numpy arrays or torch tensors (last axis = feature dim), in x's dtype."""
-        mu, sd = self._mu_sd(key, x)
+        mu, sd = self.mean_std(key, x)
         return (x - mu) / sd
 
     def denormalize(self, key: str, x: Any) -> Any:
-        mu, sd = self._mu_sd(key, x)
+        mu, sd = self.mean_std(key, x)
         return x * sd + mu
 
-    def _mu_sd(self, key: str, x: Any) -> tuple[Any, Any]:
-        """(μ, σ + ε) of ``key`` like ``x``: numpy arrays in x's dtype, torch tensors in x's dtype and device."""
+    def mean_std(self, key: str, x: Any) -> tuple[Any, Any]:
+        """(μ, σ + ε) of ``key`` like ``x``: numpy arrays in x's dtype, torch tensors in x's dtype and device (cached:
+        do not modify them)."""
         if isinstance(x, np.ndarray):
             return self.mean[key].astype(x.dtype, copy=False), self.std[key].astype(x.dtype, copy=False) + EPS
         slot = (key, x.dtype, x.device)
