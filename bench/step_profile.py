@@ -1,0 +1,477 @@
+"""Where an MPC step's time goes (issue 36, item 1): the mean step of the shipped model's TTO-family MPC at H = 10
+(``protocol=recommended``: TTO-MPC and its robust variant R-TTO-MPC) beside REL-MPC at H = 30 (``protocol=paper``),
+on every scenario, in one run, split into its parts.
+
+Usage::
+
+    nice -n 19 env OMP_NUM_THREADS=1 .venv/bin/python bench/step_profile.py            # all three scenarios
+    .venv/bin/python bench/step_profile.py --scenario quadrotor --problems 20 --batch 1
+    .venv/bin/python bench/step_profile.py --quick                                    # smoke run, no result file
+
+Models: ``freeflyer-ft-tto-v5``, ``quadrotor-ft-tto-v6`` (fine-tuned, run as ``ttompc evaluate mpc --ft-model``
+runs them: FT-TTO-MPC, R-FT-TTO-MPC) and ``rpod-tto-v3`` (no FT model: ``--model``, TTO-MPC, R-TTO-MPC);
+``--model SCENARIO=SOURCE`` replaces one. Problems: the first ``--problems`` held-out non-convex problems of root seed
+``--seed`` (4242, as in docs/evaluation.md; ``eval_problem``). Episodes: the nominal plant, all N steps (or
+``--max-steps``), the problems in lockstep in tasks of ``--batch`` (10, ``ttompc evaluate mpc``'s default: one
+batched rollout per step for a TTO method, each episode charged its share; ``--batch 1``: one robot's latency), one
+process (``workers=1``), one torch thread. The providers come from the evaluation's own factory
+(``ttompc.evaluation.closed_loop.providers``) with the settings of ``ClosedLoopConfig(protocol=...)``, so the methods
+are the evaluation's; each method first runs one warm-up episode on problem 0 outside the timing (imports, torch
+kernels, the solver structures of every window shape), so the profile is the steady state.
+
+Instrumentation: the bench wraps library functions with ``time.perf_counter`` timers by monkeypatching (restored at
+the end; nothing in the library changes, and ``--verify``, on with ``--quick``, reruns each method without the
+timers and checks that the executed controls are identical). A step is ``MPCController.plan`` (warm start + window
+SCP, the wall time of the call; the loop's own record of it, ``Episode.step_times``, is reported beside it). Timed
+regions nest; each part below is the time spent in it *exclusive* of the parts nested in it, so the parts sum to the
+step:
+
+* ``rollout``: ``RolloutContext.rollout``, the transformer rollout (the shared batched one, charged 1/B per episode,
+  or the lone one at ``--batch 1``);
+* ``conditioning``: ``TTOProvider.conditioning``, the reward-to-go fed at the step (``rtg_mode=value``: the model's
+  value output, ``Planner.cost_to_go``; ``running``: nothing to compute);
+* ``terminal``: terminal design, the target construction (``TargetFilter`` for TTO-MPC, ``providers._terminal`` for
+  REL-MPC);
+* ``finish``: the finish cost (``mpc.finish`` > 0 only);
+* ``rel_warm_start``: REL-MPC's remaining-horizon REL (``RemainingREL``: itself an SCP or one convex solve);
+* ``scp_setup``: the window SCP's linearisation and constraint blocks (``Scenario.convex_model``,
+  ``Scenario.constraints``, once per SCP iteration);
+* ``scp_solve``: the window SCP's subproblem solver calls (``SubproblemSolver.solve``: writing the iteration's values
+  into the built structure and the backend's solve);
+* ``scp_bookkeeping``: the rest of the SCP engine (merit, nonlinear violation, stopping rule, solver look-up);
+* ``overhead``: the rest of the step in Python (plan reuse check, warm-start conversions and copies, the rollout
+  group's tensor-to-array copies, the loop's shape checks).
+
+Reported per method: ``mean_step_ms`` and the share of each part, window SCP iterations per step (and per solved
+step, with their histogram), the time per subproblem call and per linearisation, steps served by plan reuse, and
+``observe_ms``: the provider's ``observe`` after each step (TTO: the KV-cache extension ``RolloutContext.advance``),
+which runs after the step and is *not* in the loop's step time. Ratios: REL-MPC@30's mean step over each TTO method's
+(``ratio_rel30_over``), and the same with ``observe`` added to both (``ratio_rel30_over_with_observe``).
+
+Ends with one JSON line, also written to bench/results/step_profile.json (not with ``--quick``: 1 problem, 4 steps,
+2 warm-up steps). Absolute times need a quiet machine; the ratios and shares are the figures to compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import platform
+import subprocess
+import time
+from collections import Counter, defaultdict
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import ttompc.mpc.loop as loop_mod
+import ttompc.mpc.providers as providers_mod
+import ttompc.solvers.engine as engine_mod
+from ttompc.evaluation.closed_loop import ClosedLoopConfig, providers, tasks
+from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.mpc.loop import Episode, MPCController, run_mpc_batch
+from ttompc.mpc.providers import Provider, RELProvider, RemainingREL, TargetFilter, full_horizon_plan
+from ttompc.mpc.tto import TTOProvider
+from ttompc.policy import Planner
+from ttompc.policy.rollout import RolloutContext
+from ttompc.scenarios import Scenario, get_scenario
+
+SCENARIOS = ("freeflyer", "quadrotor", "rpod")
+# the shipped model of each scenario's headline, and the role ``ttompc evaluate mpc`` gives it (its method names)
+MODELS = {"freeflyer": "freeflyer-ft-tto-v5", "quadrotor": "quadrotor-ft-tto-v6", "rpod": "rpod-tto-v3"}
+BASELINE = "REL-MPC"
+PARTS = ("rollout", "conditioning", "terminal", "finish", "rel_warm_start", "scp_setup", "scp_solve",
+         "scp_bookkeeping", "overhead")  # fmt: skip
+
+
+def role(source: str) -> str:
+    """``FT-TTO`` for a fine-tuned model (its name says ``ft``), else ``TTO``: the key ``ttompc evaluate mpc`` gives
+    ``--ft-model`` and ``--model``, from which the method names follow (FT-TTO-MPC, R-FT-TTO-MPC, ...)."""
+    return "FT-TTO" if "ft" in Path(source).name.lower().split("-") else "TTO"
+
+
+# --------------------------------------------------------------------------------------------------- instrumentation
+class Profiler:
+    """Nested ``perf_counter`` regions: inclusive seconds and calls per path of region names (``step/scp/...``),
+    plus counters. Off unless ``on``: warm-up and verification runs pass through untimed."""
+
+    def __init__(self, cuda: bool = False) -> None:
+        self.cuda, self.on = cuda, False
+        self.reset()
+
+    def reset(self) -> None:
+        self.stack: list[str] = []
+        self.incl: defaultdict[str, float] = defaultdict(float)
+        self.calls: Counter[str] = Counter()
+        self.count: defaultdict[str, float] = defaultdict(float)  # iterations, reused steps, backend-reported time
+        self.iterations: Counter[int] = Counter()  # window subproblems per step (histogram over steps)
+
+    def region(
+        self, name: str, fn: Callable[..., Any], after: Callable[[Any, str], None] | None = None, sync: bool = False
+    ) -> Callable[..., Any]:
+        """``fn`` timed as region ``name``; ``after(result, path)`` records what the result says."""
+
+        @functools.wraps(fn)
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            if not self.on:
+                return fn(*args, **kwargs)
+            self.stack.append(name)
+            path = "/".join(self.stack)
+            t0 = time.perf_counter()
+            try:
+                out = fn(*args, **kwargs)
+                if sync and self.cuda:
+                    torch.cuda.synchronize()
+            finally:
+                self.incl[path] += time.perf_counter() - t0
+                self.calls[path] += 1
+                self.stack.pop()
+            if after is not None:
+                after(out, path)
+            return out
+
+        return timed
+
+    def self_times(self) -> dict[str, float]:
+        """Per path, its inclusive time less its direct children's."""
+        out = dict(self.incl)
+        for path, t in self.incl.items():
+            parent = path.rpartition("/")[0]
+            if parent:
+                out[parent] = out.get(parent, 0.0) - t
+        return out
+
+
+def part_of(path: str) -> str | None:
+    """The part (``PARTS``) a step's region counts in, by its path; None outside a step."""
+    names = path.split("/")
+    if names[0] != "step":
+        return None
+    inner = names[1:]
+    for region, part in (("rollout", "rollout"), ("conditioning", "conditioning"), ("terminal", "terminal"),
+                         ("finish", "finish")):  # fmt: skip
+        if region in inner:
+            return part
+    if inner[:1] == ["warm_start"] and "rel" in inner:
+        return "rel_warm_start"
+    if inner[:1] == ["scp"]:
+        return {"linearise": "scp_setup", "subproblem": "scp_solve"}.get(inner[1] if len(inner) > 1 else "",
+                                                                         "scp_bookkeeping")  # fmt: skip
+    return "overhead"  # the step itself, the provider's warm start outside the parts above
+
+
+class _TimedSolver:
+    """A cached subproblem solver whose ``solve`` is a timed region; everything else passes through."""
+
+    def __init__(self, inner: Any, solve: Callable[..., Any]) -> None:
+        self._inner, self.solve = inner, solve
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+@contextmanager
+def instrumented(prof: Profiler, scenario: Scenario) -> Iterator[None]:
+    """The library functions a step runs, wrapped with ``prof``'s timers, for the duration of the block."""
+    undo: list[tuple[Any, str, bool, Any]] = []
+
+    def patch(obj: Any, name: str, make: Callable[[Any], Any]) -> None:
+        if not hasattr(obj, name):  # the library changed under the bench: say where
+            raise AttributeError(f"step_profile: {getattr(obj, '__name__', obj)!r} has no {name!r} to time")
+        own = name in vars(obj)
+        old = vars(obj)[name] if own else getattr(obj, name)
+        undo.append((obj, name, own, old))
+        setattr(obj, name, make(getattr(obj, name)))
+
+    def on_step(plan: Any, path: str) -> None:
+        prof.count["reused"] += bool(plan.reused)
+        prof.count["fallbacks"] += bool(plan.fallback)
+        prof.iterations[int(plan.iterations)] += 1
+
+    def on_scp(res: Any, path: str) -> None:
+        prof.count[f"{path}:iterations"] += res.iterations
+        prof.count[f"{path}:backend_reported"] += res.solver_time  # the backends' own timers (not uniform across them)
+
+    def on_rel(res: Any, path: str) -> None:
+        prof.count[f"{path}:iterations"] += res.iterations
+
+    def timed_lookup(fn: Callable[..., Any]) -> Callable[..., Any]:
+        lookup = prof.region("solver_lookup", fn)
+
+        @functools.wraps(fn)
+        def get(*args: Any, **kwargs: Any) -> Any:
+            solver = lookup(*args, **kwargs)
+            return _TimedSolver(solver, prof.region("subproblem", solver.solve)) if prof.on else solver
+
+        return get
+
+    try:
+        patch(MPCController, "plan", lambda f: prof.region("step", f, on_step))
+        patch(MPCController, "solve", lambda f: prof.region("scp", f, on_scp))
+        patch(TTOProvider, "warm_start", lambda f: prof.region("warm_start", f))
+        patch(RELProvider, "warm_start", lambda f: prof.region("warm_start", f))
+        patch(RolloutContext, "rollout", lambda f: prof.region("rollout", f, sync=True))
+        patch(TTOProvider, "conditioning", lambda f: prof.region("conditioning", f))
+        patch(Planner, "cost_to_go", lambda f: prof.region("value", f, sync=True))
+        patch(TargetFilter, "__call__", lambda f: prof.region("terminal", f))
+        patch(providers_mod, "_terminal", lambda f: prof.region("terminal", f))
+        patch(RemainingREL, "__call__", lambda f: prof.region("rel", f, on_rel))
+        patch(loop_mod, "finish_cost", lambda f: prof.region("finish", f))
+        patch(engine_mod, "get_solver", timed_lookup)
+        patch(scenario, "convex_model", lambda f: prof.region("linearise", f))
+        patch(scenario, "constraints", lambda f: prof.region("linearise", f))
+        patch(TTOProvider, "observe", lambda f: prof.region("observe", f))
+        patch(RolloutContext, "advance", lambda f: prof.region("advance", f, sync=True))
+        yield
+    finally:
+        for obj, name, own, old in reversed(undo):
+            if own:
+                setattr(obj, name, old)
+            else:
+                delattr(obj, name)
+
+
+# ---------------------------------------------------------------------------------------------------------- runs
+def method_providers(name: str, cfg: ClosedLoopConfig, plans: list[Any], models: dict[str, Planner]) -> list[Provider]:
+    """Fresh providers of method ``name`` for the problems of ``plans``, from the evaluation's factory."""
+    s = cfg.settings()
+    for group in providers(plans, models, s, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale):
+        if group and group[0].name == name:
+            return group
+    raise KeyError(f"the evaluation has no method {name!r} under protocol {cfg.protocol!r}")
+
+
+def run_method(
+    sc: Scenario,
+    eps: list[EvalProblem],
+    plans: list[Any],
+    name: str,
+    cfg: ClosedLoopConfig,
+    models: dict[str, Planner],
+    horizon: int,
+    batch: int,
+    max_steps: int | None,
+) -> list[Episode]:
+    """The episodes of ``name`` on ``eps``, in lockstep tasks of ``batch`` problems (as ``run_problems`` runs them)."""
+    out: list[Episode] = []
+    for chunk in tasks(len(eps), batch):
+        sub = [eps[i] for i in chunk]
+        out += run_mpc_batch(sc, [ep.problem for ep in sub], method_providers(name, cfg, [plans[i] for i in chunk],
+                             models), horizon, rel_costs=[ep.rel_cost for ep in sub], settings=cfg.settings(),
+                             max_steps=max_steps, plant_seeds=[ep.seed for ep in sub])  # fmt: skip
+    return out
+
+
+def profile_row(prof: Profiler, episodes: list[Episode], horizon: int, protocol: str) -> dict[str, Any]:
+    """Per-step means (ms) of the parts, their shares, iterations and the tree of regions."""
+    steps = sum(len(e.U) for e in episodes)
+    if prof.calls["step"] != steps:
+        raise RuntimeError(f"timed {prof.calls['step']} steps, the episodes ran {steps}")
+    ms = lambda seconds: 1e3 * seconds / steps  # noqa: E731  per episode-step
+    step = prof.incl["step"]
+    selfs = prof.self_times()
+    parts = dict.fromkeys(PARTS, 0.0)
+    for path, t in selfs.items():
+        if (part := part_of(path)) is not None:
+            parts[part] += t
+    scp_iters = prof.count["step/scp:iterations"]
+    solved = steps - prof.count["reused"]
+    sub_calls = prof.calls["step/scp/subproblem"]
+    tree = {
+        path: {"ms_per_step": ms(t), "self_ms_per_step": ms(selfs[path]), "calls_per_step": prof.calls[path] / steps}
+        for path, t in sorted(prof.incl.items())
+    }
+    return {
+        "horizon": horizon,
+        "protocol": protocol,
+        "episodes": len(episodes),
+        "steps": steps,
+        "mean_step_ms": ms(step),
+        "loop_step_ms": 1e3 * float(np.mean(np.concatenate([e.step_times for e in episodes]))),
+        "parts_ms": {k: ms(v) for k, v in parts.items()},
+        "shares": {k: v / step for k, v in parts.items()},
+        "scp_iterations_per_step": scp_iters / steps,
+        "scp_iterations_per_solved_step": scp_iters / solved if solved else float("nan"),
+        "iterations_histogram": {str(k): v for k, v in sorted(prof.iterations.items())},
+        "subproblem_ms_per_call": 1e3 * prof.incl["step/scp/subproblem"] / sub_calls if sub_calls else float("nan"),
+        "backend_reported_ms_per_call": (
+            1e3 * prof.count["step/scp:backend_reported"] / sub_calls if sub_calls else float("nan")
+        ),
+        "linearise_ms_per_iteration": (
+            1e3 * prof.incl["step/scp/linearise"] / scp_iters if scp_iters else float("nan")
+        ),
+        "rel_warm_start_iterations_per_step": prof.count["step/warm_start/rel:iterations"] / steps,
+        "reused_steps": prof.count["reused"] / steps,
+        "fallbacks": prof.count["fallbacks"],
+        "observe_ms": ms(prof.incl.get("observe", 0.0)),
+        "advance_ms": ms(prof.incl.get("observe/advance", 0.0)),
+        "cost": float(np.mean([e.cost for e in episodes])),
+        "feasible": float(np.mean([e.feasible for e in episodes])),
+        "tree": tree,
+    }
+
+
+def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[str, Any]:
+    sc = get_scenario(name)
+    planner = Planner.from_pretrained(source, sc, device=args.device)
+    models = {role(source): planner}
+    tto_cfg = ClosedLoopConfig(scenario=name, protocol=args.protocol, horizons=[args.horizon], batch=args.batch,
+                               workers=1, device=args.device)  # fmt: skip
+    rel_cfg = ClosedLoopConfig(scenario=name, protocol=args.rel_protocol, horizons=[args.rel_horizon],
+                               batch=args.batch, workers=1, device=args.device)  # fmt: skip
+    backend = tto_cfg.settings().backend
+    t0 = time.perf_counter()
+    eps = [eval_problem(sc, args.seed, i, nonconvex_only=True, backend=backend) for i in range(args.problems)]
+    plans = [full_horizon_plan(sc, ep.problem, backend) for ep in eps]  # PLAN-ONCE/ORACLE's, as run_problems
+    setup_s = time.perf_counter() - t0
+    tto_names = [g[0].name for g in providers(plans[:1], models, tto_cfg.settings(), robust_blend=tto_cfg.robust_blend)
+                 if isinstance(g[0], TTOProvider)]  # fmt: skip
+    methods = [(BASELINE, rel_cfg, args.rel_horizon)] + [(m, tto_cfg, args.horizon) for m in tto_names]
+    prof = Profiler(cuda=planner.device.type == "cuda")
+    rows: dict[str, dict[str, Any]] = {}
+    print(f"{name}: {source} ({sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M params), "
+          f"{len(eps)} problems, batch {args.batch}, setup {setup_s:.1f} s")  # fmt: skip
+    with instrumented(prof, sc):
+        for method, cfg, H in methods:
+            # warm-up outside the timing: one episode on problem 0 (every window shape's solver structure)
+            run_method(sc, eps[:1], plans[:1], method, cfg, models, H, 1, args.warmup_steps)
+            diff = None
+            if args.verify:  # the same episodes untimed: the timers must not change what runs
+                plain = run_method(sc, eps, plans, method, cfg, models, H, args.batch, args.max_steps)
+            prof.reset()
+            prof.on = True
+            try:
+                episodes = run_method(sc, eps, plans, method, cfg, models, H, args.batch, args.max_steps)
+            finally:
+                prof.on = False
+            row = profile_row(prof, episodes, H, cfg.protocol)
+            if args.verify:
+                diff = max(float(np.max(np.abs(a.U - b.U), initial=0.0)) for a, b in zip(plain, episodes, strict=True))
+                row["verify_max_control_difference"] = diff
+                row["untimed_loop_step_ms"] = 1e3 * float(np.mean(np.concatenate([e.step_times for e in plain])))
+            rows[f"{method}@{H}"] = row
+    base = rows[f"{BASELINE}@{args.rel_horizon}"]
+    ratios, ratios_observe = {}, {}
+    for key, r in rows.items():
+        if not key.startswith(BASELINE + "@"):
+            ratios[key] = base["mean_step_ms"] / r["mean_step_ms"]
+            ratios_observe[key] = (base["mean_step_ms"] + base["observe_ms"]) / (r["mean_step_ms"] + r["observe_ms"])
+    print_table(name, rows, ratios)
+    return {
+        "model": source,
+        "role": role(source),
+        "params": sum(p.numel() for p in planner.model.parameters()),
+        "problems": len(eps),
+        "problem_indices": [ep.index for ep in eps],
+        "batch": args.batch,
+        "max_steps": args.max_steps,
+        "settings": {"tto": asdict(tto_cfg.settings()), "rel": asdict(rel_cfg.settings())},
+        "methods": rows,
+        f"ratio_rel{args.rel_horizon}_over": ratios,
+        f"ratio_rel{args.rel_horizon}_over_with_observe": ratios_observe,
+    }
+
+
+def print_table(name: str, rows: dict[str, dict[str, Any]], ratios: dict[str, float]) -> None:
+    short = {"rollout": "roll", "conditioning": "cond", "terminal": "term", "finish": "fin", "rel_warm_start": "REL",
+             "scp_setup": "setup", "scp_solve": "solve", "scp_bookkeeping": "scp-py", "overhead": "py"}  # fmt: skip
+    head = " ".join(f"{short[p]:>6}" for p in PARTS)
+    print(f"{'method':>28} {'step ms':>8} {head} {'it/step':>7} {'sub ms':>6} {'obs ms':>6} {'ratio':>6}")
+    for key, r in rows.items():
+        shares = " ".join(f"{100 * r['shares'][p]:>5.1f}%" for p in PARTS)
+        ratio = f"{ratios[key]:>5.2f}x" if key in ratios else f"{'':>6}"
+        print(f"{key:>28} {r['mean_step_ms']:>8.2f} {shares} {r['scp_iterations_per_step']:>7.2f} "
+              f"{r['subproblem_ms_per_call']:>6.2f} {r['observe_ms']:>6.2f} {ratio}")  # fmt: skip
+    print(f"  ({name}: shares of the mean step; ratio = {BASELINE}@30 mean step / the method's)")
+
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), else the machine type."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def git_commit() -> str | None:
+    """HEAD of the checkout, with ``+dirty`` when the working tree has changes (what the numbers were run on)."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True, check=True)
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", action="append", choices=SCENARIOS, help="repeatable; default: all three")
+    ap.add_argument("--model", action="append", default=[], help="SCENARIO=SOURCE replacing the shipped model")
+    ap.add_argument("--problems", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=4242, help="root seed of the held-out problems")
+    ap.add_argument("--horizon", type=int, default=10, help="H of the TTO methods")
+    ap.add_argument("--rel-horizon", type=int, default=30, help="H of REL-MPC")
+    ap.add_argument("--protocol", default="recommended", help="protocol of the TTO methods")
+    ap.add_argument("--rel-protocol", default="paper", help="protocol of REL-MPC")
+    ap.add_argument("--batch", type=int, default=ClosedLoopConfig.batch, help="problems in lockstep (evaluate's)")
+    ap.add_argument("--max-steps", type=int, default=None, help="MPC steps per episode (default: all N)")
+    ap.add_argument("--warmup-steps", type=int, default=None, help="steps of the warm-up episode (default: all N)")
+    ap.add_argument("--verify", action="store_true", help="rerun untimed and check the controls are identical")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    ap.add_argument("--quick", action="store_true", help="smoke run: 1 problem, 4 steps, --verify, no result file")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "step_profile.json"))
+    args = ap.parse_args()
+    if args.quick:
+        args.problems, args.max_steps, args.warmup_steps, args.verify = 1, 4, 2, True
+    scenarios = args.scenario or list(SCENARIOS)
+    sources = dict(MODELS)
+    for item in args.model:
+        key, sep, src = item.partition("=")
+        if not sep or key not in SCENARIOS:
+            ap.error(f"--model takes SCENARIO=SOURCE with SCENARIO in {list(SCENARIOS)}, got {item!r}")
+        sources[key] = src
+    torch.set_num_threads(args.threads)
+    load0, t0 = os.getloadavg(), time.perf_counter()
+    results = {name: profile_scenario(name, sources[name], args) for name in scenarios}
+    summary = {
+        "bench": "step_profile",
+        "scenarios": results,
+        "problems": args.problems,
+        "seed": args.seed,
+        "horizon": args.horizon,
+        "rel_horizon": args.rel_horizon,
+        "batch": args.batch,
+        "max_steps": args.max_steps,
+        "device": args.device,
+        "torch_threads": torch.get_num_threads(),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        "load_average": load0,
+        "load_average_end": os.getloadavg(),
+        "wall_s": time.perf_counter() - t0,
+        "host": platform.node(),
+        "cpu": cpu_model(),
+        "commit": git_commit(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+    }
+    if not args.quick:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(summary, indent=2) + "\n")
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
