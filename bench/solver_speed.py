@@ -35,7 +35,7 @@ import numpy as np
 
 from ttompc.scenarios import get_scenario, list_scenarios
 from ttompc.solvers import solve_problem
-from ttompc.solvers.backends import backend_chain, default_trust_norm
+from ttompc.solvers.backends import backend_chain
 
 sys.path.insert(0, str(Path(__file__).parent))  # bench/ipopt_peer.py
 
@@ -71,8 +71,7 @@ def speed(name: str, n_problems: int, n_naive: int) -> dict:
     seeds = list(range(n_problems))
     run_set(scenario, seeds[:1])  # warm the structure cache and imports outside the timing
     ours = run_set(scenario, seeds)
-    # the same subproblems: the naive model gets the default's trust-region norm
-    naive = run_set(scenario, seeds[:n_naive], backend="cvxpy-naive", trust_norm=default_trust_norm("auto", scenario))
+    naive = run_set(scenario, seeds[:n_naive], backend="cvxpy-naive")  # the same subproblems (same trust-region norm)
     c_ours, c_naive = np.array(ours.pop("costs")[:n_naive]), np.array(naive.pop("costs"))
     both = np.isfinite(c_ours) & np.isfinite(c_naive)
     rel_diff = float(np.max(np.abs(c_ours[both] - c_naive[both]) / np.abs(c_naive[both]))) if both.any() else None

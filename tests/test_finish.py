@@ -11,7 +11,7 @@ from ttompc.mpc.finish import finish_cost, min_tail
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.results import TerminalCost
-from ttompc.solvers.scp import solve_rel, solve_scp
+from ttompc.solvers.scp import SCPOptions, SCPProblem, solve_rel, solve_scp
 
 
 def least_finish(sc: Scenario, p: Problem, window: Window, x: np.ndarray, ref: np.ndarray | None = None) -> float:
@@ -100,10 +100,10 @@ def test_window_with_finish_solves_as_the_modelling_layer_does(name: str) -> Non
     target = X0[-1] + 0.1 * sc.state_units()  # a target off the relaxed path: the two terms pull apart
     plain = TerminalCost(target, sc.mpc.tracking)
     priced = TerminalCost(target, sc.mpc.tracking, price)
-    kw = dict(window=window, fuel_weight=sc.mpc.fuel, soft_equalities=True)
-    fast = solve_scp(sc, p, X0, U0, terminal=priced, **kw)
-    naive = solve_scp(sc, p, X0, U0, terminal=priced, backend="cvxpy-naive", **kw)
-    without = solve_scp(sc, p, X0, U0, terminal=plain, **kw)
+    soft = SCPProblem(sc, p, window, priced, soft=True)
+    fast = solve_scp(soft, X0, U0)
+    naive = solve_scp(soft, X0, U0, SCPOptions(backend="cvxpy-naive"))
+    without = solve_scp(soft.update(terminal=plain), X0, U0)
     assert fast.success and naive.success and without.success
     merit = lambda r: sc.mpc.fuel * sc.cost(r.U) + priced(r.X[-1])  # noqa: E731
     assert merit(fast) == pytest.approx(merit(naive), rel=1e-3, abs=1e-6)

@@ -20,7 +20,7 @@ import torch
 from ttompc.policy import Planner
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import InfeasibleProblemError, Problem, Scenario
-from ttompc.solvers import solve_rel, solve_scp
+from ttompc.solvers import SCPProblem, solve_rel, solve_scp
 from ttompc.zoo import BundleError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,7 +80,7 @@ def test_every_shipped_bundle_plans_a_problem_that_scp_solves(name: str) -> None
     assert X.shape == (1, problem.n_steps + 1, sc.state_dim) and U.shape == (1, problem.n_steps, sc.control_dim)
     assert np.array_equal(X[0, 0], problem.x0)  # the SCP fixes this state: exact, not float32-rounded
     assert np.isfinite(X).all() and np.isfinite(U).all()
-    scp = solve_scp(sc, problem, X[0], U[0])
+    scp = solve_scp(SCPProblem(sc, problem), X[0], U[0])
     assert scp.success, f"{name}: SCP from the model's warm start ended {scp.status}"
 
     key, sha = name.replace("-", "_"), weights_sha(bundle)

@@ -10,7 +10,7 @@ import pytest
 from helpers import qp_subproblem, waypoint_subproblem
 
 from ttompc.scenarios import Window, get_scenario
-from ttompc.solvers import TerminalCost, solve_rel, solve_scp
+from ttompc.solvers import SCPOptions, SCPProblem, TerminalCost, solve_rel, solve_scp
 from ttompc.solvers.backends import get_solver
 from ttompc.solvers.backends.base import is_qp
 from ttompc.solvers.backends.conic import AssembledSolver
@@ -112,7 +112,7 @@ def test_auto_uses_the_qp_where_there_is_no_cone() -> None:
     assert rel.success and all("PIQP" in h.solver_status for h in rel.history)
     # an MPC window's soft terminal term is a 2-norm: the conic chain takes it, with the ∞-norm trust region
     w = Window(0, 10, 100)
-    res = solve_scp(ff, p, rel.X[:11], rel.U[:10], window=w, terminal=TerminalCost(rel.X[10], 1.0))
+    res = solve_scp(SCPProblem(ff, p, w, TerminalCost(rel.X[10], 1.0)), rel.X[:11], rel.U[:10])
     assert res.success and not any("PIQP" in h.solver_status for h in res.history)
     # RPOD's 2-norm cost needs cones: its auto chain is conic only
     rp = get_scenario("rpod")
@@ -131,9 +131,10 @@ def _rpod_spec(rp) -> SubproblemSpec:
 def test_piqp_alone_rejects_cones() -> None:
     ff = get_scenario("freeflyer")
     p = ff.sample(np.random.default_rng(1))
-    X, U = ff.initial_guess(p)
+    X, U = ff.initial_guess(p, Window(0, 10, 100))
+    window = SCPProblem(ff, p, Window(0, 10, 100), TerminalCost(X[-1], 1.0))  # the soft terminal term is a cone
     with pytest.raises(ValueError, match="QPs only"):
-        solve_scp(ff, p, X, U, backend="piqp", trust_norm="l2")
+        solve_scp(window, X, U, SCPOptions(backend="piqp"))
 
 
 @pytest.mark.parametrize("penalized", [True, False])

@@ -10,7 +10,7 @@ import pytest
 from helpers import qp_subproblem, waypoint_subproblem
 
 from ttompc.scenarios import Window, get_scenario
-from ttompc.solvers import TerminalCost, solve_problem, solve_scp
+from ttompc.solvers import SCPOptions, SCPProblem, TerminalCost, solve_problem, solve_scp
 from ttompc.solvers.backends import backend_chain, get_solver
 from ttompc.solvers.backends import chain as chain_module
 from ttompc.solvers.backends import riccati as riccati_module
@@ -181,7 +181,8 @@ def test_where_the_chain_takes_it(monkeypatch) -> None:
     assert scp is not None and scp.success and not any("RICCATI" in h.solver_status for h in scp.history)
     # an MPC window's soft terminal term is a cone: the conic chain
     w = Window(0, 10, 100)
-    res = solve_scp(ff, p, rel.X[:11], rel.U[:10], window=w, terminal=TerminalCost(rel.X[10], 1.0), backend="riccati")
+    window = SCPProblem(ff, p, w, TerminalCost(rel.X[10], 1.0))
+    res = solve_scp(window, rel.X[:11], rel.U[:10], SCPOptions(backend="riccati"))
     assert res.success and not any("RICCATI" in h.solver_status for h in res.history)
     monkeypatch.setattr(chain_module, "_installed", lambda module: module != "numba")
     with pytest.raises(ValueError, match="needs numba"):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
-from ttompc.solvers import SCPStatus, TerminalCost, solve_problem, solve_rel, solve_scp
+from ttompc.solvers import SCPOptions, SCPProblem, SCPStatus, TerminalCost, solve_problem, solve_rel, solve_scp
 from ttompc.solvers.backends.conic import AssembledSolver
 from ttompc.solvers.naive import NaiveCvxpySolver
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
@@ -159,8 +159,8 @@ def test_reference_formulation_is_selectable_and_gives_up(ff) -> None:
     penalized formulation solves the same problem."""
     p = ff.sample(np.random.default_rng(15))
     rel = solve_rel(ff, p)
-    ref = solve_scp(ff, p, rel.X, rel.U, formulation="reference")
-    ours = solve_scp(ff, p, rel.X, rel.U)
+    ref = solve_scp(SCPProblem(ff, p), rel.X, rel.U, SCPOptions(formulation="reference"))
+    ours = solve_scp(SCPProblem(ff, p), rel.X, rel.U)
     assert ref.status is SCPStatus.INFEASIBLE and not ref.success
     assert ours.success and ours.violation <= ff.scp.feas_tol
 
@@ -170,7 +170,7 @@ def test_mpc_window_with_terminal_cost(ff) -> None:
     rel = solve_rel(ff, p)
     w = Window(0, 20, 100)
     X0, U0 = rel.X[:21], rel.U[:20]
-    res = solve_scp(ff, p, X0, U0, window=w, terminal=TerminalCost(rel.X[20], ff.mpc.terminal))
+    res = solve_scp(SCPProblem(ff, p, w, TerminalCost(rel.X[20], ff.mpc.terminal)), X0, U0)
     assert res.success and res.X.shape == (21, 6)
     assert np.linalg.norm(res.X[-1] - rel.X[20]) < 0.05  # pulled to the REL state at t+H
 
@@ -178,29 +178,35 @@ def test_mpc_window_with_terminal_cost(ff) -> None:
 def test_bad_inputs_raise_clear_errors(ff) -> None:
     p = ff.sample(np.random.default_rng(6))
     X, U = ff.initial_guess(p)
+    full = SCPProblem(ff, p)
     with pytest.raises(ValueError, match=r"warm start must have shapes \(101, 6\) and \(100, 3\)"):
-        solve_scp(ff, p, X[:50], U)
+        solve_scp(full, X[:50], U)
     with pytest.raises(ValueError, match="needs a terminal cost"):
-        solve_scp(ff, p, X[:11], U[:10], window=Window(0, 10, 100))
+        SCPProblem(ff, p, Window(0, 10, 100))
+    with pytest.raises(ValueError, match="needs a terminal cost"):  # an update is checked as a new description is
+        full.update(window=Window(0, 10, 100))
+    with pytest.raises(ValueError, match="unknown SCP formulation"):
+        SCPOptions(formulation="nope")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="unknown solver backend"):
-        solve_scp(ff, p, X, U, backend="nope")
-    with pytest.raises(ValueError, match="QPs only"):
-        solve_scp(ff, p, X, U, backend="piqp", trust_norm="l2")
+        solve_scp(full, X, U, SCPOptions(backend="nope"))
+    with pytest.raises(ValueError, match="QPs only"):  # a window's soft terminal term is a cone
+        solve_scp(full.update(window=Window(0, 10, 100), terminal=TerminalCost(X[10], 1.0)), X[:11], U[:10],
+                  SCPOptions(backend="piqp"))  # fmt: skip
     X_bad = X.copy()
     X_bad[3, 0] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
-        solve_scp(ff, p, X_bad, U)
+        solve_scp(full, X_bad, U)
 
 
 def test_converged_warm_start_costs_one_subproblem(ff, solved) -> None:
     """The stopping rule compares the first iterate with the warm start: restarting from an SCP optimum is a fixed
     point found in one subproblem, at the same cost; a far-off warm start still iterates."""
     p, _, scp = solved[1]
-    again = solve_scp(ff, p, scp.X, scp.U)
+    again = solve_scp(SCPProblem(ff, p), scp.X, scp.U)
     assert again.success and again.iterations == 1
     assert again.cost == pytest.approx(scp.cost, rel=1e-6)
     X0, U0 = ff.initial_guess(p)
-    assert solve_scp(ff, p, X0, U0).iterations > 1
+    assert solve_scp(SCPProblem(ff, p), X0, U0).iterations > 1
 
 
 def test_rel_from_a_guess(ff) -> None:

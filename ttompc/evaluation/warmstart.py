@@ -41,7 +41,7 @@ from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario, Window
 from ttompc.seeding import rng
 from ttompc.solvers.backends import solver_path
-from ttompc.solvers.scp import SCPResult, solve_scp
+from ttompc.solvers.scp import SCPOptions, SCPProblem, SCPResult, solve_scp
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -120,7 +120,8 @@ def evaluate_problem(
     Returns the report row and the trajectories (label -> states) for plots."""
     p, rel = ep.problem, ep.rel
     row: dict[str, Any] = {"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, "rel_cost": rel.cost}
-    scp_rel = solve_scp(scenario, p, rel.X, rel.U, backend=backend)
+    scp, options = SCPProblem(scenario, p), SCPOptions(backend=backend)
+    scp_rel = solve_scp(scp, rel.X, rel.U, options)
     _record(row, BASELINE, scp_rel, ep.rel_time, rel.cost)
     trajectories = {"REL (lower bound)": rel.X, "SCP from REL": scp_rel.X}
     optima = [scp_rel]
@@ -129,13 +130,13 @@ def evaluate_problem(
         kappa = planner.rtg_scale if rtg_scale is None else rtg_scale
         X, U = planner.warm_start([p], rtg0=-kappa * rel.cost, ctg0=0.0)
         ws_time = time.perf_counter() - t0
-        res = solve_scp(scenario, p, X[0], U[0], backend=backend)
+        res = solve_scp(scp, X[0], U[0], options)
         _record(row, name, res, ws_time, rel.cost)
         trajectories[f"{name} rollout"] = X[0]
         trajectories[f"SCP from {name}"] = res.X
         optima.append(res)
     starts = [scenario.initial_guess(p, Window.full(p)), *detours(scenario, ep, oracle_detours)]
-    optima += [solve_scp(scenario, p, X, U, backend=backend) for X, U in starts]
+    optima += [solve_scp(scp, X, U, options) for X, U in starts]
     solved = [r for r in optima if r.success]
     best = min(solved, key=lambda r: r.cost) if solved else scp_rel
     _record(row, ORACLE, best, 0.0, rel.cost)

@@ -37,7 +37,7 @@ from typing import Protocol
 import numpy as np
 
 from ttompc.scenarios.base import Problem, Scenario, Window
-from ttompc.solvers.scp import SCPResult, TerminalCost, solve_problem, solve_rel, solve_scp
+from ttompc.solvers.scp import SCPOptions, SCPProblem, SCPResult, TerminalCost, solve_problem, solve_rel, solve_scp
 
 
 @dataclass
@@ -189,16 +189,8 @@ class DISTProvider:
             terminal_rel = TerminalCost(p.goal, sc.mpc.end)
         else:
             terminal_rel = terminal
-        rel = solve_rel(
-            sc,
-            p,
-            window=window,
-            x_start=x,
-            terminal=terminal_rel,
-            fuel_weight=sc.mpc.fuel,
-            soft_equalities=True,
-            backend=self.backend,
-        )
+        rel_problem = SCPProblem(sc, p, window, terminal_rel, obstacles=False, soft=True)  # REL, soft mode
+        rel = solve_scp(rel_problem, *sc.initial_guess(p, window, x), SCPOptions(backend=self.backend))
         X, U = (rel.X.copy(), rel.U.copy()) if rel.success else sc.initial_guess(p, window, x)
         X[0] = x
         return WarmStart(X, U, terminal)
@@ -310,7 +302,7 @@ class RemainingOptimum:
             X0 = self.X.copy()
             X0[0] = x
             rest = Window(t, p.n_steps - t, p.n_steps)
-            res = solve_scp(self.scenario, p, X0, self.U, window=rest, backend=self.backend)
+            res = solve_scp(SCPProblem(self.scenario, p, rest), X0, self.U, SCPOptions(backend=self.backend))
             self.replans += 1
             if res.success:
                 self.X, self.U = res.X, res.U

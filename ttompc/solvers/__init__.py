@@ -2,6 +2,8 @@
 
 from ttompc.solvers.scp import (
     IterateRecord,
+    SCPOptions,
+    SCPProblem,
     SCPResult,
     SCPStatus,
     TerminalCost,
@@ -12,6 +14,8 @@ from ttompc.solvers.scp import (
 
 __all__ = [
     "IterateRecord",
+    "SCPOptions",
+    "SCPProblem",
     "SCPResult",
     "SCPStatus",
     "TerminalCost",

@@ -5,136 +5,63 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from ttompc.scenarios.base import BlockKind, ConstraintBlock, Problem, Scenario, SCPSettings, Window
+from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, SCPSettings
 from ttompc.solvers.backends import SubproblemSolver, default_trust_norm, get_solver
+from ttompc.solvers.problem import SCPOptions, SCPProblem
 from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
 from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
 
 
-def run_scp(
-    scenario: Scenario,
-    problem: Problem,
-    X_init: np.ndarray,
-    U_init: np.ndarray,
-    *,
-    window: Window,
-    obstacles: bool,
-    terminal: TerminalCost | None,
-    fuel_weight: float,
-    soft_equalities: bool,
-    settings: SCPSettings,
-    backend: str,
-    formulation: str,
-    trust_norm: str | None,
-) -> SCPResult:
+def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SCPOptions) -> SCPResult:
+    """Solve ``scp`` by SCP from the float64 guess (X_init (H+1, n), U_init (H, m)); X_init[0] is the window's fixed
+    first state. Each iteration linearises at the reference, solves the convex subproblem and moves the reference
+    to its solution, until a fixed point (the stopping rule below), the iteration cap, or (reference formulation)
+    an infeasible subproblem. Returns the best feasible iterate, else the least violating (``_Iterates``)."""
     t_start = time.perf_counter()
-    H, n, m = window.length, scenario.state_dim, scenario.control_dim
-    if X_init.shape != (H + 1, n) or U_init.shape != (H, m):
-        raise ValueError(
-            f"{scenario.name}: warm start must have shapes ({H + 1}, {n}) and ({H}, {m}) for a window of {H} steps, "
-            f"got {X_init.shape} and {U_init.shape}"
-        )
-    if not (np.all(np.isfinite(X_init)) and np.all(np.isfinite(U_init))):
-        raise ValueError(f"{scenario.name}: warm start contains non-finite values")
-    if formulation not in ("penalized", "reference"):
-        raise ValueError(f"unknown SCP formulation {formulation!r}; choose 'penalized' or 'reference'")
-    if terminal is None and not window.reaches_end:
-        raise ValueError(f"window [{window.start}, {window.stop}) stops before the end and needs a terminal cost")
-    if window.start == 0:
-        scenario.validate(problem)
-    penalized = formulation == "penalized"
+    _check_guess(scp, X_init, U_init)
+    if scp.window.start == 0:
+        scp.scenario.validate(scp.problem)
+    settings = _settings(scp, options)
+    penalized = options.formulation == "penalized"
     use_tr = bool(np.isfinite(settings.tr_start))
-    if not penalized and backend == "auto":  # the reference's path, kept for comparisons (docs/benchmarks.md)
-        backend = "clarabel"  # certified infeasibility matters for the reference formulation; QOCO reports errors
-        trust_norm = trust_norm or "l2"  # the reference's 2-norm trust region
-    if trust_norm is None:
-        trust_norm = default_trust_norm(backend, scenario)
     shrink = settings.shrink if use_tr else 1.0
 
     X_ref, U_ref = X_init.copy(), U_init.copy()
     x_start = X_init[0].copy()
     delta = settings.tr_start
-    history: list[IterateRecord] = []
-    best: tuple[float, np.ndarray, np.ndarray, float, int] | None = None  # (merit, X, U, violation, iteration)
-    least_bad: tuple[float, np.ndarray, np.ndarray, int] | None = None  # fallback: smallest violation
+    iterates = _Iterates(settings.feas_tol)
     prev_merit: float | None = None
-    status: SCPStatus | None = None
-    solver_time = 0.0
+    status: SCPStatus | None = None  # None: the iteration cap
     solver: SubproblemSolver | None = None
     shapes: tuple = ()
 
     for it in range(settings.max_iters):
-        model = scenario.convex_model(problem, window, X_ref, U_ref)
-        blocks = scenario.constraints(problem, window, X_ref, U_ref, obstacles=obstacles)
-        if not penalized:  # the reference formulation: every linearised constraint is hard
-            blocks = [_hard(b) for b in blocks]
-        if it == 0:  # the warm start's merit (see the stopping rule below)
-            prev_merit = _merit(scenario, X_ref, U_ref, blocks, fuel_weight, terminal, soft_equalities)
+        model, blocks = _linearise(scp, X_ref, U_ref, penalized)
         if solver is None:  # block structure depends only on the window (Scenario.constraints): one spec per solve
-            spec = SubproblemSpec(
-                H=H,
-                n=n,
-                m=m,
-                cost_norm=scenario.cost_norm,
-                fuel_weight=float(fuel_weight),
-                penalized=penalized,
-                virtual_control=penalized and not scenario.exact_linear_dynamics,
-                vc_rows=tuple(scenario.approximate_rows),
-                trust=trust_norm if use_tr else "none",
-                terminal="hard" if terminal is None else "soft",
-                finish=finish_kind(terminal),
-                soft_equalities=soft_equalities,
-                penalty=float(settings.penalty),
-                blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
-                tr_states=tuple(int(j) for j in scenario.trust_region_steps(problem, window, terminal is None)),
-                state_scale=tuple(scenario.state_scale),
-                control_scale=tuple(scenario.control_scale),
-                model_masks=SubproblemSpec.model_signature(model),
-            )
-            solver = get_solver(spec, backend, scenario)
-            # Solvers are cached per structure across solves; restarting them makes this solve's result depend on
-            # its inputs only, not on the problems this process solved before (e.g. which pool worker a dataset
-            # problem landed on): regenerated rows are bit-identical.
-            solver.restart()
+            prev_merit = _merit(scp, X_ref, U_ref, blocks)  # the warm start's (see the stopping rule below)
+            solver = _subproblem_solver(scp, options, settings, model, blocks)
             shapes = _shapes(blocks)
         elif _shapes(blocks) != shapes:
-            raise ValueError(f"{scenario.name}: constraint block shapes changed between SCP iterations")
-        data = SubproblemData(
-            x_start=x_start,
-            model=model,
-            blocks=blocks,
-            X_ref=X_ref,
-            delta=float(delta),
-            goal=problem.goal,
-            terminal_target=None if terminal is None else terminal.target,
-            terminal_weights=None if terminal is None else terminal.weights,
-            finish=None if terminal is None else terminal.finish,
-        )
-        X, U, sol = solver.solve(data)
-        solver_time += sol.solve_time
+            raise ValueError(f"{scp.scenario.name}: constraint block shapes changed between SCP iterations")
+        X, U, sol = solver.solve(_subproblem_data(scp, x_start, model, blocks, X_ref, delta))
         if X is None or U is None:
-            history.append(IterateRecord(it, np.nan, np.nan, np.nan, np.nan, float(delta), sol.solve_time, sol.status))
+            iterates.history.append(
+                IterateRecord(it, np.nan, np.nan, np.nan, np.nan, float(delta), sol.solve_time, sol.status)
+            )
             # the reference formulation gives up on an infeasible subproblem, like the authors' code
             sub_failed = SCPStatus.INFEASIBLE if (sol.infeasible and not penalized) else SCPStatus.SOLVER_ERROR
-            if sub_failed is SCPStatus.INFEASIBLE or best is None:
+            if sub_failed is SCPStatus.INFEASIBLE or iterates.best is None:
                 status = sub_failed
             break
-        cost = scenario.cost(U)
-        merit = _merit(scenario, X, U, blocks, fuel_weight, terminal, soft_equalities)
-        violation = scenario.constraint_violation(problem, X, U, window, obstacles=obstacles)
-        if terminal is None:
-            violation = max(violation, float(np.max(np.abs(X[-1] - problem.goal))))
-        if not soft_equalities:
-            violation = max(violation, _eq_residual(blocks, X, U))
+        cost = scp.scenario.cost(U)
+        merit = _merit(scp, X, U, blocks)
+        violation = _violation(scp, X, U, blocks)
         step = float(np.max(np.linalg.norm(X - X_ref, axis=1)))
-        history.append(IterateRecord(it, cost, merit, violation, step, float(delta), sol.solve_time, sol.status))
-        if violation <= settings.feas_tol and (best is None or merit < best[0]):
-            best = (merit, X, U, violation, it)
-        if least_bad is None or violation < least_bad[0]:
-            least_bad = (violation, X, U, it)
+        iterates.add(IterateRecord(it, cost, merit, violation, step, float(delta), sol.solve_time, sol.status), X, U)
         # a fixed point: the step from this iteration's linearisation point and the merit change from that point
         # are both below tolerance. The first iteration compares with the warm start, so a converged warm start
         # costs one subproblem, not two.
@@ -146,44 +73,191 @@ def run_scp(
             status = SCPStatus.OPTIMAL if violation <= settings.feas_tol else SCPStatus.INFEASIBLE
             break
 
-    failed = status in (SCPStatus.INFEASIBLE, SCPStatus.SOLVER_ERROR)
-    if best is not None and (penalized or not failed):
-        status = SCPStatus.OPTIMAL if status is SCPStatus.OPTIMAL else SCPStatus.FEASIBLE
-    elif not failed:
-        status = SCPStatus.INFEASIBLE if least_bad is not None else SCPStatus.SOLVER_ERROR
-    if best is not None and status in (SCPStatus.OPTIMAL, SCPStatus.FEASIBLE):
-        _, X_out, U_out, viol_out, best_it = best
-    elif least_bad is not None:
-        viol_out, X_out, U_out, best_it = least_bad
-    else:
-        X_out, U_out, viol_out, best_it = X_init, U_init, float("inf"), -1
-    assert status is not None  # each branch above sets it
+    status, X_out, U_out, viol_out, best_it = iterates.outcome(status, penalized, X_init, U_init)
     return SCPResult(
         status=status,
         X=X_out,
         U=U_out,
-        cost=scenario.cost(U_out),
+        cost=scp.scenario.cost(U_out),
         violation=float(viol_out),
-        iterations=len(history),
+        iterations=len(iterates.history),
         solve_time=time.perf_counter() - t_start,
-        solver_time=solver_time,
-        window=window,
-        history=history,
+        solver_time=sum(h.solver_time for h in iterates.history),
+        window=scp.window,
+        history=iterates.history,
         best_iteration=best_it,
     )
 
 
-def _merit(
-    scenario: Scenario,
-    X: np.ndarray,
-    U: np.ndarray,
+@dataclass
+class _Iterates:
+    """A solve's iterates: their records, the best feasible one (lowest merit among those whose nonlinear violation
+    is within ``feas_tol``) and the least violating one (the fallback when none is feasible)."""
+
+    feas_tol: float
+    history: list[IterateRecord] = field(default_factory=list)
+    best: tuple[float, np.ndarray, np.ndarray, float, int] | None = None  # (merit, X, U, violation, iteration)
+    least_bad: tuple[float, np.ndarray, np.ndarray, int] | None = None  # (violation, X, U, iteration)
+
+    def add(self, record: IterateRecord, X: np.ndarray, U: np.ndarray) -> None:
+        """Record the iterate (X, U) that ``record`` describes."""
+        self.history.append(record)
+        if record.violation <= self.feas_tol and (self.best is None or record.objective < self.best[0]):
+            self.best = (record.objective, X, U, record.violation, record.iteration)
+        if self.least_bad is None or record.violation < self.least_bad[0]:
+            self.least_bad = (record.violation, X, U, record.iteration)
+
+    def outcome(
+        self, status: SCPStatus | None, penalized: bool, X_init: np.ndarray, U_init: np.ndarray
+    ) -> tuple[SCPStatus, np.ndarray, np.ndarray, float, int]:
+        """The solve's status and what it returns (X, U, violation, iteration; the guess and -1 without an iterate)
+        from the loop's ``status`` (None: the iteration cap): the best feasible iterate if any (OPTIMAL at a fixed
+        point, else FEASIBLE; in the reference formulation not once a subproblem failed), else the least violating
+        one."""
+        failed = status in (SCPStatus.INFEASIBLE, SCPStatus.SOLVER_ERROR)
+        if self.best is not None and (penalized or not failed):
+            status = SCPStatus.OPTIMAL if status is SCPStatus.OPTIMAL else SCPStatus.FEASIBLE
+        elif not failed:
+            status = SCPStatus.INFEASIBLE if self.least_bad is not None else SCPStatus.SOLVER_ERROR
+        assert status is not None  # each branch above sets it
+        if self.best is not None and status in (SCPStatus.OPTIMAL, SCPStatus.FEASIBLE):
+            _, X, U, violation, it = self.best
+        elif self.least_bad is not None:
+            violation, X, U, it = self.least_bad
+        else:
+            X, U, violation, it = X_init, U_init, float("inf"), -1
+        return status, X, U, violation, it
+
+
+def _check_guess(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray) -> None:
+    sc, H = scp.scenario, scp.window.length
+    n, m = sc.state_dim, sc.control_dim
+    if X_init.shape != (H + 1, n) or U_init.shape != (H, m):
+        raise ValueError(
+            f"{sc.name}: warm start must have shapes ({H + 1}, {n}) and ({H}, {m}) for a window of {H} steps, "
+            f"got {X_init.shape} and {U_init.shape}"
+        )
+    if not (np.all(np.isfinite(X_init)) and np.all(np.isfinite(U_init))):
+        raise ValueError(f"{sc.name}: warm start contains non-finite values")
+
+
+def _settings(scp: SCPProblem, options: SCPOptions) -> SCPSettings:
+    """The options' settings, by default the scenario's, or one iteration without trust region where one
+    subproblem solves the problem (``SCPProblem.convex``)."""
+    if options.settings is not None:
+        return options.settings
+    return _single_solve(scp.scenario.scp) if scp.convex else scp.scenario.scp
+
+
+def _single_solve(settings: SCPSettings) -> SCPSettings:
+    """Settings for a convex problem: one iteration, no trust region."""
+    return SCPSettings(
+        tr_start=np.inf,
+        tr_end=np.inf,
+        max_iters=1,
+        cost_tol=settings.cost_tol,
+        penalty=settings.penalty,
+        feas_tol=settings.feas_tol,
+    )
+
+
+def _linearise(
+    scp: SCPProblem, X_ref: np.ndarray, U_ref: np.ndarray, penalized: bool
+) -> tuple[ConvexModel, list[ConstraintBlock]]:
+    """The scenario's convex model and constraint blocks at the reference; in the reference formulation every
+    linearised constraint is hard."""
+    model = scp.scenario.convex_model(scp.problem, scp.window, X_ref, U_ref)
+    blocks = scp.scenario.constraints(scp.problem, scp.window, X_ref, U_ref, obstacles=scp.obstacles)
+    if not penalized:
+        blocks = [_hard(b) for b in blocks]
+    return model, blocks
+
+
+def _subproblem_solver(
+    scp: SCPProblem,
+    options: SCPOptions,
+    settings: SCPSettings,
+    model: ConvexModel,
     blocks: list[ConstraintBlock],
-    fuel_weight: float,
-    terminal: TerminalCost | None,
-    soft_equalities: bool,
-) -> float:
+) -> SubproblemSolver:
+    """The solver of this solve's subproblem structure, restarted. Solvers are cached per structure across solves
+    (``get_solver``); restarting them makes this solve's result depend on its inputs only, not on the problems this
+    process solved before (e.g. which pool worker a dataset problem landed on): regenerated rows are bit-identical."""
+    sc, terminal = scp.scenario, scp.terminal
+    penalized = options.formulation == "penalized"
+    backend, trust_norm = _solver_path(scp, options)
+    spec = SubproblemSpec(
+        H=scp.window.length,
+        n=sc.state_dim,
+        m=sc.control_dim,
+        cost_norm=sc.cost_norm,
+        fuel_weight=float(scp.fuel_weight),
+        penalized=penalized,
+        virtual_control=penalized and not sc.exact_linear_dynamics,
+        vc_rows=tuple(sc.approximate_rows),
+        trust=trust_norm if np.isfinite(settings.tr_start) else "none",
+        terminal="hard" if terminal is None else "soft",
+        finish=finish_kind(terminal),
+        soft_equalities=scp.soft,
+        penalty=float(settings.penalty),
+        blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
+        tr_states=tuple(int(j) for j in sc.trust_region_steps(scp.problem, scp.window, terminal is None)),
+        state_scale=tuple(sc.state_scale),
+        control_scale=tuple(sc.control_scale),
+        model_masks=SubproblemSpec.model_signature(model),
+    )
+    solver = get_solver(spec, backend, sc)
+    solver.restart()
+    return solver
+
+
+def _solver_path(scp: SCPProblem, options: SCPOptions) -> tuple[str, str]:
+    """The backend and trust-region norm that ``options`` run (``SCPOptions``)."""
+    if options.formulation == "reference" and options.backend == "auto":  # the reference's path (docs/benchmarks.md)
+        # certified infeasibility matters for the reference formulation (QOCO reports errors); its 2-norm trust region
+        return "clarabel", "l2"
+    return options.backend, default_trust_norm(options.backend, scp.scenario)
+
+
+def _subproblem_data(
+    scp: SCPProblem,
+    x_start: np.ndarray,
+    model: ConvexModel,
+    blocks: list[ConstraintBlock],
+    X_ref: np.ndarray,
+    delta: float,
+) -> SubproblemData:
+    """The subproblem's data at the reference ``X_ref`` with trust radius ``delta``."""
+    terminal = scp.terminal
+    return SubproblemData(
+        x_start=x_start,
+        model=model,
+        blocks=blocks,
+        X_ref=X_ref,
+        delta=float(delta),
+        goal=scp.problem.goal,
+        terminal_target=None if terminal is None else terminal.target,
+        terminal_weights=None if terminal is None else terminal.weights,
+        finish=None if terminal is None else terminal.finish,
+    )
+
+
+def _merit(scp: SCPProblem, X: np.ndarray, U: np.ndarray, blocks: list[ConstraintBlock]) -> float:
     """Weighted stage cost + soft terminal term + soft equality penalties of a window trajectory."""
-    return fuel_weight * scenario.cost(U) + _terminal_term(X, terminal) + _soft_eq_term(blocks, X, U, soft_equalities)
+    return (
+        scp.fuel_weight * scp.scenario.cost(U) + _terminal_term(X, scp.terminal) + _soft_eq_term(blocks, X, U, scp.soft)
+    )
+
+
+def _violation(scp: SCPProblem, X: np.ndarray, U: np.ndarray, blocks: list[ConstraintBlock]) -> float:
+    """The iterate's nonlinear violation: the scenario's constraints, x_N = goal where the window keeps it hard,
+    and the equality rows unless soft mode prices them."""
+    violation = scp.scenario.constraint_violation(scp.problem, X, U, scp.window, obstacles=scp.obstacles)
+    if scp.terminal is None:
+        violation = max(violation, float(np.max(np.abs(X[-1] - scp.problem.goal))))
+    if not scp.soft:
+        violation = max(violation, _eq_residual(blocks, X, U))
+    return violation
 
 
 def _shapes(blocks: list[ConstraintBlock]) -> tuple:

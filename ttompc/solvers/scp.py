@@ -18,63 +18,42 @@ nonlinear violation is within tolerance), not merely the last one (the authors' 
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
+from numpy.typing import ArrayLike
 
-from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
+from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.engine import run_scp
+from ttompc.solvers.problem import Formulation, SCPOptions, SCPProblem
 from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
 
-__all__ = ["IterateRecord", "SCPResult", "SCPStatus", "TerminalCost", "solve_problem", "solve_rel", "solve_scp"]
+__all__ = [
+    "IterateRecord",
+    "SCPOptions",
+    "SCPProblem",
+    "SCPResult",
+    "SCPStatus",
+    "TerminalCost",
+    "solve_problem",
+    "solve_rel",
+    "solve_scp",
+]
 
-Formulation = Literal["penalized", "reference"]
-TrustNorm = Literal["l2", "linf"]
 
+def solve_scp(scp: SCPProblem, X_init: ArrayLike, U_init: ArrayLike, options: SCPOptions | None = None) -> SCPResult:
+    """Solve ``scp`` (the scenario's problem over its window, ``SCPProblem``) by SCP from the guess (X_init (H+1, n),
+    U_init (H, m)) with ``options`` (default: the ``auto`` backend, the penalized formulation, the scenario's
+    settings; ``SCPOptions``). X_init[0] is the window's fixed initial state.
 
-def solve_scp(
-    scenario: Scenario,
-    problem: Problem,
-    X_init: np.ndarray,
-    U_init: np.ndarray,
-    *,
-    window: Window | None = None,
-    obstacles: bool = True,
-    terminal: TerminalCost | None = None,
-    fuel_weight: float = 1.0,
-    soft_equalities: bool = False,
-    settings: SCPSettings | None = None,
-    backend: str = "auto",
-    formulation: Formulation = "penalized",
-    trust_norm: TrustNorm | None = None,
-) -> SCPResult:
-    """Solve the (windowed) problem by SCP from the guess (X_init (H+1, n), U_init (H, m)).
+    Build the descriptions once and update them per solve, e.g. in a receding-horizon loop::
 
-    X_init[0] is the fixed initial state of the window. Without ``terminal`` a window that reaches the end gets
-    x_N = goal (hard, or penalised in the penalized formulation); windows that stop early need a ``terminal``.
-    ``obstacles=False`` gives the REL relaxation. ``soft_equalities`` turns waypoint-type equalities into weighted
-    2-norm penalties (MPC soft mode). ``backend``: "auto" (the scenario's chain: PIQP on subproblems without cones,
-    QOCO/Clarabel on the others, see ``engine.backend_chain``), "conic" (QOCO then Clarabel throughout),
-    "riccati" (opt-in, numba: the stage-wise interior-point kernel where the subproblem is a penalised QP, the
-    ``auto`` chain elsewhere), "clarabel", "qoco", "piqp" or "cvxpy-naive" (the rebuild-every-iteration
-    baseline). ``trust_norm`` defaults to the scenario's (``Scenario.trust_norm``; l2 for
-    ``conic`` and for the reference formulation with ``auto``, the comparison paths).
+        scp, options = SCPProblem(scenario, problem), SCPOptions(backend="clarabel")
+        res = solve_scp(scp.update(window=window, terminal=terminal), X, U, options)
     """
-    window = window or Window.full(problem)
     return run_scp(
-        scenario,
-        problem,
+        scp,
         np.asarray(X_init, dtype=np.float64),
         np.asarray(U_init, dtype=np.float64),
-        window=window,
-        obstacles=obstacles,
-        terminal=terminal,
-        fuel_weight=fuel_weight,
-        soft_equalities=soft_equalities,
-        settings=settings or scenario.scp,
-        backend=backend,
-        formulation=formulation,
-        trust_norm=trust_norm,
+        options or SCPOptions(),
     )
 
 
@@ -85,10 +64,13 @@ def solve_rel(
     window: Window | None = None,
     x_start: np.ndarray | None = None,
     guess: tuple[np.ndarray, np.ndarray] | None = None,
-    **kwargs,
+    backend: str = "auto",
+    formulation: Formulation = "penalized",
 ) -> SCPResult:
-    """The REL relaxation (no keep-out constraints) from the straight-line guess; a single convex solve when the
-    scenario's REL is convex (RPOD), otherwise SCP (free-flyer heading-dependent thruster bound, quadrotor drag).
+    """The REL relaxation (no keep-out constraints) of ``problem`` over ``window`` (default: the whole horizon) from
+    ``x_start`` (default: x0), solved from the straight line; a single convex solve when the scenario's REL is convex
+    (RPOD), otherwise SCP (free-flyer heading-dependent thruster bound, quadrotor drag). ``backend`` and
+    ``formulation`` as in ``SCPOptions``.
 
     ``guess`` (X (H+1, n), U (H, m)) replaces the straight line as the SCP's starting point (its X[0] is replaced by
     the window's first state), e.g. the previous receding-horizon step's REL plan shifted by one step: a converged
@@ -104,27 +86,17 @@ def solve_rel(
             )
         X_g[0] = X0[0]
         X0, U0 = X_g, U_g
-    if scenario.rel_is_convex:
-        kwargs.setdefault("settings", _single_solve(kwargs.get("settings") or scenario.scp))
-    return solve_scp(scenario, problem, X0, U0, window=window, obstacles=False, **kwargs)
+    rel = SCPProblem(scenario, problem, window, obstacles=False)
+    return solve_scp(rel, X0, U0, SCPOptions(backend=backend, formulation=formulation))
 
 
-def solve_problem(scenario: Scenario, problem: Problem, **kwargs) -> tuple[SCPResult, SCPResult | None]:
+def solve_problem(
+    scenario: Scenario, problem: Problem, *, backend: str = "auto", formulation: Formulation = "penalized"
+) -> tuple[SCPResult, SCPResult | None]:
     """REL, then SCP warm-started from the REL solution: the two solutions a dataset stores per problem (paper
-    §IV-B, §V). The SCP is skipped (None) when REL fails."""
-    rel = solve_rel(scenario, problem, **kwargs)
+    §IV-B, §V). The SCP is skipped (None) when REL fails. ``backend`` and ``formulation`` as in ``SCPOptions``."""
+    rel = solve_rel(scenario, problem, backend=backend, formulation=formulation)
     if not rel.success:
         return rel, None
-    return rel, solve_scp(scenario, problem, rel.X, rel.U, **kwargs)
-
-
-def _single_solve(settings: SCPSettings) -> SCPSettings:
-    """Settings for a convex problem: one iteration, no trust region."""
-    return SCPSettings(
-        tr_start=np.inf,
-        tr_end=np.inf,
-        max_iters=1,
-        cost_tol=settings.cost_tol,
-        penalty=settings.penalty,
-        feas_tol=settings.feas_tol,
-    )
+    options = SCPOptions(backend=backend, formulation=formulation)
+    return rel, solve_scp(SCPProblem(scenario, problem), rel.X, rel.U, options)

@@ -71,5 +71,5 @@ class Fallback:
 def cone_error(name: str) -> str:
     return (
         f"backend {name!r} solves QPs only, but this subproblem has second-order cones (2-norm cost, 2-norm trust "
-        "region, approach cone or a soft terminal norm); use backend='auto', 'qoco' or 'clarabel', or trust_norm='linf'"
+        "region, approach cone or a soft terminal norm); use backend='auto', 'qoco' or 'clarabel'"
     )

@@ -1,0 +1,100 @@
+"""What an SCP solve is asked, in two small frozen descriptions that a caller builds once and updates per solve (as
+with an acados OCP or an OSQP problem): ``SCPProblem``, the problem (the scenario's problem over a window, with its
+terminal condition, relaxation and cost mode), and ``SCPOptions``, how it is solved (backend, formulation,
+trust-region schedule and tolerances). The starting guess is the solve's own argument (``solve_scp``)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
+from ttompc.solvers.results import TerminalCost
+
+Formulation = Literal["penalized", "reference"]
+
+
+@dataclass(frozen=True, eq=False, init=False)
+class SCPProblem:
+    """``problem`` of ``scenario`` over ``window`` (default: the whole horizon [0, N)).
+
+    * ``terminal``: the soft terminal term ‖diag(w)(x_{t+H} − target)‖₂ (+ its finish price); required for a window
+      that stops before N. Without one, a window that reaches N keeps x_N = goal (hard in the reference formulation,
+      penalised in the penalized one).
+    * ``obstacles=False``: the REL relaxation (no keep-out constraints).
+    * ``soft``: MPC soft mode: the stage cost weighted by the scenario's ``mpc.fuel`` and waypoint-type equalities as
+      weighted 2-norm penalties; otherwise weight 1 and hard equalities.
+
+    A receding-horizon controller builds one per problem and ``update``s its window, terminal term and mode per step.
+    """
+
+    scenario: Scenario
+    problem: Problem
+    window: Window
+    terminal: TerminalCost | None
+    obstacles: bool
+    soft: bool
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        problem: Problem,
+        window: Window | None = None,
+        terminal: TerminalCost | None = None,
+        *,
+        obstacles: bool = True,
+        soft: bool = False,
+    ) -> None:
+        window = window or Window.full(problem)
+        if terminal is None and not window.reaches_end:
+            raise ValueError(f"window [{window.start}, {window.stop}) stops before the end and needs a terminal cost")
+        object.__setattr__(self, "scenario", scenario)
+        object.__setattr__(self, "problem", problem)
+        object.__setattr__(self, "window", window)
+        object.__setattr__(self, "terminal", terminal)
+        object.__setattr__(self, "obstacles", obstacles)
+        object.__setattr__(self, "soft", soft)
+
+    def update(self, **changes: Any) -> SCPProblem:
+        """A copy with ``changes`` to any of the fields, checked as a new description is."""
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def fuel_weight(self) -> float:
+        """The stage cost's weight: ``mpc.fuel`` in soft mode, else 1."""
+        return self.scenario.mpc.fuel if self.soft else 1.0
+
+    @property
+    def convex(self) -> bool:
+        """The REL of a scenario whose REL is convex (``Scenario.rel_is_convex``): one subproblem solves it."""
+        return not self.obstacles and self.scenario.rel_is_convex
+
+
+@dataclass(frozen=True)
+class SCPOptions:
+    """How an SCP solve runs.
+
+    * ``backend``: "auto" (the scenario's chain: PIQP on subproblems without cones, QOCO/Clarabel on the others,
+      see ``backends.backend_chain``), "conic" (QOCO then Clarabel throughout), "riccati" (opt-in, numba: the
+      stage-wise interior-point kernel where the subproblem is a penalised QP, the ``auto`` chain elsewhere),
+      "clarabel", "qoco", "piqp" or "cvxpy-naive" (the rebuild-every-iteration baseline). The trust-region norm
+      follows: the scenario's (``Scenario.trust_norm``), l2 for ``conic`` and for the reference formulation with
+      ``auto`` (the comparison paths, which solve with Clarabel).
+    * ``formulation``: "penalized" (slack variables and virtual control, every subproblem feasible) or "reference"
+      (hard linearised constraints, the authors'; an infeasible subproblem ends the solve), ``scp.py``.
+    * ``settings``: the trust-region schedule, tolerances and iteration cap; None: the scenario's (``Scenario.scp``),
+      or one iteration without trust region for a problem one subproblem solves (``SCPProblem.convex``).
+    """
+
+    backend: str = "auto"
+    formulation: Formulation = "penalized"
+    settings: SCPSettings | None = None
+
+    def __post_init__(self) -> None:
+        if self.formulation not in ("penalized", "reference"):
+            raise ValueError(f"unknown SCP formulation {self.formulation!r}; choose 'penalized' or 'reference'")
+
+    def update(self, **changes: Any) -> SCPOptions:
+        """A copy with ``changes`` to any of the fields (e.g. real-time iteration's one-iteration ``settings``)."""
+        return dataclasses.replace(self, **changes)
