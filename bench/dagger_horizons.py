@@ -113,7 +113,7 @@ def main() -> None:
             with variant(name, runs[name]):
                 t0 = time.process_time()
                 rows[name] = collect_rollouts(scenario, planner, 0, chunk, dagger.seed, dagger.exploration, labels,
-                                              settings=dagger.settings())  # fmt: skip
+                                              settings=dagger.eval.settings)  # fmt: skip
                 cpu[name] += time.process_time() - t0
         for name in VARIANTS[:-1]:
             for a, b in zip(rows[name], rows["batched"], strict=True):

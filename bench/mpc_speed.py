@@ -96,20 +96,19 @@ def episode_cost(
     (before issues 18 and 21) vs batched with plan reuse, and batched with real-time iteration (module doc)."""
     cfg = ClosedLoopConfig(scenario=scenario.name, horizons=[horizon], max_steps=max_steps, batch=len(problems),
                            mpc={"end_horizon": end_horizon})  # fmt: skip
-    settings = cfg.settings()
     models = {"TTO": planner}
     episodes = len(problems) * episodes_per_problem(cfg, len(models))
     out: dict[str, float] = {"episodes": episodes, "end_horizon": end_horizon}
     runs = (
-        ("before", [[ep] for ep in problems], dataclasses.replace(settings, reuse=False)),
-        ("after", [problems], settings),
-        ("after_rti", [problems], dataclasses.replace(settings, rti=True)),
+        ("before", [[ep] for ep in problems], dataclasses.replace(cfg, mpc={**cfg.mpc, "reuse": False})),
+        ("after", [problems], cfg),
+        ("after_rti", [problems], dataclasses.replace(cfg, mpc={**cfg.mpc, "rti": True})),
     )
-    for label, tasks, s in runs:
+    for label, tasks, c in runs:
         clear_solver_cache()
         cpu, wall = time.process_time(), time.perf_counter()
         for task in tasks:
-            run_problems(scenario, task, models, cfg, settings=s)
+            run_problems(scenario, task, models, c)
         out[f"{label}_cpu_s_per_episode"] = (time.process_time() - cpu) / episodes
         out[f"{label}_wall_s_per_episode"] = (time.perf_counter() - wall) / episodes
     for label in ("after", "after_rti"):

@@ -76,7 +76,7 @@ import ttompc.mpc.providers as providers_mod
 import ttompc.solvers.engine as engine_mod
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, providers, tasks
 from ttompc.evaluation.problems import EvalProblem, eval_problem
-from ttompc.mpc.loop import Episode, MPCController, run_mpc_batch
+from ttompc.mpc.loop import Episode, MPCController, MPCRun, run_mpc_batch
 from ttompc.mpc.providers import Provider, RELProvider, RemainingREL, TargetFilter, full_horizon_plan
 from ttompc.mpc.tto import TTOProvider
 from ttompc.policy import Planner
@@ -241,7 +241,7 @@ def instrumented(prof: Profiler, scenario: Scenario) -> Iterator[None]:
 # ---------------------------------------------------------------------------------------------------------- runs
 def method_providers(name: str, cfg: ClosedLoopConfig, plans: list[Any], models: dict[str, Planner]) -> list[Provider]:
     """Fresh providers of method ``name`` for the problems of ``plans``, from the evaluation's factory."""
-    s = cfg.settings()
+    s = cfg.settings
     for group in providers(plans, models, s, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale):
         if group and group[0].name == name:
             return group
@@ -263,9 +263,8 @@ def run_method(
     out: list[Episode] = []
     for chunk in tasks(len(eps), batch):
         sub = [eps[i] for i in chunk]
-        out += run_mpc_batch(sc, [ep.problem for ep in sub], method_providers(name, cfg, [plans[i] for i in chunk],
-                             models), horizon, rel_costs=[ep.rel_cost for ep in sub], settings=cfg.settings(),
-                             max_steps=max_steps, plant_seeds=[ep.seed for ep in sub])  # fmt: skip
+        out += run_mpc_batch(sc, [ep.start for ep in sub], method_providers(name, cfg, [plans[i] for i in chunk],
+                             models), MPCRun(horizon, cfg.settings, max_steps))  # fmt: skip
     return out
 
 
@@ -326,12 +325,12 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
                                workers=1, device=args.device)  # fmt: skip
     rel_cfg = ClosedLoopConfig(scenario=name, protocol=args.rel_protocol, horizons=[args.rel_horizon],
                                batch=args.batch, workers=1, device=args.device)  # fmt: skip
-    backend = tto_cfg.settings().backend
+    backend = tto_cfg.settings.backend
     t0 = time.perf_counter()
     eps = [eval_problem(sc, args.seed, i, nonconvex_only=True, backend=backend) for i in range(args.problems)]
     plans = [full_horizon_plan(sc, ep.problem, backend) for ep in eps]  # PLAN-ONCE/ORACLE's, as run_problems
     setup_s = time.perf_counter() - t0
-    tto_names = [g[0].name for g in providers(plans[:1], models, tto_cfg.settings(), robust_blend=tto_cfg.robust_blend)
+    tto_names = [g[0].name for g in providers(plans[:1], models, tto_cfg.settings, robust_blend=tto_cfg.robust_blend)
                  if isinstance(g[0], TTOProvider)]  # fmt: skip
     methods = [(BASELINE, rel_cfg, args.rel_horizon)] + [(m, tto_cfg, args.horizon) for m in tto_names]
     prof = Profiler(cuda=planner.device.type == "cuda")
@@ -372,7 +371,7 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
         "problem_indices": [ep.index for ep in eps],
         "batch": args.batch,
         "max_steps": args.max_steps,
-        "settings": {"tto": asdict(tto_cfg.settings()), "rel": asdict(rel_cfg.settings())},
+        "settings": {"tto": asdict(tto_cfg.settings), "rel": asdict(rel_cfg.settings)},
         "methods": rows,
         f"ratio_rel{args.rel_horizon}_over": ratios,
         f"ratio_rel{args.rel_horizon}_over_with_observe": ratios_observe,

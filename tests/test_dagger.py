@@ -40,29 +40,73 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
             assert cfg.data.open_loop_fraction == 0.9, path
         # the keep/reject decision under the protocol the FT results are reported in (the paper's)
         if path.name == "finetune.yaml" and path.parent.name != "generic":
-            assert cfg.dagger.protocol == "paper" and cfg.dagger.collect.workers == 1, path
+            assert cfg.dagger.eval.protocol == "paper" and cfg.dagger.collect.workers == 1, path
+        # one protocol per recipe: the training callback measures under dagger.eval's
+        e, m = cfg.callbacks.eval_mpc, cfg.dagger.eval
+        assert (e.protocol, e.mpc, e.settings) == (m.protocol, m.mpc, m.settings), path
 
 
 def test_protocol_reaches_the_closed_loop_measurement(monkeypatch: pytest.MonkeyPatch) -> None:
-    """dagger.protocol (with dagger.mpc overrides) is what the keep/reject measurement runs with; a bad setting is a
-    config error."""
+    """dagger.eval is the one measurement of a fine-tuning: its protocol (with dagger.eval.mpc overrides) is what the
+    keep/reject measurement runs with, and the training callback's; a bad setting is a config error."""
     import ttompc.evaluation.episodes as metrics
     from ttompc.finetune.loop import measure
 
     seen: dict[str, object] = {}
 
-    def fake(planner, problems, horizon, **kwargs):  # type: ignore[no-untyped-def]
-        seen.update(kwargs, horizon=horizon)
+    def fake(planner, measurement, problems, **kwargs):  # type: ignore[no-untyped-def]
+        seen.update(kwargs, measurement=measurement)
         return {"feasible_rate": 1.0}, []
 
     monkeypatch.setattr(metrics, "closed_loop_metrics", fake)
-    cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml")
+    recipe = RECIPES / "freeflyer" / "finetune.yaml"
+    cfg = load_finetune_config(recipe)
     assert measure(cfg, object(), []) == {"feasible_rate": 1.0}  # type: ignore[arg-type]
-    assert seen["settings"] == MPCSettings() and seen["horizon"] == 10  # the paper preset
-    cfg = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", ["dagger.protocol=zoo", "dagger.mpc.mode=hard"])
-    assert measure(cfg, object(), []) and seen["settings"] == MPCSettings(end_horizon=30, mode="hard")  # type: ignore[arg-type]
+    assert seen["measurement"] is cfg.dagger.eval and cfg.dagger.eval.settings == MPCSettings()  # the paper preset
+    assert cfg.dagger.eval.horizons == [10]
+    cfg = load_finetune_config(recipe, ["dagger.eval.protocol=zoo", "dagger.eval.mpc.mode=hard"])
+    assert cfg.dagger.eval.settings == MPCSettings(end_horizon=30, mode="hard")
+    assert cfg.callbacks.eval_mpc.settings == cfg.dagger.eval.settings  # named once, for every closed loop
     with pytest.raises(ConfigError, match="end_horizon"):
-        load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", ["dagger.mpc.end_horizon=-1"])
+        load_finetune_config(recipe, ["dagger.eval.mpc.end_horizon=-1"])
+    for key in ("callbacks.eval_mpc.protocol=zoo", "callbacks.eval_mpc.mpc.mode=hard"):
+        with pytest.raises(ConfigError, match=r"names its MPC settings once, in dagger\.eval"):
+            load_finetune_config(recipe, [key])
+    with pytest.raises(ConfigError, match=r"dagger\.eval measures one horizon"):
+        load_finetune_config(recipe, ["dagger.eval.horizons=[10,30]"])
+
+
+def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """DAgger's rollouts run under the resolved settings of dagger.eval (issue 37: the end horizon reached the
+    measurement but not the rollouts): both controllers get them whole, the learner's windows follow the end
+    horizon; real-time iteration, which they cannot run, is refused in one line before anything runs."""
+    import ttompc.finetune.collect as collect
+    from ttompc.cli import main
+
+    sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
+    seen: list[tuple[int, MPCSettings]] = []
+    real = collect.MPCController
+
+    def spy(scenario, problem, provider, horizon, settings):  # type: ignore[no-untyped-def]
+        seen.append((horizon, settings))
+        return real(scenario, problem, provider, horizon, settings)
+
+    monkeypatch.setattr(collect, "MPCController", spy)
+    overrides = ["dagger.eval.mpc.end_horizon=30", "dagger.eval.mpc.track=2.5"]
+    settings = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", overrides).dagger.eval.settings
+    explore = ExplorationConfig(horizons=[5], windows=[0, 0])
+    collect.collect_rollout(sc, planner, 0, 1, 5, explore, LabelConfig(kind="step", per_rollout=1), settings=settings)
+    assert [(h, s) for h, s in seen] == [(5, settings), (sc.n_steps, settings)]  # the learner, the expert
+    learner = real(sc, sc.sample(np.random.default_rng(0)), object(), 5, settings)  # type: ignore[arg-type]
+    assert learner.window(sc.n_steps - 30).length == 30 and learner.window(0).length == 5
+    with pytest.raises(ConfigError, match="rti=true"):
+        collect.collect_rollouts(sc, planner, 0, [0], 5, explore, settings=MPCSettings(rti=True))
+    recipe = str(RECIPES / "freeflyer" / "finetune.yaml")
+    assert main(["finetune", recipe, "--model", "no-such-model", "dagger.eval.mpc.rti=true"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "rti=true" in err and "dagger.eval.mpc.rti=false" in err, err
 
 
 @pytest.mark.parametrize(
@@ -97,6 +141,10 @@ def test_cli_takes_overrides_before_and_after_model(capsys: pytest.CaptureFixtur
         assert main(["finetune", recipe, *argv, "--print-config"]) == 0
         assert json.loads(capsys.readouterr().out)["dagger"]["iterations"] == 7
     assert main(["finetune", recipe, "dagger.nope=1"]) == 2
+    assert main(["finetune", recipe, "dagger.eval.protocol=zoo", "--print-config"]) == 0  # the resolved settings too
+    printed = json.loads(capsys.readouterr().out)
+    for section in (printed["dagger"]["eval"], printed["callbacks"]["eval_mpc"]):
+        assert section["protocol"] == "zoo" and section["settings"]["end_horizon"] == 30
 
 
 def test_expert_schedule_and_seeds() -> None:
@@ -134,14 +182,14 @@ def _config(dataset: Path, run: Path) -> FinetuneConfig:
     d.iterations, d.steps_per_iteration = 2, 2
     d.exploration = ExplorationConfig(horizons=[10], windows=[1, 1], window_length=[5, 8])
     d.collect.rollouts, d.collect.shard_size, d.collect.workers, d.collect.val_fraction = 2, 1, 1, 0.0
-    d.eval.problems, d.eval.horizon, d.eval.max_steps = 1, 5, 3
+    d.eval.problems, d.eval.horizons, d.eval.max_steps = 1, [5], 3
     cfg.data = DataConfig(paths=[str(dataset)], batch_size=4, shuffle_pool=8, context_length=10,
                           open_loop_fraction=0.5)  # fmt: skip
     cfg.trainer.out_dir, cfg.trainer.val_check_interval, cfg.trainer.limit_val_batches = str(run), 2, 1
     cfg.trainer.log_every_n_steps, cfg.trainer.accelerator, cfg.trainer.checkpoint_every_n_steps = 1, "cpu", 1
     cfg.logger.kind = "csv"
     e = cfg.callbacks.eval_mpc  # the closed loop logged while it fine-tunes
-    e.enabled, e.problems, e.horizon, e.max_steps = True, 1, 5, 3
+    e.enabled, e.problems, e.horizons, e.max_steps = True, 1, [5], 3
     return cfg
 
 
@@ -254,7 +302,7 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     exported, kept = Planner.from_pretrained(run / "planner"), Planner.from_pretrained(state["best"]["planner"])
     assert exported.extra["dagger_iteration"] == 0 and exported.extra["dagger_kept"] == [0]
     protocol = state["protocol"]  # the measurement's settings, in the state file and the exported bundle
-    assert protocol["name"] == cfg.dagger.protocol and protocol["settings"]["end_horizon"] >= 0
+    assert protocol["name"] == cfg.dagger.eval.protocol and protocol["settings"]["end_horizon"] >= 0
     assert protocol["solver"]["chain"][0] == "piqp" and exported.extra["dagger_protocol"] == protocol
     hp = torch.load(run / "checkpoints" / "iter-001.ckpt", map_location="cpu", weights_only=True)["hyper_parameters"]
     assert hp["solver"] == protocol["solver"] == exported.extra["solver"]  # the checkpoint records what DAgger solved
@@ -339,13 +387,14 @@ def test_inputs_that_do_not_belong_together_are_refused_before_anything_is_writt
 
     import ttompc.finetune.loop as loop
     from ttompc.data.generate import load_manifest
+    from ttompc.evaluation.measurement import Measurement
     from ttompc.finetune import FinetuneError
     from ttompc.policy import Planner
 
     def spent(*args: object, **kwargs: object) -> None:
         raise AssertionError("measured or collected before the inputs were checked")
 
-    monkeypatch.setattr(loop, "_eval_problems", spent)
+    monkeypatch.setattr(Measurement, "problem_set", spent)
     monkeypatch.setattr(loop, "collect_iteration", spent)
     tiny = mpc_fakes.tiny_planner()
     own = NormStats.from_dict(load_manifest(dataset)["norm_stats"])

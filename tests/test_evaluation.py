@@ -19,6 +19,7 @@ from ttompc.config import ConfigError
 from ttompc.errors import UserError
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
 from ttompc.evaluation.episodes import summarize_episodes
+from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.metrics import gain_share, improvement_by_threshold, paper_normalized
 from ttompc.evaluation.problems import eval_problem, first_solvable
 from ttompc.evaluation.stats import interval
@@ -301,14 +302,22 @@ def test_evaluate_mpc_command_and_bad_settings(tmp_path: Path) -> None:
 
 
 def test_evaluate_mpc_prints_at_most_18_settings(capsys: pytest.CaptureFixture[str]) -> None:
-    """The closed-loop protocol is one named preset, not a key per MPC setting (issue 28: 24 leaves before)."""
+    """The closed-loop protocol is one named preset, not a key per MPC setting (issue 28: 24 leaves before); what
+    the preset resolves to is printed beside it (issue 37: ``protocol=zoo`` hid its end horizon)."""
 
     def leaves(node: object) -> int:
         return sum(leaves(v) for v in node.values()) if isinstance(node, dict) else 1
 
     assert main(["evaluate", "mpc", "--print-config"]) == 0
     printed = json.loads(capsys.readouterr().out)
+    resolved = printed.pop("settings")
     assert leaves(printed) <= 18 and printed["protocol"] == "paper" and printed["mpc"] == {}
+    assert resolved == asdict(MPCSettings())
+    assert main(["evaluate", "mpc", "protocol=zoo", "mpc.mode=hard", "--print-config"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["settings"] == asdict(MPCSettings(end_horizon=30, mode="hard"))
+    assert printed["mpc"] == {"mode": "hard"}
+    assert list(printed).index("settings") == list(printed).index("mpc") + 1
 
 
 def test_the_plant_section_keeps_the_scenarios_own_disturbance_per_component() -> None:
@@ -397,7 +406,7 @@ def test_closed_loop_callback_logs_metrics(tmp_path: Path) -> None:
         norm_stats=planner.stats.to_dict(),
         plot_trajectories=False,
     )
-    cb = ClosedLoopEvalCallback(problems=1, horizon=5, max_steps=3, every_n_val=2, seed=1)
+    cb = ClosedLoopEvalCallback(Measurement(problems=1, horizons=[5], max_steps=3, seed=1), every_n_val=2)
     trainer = L.Trainer(
         max_epochs=4,
         logger=CSVLogger(str(tmp_path), name="logs", version=""),
@@ -449,7 +458,7 @@ def test_recipe_section_wires_the_callback_into_training(tmp_path: Path) -> None
             f"model.max_steps={m.max_steps}", "trainer.max_steps=2", "trainer.max_epochs=1", "trainer.accelerator=cpu",
             f"trainer.out_dir={tmp_path}", "trainer.export_planner=false", "trainer.log_every_n_steps=1",
             "logger.kind=csv", "logger.plot_trajectories=false", "callbacks.eval_mpc.enabled=true",
-            "callbacks.eval_mpc.problems=1", "callbacks.eval_mpc.horizon=5", "callbacks.eval_mpc.max_steps=2",
+            "callbacks.eval_mpc.problems=1", "callbacks.eval_mpc.horizons=[5]", "callbacks.eval_mpc.max_steps=2",
         ]
     )  # fmt: skip
     train(cfg, RandomData())
@@ -540,16 +549,56 @@ def test_demo_command_closed_loop(tmp_path: Path, bundle: Path) -> None:
 
 
 def test_callback_plant_is_selectable() -> None:
+    """``callbacks.eval_mpc`` is a Measurement of one horizon on one plant: the perturbed plant is the scenario's
+    own disturbance unless ``plant`` says otherwise, the protocol the recipe's (paper by default)."""
     from ttompc.mpc.plant import PlantNoise
     from ttompc.training.callbacks import ClosedLoopEvalCallback
-    from ttompc.training.config import EvalMPCConfig
+    from ttompc.training.config import EvalMPCConfig, load_train_config
 
     sc = get_scenario(SHORT)
-    cb = ClosedLoopEvalCallback.from_config(EvalMPCConfig(plant="perturbed"), SHORT)
-    assert cb.plant_noise(sc) == PlantNoise.perturbed(sc) and ClosedLoopEvalCallback(SHORT).plant_noise(sc) is None
-    with pytest.raises(ValueError, match="plant"):
-        ClosedLoopEvalCallback(SHORT, plant="windy")
+    cb = ClosedLoopEvalCallback.from_config(EvalMPCConfig(plants=["perturbed"]), SHORT)
+    [(plant, run)] = cb.measurement.runs(sc)
+    assert plant == "perturbed" and run.plant == PlantNoise.perturbed(sc) and run.horizon == 10
+    assert EvalMPCConfig().runs(sc)[0][1].plant is None  # nominal by default
+    for bad in ({"plants": ["windy"]}, {"plants": ["nominal", "perturbed"]}, {"horizons": [10, 20]}):
+        with pytest.raises(ValueError, match=r"plant|horizon"):
+            EvalMPCConfig(**bad)  # type: ignore[arg-type]
     zoo = ClosedLoopEvalCallback.from_config(EvalMPCConfig(protocol="zoo"), SHORT)
-    assert zoo.settings.end_horizon == 30 and cb.settings.end_horizon == 0  # the recipe's protocol, paper by default
+    assert zoo.measurement.settings.end_horizon == 30 and cb.measurement.settings.end_horizon == 0
     with pytest.raises(ConfigError, match="protocol"):
         EvalMPCConfig(protocol="nope")
+    with pytest.raises(ConfigError, match=r"callbacks\.eval_mpc measures one horizon"):
+        load_train_config(None, ["callbacks.eval_mpc.horizons=[10,30]"])
+    overridden = load_train_config(None, ["callbacks.eval_mpc.mpc.end_horizon=5"]).callbacks.eval_mpc
+    assert overridden.settings.end_horizon == 5
+
+
+def test_a_measurement_resolves_its_protocol_once_and_builds_its_problems(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One measurement object (issue 37): the protocol and its overrides are resolved when it is built, not on every
+    use; its problems are the evaluation stream's (what ``eval_problem`` gives), its runs one per (plant, H)."""
+    import ttompc.evaluation.measurement as measurement
+    from ttompc.mpc.settings import protocol_settings
+
+    calls: list[str] = []
+
+    def counting(protocol: str, overrides: Any = None) -> MPCSettings:
+        calls.append(protocol)
+        return protocol_settings(protocol, overrides)
+
+    monkeypatch.setattr(measurement, "protocol_settings", counting)
+    m = Measurement(protocol="zoo", mpc={"mode": "hard"}, problems=2, seed=3, horizons=[5, 10],
+                    plants=["nominal", "perturbed"], max_steps=4)  # fmt: skip
+    for _ in range(3):
+        assert m.settings == MPCSettings(end_horizon=30, mode="hard")
+    assert calls == ["zoo"]
+    sc = get_scenario(SHORT)
+    runs = m.runs(sc)
+    assert [(p, r.horizon) for p, r in runs] == [("nominal", 5), ("nominal", 10), ("perturbed", 5), ("perturbed", 10)]
+    assert all(r.settings is m.settings and r.max_steps == 4 for _, r in runs)
+    assert runs[0][1].plant is None and runs[2][1].plant == m.plant.resolve(sc)
+    with pytest.raises(ValueError, match=r"dagger\.eval measures one horizon on one plant"):
+        m.check_single("dagger.eval")
+    [one] = m.problem_set(sc, [1])
+    ref = eval_problem(sc, 3, 1)
+    assert one.seed == ref.seed and np.array_equal(one.problem.x0, ref.problem.x0)
+    assert one.start.plant_seed == one.seed and one.start.rel_cost == one.rel_cost

@@ -13,7 +13,9 @@ import pytest
 import ttompc.mpc.loop as loop_module
 from ttompc.mpc import (
     DISTProvider,
+    EpisodeStart,
     MPCController,
+    MPCRun,
     MPCSettings,
     OracleProvider,
     PlanProvider,
@@ -162,9 +164,9 @@ def test_failed_step_falls_back_to_the_shifted_plan(setup: tuple, monkeypatch: p
     plans: list[np.ndarray] = []
     calls = {"n": 0}
 
-    def flaky(scenario, prob, X, U, **kw):
+    def flaky(scp, X, U, options):
         calls["n"] += 1
-        res = real(scenario, prob, X, U, **kw)
+        res = real(scp, X, U, options)
         plans.append(res.U)
         if calls["n"] == 3:  # step t = 2 fails
             return SCPResult(SCPStatus.INFEASIBLE, res.X, res.U, res.cost, 1.0, res.iterations, 0.0, 0.0, res.window)
@@ -337,7 +339,7 @@ def test_rtg_modes_keep_the_fed_rtg_in_the_training_range(setup: tuple) -> None:
     group = RolloutGroup(planner)
     provs = [TTOProvider(planner, mode, rtg_mode=mode, group=group) for mode in ("running", "reanchor")]
     T = 4
-    episodes = run_mpc_batch(sc, [problem] * 2, provs, 5, rel_costs=[1e-3] * 2, max_steps=T)
+    episodes = run_mpc_batch(sc, [EpisodeStart(problem, 1e-3)] * 2, provs, MPCRun(5, max_steps=T))
     fed = group.context.rtg[:, :T].double().numpy()  # the rtg the model saw at each executed step
     assert group.context.batch == 2 and [e.method for e in episodes] == ["running", "reanchor"]
     assert fed[0, -1] > 0  # running: outside the training range
@@ -356,8 +358,9 @@ def test_batched_tto_episodes_equal_single_ones(setup: tuple) -> None:
     other = sc.sample(np.random.default_rng(2))
     problems, costs = [problem, other], [rel.cost, 1.5 * rel.cost]
     group = RolloutGroup(planner)
-    batched = run_mpc_batch(sc, problems, [TTOProvider(planner, group=group) for _ in problems], 5, rel_costs=costs,
-                            max_steps=3, plant=PlantNoise.perturbed(sc), plant_seeds=[3, 4])  # fmt: skip
+    starts = [EpisodeStart(p, c, seed) for p, c, seed in zip(problems, costs, (3, 4), strict=True)]
+    run = MPCRun(5, max_steps=3, plant=PlantNoise.perturbed(sc))
+    batched = run_mpc_batch(sc, starts, [TTOProvider(planner, group=group) for _ in problems], run)
     for e, p, c, seed in zip(batched, problems, costs, (3, 4), strict=True):
         alone = run_mpc(sc, p, TTOProvider(planner), 5, rel_cost=c, max_steps=3, plant=PlantNoise.perturbed(sc),
                         plant_seed=seed)  # fmt: skip
@@ -365,7 +368,9 @@ def test_batched_tto_episodes_equal_single_ones(setup: tuple) -> None:
         assert np.all(e.warm_times > 0)
     assert group.context.t == 3 and group.context.batch == 2
     with pytest.raises(ValueError, match="providers"):
-        run_mpc_batch(sc, problems, [PlanProvider((scp.X, scp.U))], 5, rel_costs=costs)
+        run_mpc_batch(sc, starts, [PlanProvider((scp.X, scp.U))], run)
+    with pytest.raises(ValueError, match="horizon"):
+        MPCRun(0)
 
 
 def test_group_members_asking_other_lengths_share_one_rollout(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -522,10 +527,10 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
 
     sc = get_scenario(mpc_fakes.FreeFlyerShort.name)
     paper = ClosedLoopConfig(scenario=sc.name, mpc={"track": sc.mpc.terminal})
-    assert departures(paper.settings(), sc) == [] and protocol_label(paper) == f"paper mpc.track={sc.mpc.terminal}"
+    assert departures(paper.settings, sc) == [] and protocol_label(paper) == f"paper mpc.track={sc.mpc.terminal}"
     zoo = ClosedLoopConfig(scenario=sc.name, protocol="zoo", mpc={"rtg_mode": "reanchor"})
-    assert zoo.settings() == MPCSettings(end_horizon=30, rtg_mode="reanchor")
-    notes = departures(zoo.settings(), sc)
+    assert zoo.settings == MPCSettings(end_horizon=30, rtg_mode="reanchor")
+    notes = departures(zoo.settings, sc)
     assert len(notes) == 3 and "weight 3" in notes[0] and "end horizon" in notes[1] and "reanchor" in notes[2]
     bad_settings = ({"end_horizon": -1}, {"rtg_mode": "budget"}, {"rtg_mode": "floor"}, {"track": 0.0}, {"rti2": 1})
     for bad in ({"batch": 0}, {"protocol": "nope"}, *({"mpc": m} for m in bad_settings)):
@@ -596,9 +601,9 @@ def test_rti_solves_one_subproblem_per_step_from_the_shifted_solution(
     calls = []
     real = loop_module.solve_scp
 
-    def spy(scenario, prob, X, U, **kw):
-        res = real(scenario, prob, X, U, **kw)
-        calls.append((X.copy(), U.copy(), kw["settings"], res))
+    def spy(scp, X, U, options):
+        res = real(scp, X, U, options)
+        calls.append((X.copy(), U.copy(), options.settings, res))
         return res
 
     monkeypatch.setattr(loop_module, "solve_scp", spy)

@@ -90,5 +90,5 @@ def test_the_trainer_runs_the_resolved_precision(
 
     monkeypatch.setattr("ttompc.training.precision.read_cpu_flags", lambda: flags)
     cfg = TrainConfig()
-    trainer = build_trainer(replace(cfg.trainer, accelerator="cpu"), cfg.optim, tmp_path, None, max_steps=1)
+    trainer = build_trainer(replace(cfg.trainer, accelerator="cpu", max_steps=1), cfg.optim, tmp_path, None)
     assert trainer.precision == expected

@@ -213,7 +213,7 @@ def test_finetune_shows_every_phase_on_stderr_and_names_the_pretrained_model(tmp
         "dagger.exploration.horizons=[10]", "dagger.exploration.windows=[1,1]",
         "dagger.exploration.window_length=[5,8]", "dagger.collect.rollouts=1", "dagger.collect.shard_size=1",
         "dagger.collect.workers=1", "dagger.collect.val_fraction=0.0", "dagger.eval.problems=1",
-        "dagger.eval.horizon=5", "dagger.eval.max_steps=3", f"data.paths=[{data}]", "data.batch_size=4",
+        "dagger.eval.horizons=[5]", "dagger.eval.max_steps=3", f"data.paths=[{data}]", "data.batch_size=4",
         "data.shuffle_pool=8", "data.context_length=10", "data.open_loop_fraction=0.5",
         f"trainer.out_dir={tmp_path / 'run'}", "trainer.val_check_interval=2", "trainer.limit_val_batches=1",
         "trainer.log_every_n_steps=1", "trainer.accelerator=cpu", "trainer.checkpoint_every_n_steps=1",

@@ -375,6 +375,8 @@ def test_paper_recipes_pick_the_gpu_when_present_and_bf16_on_either(
     """The paper-size recipes train on a CUDA GPU when one is visible and on the CPU otherwise, in bf16 autocast on
     both where they compute bf16 natively (``precision: auto``). No GPU is needed: CUDA availability and bf16 support
     are faked, and only the Trainer is built (nothing runs on it)."""
+    from dataclasses import replace
+
     from lightning.pytorch.accelerators import CPUAccelerator, CUDAAccelerator
     from lightning.pytorch.plugins.precision import MixedPrecision
 
@@ -390,7 +392,7 @@ def test_paper_recipes_pick_the_gpu_when_present_and_bf16_on_either(
     assert {p.stem for p in PRETRAIN_RECIPES} == {"freeflyer-pretrain", "quadrotor-pretrain", "rpod-pretrain"}
     for path in PRETRAIN_RECIPES:
         cfg = load_train_config(path, [f"trainer.out_dir={tmp_path}"])
-        trainer = build_trainer(cfg.trainer, cfg.optim, tmp_path, None, max_steps=1)
+        trainer = build_trainer(replace(cfg.trainer, max_steps=1), cfg.optim, tmp_path, None)
         assert isinstance(trainer.accelerator, CUDAAccelerator if cuda else CPUAccelerator), path
         plugin = trainer.precision_plugin
         assert isinstance(plugin, MixedPrecision) and plugin.precision == "bf16-mixed", path

@@ -59,7 +59,6 @@ def run(args: argparse.Namespace) -> int:
     checks.writable(cfg.out)
     from ttompc.evaluation.closed_loop import ClosedLoopConfig, episodes_per_problem, run_problem
     from ttompc.evaluation.plots import Panel, save_figure, trajectory_figure
-    from ttompc.evaluation.problems import eval_problem
     from ttompc.evaluation.warmstart import evaluate_problem
     from ttompc.parallel import single_torch_thread
     from ttompc.policy import Planner
@@ -76,13 +75,15 @@ def run(args: argparse.Namespace) -> int:
         f"model {cfg.model}: {scenario.name} v{scenario.version}, "
         f"{sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M parameters"
     )
-    loop = ClosedLoopConfig(scenario=scenario.name, horizons=[cfg.horizon], plants=["nominal"])
+    # the measurement: the problems of the evaluation stream of seed, the paper's protocol, H on the nominal plant
+    loop = ClosedLoopConfig(scenario=scenario.name, problems=cfg.problems, seed=cfg.seed, horizons=[cfg.horizon],
+                            plants=["nominal"])  # fmt: skip
     rows: list[dict[str, Any]] = []
     open_panels, closed_panels = [], []
     runs = cfg.problems * (1 + (episodes_per_problem(loop, models=1) if cfg.mpc else 0))  # open loop + episodes
     with single_torch_thread(), Bar(runs, "demo", "run") as bar:
         for i in range(cfg.problems):
-            ep = eval_problem(scenario, cfg.seed, i)
+            [ep] = loop.problem_set(scenario, [i])
             ws, trajs = evaluate_problem(scenario, ep, {"TTO": planner})
             bar.update()
             row: dict[str, Any] = {"problem": i, "seed": ep.seed, "ctg0": ep.ctg0, "J_REL": ep.rel_cost}

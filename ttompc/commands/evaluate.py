@@ -7,6 +7,7 @@
   ``protocol=paper|zoo|FILE.yaml`` with single settings overridden as ``mpc.KEY=VALUE`` (``ttompc.mpc.settings``).
 
 Reports (JSON, a markdown table, CSV, PNG) go to ``out`` (default ``outputs/evaluate/<kind>-<scenario>``).
+``--print-config`` of ``mpc`` shows the protocol's resolved settings too (``settings``: what ``protocol=zoo`` means).
 ``--model``, ``--ft-model``, ``--scenario``, ``--problems``, ``--seed``, ``--workers`` and ``--out`` are shortcuts
 for the keys of the same name.
 """
@@ -68,7 +69,7 @@ def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
         for source in sources:
             Planner.from_pretrained(source, scenario, device=cfg.device)
     checks.seed(cfg.seed)
-    checks.backend(cfg.backend if isinstance(cfg, WarmStartConfig) else cfg.settings().backend)
+    checks.backend(cfg.backend if isinstance(cfg, WarmStartConfig) else cfg.settings.backend)
 
 
 def _check_output(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
@@ -101,10 +102,11 @@ def run(args: argparse.Namespace) -> int:
         report = run_warmstart(cfg)
     else:
         from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+        from ttompc.evaluation.measurement import with_settings
 
         cfg_m = command_config(ClosedLoopConfig, args, _FLAGS)
-        if args.print_config:
-            print(json.dumps(to_container(cfg_m), indent=2))
+        if args.print_config:  # with the protocol's resolved settings
+            print(json.dumps(with_settings(cfg_m), indent=2))
             return 0
         _announce("mpc", cfg_m)
         _resolve_scenario(cfg_m)

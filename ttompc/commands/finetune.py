@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from ttompc.config import add_config_arguments, split_recipe, to_container
+from ttompc.config import add_config_arguments, split_recipe
 from ttompc.errors import UserError
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
 from ttompc.progress import status
@@ -45,7 +45,9 @@ def resume_hint(args: argparse.Namespace) -> str:
 def run(args: argparse.Namespace) -> int:
     cfg = _config(args)
     if args.print_config:
-        print(json.dumps(to_container(cfg), indent=2))
+        from ttompc.evaluation.measurement import with_settings
+
+        print(json.dumps(with_settings(cfg), indent=2))
         return 0
     if args.model is None:
         raise UserError("no model to fine-tune", "pass --model NAME (e.g. --model freeflyer-tto-v3)")

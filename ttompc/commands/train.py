@@ -10,7 +10,7 @@ import json
 import sys
 from pathlib import Path
 
-from ttompc.config import add_config_arguments, split_recipe, to_container
+from ttompc.config import add_config_arguments, split_recipe
 from ttompc.errors import UserError
 from ttompc.progress import status
 from ttompc.training.config import TrainConfig, load_train_config
@@ -51,7 +51,9 @@ def resume_hint(args: argparse.Namespace) -> str:
 def run(args: argparse.Namespace) -> int:
     cfg = _config(args)
     if args.print_config:
-        print(json.dumps(to_container(cfg), indent=2))
+        from ttompc.evaluation.measurement import with_settings
+
+        print(json.dumps(with_settings(cfg), indent=2))
         print(f"# {MAX_STEPS_HELP}", file=sys.stderr)  # JSON has no comments; stdout stays the config alone
         return 0
     from ttompc.data.generate import check_datasets  # every folder, before anything is created or Lightning imported

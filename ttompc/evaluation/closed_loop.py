@@ -3,7 +3,8 @@
 For seeded held-out problems whose REL solution violates a keep-out zone, every planning horizon H and every plant
 (``nominal``: the exact dynamics; ``perturbed``: seeded actuation error and process noise, ``PlantNoise``, the same
 disturbances for every method of a problem), run under the settings of a protocol (``protocol``: a preset of
-``ttompc.mpc.settings``, ``paper`` or ``zoo``, with single-key overrides in ``mpc``):
+``ttompc.mpc.settings``, ``paper`` or ``zoo``, with single-key overrides in ``mpc``) — a ``Measurement``
+(``ttompc.evaluation.measurement``) with the methods and workers that measure it (``ClosedLoopConfig``):
 
 * REL-MPC and DIST-MPC (the paper's baselines),
 * PLAN-ONCE: the open-loop SCP optimum solved at t = 0, then MPC tracking it (no model, no re-planning),
@@ -39,12 +40,12 @@ import numpy as np
 
 from ttompc.errors import UserError
 from ttompc.evaluation.episodes import episode_record, summarize_episodes
+from ttompc.evaluation.measurement import PLANTS, Measurement
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
-from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.evaluation.problems import EvalProblem
 from ttompc.evaluation.stats import format_interval, interval
 from ttompc.evaluation.warmstart import default_workers
 from ttompc.mpc.loop import run_mpc_batch
-from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import (
     DISTProvider,
     OracleProvider,
@@ -54,8 +55,8 @@ from ttompc.mpc.providers import (
     TerminalDesign,
     full_horizon_plan,
 )
-from ttompc.mpc.settings import MPCSettings, protocol_settings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider, check_rtg_scale, effective_rtg_mode
+from ttompc.mpc.settings import MPCSettings
+from ttompc.mpc.tto import check_rtg_scale, effective_rtg_mode, tracking_design, tto_providers
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -67,48 +68,32 @@ if TYPE_CHECKING:
 
 BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"
 BASELINE_METHODS = 4  # REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC: the providers() of every problem, model or not
-PLANTS = ("nominal", "perturbed")
 
 
 @dataclass
-class ClosedLoopConfig:
-    """``ttompc evaluate mpc`` settings (``key=value`` on the command line)."""
+class ClosedLoopConfig(Measurement):
+    """``ttompc evaluate mpc`` settings (``key=value`` on the command line): a ``Measurement`` (protocol, overrides,
+    problems, seed, horizons, plants, the perturbed plant, max_steps), by default on both plants, and the methods
+    and workers that measure it."""
 
+    plants: list[str] = field(default_factory=lambda: list(PLANTS))
     model: str | None = None  # TTO model: zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt; None: baselines only
     ft_model: str | None = None  # FT-TTO model, same forms
     scenario: str | None = None  # default: the model's scenario
-    problems: int = 20
-    seed: int = 0
-    horizons: list[int] = field(default_factory=lambda: [10])
-    plants: list[str] = field(default_factory=lambda: list(PLANTS))
-    # the perturbed plant's disturbances; None: the scenario's own (Scenario.perturbation)
-    plant: PlantNoise = field(default_factory=lambda: PlantNoise(None, None, None))
     robust_blend: float = 0.95  # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0 leaves them out
     rtg_scale: float | None = None  # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale)
-    protocol: str = "paper"  # MPC settings: a preset (paper, zoo; ttompc/mpc/presets) or a YAML file of them
-    mpc: dict[str, Any] = field(default_factory=dict)  # single MPCSettings keys over the protocol's, e.g. mpc.mode=hard
-    max_steps: int | None = None  # truncated episodes (smoke runs)
     batch: int = 10  # problems per pool task, their episodes in lockstep (one batched rollout per step)
     workers: int = 0  # processes; 0 = one per CPU core
     device: str = "cpu"
     out: str = ""  # default: outputs/evaluate/mpc-<scenario>
 
     def __post_init__(self) -> None:
-        if self.problems < 1 or not self.horizons or min(self.horizons) < 1:
-            raise ValueError(f"problems and horizons must be positive, got {self.problems}, {self.horizons}")
-        bad = [p for p in self.plants if p not in PLANTS]
-        if bad or not self.plants:
-            raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")
+        super().__post_init__()
         TerminalDesign(self.robust_blend)  # validates the blend
         if self.rtg_scale is not None:
             check_rtg_scale(self.rtg_scale)
         if self.batch < 1:
             raise ValueError(f"batch must be >= 1, got {self.batch}")
-        self.settings()  # validates the protocol and its overrides
-
-    def settings(self) -> MPCSettings:
-        """The MPC settings of this run: the protocol's, with the ``mpc`` overrides."""
-        return protocol_settings(self.protocol, self.mpc)
 
 
 def providers(
@@ -121,29 +106,24 @@ def providers(
 ) -> list[list[Provider]]:
     """Fresh providers of every method, one per problem: ``plans`` are the problems' open-loop SCP optima
     (``full_horizon_plan``), shared by PLAN-ONCE and ORACLE-MPC. The TTO providers of one method share a
-    ``RolloutGroup`` (one batched rollout per lockstep step). ``settings`` give the plan-tracking weight, the
-    rtg mode and the backend."""
-    backend, rtg_mode = settings.backend, settings.rtg_mode
-    weights = None if settings.track is None else (settings.track,)
-    plain = TerminalDesign(weights=weights)
+    ``RolloutGroup`` (one batched rollout per lockstep step; ``tto_providers``). ``settings`` give the plan-tracking
+    weight, the rtg mode and the backend."""
+    backend = settings.backend
+    plain = tracking_design(settings)
     out: list[list[Provider]] = [
         [RELProvider(backend) for _ in plans],
         [DISTProvider(backend) for _ in plans],
         [PlanProvider(plan, backend=backend, design=plain) for plan in plans],
         [OracleProvider(plan, backend=backend, design=plain) for plan in plans],
     ]
-    designs = {"": plain} | ({"R-": TerminalDesign(robust_blend, weights)} if robust_blend > 0 else {})
+    blends = {"": 0.0} | ({"R-": robust_blend} if robust_blend > 0 else {})
     for name, planner in models.items():
-        mode = effective_rtg_mode(rtg_mode, planner)
+        mode = effective_rtg_mode(settings.rtg_mode, planner)
         # a method fed another rtg than the paper's ledger says so in its name (the oracle's is a ceiling, not a method)
         suffix = "" if mode == "running" else f"[rtg={mode}]"
-        for prefix, design in designs.items():
-            group = RolloutGroup(planner)
-            out.append([
-                TTOProvider(planner, f"{prefix}{name}-MPC{suffix}", rtg_scale=rtg_scale, design=design,
-                            rtg_mode=mode, group=group, backend=backend, plan=plan)
-                for plan in plans
-            ])  # fmt: skip
+        for prefix, blend in blends.items():
+            out.append([*tto_providers(planner, settings, plans, f"{prefix}{name}-MPC{suffix}", blend=blend,
+                                       rtg_scale=rtg_scale)])  # fmt: skip
     return out
 
 
@@ -153,36 +133,23 @@ def run_problems(
     models: dict[str, Planner],
     cfg: ClosedLoopConfig,
     on_episode: Callable[[], None] | None = None,
-    settings: MPCSettings | None = None,
 ) -> tuple[list[dict[str, Any]], dict[tuple[str, str, int, int], np.ndarray]]:
-    """Every (plant, H, method) episode of the problems ``eps``, the episodes of one method in lockstep: records
-    (per problem, then plant, H and method) and executed trajectories by (plant, method, H, problem index).
-    ``on_episode`` is called after each episode (a progress bar's ticker); ``settings`` replace the config's
-    (``cfg.settings()``)."""
+    """Every (plant, H, method) episode of the problems ``eps`` under the measurement ``cfg``, the episodes of one
+    method in lockstep: records (per problem, then plant, H and method) and executed trajectories by (plant, method,
+    H, problem index). ``on_episode`` is called after each episode (a progress bar's ticker)."""
     records: list[dict[str, Any]] = []
     trajectories = {}
-    s = settings or cfg.settings()
+    s = cfg.settings
     plans = [full_horizon_plan(scenario, ep.problem, s.backend) for ep in eps]
-    for plant in cfg.plants:
-        noise = cfg.plant.resolve(scenario) if plant == "perturbed" else None
-        for H in cfg.horizons:
-            for method in providers(plans, models, s, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale):
-                episodes = run_mpc_batch(
-                    scenario,
-                    [ep.problem for ep in eps],
-                    method,
-                    H,
-                    rel_costs=[ep.rel_cost for ep in eps],
-                    settings=s,
-                    max_steps=cfg.max_steps,
-                    plant=noise,
-                    plant_seeds=[ep.seed for ep in eps],
-                )
-                for ep, e in zip(eps, episodes, strict=True):
-                    records.append({"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, **episode_record(e)})
-                    trajectories[(plant, e.method, H, ep.index)] = e.X
-                    if on_episode is not None:
-                        on_episode()
+    starts = [ep.start for ep in eps]
+    for plant, run in cfg.runs(scenario):
+        for method in providers(plans, models, s, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale):
+            episodes = run_mpc_batch(scenario, starts, method, run)
+            for ep, e in zip(eps, episodes, strict=True):
+                records.append({"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, **episode_record(e)})
+                trajectories[(plant, e.method, run.horizon, ep.index)] = e.X
+                if on_episode is not None:
+                    on_episode()
     records.sort(key=lambda r: r["problem"])  # stable: plant, H and method order within a problem
     return records, trajectories
 
@@ -237,8 +204,7 @@ def _init(cfg: dict[str, Any], tick: Callable[[], None]) -> None:
 def _run(indices: tuple[int, ...]) -> list[dict[str, Any]]:
     w = _WORKER.get()
     cfg, sc = w.cfg, w.scenario
-    eps = [eval_problem(sc, cfg.seed, i, nonconvex_only=True, backend=cfg.settings().backend) for i in indices]
-    return run_problems(sc, eps, w.models, cfg, w.tick)[0]
+    return run_problems(sc, cfg.problem_set(sc, indices), w.models, cfg, w.tick)[0]
 
 
 def tasks(problems: int, batch: int) -> list[tuple[int, ...]]:
@@ -279,7 +245,7 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
     return out
 
 
-def protocol_label(cfg: ClosedLoopConfig) -> str:
+def protocol_label(cfg: Measurement) -> str:
     """How a report names its protocol: the preset, and the overrides when there are any."""
     overrides = " ".join(f"mpc.{k}={v}" for k, v in cfg.mpc.items())
     return f"{cfg.protocol} {overrides}" if overrides else cfg.protocol
@@ -436,7 +402,7 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
         for rs in pool_map(_run, chunks, workers, _init, init, scenarios=[scenario_spec(sc)]):
             records.extend(rs)
     summary = summarize(records, cfg.seed)
-    settings = cfg.settings()
+    settings = cfg.settings
     notes = departures(settings, sc)
     head = headline(records, cfg.seed)
     table = format_table(summary) + f"\nProtocol: {protocol_label(cfg)}."

@@ -13,13 +13,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.problems import EvalProblem
 from ttompc.evaluation.stats import interval
 from ttompc.mpc.loop import Episode, run_mpc_batch
-from ttompc.mpc.plant import PlantNoise
-from ttompc.mpc.providers import TerminalDesign
-from ttompc.mpc.settings import MPCSettings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider, effective_rtg_mode
+from ttompc.mpc.tto import tto_providers
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -55,38 +53,27 @@ def summarize_episodes(records: Sequence[dict[str, Any]], *, seed: int = 0) -> d
 
 def closed_loop_metrics(
     planner: Planner,
+    measurement: Measurement,
     problems: Sequence[EvalProblem],
-    horizon: int,
     *,
-    settings: MPCSettings | None = None,
-    name: str = "TTO-MPC",
-    max_steps: int | None = None,
-    plant: PlantNoise | None = None,
-    rtg_scale: float | None = None,
     progress: str = "",
 ) -> tuple[dict[str, float], list[Episode]]:
-    """TTO-MPC with ``planner`` and ``settings`` (default: the paper's) on fixed problems (optionally on the
-    perturbed ``plant``, seeded per problem), all episodes in lockstep with one batched rollout per step
-    (``RolloutGroup``): flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count), ``cost_increment`` and
-    its ``_se`` (mean (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible runs),
-    ``target_change``, step times (each episode's share of the batched rollout plus its own solves) and
+    """TTO-MPC with ``planner`` (conditioned at its own ``rtg_scale``) on fixed ``problems``
+    (``measurement.problem_set``) as the single-horizon, single-plant ``measurement`` says (its settings, horizon,
+    plant and max_steps; the perturbed plant seeded per problem), all episodes in lockstep with one batched rollout
+    per step (``tto_providers``): flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count),
+    ``cost_increment`` and its ``_se`` (mean (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible
+    runs), ``target_change``, step times (each episode's share of the batched rollout plus its own solves) and
     ``fallbacks``. ``progress``: the label of a progress bar over the episodes on stderr ("": none)."""
     from ttompc.progress import Bar
 
     sc = planner.scenario
-    s = settings or MPCSettings()
-    group = RolloutGroup(planner)
-    design = TerminalDesign(weights=None if s.track is None else (s.track,))
-    provs = [
-        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design,
-                    rtg_mode=effective_rtg_mode(s.rtg_mode, planner), group=group, backend=s.backend)
-        for _ in problems
-    ]  # fmt: skip
-    steps = min(max_steps or sc.n_steps, sc.n_steps)
+    measurement.check_single("closed_loop_metrics")
+    [(_, run)] = measurement.runs(sc)
+    provs = tto_providers(planner, run.settings, [None] * len(problems))
+    steps = min(run.max_steps or sc.n_steps, sc.n_steps)
     with Bar(len(problems), progress, "episode", show=bool(progress)) as bar:
-        episodes = run_mpc_batch(sc, [ep.problem for ep in problems], provs, horizon,
-                                 rel_costs=[ep.rel_cost for ep in problems], settings=s, max_steps=max_steps,
-                                 plant=plant, plant_seeds=[ep.seed for ep in problems],
+        episodes = run_mpc_batch(sc, [ep.start for ep in problems], provs, run,
                                  on_step=lambda: bar.update(len(provs) / steps))  # fmt: skip
     summary = summarize_episodes([episode_record(e) for e in episodes])
     times = np.concatenate([e.step_times for e in episodes])

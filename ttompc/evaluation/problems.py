@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ttompc.mpc.loop import EpisodeStart
 from ttompc.scenarios.base import InfeasibleProblemError, Problem, Scenario
 from ttompc.seeding import eval_seed
 from ttompc.solvers.scp import SCPResult, solve_rel
@@ -34,6 +35,12 @@ class EvalProblem:
     @property
     def rel_cost(self) -> float:
         return float(self.rel.cost)
+
+    @property
+    def start(self) -> EpisodeStart:
+        """Where its closed-loop episodes start: the problem, J_REL and its seed as the plant's seed (the same
+        disturbances for every method)."""
+        return EpisodeStart(self.problem, self.rel_cost, self.seed)
 
 
 def first_solvable(

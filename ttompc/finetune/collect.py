@@ -48,11 +48,11 @@ from ttompc.data.generate import split_of
 from ttompc.data.resumable import ShardedFolder
 from ttompc.data.schema import make_row, trajectory_features
 from ttompc.evaluation.problems import first_solvable
-from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig
+from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig, check_rollout_settings
 from ttompc.mpc.loop import MPCController, StepPlan
 from ttompc.mpc.providers import ShiftProvider
 from ttompc.mpc.settings import MPCSettings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider, effective_rtg_mode
+from ttompc.mpc.tto import TTOProvider, tto_providers
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -166,17 +166,21 @@ def collect_rollouts(
     """The DAgger rollouts ``indices`` of ``iteration``, run in lockstep -> each one's schema rows (see the module
     docstring for the labels): one row with ``kind="step"`` labels, one row per labelled step with ``kind="plan"``.
     The learners of all rollouts share one batched transformer context (``RolloutGroup``: one batched rollout per
-    step), so a rollout's learner plans equal its lone run's up to the rounding of the batch. From ``settings`` both
-    controllers take mode, backend, plan reuse (without reuse the labels are the same) and the finish cost, the
-    learner its rtg mode (a model without a value output keeps the ledger); the learner runs the paper's fixed H
-    (exploration, Alg. 1)."""
+    step), so a rollout's learner plans equal its lone run's up to the rounding of the batch. Both controllers run
+    under ``settings`` (default: the paper's), which ``check_rollout_settings`` refuses where the rollouts cannot
+    honour them (real-time iteration): mode, backend, plan reuse (without reuse the labels are the same) and the
+    finish cost for both; for the learner (its H drawn by the exploration, Alg. 1) also the end horizon and, through
+    ``tto_providers``, the tracking weight and the rtg mode (a model without a value output keeps the ledger). The
+    expert's windows always reach the end, where those three do not apply."""
     labels = labels or LabelConfig()
     s = settings or MPCSettings()
-    loop = MPCSettings(mode=s.mode, backend=s.backend, reuse=s.reuse, finish=s.finish)
-    rtg_mode = effective_rtg_mode(s.rtg_mode, planner)
-    group = RolloutGroup(planner)
+    check_rollout_settings(s)
+    if not indices:
+        return []
+    learners = tto_providers(planner, s, [None] * len(indices))
+    group = learners[0].group
     episodes = []
-    for index in indices:
+    for index, provider in zip(indices, learners, strict=True):
         seed = rollout_seed(root_seed, iteration, index)
         rng = np.random.default_rng(seed)
         problem, rel = _sample_problem(scenario, rng)
@@ -184,9 +188,9 @@ def collect_rollouts(
         H = min(int(rng.choice(exploration.horizons)), N)
         expert_steps = expert_schedule(rng, N, exploration)
         labelled = label_schedule(rng, N, labels.per_rollout, labels.late) | expert_steps
-        provider, shift = TTOProvider(planner, group=group, rtg_mode=rtg_mode, backend=s.backend), ShiftProvider()
-        learner = MPCController(scenario, problem, provider, H, loop)
-        expert = MPCController(scenario, problem, shift, N, loop)
+        shift = ShiftProvider()
+        learner = MPCController(scenario, problem, provider, H, s)
+        expert = MPCController(scenario, problem, shift, N, s)
         ep = _Episode(index, seed, problem, rel, H, expert_steps, labelled, provider, learner, shift, expert,
                       problem.x0.copy())  # fmt: skip
         ep.X.append(ep.x)
@@ -196,10 +200,10 @@ def collect_rollouts(
     for ep in episodes:
         ep.learner_provider.reset(scenario, ep.problem, ep.rel.cost)
         ep.shift.reset(scenario, ep.problem, ep.rel.cost)
-    N = episodes[0].problem.n_steps if episodes else 0
+    N = episodes[0].problem.n_steps
     for t in range(N):  # the learners' longest window: one batched rollout serves them all
         group.expect(t, max((ep.learner.window(t).length for ep in episodes if not ep.expert_steps[t]), default=0))
-        steps = [_plan_step(scenario, ep, t, loop.backend) for ep in episodes]
+        steps = [_plan_step(scenario, ep, t, s.backend) for ep in episodes]
         for ep, (plan, e) in zip(episodes, steps, strict=True):
             x_next = scenario.step(ep.problem, t, ep.x, plan.u)
             if e is not None:
@@ -372,7 +376,7 @@ def _collect_chunk(task: tuple[int, list[int]]) -> list[list[dict[str, Any]]]:
         cfg.seed,
         cfg.exploration,
         cfg.labels,
-        settings=cfg.settings(),
+        settings=cfg.eval.settings,
     )
 
 

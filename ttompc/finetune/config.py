@@ -5,26 +5,32 @@ Every key a recipe may set is used. The ``trainer`` section is pre-training's ``
 DAgger owns (``DAGGER_OWNED``): DAgger sets the step budget itself (``dagger.steps_per_iteration`` per iteration,
 continuing from the parent's global step), always resumes (``dagger_state.json``), keeps one checkpoint per
 iteration and always exports the selected planner, so a recipe or override that sets ``max_steps``, ``max_epochs``,
-``keep_checkpoints``, ``resume`` or ``export_planner`` is rejected. The MPC settings of the rollouts (mode, backend,
-plan reuse) and of the keep/reject measurement are ``dagger.protocol`` (a preset of ``ttompc.mpc.settings`` or a
-YAML file) with single-key overrides in ``dagger.mpc``. The open-loop/closed-loop mix is ``data.open_loop_fraction``
+``keep_checkpoints``, ``resume`` or ``export_planner`` is rejected. A fine-tuning names its MPC settings once, in
+its keep/reject measurement ``dagger.eval`` (a ``ttompc.evaluation.measurement.Measurement``): ``dagger.eval.protocol``
+(a preset of ``ttompc.mpc.settings`` or a YAML file) with single-key overrides in ``dagger.eval.mpc``. The rollouts
+take every setting from it but those they cannot run (``ROLLOUT_FIXED``: refused when the recipe loads), and the
+training callback measures under it too (a recipe that sets ``callbacks.eval_mpc.protocol`` or
+``callbacks.eval_mpc.mpc`` is rejected). The open-loop/closed-loop mix is ``data.open_loop_fraction``
 with ``data.closed_loop_share``: "grow" is the paper's (9:1 at the first iteration, then the closed-loop share grows
 as DAgger data accumulates), "fixed" keeps that fraction at every iteration.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
 from ttompc.config import ConfigError, given_keys, load_command_config
 from ttompc.data.config import DataConfig
-from ttompc.mpc.settings import MPCSettings, protocol_settings
+from ttompc.evaluation.measurement import Measurement
+from ttompc.mpc.settings import MPCSettings
 from ttompc.training.config import CallbacksConfig, LoggerConfig, OptimConfig, TrainerConfig
 
 DAGGER_OWNED = ("max_steps", "max_epochs", "keep_checkpoints", "resume", "export_planner")  # trainer keys DAgger sets
+MEASURED_ONCE = ("callbacks.eval_mpc.protocol", "callbacks.eval_mpc.mpc")  # keys dagger.eval sets for the callback
 
 
 @dataclass
@@ -93,21 +99,22 @@ class CollectConfig:
             raise ValueError(f"dagger.collect.val_fraction must be in [0, 1), got {self.val_fraction}")
 
 
-@dataclass
-class EvalConfig:
-    """Closed-loop TTO-MPC on fixed held-out problems (the metrics of ``ClosedLoopEvalCallback``,
-    ``ttompc.evaluation.episodes.closed_loop_metrics``), measured for the pretrained model and after every
-    iteration under ``dagger.protocol``. They decide which iterations are kept: see
-    ``ttompc.finetune.loop.improves``."""
+# MPCSettings values DAgger's rollouts cannot run (``check_rollout_settings``): they solve every window to
+# convergence, the expert's for labels that are optima (measure real-time iteration with `ttompc evaluate mpc`)
+ROLLOUT_FIXED: dict[str, Any] = {"rti": False}
 
-    problems: int = 4
-    horizon: int = 10
-    max_steps: int | None = None  # MPC steps per episode (None: whole episodes)
-    seed: int = 0  # root seed of the evaluation problems (the evaluation stream: disjoint from rollouts and data)
 
-    def __post_init__(self) -> None:
-        if self.problems < 1 or self.horizon < 1:
-            raise ValueError("dagger.eval.problems and dagger.eval.horizon must be >= 1")
+def check_rollout_settings(settings: MPCSettings) -> None:
+    """Refuse, in one line naming the keys, the settings DAgger's rollouts cannot honour (``ROLLOUT_FIXED``); they
+    take every other key (``ttompc.finetune.collect.collect_rollouts``). Raises ``ConfigError``."""
+    bad = [k for k, v in ROLLOUT_FIXED.items() if getattr(settings, k) != v]
+    if bad:
+        given = " ".join(f"{k}={json.dumps(getattr(settings, k))}" for k in bad)
+        fixed = " ".join(f"dagger.eval.mpc.{k}={json.dumps(ROLLOUT_FIXED[k])}" for k in bad)
+        raise ConfigError(
+            f"dagger.eval: DAgger's rollouts cannot run {given} (they solve every window to convergence)",
+            f"use {fixed}, and measure it with `ttompc evaluate mpc`",
+        )
 
 
 @dataclass
@@ -118,20 +125,17 @@ class DaggerConfig:
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     labels: LabelConfig = field(default_factory=LabelConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
-    eval: EvalConfig = field(default_factory=EvalConfig)
-    # MPC settings of rollouts and measurement: a preset (paper, zoo) or a YAML file; the zoo's cards report zoo,
-    # so the keep-only-if-better decision can be made under the settings the cards report (docs/evaluation.md)
-    protocol: str = "paper"
-    mpc: dict[str, Any] = field(default_factory=dict)  # single MPCSettings keys over the protocol's
+    # the keep/reject measurement (closed-loop TTO-MPC on fixed held-out problems, one horizon on one plant, before
+    # iteration 0 and after every iteration: ``ttompc.finetune.loop.improves``); its protocol and ``mpc`` overrides
+    # are the MPC settings of the rollouts and of every closed loop of the run (the zoo's cards report zoo, so the
+    # decision can be made under the settings the cards report, docs/evaluation.md)
+    eval: Measurement = field(default_factory=lambda: Measurement(problems=4))
 
     def __post_init__(self) -> None:
         if self.iterations < 1 or self.steps_per_iteration < 1:
             raise ValueError("dagger.iterations and dagger.steps_per_iteration must be >= 1")
-        self.settings()  # validates the protocol and its overrides
-
-    def settings(self) -> MPCSettings:
-        """The MPC settings of the rollouts and the measurement: the protocol's, with the ``mpc`` overrides."""
-        return protocol_settings(self.protocol, self.mpc)
+        self.eval.check_single("dagger.eval")
+        check_rollout_settings(self.eval.settings)
 
 
 @dataclass
@@ -143,7 +147,8 @@ class FinetuneConfig:
         default_factory=lambda: TrainerConfig(checkpoint_every_n_steps=100, out_dir="runs/freeflyer-dagger")
     )  # checkpoint_every_n_steps refreshes checkpoints/iter-<i>.ckpt: an interrupted iteration resumes there
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    # closed-loop TTO-MPC of the model being fine-tuned, logged at its validation runs (``ClosedLoopEvalCallback``)
+    # closed-loop TTO-MPC of the model being fine-tuned, logged at its validation runs (``ClosedLoopEvalCallback``),
+    # under dagger.eval's protocol and overrides (filled in here; a recipe that sets them is refused)
     callbacks: CallbacksConfig = field(default_factory=CallbacksConfig)
 
     def __post_init__(self) -> None:
@@ -152,6 +157,8 @@ class FinetuneConfig:
                 "data.dagger_dirs is filled by DAgger itself (<out_dir>/dagger/iter-*); leave it empty in a "
                 f"fine-tuning recipe, got {list(self.data.dagger_dirs)}"
             )
+        m = self.dagger.eval
+        self.callbacks.eval_mpc = replace(self.callbacks.eval_mpc, protocol=m.protocol, mpc=dict(m.mpc))
 
 
 def load_finetune_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> FinetuneConfig:
@@ -163,9 +170,16 @@ def load_finetune_config(path: str | Path | None = None, overrides: Sequence[str
         raise
     except ValueError as err:
         raise ConfigError(f"invalid config ({path or 'defaults'}): {err}") from None
-    owned = sorted(f"trainer.{k}" for k in DAGGER_OWNED if f"trainer.{k}" in given_keys(path, overrides))
+    given = given_keys(path, overrides)
+    owned = sorted(f"trainer.{k}" for k in DAGGER_OWNED if f"trainer.{k}" in given)
     if owned:
         raise ConfigError(
             f"{', '.join(owned)}: set by DAgger itself", "size iterations with dagger.steps_per_iteration instead"
+        )
+    shared = sorted(k for k in given if k in MEASURED_ONCE or k.startswith(f"{MEASURED_ONCE[1]}."))
+    if shared:
+        raise ConfigError(
+            f"{', '.join(shared)}: a fine-tuning names its MPC settings once, in dagger.eval",
+            "set dagger.eval.protocol and dagger.eval.mpc.KEY instead (the rollouts and every measurement use them)",
         )
     return cfg

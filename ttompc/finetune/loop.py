@@ -10,8 +10,9 @@ Iteration i starts from its *parent*, the best model so far (the pretrained mode
 2. **Train** ``dagger.steps_per_iteration`` optimiser steps from the parent's weights and optimiser state on the
    open-loop data mixed with every DAgger folder so far (``data.open_loop_fraction`` and ``data.closed_loop_share``;
    "grow" is the paper's mix) into ``<run>/checkpoints/iter-<i>.ckpt``.
-3. **Measure** the candidate's closed-loop TTO-MPC on the fixed held-out problems of ``dagger.eval`` under
-   ``dagger.protocol`` (the metrics the training callback logs, ``ttompc.evaluation.episodes.closed_loop_metrics``)
+3. **Measure** the candidate's closed-loop TTO-MPC as the measurement ``dagger.eval`` says (its fixed held-out
+   problems, horizon and protocol; the metrics the training callback logs,
+   ``ttompc.evaluation.episodes.closed_loop_metrics``)
    and **keep** it only if it ``improves`` on the parent; otherwise the next iteration starts again from the
    parent. A rejected iteration's rollouts stay in the aggregate: its visited states carry valid expert labels.
 
@@ -47,7 +48,7 @@ from ttompc.data.shards import atomic_write_json
 from ttompc.errors import UserError
 from ttompc.finetune.collect import collect_iteration, rollout_folder
 from ttompc.finetune.config import FinetuneConfig
-from ttompc.progress import Bar, status
+from ttompc.progress import status
 
 if TYPE_CHECKING:
     from ttompc.evaluation.problems import EvalProblem
@@ -121,20 +122,6 @@ def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
         time.sleep(2.0)
 
 
-def _eval_problems(cfg: FinetuneConfig, scenario: Scenario) -> list[EvalProblem]:
-    from ttompc.evaluation.problems import eval_problem
-
-    e = cfg.dagger.eval
-    problems = []
-    with Bar(e.problems, "held-out problems (REL)", "problem") as bar:
-        for i in range(e.problems):
-            problems.append(
-                eval_problem(scenario, e.seed, i, nonconvex_only=True, backend=cfg.dagger.settings().backend)
-            )
-            bar.update()
-    return problems
-
-
 def protocol_record(cfg: FinetuneConfig, scenario: Scenario) -> dict[str, Any]:
     """What the state file and the exported bundle record of the measurement's settings: the protocol, its
     overrides, the resolved settings and the solver path (chain and trust-region norm)."""
@@ -142,21 +129,19 @@ def protocol_record(cfg: FinetuneConfig, scenario: Scenario) -> dict[str, Any]:
 
     from ttompc.solvers.backends import solver_path
 
-    settings = cfg.dagger.settings()
-    return {"name": cfg.dagger.protocol, "overrides": dict(cfg.dagger.mpc), "settings": asdict(settings),
-            "solver": solver_path(settings.backend, scenario)}  # fmt: skip
+    m = cfg.dagger.eval
+    return {"name": m.protocol, "overrides": dict(m.mpc), "settings": asdict(m.settings),
+            "solver": solver_path(m.settings.backend, scenario)}  # fmt: skip
 
 
 def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) -> dict[str, float]:
-    """Closed-loop TTO-MPC metrics of ``planner`` on the evaluation problems (one torch thread: batch-1 rollouts)."""
+    """Closed-loop TTO-MPC metrics of ``planner`` on the problems of the measurement ``dagger.eval`` (one torch
+    thread: batch-1 rollouts)."""
     from ttompc.evaluation.episodes import closed_loop_metrics
     from ttompc.parallel import single_torch_thread
 
-    e = cfg.dagger.eval
     with single_torch_thread():
-        metrics, _ = closed_loop_metrics(
-            planner, problems, e.horizon, settings=cfg.dagger.settings(), max_steps=e.max_steps, progress="measure"
-        )
+        metrics, _ = closed_loop_metrics(planner, cfg.dagger.eval, problems, progress="measure")
     return metrics
 
 
@@ -253,7 +238,7 @@ def _train_iteration(
     dm = TrajectoryDataModule(replace(cfg.data, dagger_dirs=dagger_dirs, seed=cfg.data.seed + iteration))
     dm.setup("fit")
     module = build_module(source.model.cfg, cfg.optim, source.scenario, source.stats, recipe=cfg,
-                          plot_trajectories=False, backend=cfg.dagger.settings().backend)  # fmt: skip
+                          plot_trajectories=False, backend=cfg.dagger.eval.settings.backend)  # fmt: skip
     if resume_from is None:
         module.model.load_state_dict(source.model.state_dict())
     t = cfg.trainer
@@ -262,16 +247,8 @@ def _train_iteration(
         from ttompc.training.callbacks import ClosedLoopEvalCallback
 
         callbacks.append(ClosedLoopEvalCallback.from_config(cfg.callbacks.eval_mpc, source.scenario.name))
-    trainer = build_trainer(
-        replace(t, max_steps=target),
-        cfg.optim,
-        Path(t.out_dir),
-        logger,
-        max_steps=target,
-        callbacks=callbacks,
-        num_sanity_val_steps=t.num_sanity_val_steps,
-        enable_checkpointing=False,
-    )
+    trainer = build_trainer(replace(t, max_steps=target), cfg.optim, Path(t.out_dir), logger, callbacks=callbacks,
+                            enable_checkpointing=False)  # fmt: skip
     fit(trainer, module, dm, resume_from)
     return checkpoint_step(ckpt)
 
@@ -327,7 +304,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
     source_planner = Planner.from_pretrained(src_dir)
     scenario = source_planner.scenario
     logger = build_logger(cfg.logger, run, to_container(cfg)) if ranks.is_main else None
-    problems = _eval_problems(cfg, scenario) if ranks.is_main else []
+    problems = cfg.dagger.eval.problem_set(scenario, progress="held-out problems (REL)") if ranks.is_main else []
     if state is None and ranks.is_main:
         n = len(problems)
         status(f"ttompc finetune: measuring the pretrained model (closed-loop TTO-MPC, {n} problem{'s' * (n != 1)})")

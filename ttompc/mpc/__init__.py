@@ -4,7 +4,16 @@ their named presets (``MPCSettings``, ``protocol_settings``), pluggable warm-sta
 over episodes are ``ttompc.evaluation.episodes``). Importing this package does not import Lightning (nor torch until
 TTO is used)."""
 
-from ttompc.mpc.loop import Episode, MPCController, StepPlan, episode_metrics, run_mpc, run_mpc_batch
+from ttompc.mpc.loop import (
+    Episode,
+    EpisodeStart,
+    MPCController,
+    MPCRun,
+    StepPlan,
+    episode_metrics,
+    run_mpc,
+    run_mpc_batch,
+)
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import (
     DISTProvider,
@@ -18,12 +27,14 @@ from ttompc.mpc.providers import (
     WarmStart,
 )
 from ttompc.mpc.settings import MPCSettings, protocol_settings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider
+from ttompc.mpc.tto import RolloutGroup, TTOProvider, tracking_design, tto_providers
 
 __all__ = [
     "DISTProvider",
     "Episode",
+    "EpisodeStart",
     "MPCController",
+    "MPCRun",
     "MPCSettings",
     "OracleProvider",
     "PlanProvider",
@@ -42,4 +53,6 @@ __all__ = [
     "protocol_settings",
     "run_mpc",
     "run_mpc_batch",
+    "tracking_design",
+    "tto_providers",
 ]

@@ -18,8 +18,9 @@ A failed SCP step is not an exception: the loop applies the next control of the 
 (or the warm start's first control at t = 0), counts it in ``fallbacks`` and goes on. Programming errors propagate.
 Each step is timed with ``perf_counter`` (warm start + solve; a CUDA model synchronises inside its provider); a
 provider that shares work between episodes (a batched rollout) reports this episode's share itself
-(``WarmStart.seconds``). ``run_mpc_batch`` runs the episodes of B problems in lockstep, which lets the TTO providers
-of one ``RolloutGroup`` plan all B windows of a step in one batched rollout; ``run_mpc`` is its B = 1 case.
+(``WarmStart.seconds``). ``run_mpc_batch`` runs the episodes of B starts (``EpisodeStart``: problem, J_REL, plant
+seed) in lockstep as one ``MPCRun`` says (horizon, settings, step cap, plant), which lets the TTO providers of one
+``RolloutGroup`` plan all B windows of a step in one batched rollout; ``run_mpc`` is its B = 1 case.
 
 Two ways a step does less than SCP to convergence from the provider's warm start:
 
@@ -51,7 +52,7 @@ import dataclasses
 import itertools
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -60,7 +61,7 @@ from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
 from ttompc.mpc.settings import Mode, MPCSettings
 from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
-from ttompc.solvers.scp import SCPResult, SCPStatus, TerminalCost, solve_scp
+from ttompc.solvers.scp import SCPOptions, SCPProblem, SCPResult, SCPStatus, TerminalCost, solve_scp
 
 # Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol. A goal miss is not the soft end
 # penalty's: tracking an exact plan ends on the goal once the tracking weight exceeds the multiplier of the window's
@@ -150,20 +151,19 @@ class MPCController:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         self.scenario, self.problem, self.provider, self.horizon = scenario, problem, provider, horizon
-        self.settings = s = settings or MPCSettings()
-        self.mode, self.backend, self.end_horizon, self.rti, self.reuse_tol = (
-            s.mode, s.backend, s.end_horizon, s.rti, s.reuse_tol
-        )  # fmt: skip
+        self.settings = settings or MPCSettings()
         self._scale = scenario.state_units()
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
         self._last: StepPlan | None = None  # the plan this controller made at the previous step
         self._own: StepPlan | None = None  # ... if it was solved (no fallback) and executed: reuse / RTI start
+        self._scp = SCPProblem(scenario, problem)  # built once, updated per window (solve)
+        self._options = SCPOptions(backend=self.settings.backend)
 
     def window(self, t: int) -> Window:
         """[t, t + H) truncated at N; the whole rest [t, N) once N − t <= ``end_horizon`` (module doc)."""
         N = self.problem.n_steps
         rest = N - t
-        return Window(t, rest if rest <= self.end_horizon else min(self.horizon, rest), N)
+        return Window(t, rest if rest <= self.settings.end_horizon else min(self.horizon, rest), N)
 
     def _terminal(self, window: Window, provided: TerminalCost | None, mode: Mode) -> TerminalCost | None:
         if not window.reaches_end:
@@ -185,29 +185,18 @@ class MPCController:
     ) -> SCPResult:
         """The window's SCP in this controller's mode, or in ``mode`` (hard mode solves a window whose goal is out
         of reach as soft mode does); ``settings`` replace the scenario's (RTI: one iteration)."""
-        mode = mode or self.mode
-        soft = mode == "soft"
-        return solve_scp(
-            self.scenario,
-            self.problem,
-            X,
-            U,
-            window=window,
-            terminal=self._terminal(window, terminal, mode),
-            fuel_weight=self.scenario.mpc.fuel if soft else 1.0,
-            soft_equalities=soft,
-            settings=settings,
-            backend=self.backend,
-        )
+        mode = mode or self.settings.mode
+        scp = self._scp.update(window=window, terminal=self._terminal(window, terminal, mode), soft=mode == "soft")
+        return solve_scp(scp, X, U, self._options.update(settings=settings))
 
     def _reuse(self, window: Window, x: np.ndarray) -> StepPlan | None:
         """The own previous plan's tail when it is this window's optimum (plan reuse, module doc), else None."""
-        prev = self._own
-        if self.reuse_tol is None or prev is None or not prev.converged or not window.reaches_end:
+        prev, tol = self._own, self.settings.reuse_tol
+        if tol is None or prev is None or not prev.converged or not window.reaches_end:
             return None
         if len(prev.U) != window.length + 1:
             return None
-        if np.max(np.abs(x - prev.X[1]) / self._scale) > self.reuse_tol:
+        if np.max(np.abs(x - prev.X[1]) / self._scale) > tol:
             return None
         X, U = prev.X[1:].copy(), prev.U[1:].copy()
         X[0] = x
@@ -239,17 +228,17 @@ class MPCController:
         X0, U0, settings = ws.X, ws.U, None
         terminal = ws.terminal
         if terminal is not None and self.settings.finish > 0:
-            weight = self.settings.finish * (self.scenario.mpc.fuel if self.mode == "soft" else 1.0)
+            weight = self.settings.finish * (self.scenario.mpc.fuel if self.settings.mode == "soft" else 1.0)
             price = finish_cost(self.scenario, self.problem, window, ws.X[-1], weight)
             if price is not None:
                 terminal = TerminalCost(terminal.target, terminal.weights, price)
-        rti = self.rti and self._own is not None
+        rti = self.settings.rti and self._own is not None
         if rti:
             X0, U0 = self._rti_start(window, ws.X, ws.U)
             settings = dataclasses.replace(self.scenario.scp, max_iters=1)
         res = self.solve(window, X0, U0, terminal, settings=settings)
         iterations, soft_end = res.iterations, False
-        if not self._usable(res, rti) and self.mode == "hard" and window.reaches_end:
+        if not self._usable(res, rti) and self.settings.mode == "hard" and window.reaches_end:
             # x_N = goal is out of reach (the penalised solve misses it): plan this window as soft mode does (the
             # soft end term) rather than replay the previous plan, which misses it too and is one step staler
             res = self.solve(window, res.X, res.U, None, mode="soft", settings=settings)
@@ -290,11 +279,11 @@ def episode_metrics(
     X: np.ndarray,
     U: np.ndarray,
     *,
-    terminal_tol: float | None = None,
     path_tol: float = 1e-3,
     strict_keepout: bool = True,
 ) -> dict[str, float | int | bool]:
-    """Feasibility of an executed trajectory: terminal error, keep-out violations, exact path violation. With
+    """Feasibility of an executed trajectory: terminal error (within ``scenario.terminal_tol``), keep-out violations,
+    exact path violation. With
     ``strict_keepout`` any state inside a keep-out zone makes it infeasible; without, only a depth (part of the
     path violation) beyond ``path_tol`` does (the perturbed plant, whose disturbances no controller can undo)."""
     T = len(U)
@@ -302,8 +291,7 @@ def episode_metrics(
     err = float(np.linalg.norm(X[-1] - problem.goal)) if complete else float("nan")
     koz = int(np.sum(scenario.violations(problem, X)))
     path = scenario.path_violation(problem, X, U, Window(0, T, problem.n_steps)) if T else 0.0
-    tol = scenario.terminal_tol if terminal_tol is None else terminal_tol
-    feasible = (koz == 0 or not strict_keepout) and path <= path_tol and (not complete or err <= tol)
+    feasible = (koz == 0 or not strict_keepout) and path <= path_tol and (not complete or err <= scenario.terminal_tol)
     return {
         "terminal_error": err,
         "keepout_violations": koz,
@@ -320,6 +308,33 @@ def target_change(scenario: Scenario, targets: list[np.ndarray | None]) -> float
     return float(np.mean(d)) if d else float("nan")
 
 
+@dataclass(frozen=True)
+class EpisodeStart:
+    """Where an episode starts: its problem, J_REL of the problem's open-loop REL solution (the lower bound of the
+    metrics and the TTO conditioning, rtg_0 = −J_REL) and the seed of the plant's disturbances (same seed, same
+    disturbances; unused on the exact plant)."""
+
+    problem: Problem
+    rel_cost: float
+    plant_seed: int = 0
+
+
+@dataclass(frozen=True)
+class MPCRun:
+    """How a batch of episodes runs (``run_mpc_batch``): planning horizon H, the MPC settings, at most ``max_steps``
+    steps per episode (None: all N) and the plant (None: the exact dynamics; a ``PlantNoise``: seeded actuation error
+    and process noise, its unset components the scenario's own)."""
+
+    horizon: int
+    settings: MPCSettings = field(default_factory=MPCSettings)
+    max_steps: int | None = None
+    plant: PlantNoise | None = None
+
+    def __post_init__(self) -> None:
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+
+
 def run_mpc(
     scenario: Scenario,
     problem: Problem,
@@ -329,66 +344,48 @@ def run_mpc(
     rel_cost: float,
     settings: MPCSettings | None = None,
     max_steps: int | None = None,
-    terminal_tol: float | None = None,
     plant: PlantNoise | None = None,
     plant_seed: int = 0,
 ) -> Episode:
     """Run receding-horizon control from x0 for N steps (or ``max_steps``) with ``settings`` (default: the paper's)
-    on the exact dynamics, or on a perturbed plant (``plant``, disturbances seeded by ``plant_seed``: same seed,
-    same disturbances).
+    on the exact dynamics, or on a perturbed plant (``plant``, disturbances seeded by ``plant_seed``): the B = 1
+    case of ``run_mpc_batch``, spelled out for scripts.
 
     ``rel_cost`` is J_REL of the open-loop REL solution: the lower bound of the metrics and the TTO conditioning
     (rtg_0 = −J_REL)."""
-    return run_mpc_batch(
-        scenario,
-        [problem],
-        [provider],
-        horizon,
-        rel_costs=[rel_cost],
-        settings=settings,
-        max_steps=max_steps,
-        terminal_tol=terminal_tol,
-        plant=plant,
-        plant_seeds=[plant_seed],
-    )[0]
+    run = MPCRun(horizon, settings or MPCSettings(), max_steps, plant)
+    return run_mpc_batch(scenario, [EpisodeStart(problem, rel_cost, plant_seed)], [provider], run)[0]
 
 
 def run_mpc_batch(
     scenario: Scenario,
-    problems: Sequence[Problem],
+    starts: Sequence[EpisodeStart],
     providers: Sequence[Provider],
-    horizon: int,
-    *,
-    rel_costs: Sequence[float],
-    settings: MPCSettings | None = None,
-    max_steps: int | None = None,
-    terminal_tol: float | None = None,
-    plant: PlantNoise | None = None,
-    plant_seeds: Sequence[int] | None = None,
+    run: MPCRun,
     on_step: Callable[[], None] | None = None,
 ) -> list[Episode]:
-    """``run_mpc`` for B problems (one provider each) in lockstep: at every step all B episodes plan, then all B
-    act. Each episode is what ``run_mpc`` gives for it alone (for TTO up to the rounding of a batched rollout);
-    stepping together lets providers share work across episodes (the TTO providers of one ``RolloutGroup``: one
-    batched rollout per step). ``on_step`` is called after every step (progress)."""
-    B = len(problems)
-    seeds = list(plant_seeds) if plant_seeds is not None else [0] * B
-    if len(providers) != B or len(rel_costs) != B or len(seeds) != B:
-        raise ValueError(f"{B} problems need as many providers, rel_costs and plant_seeds")
+    """The episodes of B ``starts`` (one provider each) run as ``run`` says, in lockstep: at every step all B
+    episodes plan, then all B act. Each episode is what it gives when run alone (for TTO up to the rounding of a
+    batched rollout); stepping together lets providers share work across episodes (the TTO providers of one
+    ``RolloutGroup``: one batched rollout per step). ``on_step`` is called after every step (progress)."""
+    B = len(starts)
+    if len(providers) != B:
+        raise ValueError(f"{B} episodes need as many providers, got {len(providers)}")
+    problems = [s.problem for s in starts]
     if len({p.n_steps for p in problems}) > 1:
         raise ValueError("episodes run in lockstep need problems of one length N")
     if B == 0:
         return []
-    if plant is not None:
-        plant = plant.resolve(scenario)  # None components: the scenario's own
+    plant = None if run.plant is None else run.plant.resolve(scenario)  # None components: the scenario's own
+    horizon = run.horizon
     N = problems[0].n_steps
-    T = N if max_steps is None else min(max_steps, N)
+    T = N if run.max_steps is None else min(run.max_steps, N)
     ctrls, sims = [], []
-    for problem, provider, rel_cost, seed in zip(problems, providers, rel_costs, seeds, strict=True):
-        provider.reset(scenario, problem, rel_cost)
-        ctrls.append(MPCController(scenario, problem, provider, horizon, settings))
+    for start, provider in zip(starts, providers, strict=True):
+        provider.reset(scenario, start.problem, start.rel_cost)
+        ctrls.append(MPCController(scenario, start.problem, provider, horizon, run.settings))
         sim = Plant(scenario, plant)
-        sim.reset(seed)
+        sim.reset(start.plant_seed)
         sims.append(sim)
     xs = [p.x0.copy() for p in problems]
     X: list[list[np.ndarray]] = [[x] for x in xs]
@@ -420,7 +417,6 @@ def run_mpc_batch(
             problem,
             Xa,
             Ua,
-            terminal_tol=terminal_tol,
             path_tol=plant.path_tol(scenario) if plant is not None and perturbed else 1e-3,
             strict_keepout=not perturbed,
         )
@@ -431,7 +427,7 @@ def run_mpc_batch(
                 X=Xa,
                 U=Ua,
                 cost=scenario.cost(Ua),
-                rel_cost=float(rel_costs[b]),
+                rel_cost=float(starts[b].rel_cost),
                 step_times=warm[b] + solve[b],
                 warm_times=warm[b],
                 solve_times=solve[b],
@@ -446,7 +442,7 @@ def run_mpc_batch(
                 plant="perturbed" if perturbed else "nominal",
                 soft_ends=soft_ends[b],
                 reuses=reuses[b],
-                rti=ctrls[b].rti,
+                rti=run.settings.rti,
             )
         )
     return episodes

@@ -5,18 +5,19 @@
 state, so its KV cache is extended, never recomputed. x̄ = the predicted state at t+H, through a
 ``TerminalDesign`` (``ttompc.mpc.providers``). The TTO providers of B episodes run in lockstep (``run_mpc_batch``)
 share one batched context (``RolloutGroup``). ``rtg_mode`` chooses the reward-to-go fed at each step
-(``RTG_MODES``).
+(``RTG_MODES``). ``tto_providers`` makes one method's providers from ``MPCSettings`` (design, rtg mode, backend).
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ttompc.mpc.providers import RemainingOptimum, RemainingREL, TargetFilter, TerminalDesign, WarmStart
-from ttompc.mpc.settings import RTG_MODES, RTGMode
+from ttompc.mpc.settings import RTG_MODES, MPCSettings, RTGMode
 from ttompc.scenarios.base import Problem, Scenario, Window
 
 if TYPE_CHECKING:
@@ -41,6 +42,37 @@ def effective_rtg_mode(rtg_mode: RTGMode, planner: Planner) -> RTGMode:
     """The rtg mode a model runs under ``rtg_mode``: ``value`` needs a value output, and a model without one (every
     bundle from before it) keeps the paper's ledger (``running``)."""
     return "running" if rtg_mode == "value" and not planner.has_value else rtg_mode
+
+
+def tracking_design(settings: MPCSettings, blend: float = 0.0) -> TerminalDesign:
+    """The terminal design of the plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC) under ``settings``: the
+    tracking weight ``settings.track`` on every component (None: the scenario's ``mpc.tracking``), targets blended
+    by ``blend`` (0: the paper's target; ``TerminalDesign``)."""
+    return TerminalDesign(blend, None if settings.track is None else (settings.track,))
+
+
+def tto_providers(
+    planner: Planner,
+    settings: MPCSettings,
+    plans: Sequence[tuple[np.ndarray, np.ndarray] | None],
+    name: str = "TTO-MPC",
+    *,
+    blend: float = 0.0,
+    rtg_scale: float | None = None,
+) -> list[TTOProvider]:
+    """One TTO method's providers under ``settings``, one per episode (``plans``: each episode's open-loop optimum
+    for ``rtg_mode="oracle"``, or None to solve it), sharing one ``RolloutGroup`` (one batched rollout per lockstep
+    step): the design of ``tracking_design(settings, blend)``, the rtg mode the model can run
+    (``effective_rtg_mode``) and the settings' backend. The one place settings become TTO providers (``ttompc
+    evaluate mpc``, the closed-loop metrics of training and DAgger, DAgger's learners)."""
+    group = RolloutGroup(planner)
+    design = tracking_design(settings, blend)
+    mode = effective_rtg_mode(settings.rtg_mode, planner)
+    return [
+        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design, rtg_mode=mode, group=group,
+                    backend=settings.backend, plan=plan)
+        for plan in plans
+    ]  # fmt: skip
 
 
 class TTOProvider:

@@ -1,12 +1,12 @@
 """``ClosedLoopEvalCallback``: closed-loop TTO-MPC of the model being trained, logged while it trains.
 
 Teacher-forced validation loss says little about closed-loop behaviour (covariate shift, paper §IV-C), so every
-``every_n_val`` validation runs the callback runs TTO-MPC with the current weights on a fixed, seeded set of held-out
-problems (REL solved once and cached) under the MPC settings of a protocol (``settings``, e.g. the recipe's
-``callbacks.eval_mpc.protocol``), on the nominal or the perturbed plant (``plant``, seeded per problem), and logs
-``ttompc.evaluation.episodes.closed_loop_metrics`` through ``pl_module.log`` (any logger): ``<prefix>/feasible_rate``,
-``<prefix>/infeasible`` (count), ``<prefix>/cost_increment`` (mean (J − J_REL)/J_REL over feasible runs) and its
-``_se``, ``<prefix>/cost``, ``<prefix>/target_change``, step times and fallbacks, plus a trajectory figure (PNG
+``every_n_val`` validation runs the callback runs TTO-MPC with the current weights as a ``Measurement`` says (the
+recipe's ``callbacks.eval_mpc``): on its fixed, seeded held-out problems (REL solved once and cached), under its
+protocol's MPC settings, at its one horizon on its one plant (nominal, or perturbed: seeded per problem), and logs
+``ttompc.evaluation.episodes.closed_loop_metrics`` through ``pl_module.log`` (any logger): ``mpc/feasible_rate``,
+``mpc/infeasible`` (count), ``mpc/cost_increment`` (mean (J − J_REL)/J_REL over feasible runs) and its
+``_se``, ``mpc/cost``, ``mpc/target_change``, step times and fallbacks, plus a trajectory figure (PNG
 under ``<root>/plots/``, and an image on wandb or TensorBoard). Runs on global rank 0 only. Counting validation
 runs rather than epochs makes it work with the step-based validation of endless streaming epochs.
 """
@@ -17,71 +17,40 @@ from typing import TYPE_CHECKING, Any
 
 import lightning as L
 
-from ttompc.evaluation.problems import EvalProblem, eval_problem
-from ttompc.mpc.plant import PlantNoise
-from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.parallel import single_torch_thread
 
 if TYPE_CHECKING:
-    from ttompc.scenarios.base import Scenario
+    from ttompc.evaluation.measurement import Measurement
+    from ttompc.evaluation.problems import EvalProblem
+    from ttompc.training.config import EvalMPCConfig
 
 
 class ClosedLoopEvalCallback(L.Callback):
-    def __init__(
-        self,
-        scenario: str | None = None,
-        *,
-        problems: int = 4,
-        horizon: int = 10,
-        max_steps: int | None = None,
-        every_n_val: int = 1,
-        seed: int = 0,
-        settings: MPCSettings | None = None,
-        plot: bool = True,
-        prefix: str = "mpc",
-        plant: str = "nominal",
-    ) -> None:
-        if problems < 1 or horizon < 1 or every_n_val < 1:
-            raise ValueError("eval_mpc: problems, horizon and every_n_val must be >= 1")
-        if plant not in ("nominal", "perturbed"):
-            raise ValueError(f"eval_mpc: plant must be 'nominal' or 'perturbed', got {plant!r}")
-        self.perturbed = plant == "perturbed"
-        self.scenario_name, self.n_problems, self.horizon = scenario, problems, horizon
-        self.max_steps, self.every_n_val, self.seed = max_steps, every_n_val, seed
-        self.settings = settings or MPCSettings()
-        self.plot, self.prefix = plot, prefix
+    """Measures ``measurement`` (one horizon, one plant) every ``every_n_val`` validation runs on ``scenario`` (None:
+    the module's) and logs its metrics and a trajectory figure under ``PREFIX`` (module doc)."""
+
+    PREFIX = "mpc"
+
+    def __init__(self, measurement: Measurement, scenario: str | None = None, *, every_n_val: int = 1) -> None:
+        measurement.check_single("eval_mpc")
+        if every_n_val < 1:
+            raise ValueError(f"eval_mpc: every_n_val must be >= 1, got {every_n_val}")
+        self.measurement, self.scenario_name, self.every_n_val = measurement, scenario, every_n_val
         self._problems: list[EvalProblem] | None = None
         self._runs = 0
         self.last_metrics: dict[str, float] = {}
 
     @classmethod
-    def from_config(cls, cfg: Any, scenario: str | None = None) -> ClosedLoopEvalCallback:
+    def from_config(cls, cfg: EvalMPCConfig, scenario: str | None = None) -> ClosedLoopEvalCallback:
         """From the recipe section ``callbacks.eval_mpc``."""
-        return cls(
-            scenario,
-            problems=cfg.problems,
-            horizon=cfg.horizon,
-            max_steps=cfg.max_steps,
-            every_n_val=cfg.every_n_val,
-            seed=cfg.seed,
-            settings=protocol_settings(cfg.protocol),
-            plant=cfg.plant,
-        )
-
-    def plant_noise(self, scenario: Scenario) -> PlantNoise | None:
-        """The plant the episodes run on: None (nominal) or the scenario's perturbed plant."""
-        return PlantNoise.perturbed(scenario) if self.perturbed else None
+        return cls(cfg, scenario, every_n_val=cfg.every_n_val)
 
     def problems(self, scenario_name: str) -> list[EvalProblem]:
-        """The fixed evaluation problems (REL-violating, seeded), solved once."""
+        """The fixed evaluation problems (``Measurement.problem_set``), solved once."""
         if self._problems is None:
             from ttompc.scenarios import get_scenario
 
-            sc = get_scenario(scenario_name)
-            self._problems = [
-                eval_problem(sc, self.seed, i, nonconvex_only=True, backend=self.settings.backend)
-                for i in range(self.n_problems)
-            ]
+            self._problems = self.measurement.problem_set(get_scenario(scenario_name))
         return self._problems
 
     def evaluate(self, pl_module: L.LightningModule) -> tuple[dict[str, float], list[Any], list[EvalProblem]]:
@@ -100,14 +69,7 @@ class ClosedLoopEvalCallback(L.Callback):
         try:
             with single_torch_thread():
                 planner = Planner(model, get_scenario(name), pl_module.stats)
-                metrics, episodes = closed_loop_metrics(
-                    planner,
-                    problems,
-                    self.horizon,
-                    settings=self.settings,
-                    max_steps=self.max_steps,
-                    plant=self.plant_noise(planner.scenario),
-                )
+                metrics, episodes = closed_loop_metrics(planner, self.measurement, problems)
         finally:
             model.train(was_training)
         return metrics, episodes, problems
@@ -121,19 +83,18 @@ class ClosedLoopEvalCallback(L.Callback):
         metrics, episodes, problems = self.evaluate(pl_module)
         self.last_metrics = metrics
         for k, v in metrics.items():
-            pl_module.log(f"{self.prefix}/{k}", v, rank_zero_only=True)
-        if self.plot:
-            from ttompc.evaluation.plots import Panel, trajectory_figure
-            from ttompc.scenarios import get_scenario
-            from ttompc.training.loggers import log_figure
+            pl_module.log(f"{self.PREFIX}/{k}", v, rank_zero_only=True)
+        from ttompc.evaluation.plots import Panel, trajectory_figure
+        from ttompc.scenarios import get_scenario
+        from ttompc.training.loggers import log_figure
 
-            ep, e = problems[0], episodes[0]
-            label = f"TTO-MPC H={self.horizon}"
-            panel = Panel(
-                ep.problem,
-                {"REL (open loop)": ep.rel.X, label: e.X},
-                f"step {trainer.global_step}, problem seed {ep.seed}: cost {e.cost:.4g} (REL {ep.rel.cost:.4g})",
-                set() if e.feasible else {label},
-            )
-            fig = trajectory_figure(get_scenario(self.scenario_name or pl_module.hparams["scenario"]), [panel])
-            log_figure(trainer, f"{self.prefix}/trajectory", fig, trainer.global_step)
+        ep, e = problems[0], episodes[0]
+        label = f"TTO-MPC H={self.measurement.horizons[0]}"
+        panel = Panel(
+            ep.problem,
+            {"REL (open loop)": ep.rel.X, label: e.X},
+            f"step {trainer.global_step}, problem seed {ep.seed}: cost {e.cost:.4g} (REL {ep.rel.cost:.4g})",
+            set() if e.feasible else {label},
+        )
+        fig = trajectory_figure(get_scenario(self.scenario_name or pl_module.hparams["scenario"]), [panel])
+        log_figure(trainer, f"{self.PREFIX}/trajectory", fig, trainer.global_step)

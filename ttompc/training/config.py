@@ -16,6 +16,7 @@ from typing import Literal
 
 from ttompc.config import ConfigError, given_keys, load_command_config
 from ttompc.data.config import DataConfig
+from ttompc.evaluation.measurement import Measurement
 from ttompc.policy.config import ModelConfig
 
 # what ``lightning.Trainer(precision=...)`` accepts (checked when the recipe loads, not when training starts)
@@ -100,23 +101,21 @@ class LoggerConfig:
 
 
 @dataclass
-class EvalMPCConfig:
-    """Closed-loop TTO-MPC evaluation during training (``ttompc.training.callbacks.ClosedLoopEvalCallback``), every
-    ``every_n_val`` validation runs (validation runs, not epochs: step-based validation of endless epochs works)."""
+class EvalMPCConfig(Measurement):
+    """Closed-loop TTO-MPC of the model being trained (``ttompc.training.callbacks.ClosedLoopEvalCallback``): a
+    ``Measurement`` of one horizon on one plant, every ``every_n_val`` validation runs (validation runs, not epochs:
+    step-based validation of endless epochs works). Its protocol is checked when the recipe loads, not mid-training.
+    """
 
+    problems: int = 8
     enabled: bool = False
     every_n_val: int = 1
-    problems: int = 8
-    horizon: int = 10
-    max_steps: int | None = None  # MPC steps per episode (None: whole episodes)
-    seed: int = 0  # root seed of the held-out evaluation problems
-    plant: str = "nominal"  # nominal | perturbed (seeded actuation error + process noise, ttompc.mpc.plant)
-    protocol: str = "paper"  # MPC settings: a preset (paper, zoo; ttompc/mpc/presets) or a YAML file of them
 
     def __post_init__(self) -> None:
-        from ttompc.mpc.settings import protocol_settings
-
-        protocol_settings(self.protocol)  # a protocol that does not load fails with the recipe, not mid-training
+        super().__post_init__()
+        self.check_single("callbacks.eval_mpc")
+        if self.every_n_val < 1:
+            raise ValueError(f"callbacks.eval_mpc.every_n_val must be >= 1, got {self.every_n_val}")
 
 
 @dataclass

@@ -43,13 +43,11 @@ def build_trainer(
     out: Path,
     logger: Any,
     *,
-    max_steps: int,
-    max_epochs: int | None = None,
     callbacks: list[Any] | None = None,
-    num_sanity_val_steps: int = 0,
     enable_checkpointing: bool = True,
 ) -> Any:
-    """The Lightning Trainer of a recipe's ``trainer``/``optim`` sections (pre-training and DAgger share it). A
+    """The Lightning Trainer of a recipe's ``trainer``/``optim`` sections (pre-training and DAgger share it; the
+    step budget, ``max_steps``/``max_epochs``, and the sanity validation steps are ``t``'s). A
     ``precision`` of ``auto`` is resolved for the machine (``ttompc.training.precision``); its checkpoints record the
     precision that ran (``checkpoint["precision"]``)."""
     import lightning as L
@@ -62,8 +60,8 @@ def build_trainer(
     progress = progress_enabled()
     vci = t.val_check_interval
     return L.Trainer(
-        max_steps=max_steps,
-        max_epochs=max_epochs,
+        max_steps=t.max_steps,
+        max_epochs=t.max_epochs,
         val_check_interval=int(vci) if vci > 1 else vci,
         limit_val_batches=int(t.limit_val_batches) if t.limit_val_batches > 1 else t.limit_val_batches,
         check_val_every_n_epoch=None if vci > 1 else 1,
@@ -75,7 +73,7 @@ def build_trainer(
         gradient_clip_val=optim.grad_clip or None,
         accumulate_grad_batches=optim.accumulate,
         log_every_n_steps=t.log_every_n_steps,
-        num_sanity_val_steps=num_sanity_val_steps,
+        num_sanity_val_steps=t.num_sanity_val_steps,
         default_root_dir=str(out),
         logger=logger if logger is not None else False,
         callbacks=[*(callbacks or []), RecordPrecision(), *([StepProgressBar()] if progress else [])],
@@ -94,7 +92,6 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     import lightning as L
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 
-    from ttompc.mpc.settings import protocol_settings
     from ttompc.policy import Planner
     from ttompc.scenarios import get_scenario
     from ttompc.training.checkpoints import (
@@ -132,7 +129,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
         datamodule.stats,
         recipe=cfg,
         plot_trajectories=cfg.logger.plot_trajectories,
-        backend=protocol_settings(cfg.callbacks.eval_mpc.protocol).backend,  # what the run's closed loop solves with
+        backend=cfg.callbacks.eval_mpc.settings.backend,  # what the run's closed loop solves with
     )
     logger = build_logger(cfg.logger, out, recipe)
     ckpt_dir = out / "checkpoints"
@@ -157,16 +154,7 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
 
         all_callbacks.append(ClosedLoopEvalCallback.from_config(cfg.callbacks.eval_mpc, scenario.name))
     t = cfg.trainer
-    trainer = build_trainer(
-        t,
-        cfg.optim,
-        out,
-        logger,
-        max_steps=t.max_steps,
-        max_epochs=t.max_epochs,
-        callbacks=all_callbacks,
-        num_sanity_val_steps=t.num_sanity_val_steps,
-    )
+    trainer = build_trainer(t, cfg.optim, out, logger, callbacks=all_callbacks)
     found = resume_checkpoint(out) if t.resume else None
     resume_from, start_step = found if found else (None, 0)
     if resume_from is not None and trainer.is_global_zero:
