@@ -88,7 +88,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenario", default="freeflyer")
     ap.add_argument("--model", default="freeflyer-ft-tto-v5", help="zoo name, bundle folder or checkpoint")
-    ap.add_argument("--recipe", default=None, help="default: recipes/paper/<scenario>-finetune.yaml")
+    ap.add_argument("--recipe", default=None, help="default: recipes/<scenario>/paper-finetune.yaml")
     ap.add_argument("--rollouts", type=int, default=10)
     ap.add_argument("--batch", type=int, default=None, help="rollouts in lockstep (default: the recipe's)")
     ap.add_argument("--labels", type=int, default=None, help="labelled steps per rollout (default: the recipe's)")
@@ -96,7 +96,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     root = Path(__file__).resolve().parents[1]
-    recipe = args.recipe or root / "recipes" / "paper" / f"{args.scenario}-finetune.yaml"
+    recipe = args.recipe or root / "recipes" / args.scenario / "paper-finetune.yaml"
     dagger = load_finetune_config(recipe).dagger
     labels = dagger.labels if args.labels is None else dataclasses.replace(dagger.labels, per_rollout=args.labels)
     batch = args.batch or dagger.collect.batch

@@ -17,7 +17,7 @@ SEED=${SEED:-3201}
 STEPS=${STEPS:-4000}
 BATCH=${BATCH:-256}
 WORKERS=${WORKERS:-$(nproc)}
-RECIPE=recipes/paper/$SC-pretrain.yaml
+RECIPE=recipes/$SC/paper-pretrain.yaml
 export WANDB_MODE=${WANDB_MODE:-offline} HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1
 
 [ -f "$RECIPE" ] || { echo "gpu_pretrain: no recipe $RECIPE (scenarios: freeflyer, quadrotor, rpod)" >&2; exit 2; }

@@ -33,8 +33,8 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
         assert cfg.dagger.iterations >= 1 and 0 < cfg.data.open_loop_fraction <= 1
         # at least the paper's first-iteration mix of labelled rollouts (issue 27: >= 1,000 per iteration) and a
         # keep/reject decision on >= 100 selection problems (recipes/zoo/*-ft-tto-small: the record of the v1 models;
-        # recipes/paper: the paper's own settings)
-        if path.parent.name not in ("zoo", "paper"):
+        # recipes/<scenario>/paper-finetune.yaml: the paper's own settings)
+        if path.parent.name != "zoo" and path.stem != "paper-finetune":
             d = cfg.dagger
             assert d.collect.rollouts >= 1000 and d.eval.problems >= 100, path
             assert cfg.data.open_loop_fraction == 0.9, path

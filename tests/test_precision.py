@@ -22,7 +22,7 @@ AMX = frozenset({"fpu", "sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16"
 # the recipes that said bf16-mixed before ``auto`` (issue 36)
 AUTO_RECIPES = [
     *(f"{s}/pretrain.yaml" for s in ("freeflyer", "quadrotor", "rpod", "generic")),
-    *(f"paper/{s}-pretrain.yaml" for s in ("freeflyer", "quadrotor", "rpod")),
+    *(f"{s}/paper-pretrain.yaml" for s in ("freeflyer", "quadrotor", "rpod")),
     "zoo/freeflyer-tto-v2.yaml",
 ]
 

@@ -2,10 +2,10 @@
 holds no absolute path, and describes the run it claims to: its scenario's data, dimensions and output folder, the
 architecture of the zoo model it produced, and (fine-tuning) the same open-loop dataset as the model it starts from.
 
-Layout (one recipe per job): ``recipes/<scenario>/`` and ``recipes/generic/`` hold exactly ``pretrain``, ``finetune``
-and ``tiny``; ``recipes/zoo/<model>[-legN].yaml`` reproduce published models, each headed by the ``ttompc generate``
-command of its data; ``recipes/paper/<scenario>-{pretrain,finetune}.yaml`` are the paper-size GPU recipes. Every
-recipe path named in the cards, README, docs, scripts and code exists."""
+Layout (one recipe per job): ``recipes/<scenario>/`` and ``recipes/generic/`` hold exactly ``pretrain``, ``finetune``,
+``value`` and ``tiny``, and each ``recipes/<scenario>/`` also ``paper-{pretrain,finetune}.yaml``, the paper-size GPU
+recipes; ``recipes/zoo/<model>[-legN].yaml`` reproduce published models, each headed by the ``ttompc generate``
+command of its data. Every recipe path named in the cards, README, docs, scripts and code exists."""
 
 from __future__ import annotations
 
@@ -32,10 +32,15 @@ GENERIC = [p for p in ALL if p.parent.name == "generic"]
 SCENARIO_RECIPES = [p for p in ALL if p not in GENERIC]
 ARCHITECTURE = ("state_dim", "control_dim", "n_embd", "n_layer", "n_head", "mlp_ratio", "activation", "max_steps")
 JOBS = {"pretrain", "finetune", "tiny", "value"}
+PAPER_JOBS = {"paper-pretrain", "paper-finetune"}  # recipes/<scenario>/ only: the paper-size GPU recipes
 
 
 def rel(path: Path) -> str:
     return path.relative_to(RECIPES).as_posix()
+
+
+def is_paper(path: Path) -> bool:
+    return path.stem in PAPER_JOBS
 
 
 def is_finetune(path: Path) -> bool:
@@ -43,7 +48,7 @@ def is_finetune(path: Path) -> bool:
 
 
 def scenario_of(path: Path) -> str:
-    """recipes/<scenario>/X.yaml, recipes/zoo/<scenario>-..., recipes/paper/<scenario>-..."""
+    """recipes/<scenario>/X.yaml, recipes/zoo/<scenario>-..."""
     return path.parent.name if path.parent.name in SCENARIOS else path.stem.split("-")[0]
 
 
@@ -62,8 +67,8 @@ def source_recipe(path: Path) -> Path:
     if path.parent.name == "zoo":  # <s>-ft-tto-small -> <s>-tto-small; the v4+ FT models start from <s>-tto-v3
         small = path.with_name(path.name.replace("-ft-tto-", "-tto-"))
         return small if small.is_file() else RECIPES / scenario_of(path) / f"pretrain{path.suffix}"
-    if path.parent.name == "paper":
-        return path.with_name(path.name.replace("-finetune", "-pretrain"))
+    if is_paper(path):
+        return path.with_name(f"paper-pretrain{path.suffix}")
     return path.with_name(f"pretrain{path.suffix}")
 
 
@@ -77,12 +82,11 @@ def leaves(node: Any) -> list[Any]:
 
 def test_one_recipe_per_job() -> None:
     folders = {p.parent.name for p in ALL}
-    assert folders == {*SCENARIOS, "generic", "zoo", "paper"}, "recipes live in recipes/<folder>/"
+    assert folders == {*SCENARIOS, "generic", "zoo"}, "recipes live in recipes/<scenario>/, generic/ and zoo/"
     assert all(p.parent.parent == RECIPES for p in ALL)
-    for folder in (*SCENARIOS, "generic"):
-        assert {p.stem for p in ALL if p.parent.name == folder} == JOBS, folder
-    assert {p.stem for p in ALL if p.parent.name == "paper"} == {f"{s}-{j}" for s in SCENARIOS for j in
-                                                                 ("pretrain", "finetune")}  # fmt: skip
+    for folder in SCENARIOS:
+        assert {p.stem for p in ALL if p.parent.name == folder} == JOBS | PAPER_JOBS, folder
+    assert {p.stem for p in ALL if p.parent.name == "generic"} == JOBS
     published = {p.stem for p in (ROOT / "zoo").glob("*.md") if p.stem != "README"}
     for path in (p for p in ALL if p.parent.name == "zoo"):
         # a published model, or a withdrawn FT model of one (kept to repeat the rows measured with it)
@@ -134,7 +138,7 @@ def test_training_recipe_builds_the_model_it_describes(path: Path) -> None:
     cfg = load_train_config(path)
     n_params = TrajectoryGPT(cfg.model).num_parameters()
     folder = path.parent.name
-    if folder == "paper":  # the paper's size
+    if is_paper(path):  # the paper's size
         assert (cfg.model.n_embd, cfg.model.n_layer, cfg.model.n_head) == (384, 6, 6)
         assert cfg.optim.accumulate == 8 and cfg.optim.grad_clip == 1.0
         assert 10.5e6 < n_params < 11.5e6
@@ -250,7 +254,7 @@ def test_gpu_pretrain_script_builds_a_loadable_config(scenario: str, tmp_path: P
     out = subprocess.run(["bash", "scripts/gpu_pretrain.sh", scenario, str(tmp_path)], cwd=ROOT, env=env,
                          capture_output=True, text=True, timeout=120)  # fmt: skip
     assert out.returncode == 0, out.stderr
-    assert f"config OK (recipes/paper/{scenario}-pretrain.yaml" in out.stdout
+    assert f"config OK (recipes/{scenario}/paper-pretrain.yaml" in out.stdout
 
 
 def test_gpu_pretrain_script_rejects_an_unknown_scenario(tmp_path: Path) -> None:
@@ -259,4 +263,4 @@ def test_gpu_pretrain_script_rejects_an_unknown_scenario(tmp_path: Path) -> None
     out = subprocess.run(["bash", "scripts/gpu_pretrain.sh", "nope", str(tmp_path)], cwd=ROOT, capture_output=True,
                          text=True, timeout=60)  # fmt: skip
     assert out.returncode == 2 and out.stderr.count("\n") == 1
-    assert "no recipe recipes/paper/nope-pretrain.yaml" in out.stderr
+    assert "no recipe recipes/nope/paper-pretrain.yaml" in out.stderr

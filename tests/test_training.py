@@ -365,7 +365,7 @@ def test_ddp_two_cpu_processes(tmp_path: Path) -> None:
     assert torch.load(tmp_path / "ddp" / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 2
 
 
-PRETRAIN_RECIPES = sorted((Path(__file__).resolve().parents[1] / "recipes" / "paper").glob("*-pretrain.yaml"))
+PRETRAIN_RECIPES = sorted((Path(__file__).resolve().parents[1] / "recipes").glob("*/paper-pretrain.yaml"))
 
 
 @pytest.mark.parametrize("cuda", [False, True], ids=["cpu", "cuda-faked"])
@@ -389,7 +389,7 @@ def test_paper_recipes_pick_the_gpu_when_present_and_bf16_on_either(
         monkeypatch.setattr("lightning.fabric.accelerators.cuda.num_cuda_devices", lambda: 1)
         monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
         monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
-    assert {p.stem for p in PRETRAIN_RECIPES} == {"freeflyer-pretrain", "quadrotor-pretrain", "rpod-pretrain"}
+    assert {p.parent.name for p in PRETRAIN_RECIPES} == {"freeflyer", "quadrotor", "rpod"}
     for path in PRETRAIN_RECIPES:
         cfg = load_train_config(path, [f"trainer.out_dir={tmp_path}"])
         trainer = build_trainer(replace(cfg.trainer, max_steps=1), cfg.optim, tmp_path, None)
