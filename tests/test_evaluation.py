@@ -84,7 +84,7 @@ def test_paper_normalisation_uses_problems_feasible_for_every_method() -> None:
 
 def test_closed_loop_rows_pair_each_method_with_rel_mpc_on_the_problems_both_ran_feasibly() -> None:
     """The per-method means average different feasible sets; the paired column does not (issue 17's comparison)."""
-    from ttompc.evaluation.closed_loop import format_table, summarize
+    from ttompc.evaluation.closed_loop_report import format_table, summarize
 
     common = {"mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0, "target_change": 0.1,
               "terminal_error": 0.0, "plant": "perturbed"}  # fmt: skip
@@ -106,7 +106,7 @@ def test_closed_loop_rows_pair_each_method_with_rel_mpc_on_the_problems_both_ran
 def test_headline_pairs_the_short_horizon_with_rel_mpc_at_the_long_one() -> None:
     """The paper's headline row: a method at the shortest H against REL-MPC at the longest, paired over the
     problems both reach feasibly, with the step-time ratio; nothing for a single horizon."""
-    from ttompc.evaluation.closed_loop import format_headline, headline
+    from ttompc.evaluation.closed_loop_report import format_headline, headline
 
     def rec(p: int, m: str, H: int, inc: float | None, step: float) -> dict:
         return {"problem": p, "method": m, "horizon": H, "plant": "nominal", "feasible": inc is not None,

@@ -523,7 +523,8 @@ def test_rel_mpc_starts_each_rel_from_the_previous_plan(setup: tuple, monkeypatc
 def test_closed_loop_settings_are_labelled_departures() -> None:
     """``evaluate mpc`` lists the settings that depart from the paper under its table, validates the protocol and
     its overrides, and splits the problems into pool tasks that do not depend on the number of workers."""
-    from ttompc.evaluation.closed_loop import ClosedLoopConfig, departures, protocol_label, tasks
+    from ttompc.evaluation.closed_loop import ClosedLoopConfig, tasks
+    from ttompc.evaluation.closed_loop_report import departures, protocol_label
 
     sc = get_scenario(mpc_fakes.FreeFlyerShort.name)
     paper = ClosedLoopConfig(scenario=sc.name, mpc={"track": sc.mpc.terminal})

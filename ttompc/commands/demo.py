@@ -35,7 +35,7 @@ class DemoConfig:
             raise ValueError(f"problems and horizon must be >= 1, got {self.problems}, {self.horizon}")
 
 
-_FLAGS = {"model": "model", "problems": "problems", "horizon": "horizon", "seed": "seed", "out": "out"}
+_FLAGS = ("model", "problems", "horizon", "seed", "out")  # shortcut flags, dest = config key
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

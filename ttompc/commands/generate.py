@@ -18,21 +18,9 @@ from ttompc.config import add_config_arguments, load_command_config, shortcut_ov
 from ttompc.data.config import GenerateConfig
 from ttompc.errors import UserError
 
-# flag dest -> GenerateConfig key
-_FLAGS = {
-    "scenario": "scenario",
-    "problems": "problems",
-    "out": "out",
-    "seed": "seed",
-    "shard_size": "shard_size",
-    "workers": "workers",
-    "backend": "backend",
-    "solver": "solver",
-    "max_shards": "max_shards",
-    "finalize_wait": "finalize_wait_s",
-    "name": "name",
-    "split_salt": "splits.salt",
-}
+# shortcut flags: argparse dest -> GenerateConfig key, the same name but for --finalize-wait and --split-salt
+_SAME = ("scenario", "problems", "out", "seed", "shard_size", "workers", "backend", "solver", "max_shards", "name")
+_FLAGS = {**{name: name for name in _SAME}, "finalize_wait": "finalize_wait_s", "split_salt": "splits.salt"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

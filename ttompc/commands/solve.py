@@ -25,7 +25,7 @@ class SolveConfig:
     plot: str | None = None  # PNG path for a plot of the REL and SCP trajectories
 
 
-_FLAGS = {"scenario": "scenario", "seed": "seed", "backend": "backend", "formulation": "formulation", "plot": "plot"}
+_FLAGS = ("scenario", "seed", "backend", "formulation", "plot")  # shortcut flags, dest = config key
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

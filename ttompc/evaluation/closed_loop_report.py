@@ -1,0 +1,232 @@
+"""The report of the closed-loop study (``ttompc evaluate mpc``, ``ttompc.evaluation.closed_loop``): its rows, tables
+and the files it writes.
+
+Reported per (plant, method, H): runs, feasible and infeasible counts (infeasible or goal-missing runs are never
+averaged into a cost), (J − J_REL)/J_REL over feasible runs with standard error and bootstrap interval, the paper's
+normalisation (problems feasible for every method, DIST-MPC's worst horizon = 1), the paired difference to
+REL-MPC on the problems both ran feasibly (fair where the feasible sets differ), the share of the reachable gain
+REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between steps) and step times
+(``summarize``, ``format_table``); with more than one horizon, every method at the shortest against REL-MPC at the
+longest (``headline``). The report names its protocol (``protocol_label``) and records the resolved settings; the
+settings that depart from the paper preset (``departures``) are listed under the table (``write_report``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ttompc.evaluation.episodes import summarize_episodes
+from ttompc.evaluation.measurement import Measurement
+from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
+from ttompc.evaluation.stats import format_interval, interval
+from ttompc.mpc.settings import MPCSettings
+from ttompc.scenarios.base import Scenario
+from ttompc.solvers.backends import solver_path
+
+BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"
+
+
+def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
+    """The settings of a run that depart from the paper (and from the authors' code), one sentence each."""
+    out = []
+    track = scenario.mpc.tracking if settings.track is None else settings.track
+    if track != scenario.mpc.terminal:
+        out.append(
+            f"plan-tracking terminal weight {track:g} for TTO-MPC, PLAN-ONCE and ORACLE-MPC (the paper: "
+            f"{scenario.mpc.terminal:g}, below the terminal multipliers of optimal plans; docs/evaluation.md)"
+        )
+    if settings.end_horizon > 0:
+        out.append(
+            f"shrinking end horizon: windows run to N once N − t <= {settings.end_horizon} (the paper keeps H and "
+            "truncates the windows at N)"
+        )
+    if settings.rtg_mode != "running":
+        out.append(
+            f"reward-to-go fed in closed loop: {settings.rtg_mode} (the paper: the running rtg_0 + executed cost)"
+        )
+    if settings.finish > 0:
+        out.append(
+            f"finish cost (weight {settings.finish:g}): windows that stop before N also pay the price of reaching the "
+            "goal from their last state in the steps left (ttompc.mpc.finish; the paper: the terminal target alone)"
+        )
+    if settings.mode != "soft":
+        out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
+    if settings.rti:
+        out.append(
+            "real-time iteration: one SCP subproblem per MPC step from the previous solution shifted (the paper "
+            "solves every window to convergence)"
+        )
+    return out
+
+
+def protocol_label(cfg: Measurement) -> str:
+    """How a report names its protocol: the preset, and the overrides when there are any."""
+    overrides = " ".join(f"mpc.{k}={v}" for k, v in cfg.mpc.items())
+    return f"{cfg.protocol} {overrides}" if overrides else cfg.protocol
+
+
+def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
+    """Rows per (plant, method, horizon): ``summarize_episodes`` + paper normalisation + share of reachable gain."""
+    rows = []
+    for plant in sorted({r["plant"] for r in records}):
+        recs = [r for r in records if r["plant"] == plant]
+        methods = list(dict.fromkeys(r["method"] for r in recs))
+        paper = {(p["method"], p["horizon"]): p for p in paper_normalized(recs, methods, REFERENCE, seed=seed)}
+        for m in methods:
+            for H in sorted({r["horizon"] for r in recs}):
+                group = [r for r in recs if r["method"] == m and r["horizon"] == H]
+                row: dict[str, Any] = {
+                    "plant": plant,
+                    "method": m,
+                    "horizon": H,
+                    **summarize_episodes(group, seed=seed),
+                }
+                if (m, H) in paper:
+                    row["paper_norm"] = paper[(m, H)]["paper_norm"]
+                    row["paper_problems"] = paper[(m, H)]["problems"]
+                if m != BASELINE:  # paired with REL-MPC on the problems both ran feasibly (nan = infeasible)
+                    inc = {
+                        k: {r["problem"]: r["rel_increment"] for r in recs if r["method"] == k and r["horizon"] == H}
+                        for k in (BASELINE, m)
+                    }
+                    row["vs_rel_mpc"] = interval(
+                        [v - inc[BASELINE][p] for p, v in inc[m].items() if p in inc[BASELINE]], seed=seed
+                    )
+                if m not in (BASELINE, CEILING):
+                    cost = {
+                        k: {r["problem"]: (r["cost"] if r["feasible"] else np.nan) for r in recs
+                            if r["method"] == k and r["horizon"] == H}
+                        for k in (BASELINE, m, CEILING)
+                    }  # fmt: skip
+                    probs = sorted(cost[m])
+                    row["gain_share"] = gain_share(
+                        *(np.array([cost[k].get(p, np.nan) for p in probs]) for k in (BASELINE, m, CEILING)), seed=seed
+                    )
+                rows.append(row)
+    return rows
+
+
+def headline(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
+    """The paper's headline comparison, when more than one horizon ran: every method at the shortest horizon against
+    REL-MPC at the longest, per plant: goals reached, the paired difference in (J − J_REL)/J_REL over the problems
+    both reach feasibly, and how many times lower the mean step time is. Empty for a single horizon."""
+    horizons = sorted({r["horizon"] for r in records})
+    if len(horizons) < 2:
+        return []
+    short, long = horizons[0], horizons[-1]
+    rows = []
+    for plant in sorted({r["plant"] for r in records}):
+        base = [r for r in records if r["plant"] == plant and r["method"] == BASELINE and r["horizon"] == long]
+        ref = {r["problem"]: r for r in base}
+        for m in dict.fromkeys(r["method"] for r in records if r["plant"] == plant):
+            group = [r for r in records if r["plant"] == plant and r["method"] == m and r["horizon"] == short]
+            both = [(r, ref[r["problem"]]) for r in group
+                    if r["feasible"] and r["problem"] in ref and ref[r["problem"]]["feasible"]]  # fmt: skip
+            rows.append({
+                "plant": plant, "method": m, "horizon": short, "baseline_horizon": long, "runs": len(group),
+                "feasible": sum(r["feasible"] for r in group), "baseline_feasible": sum(r["feasible"] for r in base),
+                "vs_baseline": interval([a["rel_increment"] - b["rel_increment"] for a, b in both], seed=seed),
+                "step_ratio": float(np.mean([r["mean_step_time"] for r in base])
+                                    / np.mean([r["mean_step_time"] for r in group])),
+            })  # fmt: skip
+    return rows
+
+
+def format_headline(rows: list[dict[str, Any]]) -> str:
+    """A markdown table of ``headline`` (empty string when there is none)."""
+    if not rows:
+        return ""
+    H, long = rows[0]["horizon"], rows[0]["baseline_horizon"]
+    lines = [
+        f"\n### Against {BASELINE}@{long}: every method at H = {H}\n",
+        f"| plant | method | goals | {BASELINE}@{long} goals | paired vs {BASELINE}@{long}, points (n) "
+        f"| step time vs {BASELINE}@{long} |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        vs = r["vs_baseline"]
+        paired = f"{format_interval(vs, 100)} ({vs['n']})" if vs["n"] else "–"
+        lines.append(
+            f"| {r['plant']} | {r['method']} | {r['feasible']}/{r['runs']} | {r['baseline_feasible']}/{r['runs']} "
+            f"| {paired} | {r['step_ratio']:.1f}× lower |"
+        )
+    return "\n".join(lines)
+
+
+def format_table(summary: list[dict[str, Any]]) -> str:
+    """A readable markdown table of ``summarize``."""
+    lines = [
+        "| plant | method | H | feasible | (J − J_REL)/J_REL, % (mean ± s.e. [95% CI]) | paired vs REL-MPC, points "
+        "(n) | paper norm. | share of reachable gain, % | goal miss of infeasible runs [m] | target change "
+        "| mean / max step [ms] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in summary:
+        paper = format_interval(r["paper_norm"], 1, 2) if "paper_norm" in r else "–"
+        share = format_gain_share(r["gain_share"]) if "gain_share" in r else "–"
+        vs = r.get("vs_rel_mpc")
+        paired = f"{format_interval(vs, 100)} ({vs['n']})" if vs and vs["n"] else "–"
+        lines.append(
+            f"| {r['plant']} | {r['method']} | {r['horizon']} | {r['feasible']}/{r['runs']} "
+            f"| {format_interval(r['rel_increment'], 100)} | {paired} | {paper} | {share} "
+            f"| {format_interval(r['infeasible_terminal_error'], 1, 2)} | {r['target_change']['mean']:.3g} "
+            f"| {r['mean_step_time'] * 1e3:.0f} / {r['max_step_time'] * 1e3:.0f} |"
+        )
+    for plant in dict.fromkeys(r["plant"] for r in summary):
+        n = max((r.get("paper_problems", 0) for r in summary if r["plant"] == plant), default=0)
+        lines.append(
+            f"\n{plant} plant: paper normalisation over {n} problems feasible for every method."
+            if n
+            else f"\n{plant} plant: paper normalisation undefined (no problem on which every method is feasible, or "
+            "DIST-MPC never costs more than J_REL)."
+        )
+    lines.append(
+        "Costs average feasible runs only; infeasible runs (keep-out, path or goal tolerance violated) are counted "
+        "in 'feasible' and described by their goal miss. Paired vs REL-MPC: the mean per-problem difference in "
+        "(J − J_REL)/J_REL over the n problems both ran feasibly (negative: cheaper). Share of reachable gain: "
+        "REL-MPC = 0, ORACLE-MPC = 100; "
+        "undefined when the reachable gain (REL-MPC − ORACLE-MPC cost) is within noise."
+    )
+    return "\n".join(lines)
+
+
+def write_report(
+    cfg: Measurement, sc: Scenario, records: list[dict[str, Any]], out: Path, workers: int, started: float
+) -> dict[str, Any]:
+    """The report of the episode ``records`` of the measurement ``cfg`` (a ``ClosedLoopConfig``) on ``sc``: writes
+    ``mpc.json``, ``mpc.md`` (the table), ``mpc_runs.csv`` and plots into ``out`` and returns the report; ``workers``
+    is recorded in its config and ``started`` (``time.perf_counter()`` at the start) gives its wall time."""
+    from ttompc.evaluation.plots import plot_horizon
+
+    summary = summarize(records, cfg.seed)
+    settings = cfg.settings
+    notes = departures(settings, sc)
+    head = headline(records, cfg.seed)
+    table = format_table(summary) + f"\nProtocol: {protocol_label(cfg)}."
+    if notes:
+        table += "\nDepartures from the paper: " + "; ".join(notes) + "."
+    table += format_headline(head)
+    report = {
+        "config": {**asdict(cfg), "out": str(out), "workers": workers},
+        "protocol": {"name": protocol_label(cfg), "settings": asdict(settings)},
+        "solver": solver_path(settings.backend, sc),
+        "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
+        "perturbed_plant": asdict(cfg.plant.resolve(sc)),  # the disturbance the perturbed episodes met
+        "wall_time_s": time.perf_counter() - started,
+        "departures": notes,
+        "summary": summary,
+        "headline": head,
+        "table": table,
+        "runs": records,
+    }
+    write_json(out / "mpc.json", report)
+    (out / "mpc.md").write_text(f"# Closed loop: {sc.name}, {cfg.problems} problems\n\n{table}\n")
+    write_csv(out / "mpc_runs.csv", records)
+    report["plots"] = [str(p) for p in plot_horizon(summary, out)]
+    report["out"] = str(out)
+    return report
