@@ -46,6 +46,34 @@ def _rows(n: int, source: str = "scp") -> list[dict]:
     return rows
 
 
+def test_ctrl_c_during_a_shard_write_is_raised_after_the_shard_is_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A SIGINT that lands while the table is built or written (inside pyarrow/datasets it once surfaced as a
+    features mismatch, exit 1) is held: the shard is written whole, then KeyboardInterrupt is raised, and the
+    previous SIGINT handler is back."""
+    import os
+    import signal
+
+    import ttompc.data.shards as shards
+
+    sc = get_scenario("data-fake")
+    rows = _rows(3)
+    feats = trajectory_features(sc)
+    write_table = shards.pq.write_table
+
+    def interrupted_write(table: object, where: str) -> None:
+        os.kill(os.getpid(), signal.SIGINT)  # delivered now, in the middle of the write
+        write_table(table, where)
+
+    monkeypatch.setattr(shards.pq, "write_table", interrupted_write)
+    handler = signal.getsignal(signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        write_shard(rows, tmp_path / "s.parquet", feats)
+    assert signal.getsignal(signal.SIGINT) is handler
+    assert len(read_shard(tmp_path / "s.parquet")) == len(rows)
+
+
 def test_round_trip_equals_written_rows(tmp_path: Path) -> None:
     sc = get_scenario("data-fake")
     rows = _rows(5) + _rows(3, "dagger")

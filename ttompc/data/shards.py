@@ -8,11 +8,14 @@ corruption (checksum mismatch, truncated file, bad footer) into a ``ShardError``
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
+import signal
 import tempfile
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -105,22 +108,43 @@ def rows_to_columns(rows: Sequence[dict[str, Any]], features: Features) -> dict[
     return cols
 
 
+@contextlib.contextmanager
+def interrupt_after() -> Iterator[None]:
+    """Hold a Ctrl-C (SIGINT) that arrives inside the block until the block ends, then raise ``KeyboardInterrupt``.
+    An interrupt landing inside pyarrow's or datasets' callbacks surfaces as an unrelated error (a features mismatch,
+    exit 1) instead of the interrupt a resumable command reports; held, it leaves a whole shard. Only the main
+    thread receives signals: elsewhere the block runs as is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+    if caught:
+        raise KeyboardInterrupt
+
+
 def write_shard(rows: Sequence[dict[str, Any]], path: str | Path, features: Features) -> int:
-    """Write ``rows`` (see ``schema.make_row``) to the parquet file ``path`` atomically; returns the row count."""
+    """Write ``rows`` (see ``schema.make_row``) to the parquet file ``path`` atomically; returns the row count. A
+    Ctrl-C during the write is raised once the shard is complete (``interrupt_after``)."""
     if not rows:
         raise ValueError(f"refusing to write an empty shard {path}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # the table carries the ``datasets`` features in its schema metadata; pyarrow's own writer (a context manager)
-    # is closed even when Ctrl-C lands mid-write, where ``Dataset.to_parquet`` left a writer whose finaliser printed
-    # a traceback at exit
-    table = Dataset.from_dict(rows_to_columns(rows, features), features=features).data.table
-    tmp = _tmp_path(path)
-    try:
-        pq.write_table(table, str(tmp))
-        _replace_atomically(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with interrupt_after():
+        # the table carries the ``datasets`` features in its schema metadata; pyarrow's own writer (a context
+        # manager) is closed even when an exception lands mid-write, where ``Dataset.to_parquet`` left a writer
+        # whose finaliser printed a traceback at exit
+        table = Dataset.from_dict(rows_to_columns(rows, features), features=features).data.table
+        tmp = _tmp_path(path)
+        try:
+            pq.write_table(table, str(tmp))
+            _replace_atomically(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
     return len(rows)
 
 
