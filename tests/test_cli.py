@@ -81,6 +81,10 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
             ["is not a dataset made by `ttompc generate` (no manifest.json)"],
         ),
         (["finetune", str(REPO / "recipes/freeflyer/finetune.yaml")], ["--model"]),
+        (  # an MPC setting that does not exist (here the removed finish cost) is named with the valid ones
+            ["evaluate", "mpc", "--scenario", "freeflyer", "mpc.finish=1"],
+            ["unknown setting 'finish'", "valid keys: mode, end_horizon, track, rtg_mode, reuse, rti, backend"],
+        ),
         (["zoo", "info", "nope"], ["no model 'nope'"]),
         (
             ["evaluate", "warmstart", "--model", "hf://org/nope", "problems=1"],

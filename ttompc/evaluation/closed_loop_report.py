@@ -49,11 +49,6 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
         out.append(
             f"reward-to-go fed in closed loop: {settings.rtg_mode} (the paper: the running rtg_0 + executed cost)"
         )
-    if settings.finish > 0:
-        out.append(
-            f"finish cost (weight {settings.finish:g}): windows that stop before N also pay the price of reaching the "
-            "goal from their last state in the steps left (ttompc.mpc.finish; the paper: the terminal target alone)"
-        )
     if settings.mode != "soft":
         out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
     if settings.rti:

@@ -4,11 +4,10 @@ At each step t (settings: ``MPCSettings``, ``ttompc.mpc.settings``) the provider
 [t, min(t+H, N)) with a warm start and a terminal target; the windowed problem is solved by ``solve_scp`` (the
 scenario supplies the full problem's constraints inside the window); the first control is applied with the
 *exact* dynamics ``scenario.step``. Soft mode (all paper analyses): fuel weight ``mpc.fuel``, soft equalities, the
-provider's terminal cost when the window stops early (plus, with ``finish`` > 0, the price of finishing from its last
-state, ``ttompc.mpc.finish``) and ‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the end. Hard mode keeps
-x_N = goal at the end while the goal is reachable from the window; where it is not (the penalised solve misses it by
-more than the SCP's feasibility tolerance), that window is solved as in soft mode (the soft end term) instead of
-discarding its plan (counted in ``soft_ends``).
+provider's terminal cost when the window stops early and ‖x_N − goal‖₂ weighted by ``mpc.end`` when it reaches the
+end. Hard mode keeps x_N = goal at the end while the goal is reachable from the window; where it is not (the
+penalised solve misses it by more than the SCP's feasibility tolerance), that window is solved as in soft mode (the
+soft end term) instead of discarding its plan (counted in ``soft_ends``).
 
 ``end_horizon`` (default 0: the paper's fixed H, windows truncated at N) is a departure from the paper and the
 reference: once N − t ≤ end_horizon the window runs to N (a shrinking horizon at the end), so the goal enters the
@@ -56,7 +55,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ttompc.mpc.finish import finish_cost
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
 from ttompc.mpc.settings import Mode, MPCSettings
@@ -226,17 +224,11 @@ class MPCController:
                 f"{self.provider.name}: warm start shapes {ws.X.shape}, {ws.U.shape} do not fit window {window}"
             )
         X0, U0, settings = ws.X, ws.U, None
-        terminal = ws.terminal
-        if terminal is not None and self.settings.finish > 0:
-            weight = self.settings.finish * (self.scenario.mpc.fuel if self.settings.mode == "soft" else 1.0)
-            price = finish_cost(self.scenario, self.problem, window, ws.X[-1], weight)
-            if price is not None:
-                terminal = TerminalCost(terminal.target, terminal.weights, price)
         rti = self.settings.rti and self._own is not None
         if rti:
             X0, U0 = self._rti_start(window, ws.X, ws.U)
             settings = dataclasses.replace(self.scenario.scp, max_iters=1)
-        res = self.solve(window, X0, U0, terminal, settings=settings)
+        res = self.solve(window, X0, U0, ws.terminal, settings=settings)
         iterations, soft_end = res.iterations, False
         if not self._usable(res, rti) and self.settings.mode == "hard" and window.reaches_end:
             # x_N = goal is out of reach (the penalised solve misses it): plan this window as soft mode does (the

@@ -34,8 +34,7 @@ class MPCSettings:
     plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``rtg_mode``:
     the reward-to-go TTO-MPC feeds in closed loop (``TTOProvider``). ``reuse``: plan reuse in windows that reach
     the end (same results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step.
-    ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``). ``finish``: weight of the finish
-    cost that windows stopping before N pay for their last state (``ttompc.mpc.finish``; 0: none, the paper)."""
+    ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``)."""
 
     mode: Mode = "soft"
     end_horizon: int = 0
@@ -44,11 +43,8 @@ class MPCSettings:
     reuse: bool = True
     rti: bool = False
     backend: str = "auto"
-    finish: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.finish < 0:
-            raise ValueError(f"finish must be >= 0 (0: no finish cost), got {self.finish}")
         if self.mode not in ("soft", "hard"):
             raise ValueError(f"mode must be 'soft' or 'hard', got {self.mode!r}")
         if self.end_horizon < 0:

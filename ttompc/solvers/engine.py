@@ -197,7 +197,6 @@ def _subproblem_solver(
         vc_rows=tuple(sc.approximate_rows),
         trust=trust_norm if np.isfinite(settings.tr_start) else "none",
         terminal="hard" if terminal is None else "soft",
-        finish=finish_kind(terminal),
         soft_equalities=scp.soft,
         penalty=float(settings.penalty),
         blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
@@ -238,7 +237,6 @@ def _subproblem_data(
         goal=scp.problem.goal,
         terminal_target=None if terminal is None else terminal.target,
         terminal_weights=None if terminal is None else terminal.weights,
-        finish=None if terminal is None else terminal.finish,
     )
 
 
@@ -270,13 +268,6 @@ def _hard(block: ConstraintBlock) -> ConstraintBlock:
 
 def _terminal_term(X: np.ndarray, terminal: TerminalCost | None) -> float:
     return 0.0 if terminal is None else terminal(X[-1])
-
-
-def finish_kind(terminal: TerminalCost | None) -> str:
-    """The subproblem's finish-cost structure: "none", "quad" (squared norm) or "norm"."""
-    if terminal is None or terminal.finish is None:
-        return "none"
-    return "quad" if terminal.finish.squared else "norm"
 
 
 def _eq_rows(block: ConstraintBlock, X: np.ndarray, U: np.ndarray) -> np.ndarray:

@@ -55,9 +55,6 @@ class NaiveCvxpySolver:
                 cons.append(x[H] == data.goal)
         else:
             cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - data.terminal_target), 2)
-            if data.finish is not None:
-                y = data.finish.L @ x[H] - data.finish.l
-                cost += cp.sum_squares(y) if data.finish.squared else cp.norm(y, 2)
         for block in data.blocks:
             for kk, k in enumerate(block.steps):
                 expr = block.Gx[kk] @ x[k]

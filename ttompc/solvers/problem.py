@@ -19,9 +19,9 @@ Formulation = Literal["penalized", "reference"]
 class SCPProblem:
     """``problem`` of ``scenario`` over ``window`` (default: the whole horizon [0, N)).
 
-    * ``terminal``: the soft terminal term ‖diag(w)(x_{t+H} − target)‖₂ (+ its finish price); required for a window
-      that stops before N. Without one, a window that reaches N keeps x_N = goal (hard in the reference formulation,
-      penalised in the penalized one).
+    * ``terminal``: the soft terminal term ‖diag(w)(x_{t+H} − target)‖₂; required for a window that stops before N.
+      Without one, a window that reaches N keeps x_N = goal (hard in the reference formulation, penalised in the
+      penalized one).
     * ``obstacles=False``: the REL relaxation (no keep-out constraints).
     * ``soft``: MPC soft mode: the stage cost weighted by the scenario's ``mpc.fuel`` and waypoint-type equalities as
       weighted 2-norm penalties; otherwise weight 1 and hard equalities.

@@ -68,35 +68,17 @@ class SCPResult:
         }
 
 
-@dataclass(frozen=True)
-class FinishCost:
-    """The price of finishing from a window's last state x: ‖L x − l‖₂² when ``squared``, else ‖L x − l‖₂
-    (``ttompc.mpc.finish`` builds it)."""
-
-    L: np.ndarray  # (n, n)
-    l: np.ndarray  # (n,)
-    squared: bool
-
-    def __call__(self, x: np.ndarray) -> float:
-        r = float(np.linalg.norm(self.L @ np.asarray(x) - self.l))
-        return r * r if self.squared else r
-
-
 @dataclass(frozen=True, init=False)
 class TerminalCost:
-    """Soft terminal term ‖diag(weights) (x_{t+H} − target)‖₂ replacing the terminal equality (MPC), plus the
-    ``finish`` price of x_{t+H} when given."""
+    """Soft terminal term ‖diag(weights) (x_{t+H} − target)‖₂ replacing the terminal equality (MPC)."""
 
     target: np.ndarray  # (n,)
     weights: np.ndarray  # (n,); a scalar given to the constructor weighs every state alike
-    finish: FinishCost | None = None
 
-    def __init__(self, target: ArrayLike, weights: ArrayLike, finish: FinishCost | None = None) -> None:
+    def __init__(self, target: ArrayLike, weights: ArrayLike) -> None:
         object.__setattr__(self, "target", np.asarray(target, dtype=np.float64))
         object.__setattr__(self, "weights", np.broadcast_to(np.asarray(weights, float), self.target.shape))
-        object.__setattr__(self, "finish", finish)
 
     def __call__(self, x: np.ndarray) -> float:
         """The term's value at the window's last state ``x``."""
-        value = float(np.linalg.norm(self.weights * (np.asarray(x) - self.target)))
-        return value + (0.0 if self.finish is None else self.finish(x))
+        return float(np.linalg.norm(self.weights * (np.asarray(x) - self.target)))

@@ -18,7 +18,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, units_of
-from ttompc.solvers.results import FinishCost
 
 
 @dataclass
@@ -33,7 +32,6 @@ class SubproblemData:
     goal: np.ndarray  # (n,) terminal state for a hard terminal condition
     terminal_target: np.ndarray | None  # (n,) x̄ for the soft terminal term
     terminal_weights: np.ndarray | None  # (n,) diagonal of P
-    finish: FinishCost | None = None  # the price of finishing from x_H (spec.finish says its form)
 
 
 @dataclass(frozen=True)
@@ -57,7 +55,6 @@ class SubproblemSpec:
     control_scale: tuple[float, ...] = ()
     model_masks: tuple[tuple[bool, ...], tuple[bool, ...]] | None = None  # flattened A/B masks (None: dense)
     vc_rows: tuple[int, ...] = ()
-    finish: str = "none"  # soft terminal only: "none", "quad" (τ ≥ ‖L x_H − l‖₂²) or "norm" (τ ≥ ‖L x_H − l‖₂)
 
     def units(self) -> tuple[np.ndarray, np.ndarray]:
         """The state and control units of the non-dimensionalised variables (ones where no scale is given)."""
@@ -172,20 +169,6 @@ class AssembledSubproblem:
             self._entries(g, np.arange(1, n + 1), self.ix[H], ("data", ("terminal_weights", np.arange(n), -1.0)))
             g.b.append((np.arange(1, n + 1), ("weighted_target", np.arange(n), -1.0)))
             q_parts.append((tau, 1.0))
-            if spec.finish != "none":  # y = L x_H − l; norm: τ_f ≥ ‖y‖₂; quad: ‖(2y, τ_f − 1)‖₂ ≤ τ_f + 1 ⇔ τ_f ≥ ‖y‖₂²
-                quad = spec.finish == "quad"
-                tau_f = self._var(1)
-                head = 2 if quad else 1
-                g = self._soc(head + n)
-                self._entries(g, np.arange(head), tau_f, ("const", -np.ones(head)))
-                if quad:
-                    g.b.append((np.arange(2), ("finish_one", np.zeros(2, dtype=int), 1.0)))
-                    g.b.append((np.array([1]), ("finish_one", np.zeros(1, dtype=int), -2.0)))
-                rows = np.broadcast_to(head + np.arange(n)[:, None], (n, n))
-                cols = np.broadcast_to(self.ix[H][None, :], (n, n))
-                self._entries(g, rows, cols, ("data", ("finish_L", np.arange(n * n), -1.0)))
-                g.b.append((head + np.arange(n), ("finish_l", np.arange(n), -1.0)))
-                q_parts.append((tau_f, 1.0))
 
         # stage cost
         if spec.cost_norm == "l1":  # t ≥ |u| elementwise
@@ -402,13 +385,6 @@ class AssembledSubproblem:
         if data.terminal_weights is not None and data.terminal_target is not None:
             src["terminal_weights"] = data.terminal_weights
             src["weighted_target"] = data.terminal_weights * data.terminal_target
-        if self.spec.finish != "none":
-            if data.finish is None:
-                raise ValueError("this subproblem structure has a finish cost, the data none")
-            k = 2.0 if self.spec.finish == "quad" else 1.0  # the quadratic's cone holds 2y
-            src["finish_L"] = k * np.ascontiguousarray(data.finish.L).ravel()
-            src["finish_l"] = k * np.asarray(data.finish.l)
-            src["finish_one"] = np.ones(1)
         for bi, block in enumerate(data.blocks):
             src[f"G{bi}x"] = np.ascontiguousarray(block.Gx).ravel()
             if block.Gu is not None:
