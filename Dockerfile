@@ -13,6 +13,9 @@ RUN apt-get update -qq && apt-get install -y -qq --no-install-recommends make gi
 WORKDIR /opt/ttompc
 COPY . .
 RUN make install TORCH_PIP_ARGS="--index-url https://download.pytorch.org/whl/cpu"
+# compile the Riccati kernel of the default solver path into numba's on-disk cache inside the image, so that containers
+# load it instead of each compiling it (~20 s); on a CPU other than the build machine's each container compiles again
+RUN .venv/bin/ttompc solve --scenario freeflyer >/dev/null && .venv/bin/ttompc solve --scenario quadrotor >/dev/null
 
 ENTRYPOINT ["/opt/ttompc/.venv/bin/ttompc"]
 CMD ["--help"]

@@ -303,7 +303,7 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     assert exported.extra["dagger_iteration"] == 0 and exported.extra["dagger_kept"] == [0]
     protocol = state["protocol"]  # the measurement's settings, in the state file and the exported bundle
     assert protocol["name"] == cfg.dagger.eval.protocol and protocol["settings"]["end_horizon"] >= 0
-    assert protocol["solver"]["chain"][0] == "piqp" and exported.extra["dagger_protocol"] == protocol
+    assert protocol["solver"]["chain"][0] == "riccati" and exported.extra["dagger_protocol"] == protocol
     hp = torch.load(run / "checkpoints" / "iter-001.ckpt", map_location="cpu", weights_only=True)["hyper_parameters"]
     assert hp["solver"] == protocol["solver"] == exported.extra["solver"]  # the checkpoint records what DAgger solved
     assert exported.rtg_scale == 1.2

@@ -14,7 +14,7 @@ from ttompc.cli import main as cli_main
 from ttompc.data.cards import parse_front_matter
 from ttompc.data.config import GenerateConfig, SplitConfig
 from ttompc.data.distributed import RankInfo, rank_info
-from ttompc.data.generate import GenerationError, generate, split_of
+from ttompc.data.generate import GenerationError, finalize, generate, split_of
 from ttompc.data.schema import constraints_to_go, problem_from_row, returns_to_go
 from ttompc.data.shards import read_shard
 from ttompc.scenarios import get_scenario
@@ -171,6 +171,24 @@ def test_mismatched_generation_is_refused(dataset: tuple[Path, dict], tmp_path: 
         generate(_cfg(out, problems=20, seed=8), progress=False)
     with pytest.raises(GenerationError, match="beyond"):
         generate(_cfg(out, problems=10), progress=False)
+
+
+def test_a_folder_from_before_issue_36_continues_on_the_path_it_was_made_with(tmp_path: Path) -> None:
+    """Fingerprints record the resolved solver path; one without (written before issue 36) ran with ``auto`` what
+    ``piqp`` runs now: the default (now the Riccati kernel first) is refused, ``backend=piqp`` continues it, and the
+    manifest and card name the chain."""
+    out = tmp_path / "old"
+    generate(_cfg(out, problems=20), progress=False)
+    path = out / "meta" / "generation.json"
+    stored = json.loads(path.read_text())
+    assert stored["solver_path"] == {"chain": ["riccati", "piqp", "qoco", "clarabel"], "trust_norm": "linf"}
+    del stored["solver_path"]
+    path.write_text(json.dumps(stored))
+    with pytest.raises(GenerationError, match=r"solver_path.*backend=piqp"):
+        finalize(_cfg(out, problems=20))
+    manifest = finalize(_cfg(out, problems=20, backend="piqp"))
+    assert manifest["solver_path"]["chain"] == ["piqp", "qoco", "clarabel"]
+    assert "(backend: piqp: solvers piqp → qoco → clarabel, linf trust region)" in (out / "README.md").read_text()
 
 
 def test_card_header_is_valid_and_folder_loads_by_name(dataset: tuple[Path, dict], tmp_path: Path) -> None:

@@ -293,7 +293,14 @@ def test_evaluate_mpc_command_and_bad_settings(tmp_path: Path) -> None:
     assert report["protocol"] == {"name": "zoo mpc.mode=hard", "settings": {**asdict(MPCSettings(end_horizon=30)),
                                                                            "mode": "hard"}}  # fmt: skip
     assert "Protocol: zoo mpc.mode=hard." in (out / "mpc.md").read_text()
-    assert report["solver"] == {"backend": "auto", "chain": ["piqp", "qoco", "clarabel"], "trust_norm": "linf"}
+    # SCP iterations per solved step: in every run (JSON and CSV) and the report's rows (each step solved here)
+    for r in report["runs"]:
+        assert r["mean_iterations_solved"] >= 1 and r["mean_iterations_solved"] == r["mean_iterations"]
+    with open(out / "mpc_runs.csv") as f:
+        assert all(float(r["mean_iterations_solved"]) >= 1 for r in csv.DictReader(f))
+    assert all(r["mean_iterations_solved"] >= 1 for r in report["summary"])
+    chain = ["riccati", "piqp", "qoco", "clarabel"]  # the resolved chain: "auto" meant ["piqp", ...] before issue 36
+    assert report["solver"] == {"backend": "auto", "chain": chain, "trust_norm": "linf"}
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "plants=[windy]"]) == 2
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "protocol=nope"]) == 2
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "mpc.end_horizont=3"]) == 2

@@ -1,5 +1,6 @@
 """The compact-QP backend (PIQP) against the conic assembly (Clarabel) and the independent cvxpy model on the same
-subproblems, for every scenario it serves; the structural masks it relies on; and which path ``auto`` takes."""
+subproblems, for every scenario it serves; the structural masks it relies on; and which path ``piqp`` (``auto``
+without the Riccati kernel) takes."""
 
 from __future__ import annotations
 
@@ -17,9 +18,6 @@ from ttompc.solvers.backends.conic import AssembledSolver
 from ttompc.solvers.backends.qp import PIQPSolver
 from ttompc.solvers.naive import NaiveCvxpySolver
 from ttompc.solvers.subproblem import SubproblemSpec
-
-pytest.importorskip("piqp")  # the optional fast extra
-
 
 CASES = [
     ("freeflyer", Window(0, 100, 100), True, True),
@@ -105,19 +103,21 @@ def test_structural_masks_cover_every_nonzero(name) -> None:
                 assert not np.any(block.Gu[:, ~block.Gu_mask]), block.name
 
 
-def test_auto_uses_the_qp_where_there_is_no_cone() -> None:
+def test_the_piqp_path_uses_the_qp_where_there_is_no_cone() -> None:
     ff = get_scenario("freeflyer")
     p = ff.sample(np.random.default_rng(1))
-    rel = solve_rel(ff, p)
+    rel = solve_rel(ff, p, backend="piqp")
     assert rel.success and all("PIQP" in h.solver_status for h in rel.history)
     # an MPC window's soft terminal term is a 2-norm: the conic chain takes it, with the ∞-norm trust region
     w = Window(0, 10, 100)
-    res = solve_scp(SCPProblem(ff, p, w, TerminalCost(rel.X[10], 1.0)), rel.X[:11], rel.U[:10])
+    res = solve_scp(SCPProblem(ff, p, w, TerminalCost(rel.X[10], 1.0)), rel.X[:11], rel.U[:10],
+                    SCPOptions(backend="piqp"))  # fmt: skip
     assert res.success and not any("PIQP" in h.solver_status for h in res.history)
     # RPOD's 2-norm cost needs cones: its auto chain is conic only
     rp = get_scenario("rpod")
     assert get_scenario("rpod").auto_backends == ("clarabel",)
-    assert not isinstance(get_solver(_rpod_spec(rp), "auto", rp), PIQPSolver)
+    for backend in ("auto", "piqp"):
+        assert not isinstance(get_solver(_rpod_spec(rp), backend, rp), PIQPSolver)
 
 
 def _rpod_spec(rp) -> SubproblemSpec:
@@ -129,12 +129,10 @@ def _rpod_spec(rp) -> SubproblemSpec:
 
 
 def test_piqp_alone_rejects_cones() -> None:
-    ff = get_scenario("freeflyer")
-    p = ff.sample(np.random.default_rng(1))
-    X, U = ff.initial_guess(p, Window(0, 10, 100))
-    window = SCPProblem(ff, p, Window(0, 10, 100), TerminalCost(X[-1], 1.0))  # the soft terminal term is a cone
+    """``PIQPSolver`` built for a subproblem with cones (RPOD's 2-norm cost) says so; the ``piqp`` chain never builds
+    one (its conic solvers take such subproblems, above)."""
     with pytest.raises(ValueError, match="QPs only"):
-        solve_scp(window, X, U, SCPOptions(backend="piqp"))
+        PIQPSolver(_rpod_spec(get_scenario("rpod")))
 
 
 @pytest.mark.parametrize("penalized", [True, False])

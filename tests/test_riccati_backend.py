@@ -1,6 +1,6 @@
-"""The Riccati interior-point backend (``backend="riccati"``): its kernel against a dense KKT solve and Clarabel on
-small stage QPs, its stage-wise form against PIQP on the engine's subproblems, whole REL + SCP solves against the
-default path, the fallback, and where the chain takes it."""
+"""The Riccati interior-point backend (first in the default chain, ``backend="auto"``): its kernel against a dense KKT
+solve and Clarabel on small stage QPs, its stage-wise form against PIQP on the engine's subproblems, whole REL + SCP
+solves against the PIQP path (``backend="piqp"``), the fallback, and where the chain takes it."""
 
 from __future__ import annotations
 
@@ -12,13 +12,9 @@ from helpers import qp_subproblem, waypoint_subproblem
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import SCPOptions, SCPProblem, TerminalCost, solve_problem, solve_scp
 from ttompc.solvers.backends import backend_chain, get_solver
-from ttompc.solvers.backends import chain as chain_module
 from ttompc.solvers.backends import riccati as riccati_module
 from ttompc.solvers.backends.qp import PIQPSolver
 from ttompc.solvers.backends.riccati import RiccatiSolver, supports
-
-pytest.importorskip("numba")  # the optional fast extra
-pytest.importorskip("piqp")
 
 
 def _random_stage_qp(seed: int, N: int = 6, n: int = 3, nu: int = 2):
@@ -143,15 +139,17 @@ def test_penalised_equality_rows_match_piqp() -> None:
 
 
 @pytest.mark.parametrize("name", ["freeflyer", "quadrotor"])
-def test_rel_and_scp_take_the_default_paths_iterates(name) -> None:
-    """Whole solves: the same number of subproblems and the same costs as the default (PIQP) path, feasible."""
+def test_rel_and_scp_take_the_piqp_paths_iterates(name) -> None:
+    """Whole solves by the default path: the same number of subproblems and the same costs as the PIQP path (the
+    default before issue 36), feasible."""
     sc = get_scenario(name)
     for seed in (1, 2):
         p = sc.sample(np.random.default_rng(seed))
-        rel_a, scp_a = solve_problem(sc, p)
-        rel_r, scp_r = solve_problem(sc, p, backend="riccati")
+        rel_a, scp_a = solve_problem(sc, p, backend="piqp")
+        rel_r, scp_r = solve_problem(sc, p)
         assert scp_a is not None and scp_r is not None and scp_r.success
         assert all("RICCATI" in h.solver_status for h in rel_r.history + scp_r.history)
+        assert not any("RICCATI" in h.solver_status for h in rel_a.history + scp_a.history)
         assert (rel_r.iterations, scp_r.iterations) == (rel_a.iterations, scp_a.iterations)
         assert scp_r.cost == pytest.approx(scp_a.cost, rel=1e-6)
         assert scp_r.violation <= sc.scp.feas_tol  # (L1 optima need not be unique: states are not compared)
@@ -168,41 +166,41 @@ def test_fallback_when_the_kernel_does_not_converge(monkeypatch) -> None:
     assert sol.objective == pytest.approx(ref.objective, rel=1e-9)
 
 
-def test_where_the_chain_takes_it(monkeypatch) -> None:
+def test_where_the_chain_takes_it() -> None:
     ff, rp = get_scenario("freeflyer"), get_scenario("rpod")
-    assert backend_chain("riccati", ff)[:2] == ["riccati", "piqp"]
-    assert backend_chain("riccati", rp) == backend_chain("auto", rp)  # RPOD's subproblems have cones
+    assert backend_chain("auto", ff) == backend_chain("riccati", ff) == ["riccati", "piqp", "qoco", "clarabel"]
+    assert backend_chain("piqp", ff) == ["piqp", "qoco", "clarabel"]  # the default before issue 36
+    assert backend_chain("auto", rp) == backend_chain("riccati", rp) == ["clarabel"]  # RPOD's subproblems have cones
+    assert backend_chain("piqp", rp) == ["piqp", "clarabel"]  # PIQP takes no cone: Clarabel, as before issue 36
     # the reference formulation (hard terminal equality) is not a stage-wise QP here: PIQP takes it
     _, spec, _ = qp_subproblem("freeflyer", 3, Window(0, 100, 100), True, False, delta=0.3)
     assert not supports(spec)
-    assert isinstance(get_solver(spec, "riccati", ff), PIQPSolver)
+    assert isinstance(get_solver(spec, "auto", ff), PIQPSolver)
     p = ff.sample(np.random.default_rng(0))
     rel, scp = solve_problem(ff, p, backend="riccati", formulation="reference")
     assert scp is not None and scp.success and not any("RICCATI" in h.solver_status for h in scp.history)
     # an MPC window's soft terminal term is a cone: the conic chain
     w = Window(0, 10, 100)
     window = SCPProblem(ff, p, w, TerminalCost(rel.X[10], 1.0))
-    res = solve_scp(window, rel.X[:11], rel.U[:10], SCPOptions(backend="riccati"))
+    res = solve_scp(window, rel.X[:11], rel.U[:10], SCPOptions(backend="auto"))
     assert res.success and not any("RICCATI" in h.solver_status for h in res.history)
-    monkeypatch.setattr(chain_module, "_installed", lambda module: module != "numba")
-    with pytest.raises(ValueError, match="needs numba"):
-        backend_chain("riccati", ff)
 
 
-def test_default_path_does_not_depend_on_installed_extras(monkeypatch: pytest.MonkeyPatch) -> None:
-    """``auto`` is the scenario's chain and its trust-region norm whatever is installed (PIQP and QOCO are
-    dependencies); only the opt-in ``riccati`` needs an extra. ``solver_path`` is what reports record."""
+def test_solver_paths_reports_record() -> None:
+    """``solver_path`` is what reports and datasets record: the name, the resolved chain (which tells the kernel's
+    default from the PIQP path) and the trust-region norm."""
     from ttompc.solvers.backends import default_trust_norm, solver_path
 
     ff, rpod = get_scenario("freeflyer"), get_scenario("rpod")
-    monkeypatch.setattr(chain_module, "_installed", lambda module: False)
-    assert solver_path("auto", ff) == {"backend": "auto", "chain": ["piqp", "qoco", "clarabel"], "trust_norm": "linf"}
+    chain = ["riccati", "piqp", "qoco", "clarabel"]
+    assert solver_path("auto", ff) == {"backend": "auto", "chain": chain, "trust_norm": "linf"}
+    assert solver_path("piqp", ff) == {"backend": "piqp", "chain": chain[1:], "trust_norm": "linf"}
     assert solver_path("auto", rpod) == {"backend": "auto", "chain": ["clarabel"], "trust_norm": "l2"}
     assert default_trust_norm("clarabel", ff) == "linf" and default_trust_norm("conic", ff) == "l2"
 
 
 def test_cli_solve_with_the_riccati_backend(tmp_path) -> None:
-    """`ttompc solve --backend riccati` as a user runs it: the default path's optimum."""
+    """`ttompc solve --backend riccati` as a user runs it: the PIQP path's optimum."""
     import json
 
     from test_cli import ttompc
@@ -211,5 +209,5 @@ def test_cli_solve_with_the_riccati_backend(tmp_path) -> None:
     assert res.returncode == 0, res.stderr
     scp = json.loads(res.stdout)["results"]["SCP"]
     sc = get_scenario("quadrotor")
-    _, ref = solve_problem(sc, sc.sample(np.random.default_rng(0)))
+    _, ref = solve_problem(sc, sc.sample(np.random.default_rng(0)), backend="piqp")
     assert ref is not None and scp["status"] == "optimal" and scp["cost"] == pytest.approx(ref.cost, rel=1e-6)

@@ -22,15 +22,11 @@ def scenario(spec: str) -> Scenario:
 
 
 def backend(name: str | None) -> None:
-    """``name`` must be one of ``ttompc.solvers.backends.BACKEND_NAMES``, with its solver installed."""
-    import importlib.util
-
+    """``name`` must be one of ``ttompc.solvers.backends.BACKEND_NAMES`` (their solvers are all dependencies)."""
     from ttompc.solvers.backends import BACKEND_NAMES
 
     if name is not None and name not in BACKEND_NAMES:
         raise UserError(f"unknown solver backend {name!r}", f"choose one of: {', '.join(BACKEND_NAMES)}")
-    if name == "riccati" and importlib.util.find_spec("numba") is None:
-        raise UserError("solver backend 'riccati' needs numba, which is not installed", "install ttompc[fast]")
 
 
 def seed(value: int, key: str = "seed") -> None:

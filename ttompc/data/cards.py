@@ -100,6 +100,8 @@ def render_card(manifest: dict[str, Any]) -> str:
     def fmt(x: float | None, spec: str) -> str:
         return "n/a" if x is None else format(x, spec)
 
+    path = manifest["solver_path"]
+    solvers = f"solvers {' → '.join(path['chain'])}, {path['trust_norm']} trust region"
     solver_lines = "\n".join(
         f"- {s.upper()}: {v['rows']} rows, mean solve time {fmt(v['mean_solve_time'], '.3f')} s, "
         f"mean iterations {fmt(v['mean_iterations'], '.2f')}, mean cost {fmt(v['mean_cost'], '.4g')}"
@@ -130,7 +132,7 @@ N = {sc["n_steps"]} steps, all arrays with fixed shapes (float32 unless stated; 
 ## Generation procedure
 Problem i is sampled with `numpy.random.default_rng(seed_i)`, seed_i from `SeedSequence({manifest["root_seed"]},
 spawn_key=(i,))`, so the dataset does not depend on the number of workers or ranks. Solver: `{gen["solver"]}`
-(backend: {gen["backend"] or "default"}). Reproduce (any number of workers or ranks, resumable):
+(backend: {gen["backend"] or "default"}: {solvers}). Reproduce (any number of workers or ranks, resumable):
 `{reproduce}`. A REL or SCP solve that is not optimal/feasible is not stored; it is
 recorded in the manifest's `failures` list (problem_id, seed, stage, status). Failures by stage: {fails}.
 

@@ -66,7 +66,10 @@ def split_of(problem_id: int, splits: SplitConfig) -> str:
 
 
 def fingerprint(cfg: GenerateConfig, scenario: Scenario) -> dict[str, Any]:
-    """Everything that determines the rows of a shard (not the problem count, workers or ranks)."""
+    """Everything that determines the rows of a shard (not the problem count, workers or ranks). ``backend`` is the
+    name asked for, ``solver_path`` what it resolves to (chain and trust-region norm): the rows depend on the
+    latter, which a name's meaning may change (``auto`` became the Riccati kernel's chain in issue 36)."""
+    path = solver_path(cfg.backend or "auto", scenario)
     return {
         "schema_version": SCHEMA_VERSION,
         "scenario": scenario.name,
@@ -76,7 +79,22 @@ def fingerprint(cfg: GenerateConfig, scenario: Scenario) -> dict[str, Any]:
         "splits": to_container(cfg.splits),
         "solver": cfg.solver,
         "backend": cfg.backend,
+        "solver_path": {"chain": path["chain"], "trust_norm": path["trust_norm"]},
     }
+
+
+def _path_before_issue_36(backend: str | None, scenario: Scenario) -> dict[str, Any]:
+    """The solver path a fingerprint without one (written before issue 36) ran: ``auto`` (or null) was the
+    scenario's ``auto_backends`` without the Riccati kernel (today's ``piqp`` chain), ``piqp`` PIQP alone; other
+    names resolve as they do now."""
+    name = backend or "auto"
+    if name == "auto":
+        chain = list(scenario.auto_backends)
+    elif name == "piqp":
+        chain = ["piqp"]
+    else:
+        chain = solver_path(name, scenario)["chain"]
+    return {"chain": chain, "trust_norm": solver_path(name, scenario)["trust_norm"]}
 
 
 # ------------------------------------------------------------------------------------------------ per problem
@@ -273,15 +291,19 @@ def generate(
 
 def _check_folder(folder: ShardedFolder, cfg: GenerateConfig, scenario: Scenario) -> None:
     """Refuse to mix generations: the folder's recorded fingerprint must match, and no shard may lie beyond
-    the requested problem count."""
+    the requested problem count. Backend names match where they resolve to the same solver path: a folder made with
+    ``auto`` before issue 36 continues with ``backend=piqp``, which runs what that ``auto`` ran."""
     out = folder.root
     fp = fingerprint(cfg, scenario)
     path = out / META_DIR / "generation.json"
     if path.is_file():
         stored = json.loads(path.read_text())
-        if stored != fp:
-            diff = {k: (stored.get(k), fp[k]) for k in fp if stored.get(k) != fp[k]}
-            raise GenerationError(f"{out} holds another generation (stored vs requested: {diff}); use a new folder")
+        stored.setdefault("solver_path", _path_before_issue_36(stored.get("backend"), scenario))
+        diff = {k: (stored.get(k), fp[k]) for k in fp if k != "backend" and stored.get(k) != fp[k]}
+        if diff:
+            hint = ", or a backend with the stored solver_path (before issue 36 the default was backend=piqp's)"
+            raise GenerationError(f"{out} holds another generation (stored vs requested: {diff}); use a new folder"
+                                  + (hint if "solver_path" in diff else ""))  # fmt: skip
     else:
         atomic_write_json(path, fp)
     beyond = folder.beyond()

@@ -239,7 +239,8 @@ class Scenario(abc.ABC):
     # in units of state_scale per step. Sized so that what the last step adds, which no controller can undo, stays
     # inside terminal_tol: the ceiling ORACLE-MPC must still be able to reach the goal.
     perturbation: ClassVar[tuple[float, float, float]] = (0.05, 0.02, 0.002)
-    # what backend="auto" means for this scenario (see ttompc.solvers.backends.backend_chain)
+    # what backend="auto" means for this scenario, after the Riccati kernel where it starts with PIQP (see
+    # ttompc.solvers.backends.backend_chain)
     auto_backends: ClassVar[tuple[str, ...]] = ("piqp", "qoco", "clarabel")
     # trust-region norm of the SCP: "linf" (bounds on the states: a subproblem without cones is a QP) or "l2" (a
     # second-order cone); whichever backend solves it, except the "conic" comparison path (2-norm)

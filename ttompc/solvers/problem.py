@@ -75,12 +75,12 @@ class SCPProblem:
 class SCPOptions:
     """How an SCP solve runs.
 
-    * ``backend``: "auto" (the scenario's chain: PIQP on subproblems without cones, QOCO/Clarabel on the others,
-      see ``backends.backend_chain``), "conic" (QOCO then Clarabel throughout), "riccati" (opt-in, numba: the
-      stage-wise interior-point kernel where the subproblem is a penalised QP, the ``auto`` chain elsewhere),
-      "clarabel", "qoco", "piqp" or "cvxpy-naive" (the rebuild-every-iteration baseline). The trust-region norm
-      follows: the scenario's (``Scenario.trust_norm``), l2 for ``conic`` and for the reference formulation with
-      ``auto`` (the comparison paths, which solve with Clarabel).
+    * ``backend``: "auto" (the scenario's chain, see ``backends.backend_chain``: the Riccati interior-point kernel
+      where the subproblem is a penalised QP, PIQP on the other subproblems without cones, QOCO/Clarabel on the
+      others), "riccati" (the same), "piqp" (that chain without the kernel: the default before issue 36), "conic"
+      (QOCO then Clarabel throughout), "clarabel", "qoco" or "cvxpy-naive" (the rebuild-every-iteration baseline),
+      those three alone. The trust-region norm follows: the scenario's (``Scenario.trust_norm``), l2 for ``conic``
+      and for the reference formulation with ``auto`` (the comparison paths, which solve with Clarabel).
     * ``formulation``: "penalized" (slack variables and virtual control, every subproblem feasible) or "reference"
       (hard linearised constraints, the authors'; an infeasible subproblem ends the solve), ``scp.py``.
     * ``settings``: the trust-region schedule, tolerances and iteration cap; None: the scenario's (``Scenario.scp``),

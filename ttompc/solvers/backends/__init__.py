@@ -7,10 +7,11 @@
 * ``chain``: what a ``backend=`` name runs (``backend_chain``), the trust-region norm it implies and the cache of
   built solver structures (``get_solver``).
 
-What ``backend="auto"`` runs: the scenario's ``auto_backends`` (default PIQP on the compact QP wherever the
-subproblem has no cone, else QOCO with Clarabel as the fallback on a numerical failure; RPOD: Clarabel), with the
-scenario's trust-region norm (``Scenario.trust_norm``). PIQP and QOCO are dependencies: the default does not depend
-on installed extras (numba, for ``riccati``, is the ``fast`` extra).
+What ``backend="auto"`` runs (``backend_chain``): the Riccati kernel on penalised QP subproblems, PIQP on the compact
+QP of the other subproblems without cones (and where the kernel does not converge), else QOCO with Clarabel as the
+fallback on a numerical failure (RPOD: Clarabel), with the scenario's trust-region norm (``Scenario.trust_norm``).
+``backend="piqp"`` is the same chain without the kernel (the default before issue 36). Every solver, numba
+included, is a dependency: the default does not depend on installed extras.
 """
 
 from ttompc.solvers.backends.base import BackendSolution, SubproblemSolver

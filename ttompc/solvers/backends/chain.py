@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 from collections import OrderedDict
 from typing import Any
 
@@ -21,31 +19,31 @@ BACKEND_NAMES = ("auto", "conic", "riccati", "piqp", *BACKENDS, "cvxpy-naive")
 
 
 def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
-    """``auto`` = the scenario's ``auto_backends`` (default: PIQP on the compact QP wherever the subproblem has
-    no cone, else QOCO, with Clarabel as the fallback on a numerical failure); ``conic`` = QOCO then Clarabel on
-    every subproblem (the default before the QP path, kept for comparisons). PIQP and QOCO are dependencies, so a
-    chain does not depend on what is installed. ``riccati`` = the stage-wise interior-point kernel (``riccati.py``)
-    ahead of the ``auto`` chain where that chain starts with PIQP, the ``auto`` chain elsewhere. Other names of
-    ``BACKEND_NAMES`` alone; any other name is a ``ValueError``."""
-    if name == "riccati":
-        if not _installed("numba"):
-            raise ValueError("backend 'riccati' needs numba: pip install 'ttompc[fast]'")
-        chain = backend_chain("auto", scenario)
-        return ["riccati", *chain] if chain[0] == "piqp" else chain
-    if name == "auto":
-        chain = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
-    elif name == "conic":
-        chain = ["qoco", "clarabel"]
-    elif name in BACKEND_NAMES:
+    """The solvers ``name`` runs on ``scenario``'s subproblems, in fallback order (each subproblem goes to the first
+    that takes its structure; a numerical failure to the next):
+
+    * ``auto`` (the default): the Riccati interior-point kernel (``riccati.py``) ahead of the scenario's
+      ``auto_backends`` where those start with PIQP, else ``auto_backends`` alone. On the default chain
+      ``riccati, piqp, qoco, clarabel`` the kernel takes the penalised QP subproblems (``riccati.supports``), PIQP
+      the other QPs, QOCO the ones with cones, and each passes its numerical failures on. RPOD's: Clarabel alone.
+    * ``riccati``: the same as ``auto`` (the name that selected the kernel before it was the default).
+    * ``piqp``: PIQP first, then the rest of ``auto_backends``, without the kernel: what ``auto`` ran before issue
+      36 made the kernel the default (records from before then that say ``auto`` mean this), kept for comparisons.
+    * ``conic``: QOCO then Clarabel on every subproblem (the default before the QP path, kept for comparisons).
+    * ``qoco``, ``clarabel``, ``cvxpy-naive``: that solver alone.
+
+    Every solver is a dependency, so a chain does not depend on what is installed; any other name is a
+    ``ValueError``."""
+    default = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
+    if name in ("auto", "riccati"):
+        return ["riccati", *default] if default[0] == "piqp" else default
+    if name == "piqp":
+        return ["piqp", *(b for b in default if b not in ("piqp", "riccati"))]
+    if name == "conic":
+        return ["qoco", "clarabel"]
+    if name in BACKEND_NAMES:
         return [name]
-    else:
-        raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}")
-    return chain
-
-
-@functools.cache
-def _installed(module: str) -> bool:
-    return importlib.util.find_spec(module) is not None
+    raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}")
 
 
 def default_trust_norm(backend: str, scenario: Scenario | None = None) -> str:

@@ -1,5 +1,5 @@
-"""The penalised SCP subproblem in stage-wise form, solved by a Riccati interior-point method (``riccati_kernel``):
-backend ``"riccati"``, opt-in, needs numba (the ``fast`` extra).
+"""The penalised SCP subproblem in stage-wise form, solved by a Riccati interior-point method (``riccati_kernel``,
+numba): the first solver of the default chain (``backend="auto"``) wherever the subproblem is a penalised QP.
 
 It poses the optimisation problem of ``qp.QPSubproblem`` stage by stage instead of as one sparse QP, in the same
 non-dimensionalised variables (x/state_scale, u/control_scale), so the two backends reach the same optima:
@@ -216,9 +216,8 @@ class RiccatiSolver:
         y = np.zeros((spec.H + 1, spec.n + st.nu))
         y[:, : spec.n] = data.X_ref / st.sx
         pi = np.zeros((spec.H, spec.n))
-        from ttompc.solvers.backends.riccati_kernel import (
-            solve,
-        )  # numba: imported when the backend is used, not with the engine
+        # numba is imported at the first solve, not with the engine (processes that never solve do not pay it)
+        from ttompc.solvers.backends.riccati_kernel import solve
 
         code, iters, res, gap = solve(*arrays, y, pi, TOL, GAP_TOL, MAX_ITER, spec.n, st.nu)
         name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[code]

@@ -15,17 +15,35 @@ backward Riccati pass (P_k, K_k) and a forward rollout: O(N·(NX+NU)³) per iter
 the whole KKT matrix. Mehrotra predictor-corrector steps reuse one factorisation per iteration.
 
 NX and NU are compile-time constants (``numba.literally``) so the small dense loops unroll; one compilation per
-(NX, NU), cached on disk.
+(NX, NU), cached on disk: once per machine (where the cache lives, and the times: docs/design.md).
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numba import literally, njit
 
-_jit = njit(cache=True, error_model="numpy")  # no fastmath: it drops the NaN checks a breakdown needs
+
+def _jit(func: Callable) -> Any:  # a numba dispatcher
+    """``njit`` with numba's on-disk cache (no fastmath: it drops the NaN checks a breakdown needs). Where no cache
+    folder is writable (``NUMBA_CACHE_DIR``, the package's ``__pycache__``, the user's cache folder) numba refuses to
+    decorate: the kernel then compiles in every process that uses it instead of failing to import, with a warning."""
+    try:
+        return njit(cache=True, error_model="numpy")(func)
+    except RuntimeError as err:
+        if "no locator available" not in str(err):
+            raise
+        warnings.warn(
+            "the riccati backend's kernel cannot be cached (no writable numba cache folder): it compiles in every "
+            "process (~10-20 s); set NUMBA_CACHE_DIR to a writable folder to compile it once",
+            RuntimeWarning,
+            stacklevel=1,  # this line, not each decorated function's: shown once
+        )
+        return njit(error_model="numpy")(func)
 
 
 @_jit
@@ -89,7 +107,7 @@ def solve(*args):
     out = solve_stage_qp(*args)
     for sig, result in solve_stage_qp.overloads.items():
         if getattr(sig[-2], "literal_value", None) == n and getattr(sig[-1], "literal_value", None) == nu:
-            _ENTRY[(n, nu)] = result.entry_point  # type: ignore[attr-defined]  # (numba's stubs lack it)
+            _ENTRY[(n, nu)] = result.entry_point
     return out
 
 
