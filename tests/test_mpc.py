@@ -619,3 +619,111 @@ def test_rti_solves_one_subproblem_per_step_from_the_shifted_solution(
         np.testing.assert_array_equal(X[1 : k + 1], prev.X[2 : k + 2])
         np.testing.assert_array_equal(U[:k], prev.U[1 : k + 1])
     np.testing.assert_allclose(sc.rollout(problem, rti.U), rti.X, atol=1e-9)  # the applied controls, executed
+
+
+class _Clock:
+    """A fake ``perf_counter``: time moves only when a test provider says so."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+class _Timed:
+    """A provider (wrapping another) whose warm start takes ``warm`` and whose observe takes ``own`` + ``shared`` on
+    the fake clock, reporting ``shared`` as work shared with other episodes (None: it shares none)."""
+
+    def __init__(self, inner, clock: _Clock, warm: float, own: float, shared: float | None) -> None:
+        self.inner, self.name, self.clock = inner, inner.name, clock
+        self.warm, self.own, self.shared = warm, own, shared
+
+    def reset(self, scenario, problem, rel_cost) -> None:
+        self.inner.reset(scenario, problem, rel_cost)
+
+    def warm_start(self, window, x):
+        self.clock.now += self.warm
+        return self.inner.warm_start(window, x)
+
+    def observe(self, u, x_next, plan_X, plan_U) -> float | None:
+        self.inner.observe(u, x_next, plan_X, plan_U)
+        self.clock.now += self.own + (self.shared or 0.0)
+        return self.shared
+
+
+def test_a_step_time_includes_the_observe_of_the_previous_outcome(
+    setup: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A step runs from the measured state to the control: observing the previous step's outcome (TTO: the KV-cache
+    advance) + warm start + solve. None at t = 0; the observe after the last control is in no step. In lockstep, the
+    shared work the providers report is split evenly among the episodes that share it, the rest is each one's own."""
+    sc, problem, rel, scp = setup
+    clock = _Clock()
+    monkeypatch.setattr(loop_module, "time", clock)  # the SCP takes no time on this clock: solve_times are 0
+    T = 4
+    alone = run_mpc(sc, problem, _Timed(PlanProvider((scp.X, scp.U)), clock, 0.25, 1.0, None), 5,
+                    rel_cost=rel.cost, max_steps=T)  # fmt: skip
+    np.testing.assert_array_equal(alone.observe_times, [0.0, 1.0, 1.0, 1.0])
+    np.testing.assert_array_equal(alone.warm_times, [0.25] * T)
+    np.testing.assert_array_equal(alone.step_times, [0.25, 1.25, 1.25, 1.25])
+    assert alone.summary()["mean_step_time"] == pytest.approx(1.0)
+    # two episodes share work (one reports all of it, the other only queued its part: 0.0), a third shares none
+    provs = [_Timed(PlanProvider((scp.X, scp.U)), clock, 0.25, own, shared)
+             for own, shared in ((0.125, 0.0), (0.125, 1.0), (0.5, None))]  # fmt: skip
+    episodes = run_mpc_batch(sc, [EpisodeStart(problem, rel.cost)] * 3, provs, MPCRun(5, max_steps=T))
+    for e, charged in zip(episodes, (0.625, 0.625, 0.5), strict=True):
+        np.testing.assert_array_equal(e.observe_times, [0.0] + [charged] * (T - 1))
+        np.testing.assert_array_equal(e.step_times, e.observe_times + e.warm_times + e.solve_times)
+
+
+def test_tto_steps_are_charged_their_share_of_the_batched_context_advance(
+    setup: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """TTO-MPC in lockstep: the context advances once per step in the last member's observe; each episode's next
+    step holds half of it (two episodes), not the last one all of it."""
+    import time
+
+    from ttompc.policy.rollout import RolloutContext
+
+    sc, problem, rel, _ = setup
+    planner = mpc_fakes.tiny_planner()
+    advance = RolloutContext.advance
+    pause = 0.05
+
+    def slow(self, *args):
+        time.sleep(pause)
+        return advance(self, *args)
+
+    monkeypatch.setattr(RolloutContext, "advance", slow)
+    group = RolloutGroup(planner)
+    starts = [EpisodeStart(problem, rel.cost), EpisodeStart(sc.sample(np.random.default_rng(2)), rel.cost)]
+    episodes = run_mpc_batch(sc, starts, [TTOProvider(planner, group=group) for _ in starts], MPCRun(5, max_steps=3))
+    for e in episodes:
+        assert e.observe_times[0] == 0.0 and np.all(e.observe_times[1:] >= pause / 2)
+        np.testing.assert_allclose(e.step_times, e.observe_times + e.warm_times + e.solve_times)
+
+
+def test_iterations_are_the_window_solves_per_step(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each step records the SCP iterations of its window solve (0 for a reused plan); the summary averages them
+    over all steps and over the steps that solved their window."""
+    sc, problem, rel, scp = setup
+    N, T = problem.n_steps, 5
+    solves: list[tuple[int, int]] = []  # (step, iterations) of every window solve
+    solve = MPCController.solve
+
+    def spy(self, window, *args, **kwargs):
+        res = solve(self, window, *args, **kwargs)
+        solves.append((window.start, res.iterations))
+        return res
+
+    monkeypatch.setattr(MPCController, "solve", spy)
+    # windows reach the end from t = 3: step 3 solves one, step 4 reuses its tail (the exact plant)
+    e = run_mpc(sc, problem, PlanProvider((scp.X, scp.U)), 10, rel_cost=rel.cost, max_steps=T,
+                settings=MPCSettings(end_horizon=N - 3))  # fmt: skip
+    expected = [sum(k for t, k in solves if t == step) for step in range(T)]
+    np.testing.assert_array_equal(e.iterations, expected)
+    assert e.reuses == 1 and e.iterations[-1] == 0 and min(e.iterations[:-1]) >= 1
+    summary = e.summary()
+    assert summary["mean_iterations"] == pytest.approx(sum(expected) / T)
+    assert summary["mean_iterations_solved"] == pytest.approx(sum(expected) / (T - 1))

@@ -19,8 +19,9 @@ consistency and step times, under the protocol's name and resolved settings and 
 Problems run in parallel in the spawn pool in tasks of ``batch`` problems; each worker loads the model(s) once.
 Within a task the episodes of one method run in lockstep (``run_mpc_batch``): a TTO method plans the windows of all
 its problems with one batched rollout per step, and the solver structures built for the first problem serve the
-others (one per window shape, cached per process). Step times are then each episode's share of the batched rollout
-plus its own solves (CPU cost per episode, not one robot's latency: ``bench/mpc_speed.py`` measures that at B = 1).
+others (one per window shape, cached per process). Step times (``Episode.step_times``: observe of the previous
+outcome + warm start + solve) are then each episode's share of the batched rollout and context advance plus its own
+solves (CPU cost per episode, not one robot's latency: ``bench/mpc_speed.py`` measures that at B = 1).
 Tasks are fixed by ``batch``, not by ``workers``, so the report does not depend on the number of workers.
 """
 

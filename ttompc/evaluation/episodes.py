@@ -32,8 +32,9 @@ def episode_record(e: Episode) -> dict[str, Any]:
 
 def summarize_episodes(records: Sequence[dict[str, Any]], *, seed: int = 0) -> dict[str, Any]:
     """Counts (runs, feasible, infeasible), intervals of the relative cost increment and applied cost over the
-    feasible runs, plan consistency, step times, fallbacks and the goal miss of the infeasible runs of a group of
-    episode records."""
+    feasible runs, plan consistency, step times, SCP iterations (the mean over runs of each run's
+    ``mean_iterations`` and ``mean_iterations_solved``, ``Episode.summary``), fallbacks and the goal miss of the
+    infeasible runs of a group of episode records."""
     feasible = [r for r in records if r["feasible"]]
     return {
         "runs": len(records),
@@ -44,6 +45,10 @@ def summarize_episodes(records: Sequence[dict[str, Any]], *, seed: int = 0) -> d
         "target_change": interval([r["target_change"] for r in records], seed=seed),
         "mean_step_time": float(np.mean([r["mean_step_time"] for r in records])) if records else float("nan"),
         "max_step_time": float(np.max([r["max_step_time"] for r in records])) if records else float("nan"),
+        "mean_iterations": float(np.mean([r["mean_iterations"] for r in records])) if records else float("nan"),
+        "mean_iterations_solved": (
+            float(np.mean([r["mean_iterations_solved"] for r in records])) if records else float("nan")
+        ),
         "fallbacks": int(sum(r["fallbacks"] for r in records)),
         "infeasible_terminal_error": interval(
             [r["terminal_error"] for r in records if not r["feasible"]], seed=seed
@@ -63,8 +68,9 @@ def closed_loop_metrics(
     plant and max_steps; the perturbed plant seeded per problem), all episodes in lockstep with one batched rollout
     per step (``tto_providers``): flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count),
     ``cost_increment`` and its ``_se`` (mean (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible
-    runs), ``target_change``, step times (each episode's share of the batched rollout plus its own solves) and
-    ``fallbacks``. ``progress``: the label of a progress bar over the episodes on stderr ("": none)."""
+    runs), ``target_change``, step times (``Episode.step_times``: each episode's share of the batched rollout and
+    context advance plus its own solves) and ``fallbacks``. ``progress``: the label of a progress bar over the
+    episodes on stderr ("": none)."""
     from ttompc.progress import Bar
 
     sc = planner.scenario

@@ -15,11 +15,15 @@ plan while it is still reachable under the control bounds.
 
 A failed SCP step is not an exception: the loop applies the next control of the previous plan shifted by one step
 (or the warm start's first control at t = 0), counts it in ``fallbacks`` and goes on. Programming errors propagate.
-Each step is timed with ``perf_counter`` (warm start + solve; a CUDA model synchronises inside its provider); a
-provider that shares work between episodes (a batched rollout) reports this episode's share itself
-(``WarmStart.seconds``). ``run_mpc_batch`` runs the episodes of B starts (``EpisodeStart``: problem, J_REL, plant
-seed) in lockstep as one ``MPCRun`` says (horizon, settings, step cap, plant), which lets the TTO providers of one
-``RolloutGroup`` plan all B windows of a step in one batched rollout; ``run_mpc`` is its B = 1 case.
+Each step is timed with ``perf_counter``, from the measured state to the control: the observe of the previous step's
+outcome (``MPCController.observe``: the provider's update with the executed control and the measured state, TTO's
+KV-cache advance; none at t = 0, and the observe after the last control is in no step) + warm start + solve (a CUDA
+model synchronises inside its provider). Work shared between lockstep episodes is charged to each its share: a
+batched rollout's by the provider (``WarmStart.seconds``), a batched context advance's by the loop from what the
+providers report (``Provider.observe``, ``observe_charges``). ``run_mpc_batch`` runs the episodes of B starts
+(``EpisodeStart``: problem, J_REL, plant seed) in lockstep as one ``MPCRun`` says (horizon, settings, step cap,
+plant), which lets the TTO providers of one ``RolloutGroup`` plan all B windows of a step in one batched rollout;
+``run_mpc`` is its B = 1 case.
 
 Two ways a step does less than SCP to convergence from the provider's warm start:
 
@@ -94,10 +98,11 @@ class Episode:
     U: np.ndarray
     cost: float  # Σ c(u) of the executed controls
     rel_cost: float  # J_REL of the open-loop REL solution (lower bound of the full problem)
-    step_times: np.ndarray  # (T,) warm start + solve per step (s)
+    step_times: np.ndarray  # (T,) observe + warm start + solve per step (s): measured state to control (module doc)
+    observe_times: np.ndarray  # (T,) the observe of the previous step's outcome (0 at t = 0)
     warm_times: np.ndarray
     solve_times: np.ndarray
-    iterations: np.ndarray  # (T,) SCP iterations per step
+    iterations: np.ndarray  # (T,) SCP iterations per step (all the step's window solves; 0 for a reused plan)
     fallbacks: int
     terminal_error: float  # ‖x_N − goal‖₂ (nan for truncated episodes)
     keepout_violations: int  # states of the executed trajectory inside a keep-out zone
@@ -111,6 +116,10 @@ class Episode:
     rti: bool = False  # real-time iteration: one subproblem per step (module doc)
 
     def summary(self) -> dict[str, float | int | str | bool]:
+        """Flat per-episode metrics (a run's row in the reports): the fields above, with the arrays reduced to
+        ``mean_step_time``/``max_step_time`` (s), ``mean_iterations`` (SCP iterations per step, a reused step 0)
+        and ``mean_iterations_solved`` (per step that ran the window SCP, i.e. not reused; nan if none did)."""
+        solved = len(self.iterations) - self.reuses
         return {
             "method": self.method,
             "horizon": self.horizon,
@@ -120,6 +129,7 @@ class Episode:
             "mean_step_time": float(np.mean(self.step_times)) if len(self.step_times) else float("nan"),
             "max_step_time": float(np.max(self.step_times)) if len(self.step_times) else float("nan"),
             "mean_iterations": float(np.mean(self.iterations)) if len(self.iterations) else float("nan"),
+            "mean_iterations_solved": float(np.sum(self.iterations) / solved) if solved else float("nan"),
             "fallbacks": self.fallbacks,
             "terminal_error": self.terminal_error,
             "keepout_violations": self.keepout_violations,
@@ -257,12 +267,28 @@ class MPCController:
         """A converged (or feasible) solve; in RTI any subproblem solution (its violation is corrected later)."""
         return res.success or (rti and res.best_iteration >= 0)
 
-    def observe(self, plan: StepPlan, u: np.ndarray, x_next: np.ndarray) -> None:
-        """Record the executed control (which may differ from the plan's, e.g. in DAgger) and the next state."""
+    def observe(self, plan: StepPlan, u: np.ndarray, x_next: np.ndarray) -> tuple[float, float | None]:
+        """Record the executed control (which may differ from the plan's, e.g. in DAgger) and the next state, and
+        pass them to the provider. Returns the seconds the call took and the part of them the provider reports as
+        work shared with other episodes (None: none; ``Provider.observe``)."""
+        t0 = time.perf_counter()
         self._plan = (plan.X, plan.U)
         own = plan is self._last and not plan.fallback and np.array_equal(u, plan.u)
         self._own = plan if own else None
-        self.provider.observe(u, x_next, plan.X, plan.U)
+        shared = self.provider.observe(u, x_next, plan.X, plan.U)
+        return time.perf_counter() - t0, shared
+
+
+def observe_charges(seconds: np.ndarray, shared: Sequence[float | None]) -> np.ndarray:
+    """The observe time charged to each of B lockstep episodes for one step: its call's ``seconds`` less the shared
+    work its provider reports (``Provider.observe``), plus an even share of all the shared work reported at the step
+    among the episodes whose providers report a number (None: the call's whole time is the episode's own)."""
+    sharing = np.array([s is not None for s in shared], dtype=bool)
+    reported = np.array([0.0 if s is None else s for s in shared], dtype=np.float64)
+    charges = np.asarray(seconds, dtype=np.float64) - reported
+    if sharing.any():
+        charges[sharing] += reported.sum() / sharing.sum()
+    return charges
 
 
 def episode_metrics(
@@ -359,7 +385,8 @@ def run_mpc_batch(
     """The episodes of B ``starts`` (one provider each) run as ``run`` says, in lockstep: at every step all B
     episodes plan, then all B act. Each episode is what it gives when run alone (for TTO up to the rounding of a
     batched rollout); stepping together lets providers share work across episodes (the TTO providers of one
-    ``RolloutGroup``: one batched rollout per step). ``on_step`` is called after every step (progress)."""
+    ``RolloutGroup``: one batched rollout and one batched context advance per step), and each episode's step times
+    hold its share of that work (module doc). ``on_step`` is called after every step (progress)."""
     B = len(starts)
     if len(providers) != B:
         raise ValueError(f"{B} episodes need as many providers, got {len(providers)}")
@@ -383,13 +410,16 @@ def run_mpc_batch(
     X: list[list[np.ndarray]] = [[x] for x in xs]
     U: list[list[np.ndarray]] = [[] for _ in range(B)]
     warm, solve, iters = np.zeros((B, T)), np.zeros((B, T)), np.zeros((B, T), dtype=int)
+    observed = np.zeros((B, T))  # observed[:, t]: the observe of step t − 1's outcome, part of step t
     targets: list[list[np.ndarray | None]] = [[] for _ in range(B)]
     fallbacks, soft_ends, reuses = [0] * B, [0] * B, [0] * B
     for t in range(T):
         plans = [ctrl.plan(t, x) for ctrl, x in zip(ctrls, xs, strict=True)]
+        seconds = np.zeros(B)  # each episode's observe call (s), and the shared work its provider reported in it
+        shared: list[float | None] = [None] * B
         for b, plan in enumerate(plans):
             xs[b] = sims[b].step(problems[b], t, xs[b], plan.u)
-            ctrls[b].observe(plan, plan.u, xs[b])
+            seconds[b], shared[b] = ctrls[b].observe(plan, plan.u, xs[b])
             X[b].append(xs[b])
             U[b].append(plan.u)
             warm[b, t], solve[b, t], iters[b, t] = plan.warm_time, plan.solve_time, plan.iterations
@@ -397,6 +427,8 @@ def run_mpc_batch(
             fallbacks[b] += plan.fallback
             soft_ends[b] += plan.soft_end
             reuses[b] += plan.reused
+        if t + 1 < T:  # the last step's outcome is observed but planned from by no step
+            observed[:, t + 1] = observe_charges(seconds, shared)
         if on_step is not None:
             on_step()
     perturbed = plant is not None and not plant.nominal
@@ -420,7 +452,8 @@ def run_mpc_batch(
                 U=Ua,
                 cost=scenario.cost(Ua),
                 rel_cost=float(starts[b].rel_cost),
-                step_times=warm[b] + solve[b],
+                step_times=observed[b] + warm[b] + solve[b],
+                observe_times=observed[b],
                 warm_times=warm[b],
                 solve_times=solve[b],
                 iterations=iters[b],

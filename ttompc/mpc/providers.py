@@ -62,8 +62,12 @@ class Provider(Protocol):
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
         """Warm start of ``window`` from the measured state ``x`` at ``window.start``."""
 
-    def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
-        """The executed control, the measured next state and the solved window plan (for shifting)."""
+    def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> float | None:
+        """The executed control, the measured next state and the solved window plan (for shifting). The loop times
+        the call into the step that plans from ``x_next``. Returns None, or the seconds of the call spent on work
+        shared with other episodes run in lockstep (a ``RolloutGroup``'s batched context advance; 0.0 for a sharing
+        provider whose call only queued its part), which the loop splits evenly among the episodes whose providers
+        return a number (``run_mpc_batch``)."""
 
 
 def _terminal(window: Window, target: np.ndarray, weights: np.ndarray | float) -> TerminalCost | None:

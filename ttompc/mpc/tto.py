@@ -180,19 +180,22 @@ class TTOProvider:
         ws.seconds = time.perf_counter() - t0 - shared + share
         return ws
 
-    def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
+    def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> float:
+        """Advance the context with the executed control and the measured state; returns the seconds this call spent
+        on the group's shared advance (``RolloutGroup.advance``: 0.0 unless it was the step's last member)."""
         self.spent += self.scenario.cost(np.asarray(u)[None])
         self.x = np.asarray(x_next)
         k = self.group.t + 1
         s_next = self.scenario.to_model_states(self.problem, self.x[None], start=k)[0]
-        self.group.advance(self.slot, u, s_next)
+        return self.group.advance(self.slot, u, s_next)
 
 
 class RolloutGroup:
     """One ``RolloutContext`` for the TTO providers of B episodes run in lockstep (``run_mpc_batch``): the B windows
     of a step come from one batched rollout (a batch-1 rollout is a chain of tiny matmuls, so B episodes cost about
     as much as one), and the context advances once every episode has executed its control. Each episode is charged
-    its share of the rollout (``WarmStart.seconds``). A ``TTOProvider`` made without a group has one of its own.
+    its share of the rollout (``WarmStart.seconds``) and of the advance (``Provider.observe``; the loop splits it). A
+    ``TTOProvider`` made without a group has one of its own.
 
     Members may ask windows of different lengths at one step (DAgger draws H per rollout). Each member's
     conditioning is computed once per step, and a window is the prefix of the step's longest rollout: exactly the
@@ -283,20 +286,23 @@ class RolloutGroup:
         # copies: a caller may write into its window (X[0] = x) and the rollout serves other windows of this row
         return S[slot, : window.length + 1].copy(), A[slot, : window.length].copy(), self._own[slot] + share, shared
 
-    def advance(self, slot: int, u: np.ndarray, s_next: np.ndarray) -> None:
+    def advance(self, slot: int, u: np.ndarray, s_next: np.ndarray) -> float:
         """Member ``slot`` executed ``u`` and measured ``s_next`` (model representation); the context advances
-        when all members have."""
+        when all members have. Returns the seconds spent on that batched advance (0.0 for a call that only queued
+        its member's part), the work the members share (``Provider.observe``)."""
         if self.context is None:
             raise RuntimeError("the rollout group's episodes have not all been reset")
         self._pending[slot] = (np.asarray(u), np.asarray(s_next))
         if len(self._pending) < len(self.members):
-            return
+            return 0.0
+        t0 = time.perf_counter()
         order = range(len(self.members))
         self.context.advance(np.stack([self._pending[b][0] for b in order]),
                              np.stack([self._pending[b][1] for b in order]))  # fmt: skip
         self._pending.clear()
         self._new_step()
         self._sync()
+        return time.perf_counter() - t0
 
     def _new_step(self) -> None:
         """Forget the previous step's conditioning, rollout and hint."""
