@@ -23,9 +23,10 @@ from ttompc.cli import main
 from ttompc.policy import Planner
 from ttompc.zoo import cache, cards, registry
 from ttompc.zoo.download import fetch
+from ttompc.zoo.publish import load_metrics
 
 REPO_ZOO = Path(__file__).resolve().parents[1] / "zoo"
-METRICS = {"success_rate": {"value": 0.9, "how": "unit test, 0 problems"}}
+METRICS = {"unit": {"command": "pytest tests/test_zoo.py", "what": "0 problems", "metrics": {"success_rate": 0.9}}}
 BAD_NAMES = ["../x", "a/b", "..", ".hidden", "a\\b", "a..b", "", "x" * 101, "/abs", "name with space"]
 
 
@@ -140,7 +141,13 @@ def test_card_round_trip_and_strict_parsing(env: Path) -> None:
     for broken in (
         {**front, "typo_key": 1},
         {**front, "kind": "GPT"},
-        {**front, "metrics": {"sr": {"value": 0.5}}},  # a metric without how it was measured
+        {**front, "evaluations": {"e": {"metrics": {"sr": 0.5}}}},  # numbers without the command that measured them
+        {**front, "evaluations": {"e": {"command": "c", "metrics": {"sr": float("nan")}}}},
+        {
+            **front,
+            "evaluations": {"e": {"command": "c", "metrics": {"sr": 1}}, "f": {"command": "d", "metrics": {"sr": 2}}},
+        },
+        {**front, "metrics": {"sr": {"value": 0.5}}},  # the first format: a metric without how it was measured
         {**front, "files": [{**front["files"][0], "sha256": "ab"}, front["files"][1]]},
         {**front, "files": [{**front["files"][0], "filename": "../model.safetensors"}, front["files"][1]]},
         {**front, "files": front["files"][:1]},  # config.json missing
@@ -150,6 +157,71 @@ def test_card_round_trip_and_strict_parsing(env: Path) -> None:
     (env / "zoo" / "m2.md").write_text(cards.render_card(card))  # name does not match the file name
     with pytest.raises(cards.CardError, match="must match the file name"):
         zoo.list_models()
+
+
+def test_cards_of_the_first_format_still_load(env: Path) -> None:
+    """A card published before evaluations (``metrics: {key: {value, how}}``, the command quoted in every ``how``, the
+    full model-index), e.g. on a user's Hub repository, loads with its numbers grouped by command and re-renders in
+    today's format; its model-index is still checked against the numbers."""
+    import yaml
+
+    files = entries({"model.safetensors": "m", "config.json": "c"}, {"model.safetensors": b"1", "config.json": b"2"})
+    write_card(env / "zoo", "old", files)
+    front = zoo.model_info("old").to_dict()
+    ws, mpc = "ttompc evaluate warmstart --model old problems=3", "ttompc evaluate mpc --model old problems=2"
+    first = {k: v for k, v in front.items() if k != "evaluations"} | {
+        "metrics": {
+            "ws_suboptimality": {"value": 0.25, "how": f"`{ws}`: 3 problems, mean (J - J_REL)/J_REL"},
+            "mpc10_nominal_model_feasible_rate": {"value": 0.5, "how": f"`{mpc}`: 2 problems, share feasible"},
+            "ws_iterations": {"value": 4.0, "how": f"`{ws}`: 3 problems, mean SCP iterations"},
+            "success_rate": {"value": 0.9, "how": "counted by hand"},
+        },
+        "headline_metrics": ["ws_suboptimality"],
+        "inference": {"rtg_scale": 1.0, "protocol": [ws, mpc]},
+        "model-index": [{"name": "old", "results": [{"task": {"type": "trajectory-optimization"},
+                         "dataset": {"type": "ttompc/toy", "name": "toy"},
+                         "metrics": [{"type": "ws_suboptimality", "value": 0.25},
+                                     {"type": "ws_iterations", "value": 4.0}]}]}],
+    }  # fmt: skip
+    card = cards.parse_card(f"---\n{yaml.safe_dump(first)}---\nText.\n")
+    assert card.evaluations == {
+        "warmstart": {"command": ws, "metrics": {"ws_suboptimality": 0.25, "ws_iterations": 4.0}},
+        "mpc": {"command": mpc, "metrics": {"mpc10_nominal_model_feasible_rate": 0.5}},
+        "eval": {"command": "counted by hand", "metrics": {"success_rate": 0.9}},
+    }
+    assert card.inference == {"rtg_scale": 1.0} and card.body == "Text.\n"
+    text = cards.render_card(card)
+    assert cards.parse_card(text) == card and "how:" not in text and text.count(ws) == 1
+    first["model-index"][0]["results"][0]["metrics"][0]["value"] = 0.3
+    with pytest.raises(cards.CardError, match=r"model-index does not match .*\(ws_suboptimality\)"):
+        cards.parse_card(f"---\n{yaml.safe_dump(first)}---\n")
+    with pytest.raises(cards.CardError, match="keep evaluations"):
+        cards.ModelCard.from_dict({**front, "metrics": first["metrics"]})
+    (env / "first.json").write_text(json.dumps(first["metrics"]))  # a `ttompc zoo metrics` file of the first format
+    assert load_metrics(env / "first.json") == card.evaluations
+
+
+def test_publishing_an_evaluation_for_the_same_bytes_keeps_the_others(env: Path) -> None:
+    """Refreshing one evaluation (``zoo metrics --mpc`` then ``zoo publish --card-metrics``) of the bytes a card
+    describes replaces that evaluation in place and keeps the others, which were measured on the same bytes; new
+    bytes keep none."""
+    src, to = make_bundle(env / "b"), str(env / "zoo" / "models" / "m")
+    ws = {"command": "ttompc evaluate warmstart --model m", "metrics": {"ws_suboptimality": 0.25}}
+    old = {
+        "command": "ttompc evaluate mpc --model m horizons=[10]",
+        "metrics": {"mpc10_nominal_model_feasible_rate": 0.5},
+    }
+    zoo.publish(src, "m", to, metrics={"warmstart": ws, "mpc": old, "unit": METRICS["unit"]})
+    new = {
+        "command": "ttompc evaluate mpc --model m horizons=[10,30]",
+        "metrics": {"mpc10_nominal_model_feasible_rate": 0.75},
+    }
+    card = zoo.publish(src, "m", to, metrics={"mpc": new})
+    assert card.evaluations == {"warmstart": ws, "mpc": new, "unit": METRICS["unit"]}
+    assert list(card.evaluations) == ["warmstart", "mpc", "unit"]
+    card = zoo.publish(src, "m", to, metrics={"mpc_nominal": old})  # a metric in common: supersedes "mpc"
+    assert list(card.evaluations) == ["warmstart", "unit", "mpc_nominal"]
+    assert zoo.publish(make_bundle(env / "b2", seed=1), "m", to, metrics={"mpc": new}).evaluations == {"mpc": new}
 
 
 def test_stale_index_is_detected(env: Path) -> None:
@@ -171,7 +243,7 @@ def test_publish_list_download_round_trip(env: Path, capsys: pytest.CaptureFixtu
     assert main([*argv, str(env / "metrics.json"), "--recipe", "recipes/toy.yaml"]) == 0
     card = zoo.model_info("ff-tiny")
     assert [f.url for f in card.files] == ["models/ff-tiny/model.safetensors", "models/ff-tiny/config.json"]
-    assert (card.scenario, card.scenario_version, card.recipe, card.metrics) == (
+    assert (card.scenario, card.scenario_version, card.recipe, card.evaluations) == (
         "toy",
         "0.1",
         "recipes/toy.yaml",
@@ -234,7 +306,7 @@ def test_publish_metrics_hook_and_requirements(env: Path) -> None:
         zoo.publish(src, "m", to)
     seen: list[Path] = []
     card = zoo.publish(src, "m", to, evaluate=lambda bundle: seen.append(bundle) or METRICS)
-    assert seen == [src] and card.metrics == METRICS
+    assert seen == [src] and card.evaluations == METRICS
     with pytest.raises(zoo.PublishError, match="local directory or file://"):
         zoo.publish(src, "m", "https://example.org/models", skip_eval=True)
 
@@ -466,6 +538,5 @@ def test_zoo_list_headline_reads_the_protocol_numbers() -> None:
     text = headline_text(v3)
     assert "from REL 40.7% → from model 34.5%, 82.3% of the reachable gain" in text
     assert text.endswith("closed-loop goal reached 100% · 75%")
-    v3.metrics = {"success_rate": {"value": 0.9, "how": "unit test"}}
-    v3.headline_metrics = []
+    v3.evaluations = {"unit": {"command": "unit test", "metrics": {"success_rate": 0.9}}}
     assert headline_text(v3) == "success_rate=0.9"

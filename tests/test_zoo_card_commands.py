@@ -1,9 +1,10 @@
 """Every command a zoo card prints to reproduce its numbers runs as printed.
 
-The commands are parsed from the cards (each metric's ``how`` and the ``ttompc evaluate`` lines of the body's bash
-blocks), so the test follows the cards. The fast test checks that they name only models of the zoo; the slow one runs
-each through the real CLI in a subprocess with smoke settings appended (a later ``key=value`` wins) and two workers,
-so the process pool, where a withdrawn model once made these commands start failing workers forever, is exercised.
+The commands are read from the cards (each evaluation's ``command`` and the ``ttompc evaluate`` lines of the body's
+bash blocks), so the test follows the cards. The fast test checks that they name only models of the zoo; the slow one
+runs each through the real CLI in a subprocess with smoke settings appended (a later ``key=value`` wins) and two
+workers, so the process pool, where a withdrawn model once made these commands start failing workers forever, is
+exercised.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ def card_commands() -> list[tuple[str, list[str]]]:
     """(card name, argv) of every distinct reproduce command of every card, in card order."""
     found: dict[tuple[str, ...], str] = {}
     for card in list_models(ZOO):
-        lines = [m.group(1) for how in (m["how"] for m in card.metrics.values()) if (m := re.match(r"`([^`]+)`", how))]
+        lines = [evaluation["command"] for evaluation in card.evaluations.values()]
         for block in re.findall(r"```bash\n(.*?)```", card.body, re.DOTALL):
             lines += [line for line in block.splitlines() if line.startswith("ttompc evaluate ")]
         for line in lines:

@@ -5,6 +5,7 @@ the shipped cards read back by ``huggingface_hub.ModelCard``."""
 from __future__ import annotations
 
 import json
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,14 +19,20 @@ from ttompc.cli import main
 from ttompc.policy import Planner
 from ttompc.scenarios import get_scenario
 from ttompc.zoo import cards, registry
-from ttompc.zoo.publish import inference_settings
 
 REPO_ZOO = Path(__file__).resolve().parents[1] / "zoo"
 TOKEN = "hf_test_token"
-METRICS = {
-    "ws_suboptimality": {"value": 0.25, "how": "`ttompc evaluate warmstart --model m problems=3 seed=1`: test"},
-    "mpc10_nominal_model_feasible_rate": {"value": 0.5, "how": "`ttompc evaluate mpc --model m problems=2`: test"},
-    "success_rate": {"value": 0.9, "how": "a metric of neither evaluation: not in the model-index"},
+METRICS = {  # the evaluations of `ttompc zoo metrics`, and one of neither kind (no headline: not in the model-index)
+    "warmstart": {
+        "command": "ttompc evaluate warmstart --model m problems=3 seed=1",
+        "metrics": {"ws_suboptimality": 0.25, "ws_failures": 0.0},
+    },
+    "mpc": {
+        "command": "ttompc evaluate mpc --model m problems=2",
+        "what": "test",
+        "metrics": {"mpc10_nominal_model_feasible_rate": 0.5, "mpc10_nominal_model_step_time_s": 0.1},
+    },
+    "other": {"command": "python bench/x.py", "metrics": {"success_rate": 0.9}},
 }
 
 
@@ -104,15 +111,14 @@ def test_publish_download_plan_gives_the_same_warm_start(
     card = huggingface_hub.ModelCard.load(snapshot / "README.md")
     assert card.data.library_name == "ttompc" and card.data.license == "mit"
     results = {r.metric_type: (r.task_type, r.metric_value) for r in card.data.eval_results}
-    assert results == {
+    assert results == {  # the headline: not ws_failures, nor the step time, nor the metric of neither evaluation
         "ws_suboptimality": ("trajectory-optimization", 0.25),
         "mpc10_nominal_model_feasible_rate": ("model-predictive-control", 0.5),
     }
+    assert [r.dataset_config for r in card.data.eval_results] == ["warmstart", "mpc"]  # the evaluation of each
     ours = cards.parse_card((snapshot / "README.md").read_text())
     assert 'Planner.from_pretrained("hf://org/toy-tto")' in ours.body
-    assert ours.metrics == METRICS and ours.inference["rtg_scale"] == local.rtg_scale
-    assert ours.inference["protocol"] == ["ttompc evaluate warmstart --model m problems=3 seed=1",
-                                          "ttompc evaluate mpc --model m problems=2"]  # fmt: skip
+    assert ours.evaluations == METRICS and ours.inference["rtg_scale"] == local.rtg_scale
 
     assert main(["zoo", "download", "hf://org/toy-tto", "--no-progress"]) == 0  # main: the same commit
     assert capsys.readouterr().out.strip() == str(snapshot)
@@ -266,7 +272,9 @@ def test_dataset_folder_publishes_in_one_commit_and_loads_with_datasets(
 
 
 def test_shipped_cards_give_the_hub_their_results() -> None:
-    """Every shipped card's model-index, read by huggingface_hub, holds exactly its open- and closed-loop metrics."""
+    """Every shipped card's model-index, read by huggingface_hub, holds its headline: the open-loop suboptimality and
+    SCP iterations against REL's, and the closed-loop goals and cost at H = 10 (nominal plant) of the model's better
+    variant beside REL-MPC's, each with the card's value and naming the evaluation it came from."""
     import huggingface_hub
 
     for path in sorted(REPO_ZOO.glob("*.md")):
@@ -275,22 +283,26 @@ def test_shipped_cards_give_the_hub_their_results() -> None:
         ours = registry.get_card(path.stem, REPO_ZOO)
         hub_card = huggingface_hub.ModelCard.load(path)
         assert hub_card.data.library_name == "ttompc" and hub_card.data.license == "mit"
-        results = {r.metric_type: r.metric_value for r in hub_card.data.eval_results}
-        expected = {k: m["value"] for k, m in ours.metrics.items() if k.startswith(("ws_", "mpc"))}
-        assert results == expected and expected, path.name
-        assert ours.inference["rtg_scale"] > 0 and ours.inference["protocol"], path.name
-        # the protocol is the commands behind the card's metrics, so it names the settings they were measured under
-        assert ours.inference["protocol"] == inference_settings({}, ours.metrics)["protocol"], path.name
+        results = hub_card.data.eval_results
+        for r in results:
+            assert r.metric_value == ours.evaluations[r.dataset_config]["metrics"][r.metric_type], path.name
+        types = {r.metric_type for r in results}
+        if "ws_suboptimality" in ours.metrics:
+            assert {"ws_suboptimality", "ws_suboptimality_rel", "ws_iterations", "ws_iterations_rel"} <= types
+        if "mpc10_nominal_model_feasible_rate" in ours.metrics:
+            assert "mpc10_nominal_rel_feasible_rate" in types and types & {
+                "mpc10_nominal_model_feasible_rate", "mpc10_nominal_robust_feasible_rate"}  # fmt: skip
+        per_evaluation = Counter(r.dataset_config for r in results)
+        assert types and max(per_evaluation.values()) <= 6, path.name  # the headline, not every number
+        assert ours.inference["rtg_scale"] > 0 and set(ours.inference) == {"rtg_scale", "conditioning"}, path.name
 
 
 def test_cards_refuse_a_model_index_that_is_not_their_metrics(tmp_path: Path) -> None:
     text = (REPO_ZOO / "rpod-tto-small.md").read_text()
-    value = cards.parse_card(text).metrics["ws_suboptimality"]["value"]
-    edited = text.replace(
-        f"- type: ws_suboptimality\n      value: {value}", "- type: ws_suboptimality\n      value: 0.0"
-    )
-    assert edited != text
-    with pytest.raises(cards.CardError, match="model-index does not match metrics"):
+    value = cards.parse_card(text).metrics["ws_suboptimality"]
+    edited = text.replace(f"type: ws_suboptimality, value: {value}}}", "type: ws_suboptimality, value: 0.0}")
+    assert edited.count("0.0}") == text.count("0.0}") + 1
+    with pytest.raises(cards.CardError, match="model-index does not match the evaluations' metrics"):
         cards.parse_card(edited)
     with pytest.raises(cards.CardError, match="must be the Hugging Face id ORG/NAME"):
         cards.parse_card(text.replace("kind: TTO", "kind: TTO\nbase_model: org/base"))

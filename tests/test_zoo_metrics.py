@@ -1,4 +1,5 @@
-"""Card metrics are the evaluation reports' numbers, each with the command that reproduces it."""
+"""Card evaluations are the evaluation reports' numbers, each evaluation with the command that reproduces it, and the
+model-index is their headline."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from ttompc.zoo.cards import validate_metrics
+from ttompc.zoo.cards import headline_metrics, validate_evaluations
 from ttompc.zoo.report_metrics import card_metrics, command_line
 
 
@@ -58,38 +59,52 @@ MPC = {
 
 
 def test_metrics_are_the_reports_numbers_with_their_command() -> None:
-    m = validate_metrics(card_metrics("TTO", warmstart=WS, mpc=MPC))
-    assert m["ws_suboptimality"]["value"] == pytest.approx(0.35)
-    assert m["ws_suboptimality_rel"]["value"] == pytest.approx(0.40)
-    assert m["ws_suboptimality_oracle"]["value"] == pytest.approx(0.30)
-    assert m["ws_gain_share"]["value"] == pytest.approx(0.5)
-    assert m["ws_suboptimality_vs_rel"]["value"] == pytest.approx(-0.04)
-    assert m["ws_suboptimality_vs_rel_se"]["value"] == pytest.approx(0.02)
-    assert m["ws_iterations_vs_rel"]["value"] == pytest.approx(-0.5)
-    assert m["ws_failures"]["value"] == 1
-    assert m["mpc10_nominal_model_feasible_rate"]["value"] == pytest.approx(0.5)
-    assert m["mpc10_nominal_rel_paper_norm"]["value"] == pytest.approx(0.7)
-    assert m["mpc10_perturbed_model_rel_increment"]["value"] == pytest.approx(0.6)
-    assert m["mpc10_perturbed_model_vs_rel_mpc"]["value"] == pytest.approx(-0.06)
-    assert m["mpc10_perturbed_model_vs_rel_mpc_se"]["value"] == pytest.approx(0.3)
-    assert "paired difference to REL-MPC" in m["mpc10_perturbed_model_vs_rel_mpc"]["how"]
+    evaluations = validate_evaluations(card_metrics("TTO", warmstart=WS, mpc=MPC))
+    assert list(evaluations) == ["warmstart", "mpc"]
+    ws, mpc = evaluations["warmstart"], evaluations["mpc"]
+    m = {**ws["metrics"], **mpc["metrics"]}
+    assert m["ws_suboptimality"] == pytest.approx(0.35)
+    assert m["ws_suboptimality_rel"] == pytest.approx(0.40)
+    assert m["ws_suboptimality_oracle"] == pytest.approx(0.30)
+    assert m["ws_gain_share"] == pytest.approx(0.5)
+    assert m["ws_suboptimality_vs_rel"] == pytest.approx(-0.04)
+    assert m["ws_suboptimality_vs_rel_se"] == pytest.approx(0.02)
+    assert m["ws_suboptimality_vs_rel_n"] == 10  # how many problems the paired difference pairs
+    assert m["ws_iterations_vs_rel"] == pytest.approx(-0.5)
+    assert m["ws_failures"] == 1
+    assert m["mpc10_nominal_model_feasible_rate"] == pytest.approx(0.5)
+    assert m["mpc10_nominal_rel_paper_norm"] == pytest.approx(0.7)
+    assert m["mpc10_perturbed_model_rel_increment"] == pytest.approx(0.6)
+    assert m["mpc10_perturbed_model_vs_rel_mpc"] == pytest.approx(-0.06)
+    assert m["mpc10_perturbed_model_vs_rel_mpc_se"] == pytest.approx(0.3)
+    assert m["mpc10_perturbed_model_vs_rel_mpc_n"] == 10
     # an undefined mean (no feasible run) is not a value; its feasible rate (0) is
     assert "mpc10_nominal_robust_rel_increment" not in m
-    assert m["mpc10_nominal_robust_feasible_rate"]["value"] == 0
+    assert m["mpc10_nominal_robust_feasible_rate"] == 0
     assert "DIST" not in json.dumps(list(m))  # only the model, its robust variant, REL, oracle and plan-once
-    assert all(math.isfinite(v["value"]) for v in m.values())
-    assert "`ttompc evaluate warmstart --model m-tto --ft-model m-ft problems=10 seed=4242" in m["ws_iterations"]["how"]
-    how = m["mpc10_nominal_model_step_time_s"]["how"]
-    assert "horizons=[10] plants=[nominal,perturbed] protocol=zoo mpc.track=2.5`" in how  # the preset, its override
-    assert "rtg_scale=" not in how  # None: the model's own, not on the command line
+    assert all(math.isfinite(v) for v in m.values())
+    assert (
+        ws["command"]
+        == "ttompc evaluate warmstart --model m-tto --ft-model m-ft problems=10 seed=4242 nonconvex_only=True"
+    )
+    assert ws["what"] == "10 held-out non-convex problems, full-horizon SCP from the TTO, REL and oracle warm starts"
+    # the preset and its override; rtg_scale=None is the model's own, not on the command line
+    assert mpc["command"] == (
+        "ttompc evaluate mpc --model m-tto problems=4 seed=4242 horizons=[10] plants=[nominal,perturbed] protocol=zoo "
+        "mpc.track=2.5"
+    )
+    assert mpc["what"] == "4 held-out non-convex problems, closed-loop MPC on the nominal and perturbed plants"
 
 
 def test_metrics_read_rtg_labelled_rows_and_the_headline() -> None:
     """A report run under another rtg mode labels its TTO rows (FT-TTO-MPC[rtg=value]); the card reads them as the
-    model's, and takes the headline rows (against REL-MPC at the longest horizon) with their command."""
+    model's, and takes the headline rows (against REL-MPC at the longest horizon) and REL-MPC's row there. The
+    model-index headline is the better variant at H = 10 beside REL-MPC at both horizons."""
     report = {
         "config": {**MPC["config"], "ft_model": "m-ft", "horizons": [10, 30], "protocol": "recommended", "mpc": {}},
-        "summary": [_row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.3), _row("nominal", "REL-MPC", 4, 0.9)],
+        "summary": [_row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.3), _row("nominal", "REL-MPC", 4, 0.9),
+                    _row("nominal", "R-FT-TTO-MPC[rtg=value]", 2, 0.1), _row("nominal", "REL-MPC", 4, 0.2, horizon=30),
+                    _row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.25, horizon=30)],
         "headline": [
             {"plant": "nominal", "method": "R-FT-TTO-MPC[rtg=value]", "horizon": 10, "baseline_horizon": 30,
              "runs": 4, "feasible": 4, "baseline_feasible": 4, "vs_baseline": _iv(0.05, 0.02), "step_ratio": 3.5},
@@ -97,21 +112,37 @@ def test_metrics_read_rtg_labelled_rows_and_the_headline() -> None:
              "feasible": 4, "baseline_feasible": 4, "vs_baseline": _iv(0.9), "step_ratio": 1.5},
         ],
     }  # fmt: skip
-    m = validate_metrics(card_metrics("FT-TTO", mpc=report))
-    assert m["mpc10_nominal_model_rel_increment"]["value"] == pytest.approx(0.3)
-    assert m["mpc10_nominal_robust_vs_rel30"]["value"] == pytest.approx(0.05)
-    assert m["mpc10_nominal_robust_vs_rel30_se"]["value"] == pytest.approx(0.02)
-    assert m["mpc10_nominal_robust_vs_rel30_step_ratio"]["value"] == pytest.approx(3.5)
-    assert "mpc10_nominal_rel_vs_rel30" not in m
-    assert (
-        "horizons=[10,30] plants=[nominal,perturbed] protocol=recommended`" in m["mpc10_nominal_robust_vs_rel30"]["how"]
-    )
+    evaluation = validate_evaluations(card_metrics("FT-TTO", mpc=report))["mpc"]
+    m = evaluation["metrics"]
+    assert m["mpc10_nominal_model_rel_increment"] == pytest.approx(0.3)
+    assert m["mpc10_nominal_robust_vs_rel30"] == pytest.approx(0.05)
+    assert m["mpc10_nominal_robust_vs_rel30_se"] == pytest.approx(0.02)
+    assert m["mpc10_nominal_robust_vs_rel30_n"] == 10
+    assert m["mpc10_nominal_robust_vs_rel30_step_ratio"] == pytest.approx(3.5)
+    assert m["mpc30_nominal_rel_rel_increment"] == pytest.approx(0.2)  # the baseline of the headline
+    assert "mpc10_nominal_rel_vs_rel30" not in m and "mpc30_nominal_model_feasible_rate" not in m
+    assert "horizons=[10,30] plants=[nominal,perturbed] protocol=recommended" in evaluation["command"]
+    task, keys = headline_metrics(m, "FT-TTO") or ({}, [])
+    assert task["type"] == "model-predictive-control" and dict(keys) == {
+        "mpc10_nominal_model_feasible_rate": "FT-TTO-MPC@10: goals reached, nominal plant",  # 4/4 goals beat 2/4
+        "mpc10_nominal_model_rel_increment": "FT-TTO-MPC@10: (J - J_REL)/J_REL, nominal plant",
+        "mpc10_nominal_rel_feasible_rate": "REL-MPC@10: goals reached, nominal plant",
+        "mpc10_nominal_rel_rel_increment": "REL-MPC@10: (J - J_REL)/J_REL, nominal plant",
+        "mpc30_nominal_rel_feasible_rate": "REL-MPC@30: goals reached, nominal plant",
+        "mpc30_nominal_rel_rel_increment": "REL-MPC@30: (J - J_REL)/J_REL, nominal plant",
+    }
+    tie = {**m, "mpc10_nominal_robust_feasible_rate": 1.0}  # as many goals: the cheaper variant
+    assert [k for k, _ in (headline_metrics(tie, "FT-TTO") or ({}, []))[1][:2]] == [
+        "mpc10_nominal_robust_feasible_rate",
+        "mpc10_nominal_robust_rel_increment",
+    ]
+    assert headline_metrics({"success_rate": 0.9}, "TTO") is None
 
 
 def test_ft_metrics_pick_the_ft_rows() -> None:
-    m = card_metrics("FT-TTO", warmstart=WS)
-    assert m["ws_suboptimality"]["value"] == pytest.approx(0.45)
-    assert m["ws_gain_share"]["value"] == pytest.approx(-0.5)
+    m = card_metrics("FT-TTO", warmstart=WS)["warmstart"]["metrics"]
+    assert m["ws_suboptimality"] == pytest.approx(0.45)
+    assert m["ws_gain_share"] == pytest.approx(-0.5)
 
 
 def test_missing_method_is_named() -> None:
@@ -129,7 +160,8 @@ def test_cli_writes_publishable_metrics(tmp_path) -> None:
     cmd = [sys.executable, "-m", "ttompc.cli", "zoo", "metrics", "--method", "TTO", "--warmstart", str(ws)]
     done = subprocess.run([*cmd, "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert validate_metrics(json.loads(out.read_text()))["ws_suboptimality"]["value"] == pytest.approx(0.35)
+    written = validate_evaluations(json.loads(out.read_text()))
+    assert list(written) == ["warmstart"] and written["warmstart"]["metrics"]["ws_suboptimality"] == pytest.approx(0.35)
     bad = subprocess.run([*cmd[:-4], "--method", "TTO"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "needs a report" in bad.stderr
 
@@ -145,15 +177,15 @@ def test_an_undefined_gain_share_is_left_off_the_card(tmp_path: Path) -> None:
                for m in WS["methods"]]  # fmt: skip
     report = json.loads(write_json(tmp_path / "warmstart.json", {**WS, "methods": methods}).read_text())
     assert report["methods"][1]["gain_share"]["mean"] is None
-    m = validate_metrics(card_metrics("TTO", warmstart=report))
-    assert "ws_gain_share" not in m and m["ws_suboptimality"]["value"] == pytest.approx(0.35)
+    m = validate_evaluations(card_metrics("TTO", warmstart=report))["warmstart"]["metrics"]
+    assert "ws_gain_share" not in m and m["ws_suboptimality"] == pytest.approx(0.35)
 
 
 def test_card_inference_names_the_value_rtg_of_a_model_with_a_value_output() -> None:
     from ttompc.zoo.publish import inference_settings
 
-    plain = inference_settings({"model": {"n_embd": 8}, "extra": {"rtg_scale": 1.15}}, {})
-    valued = inference_settings({"model": {"n_embd": 8, "value_width": 16}, "extra": {"rtg_scale": 1.15}}, {})
+    plain = inference_settings({"model": {"n_embd": 8}, "extra": {"rtg_scale": 1.15}})
+    valued = inference_settings({"model": {"n_embd": 8, "value_width": 16}, "extra": {"rtg_scale": 1.15}})
     assert plain == {
         "rtg_scale": 1.15,
         "conditioning": "rtg_0 = -rtg_scale * J_REL (cost of the relaxed problem), ctg_0 = 0",

@@ -55,7 +55,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "hf://ORG/NAME[@BRANCH] (a dataset: hf://datasets/ORG/NAME), uploaded in one commit",
     )
     p.add_argument("--private", action="store_true", help="create the Hub repository as private")
-    p.add_argument("--card-metrics", help="JSON file {metric: {value, how}} to put in the card")
+    p.add_argument(
+        "--card-metrics",
+        help="JSON file of evaluations {name: {command, what, metrics}} from `ttompc zoo metrics` to put in the card "
+        "(for the bytes the card describes: replaces its evaluations of the same name, keeps the others)",
+    )
     p.add_argument("--skip-eval", action="store_true", help="publish without metrics")
     p.add_argument("--base-url", help="card URLs become BASE_URL/<file> (when the files are uploaded there)")
     p.add_argument("--kind", choices=KINDS, help="override the kind read from config.json")
@@ -73,7 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--base-model", help="Hub id ORG/NAME of the model a fine-tuned (FT-TTO) model started from")
 
-    p = sub.add_parser("metrics", help="card metrics ({metric: {value, how}}) from `ttompc evaluate` reports")
+    p = sub.add_parser(
+        "metrics", help="card evaluations ({name: {command, what, metrics}}) from `ttompc evaluate` reports"
+    )
     p.add_argument("--method", required=True, choices=KINDS, help="which model of the reports (TTO or FT-TTO)")
     p.add_argument("--warmstart", help="warmstart.json of `ttompc evaluate warmstart`")
     p.add_argument("--mpc", help="mpc.json of `ttompc evaluate mpc`")
@@ -120,8 +126,8 @@ def format_table(cards: list[ModelCard]) -> str:
 def headline_text(card: ModelCard) -> str:
     """A card's protocol numbers in words: open loop (J − J_REL)/J_REL of SCP from REL → from the model and the share
     of the reachable gain, closed-loop goal-reached rates at H = 10 (nominal · perturbed); a card without them shows
-    its ``headline`` metrics as key=value."""
-    m = {k: v["value"] for k, v in card.metrics.items()}
+    its first two metrics as key=value."""
+    m = card.metrics
     parts = []
     if "ws_suboptimality" in m:
         rel = f"from REL {_pct(m['ws_suboptimality_rel'])} → " if "ws_suboptimality_rel" in m else ""
@@ -130,7 +136,7 @@ def headline_text(card: ModelCard) -> str:
     rates = [m[k] for p in ("nominal", "perturbed") if (k := f"mpc10_{p}_model_feasible_rate") in m]
     if rates:
         parts.append("closed-loop goal reached " + " · ".join(_pct(r) for r in rates))
-    return "; ".join(parts) or ", ".join(f"{k}={v:.4g}" for k, v in card.headline().items()) or "-"
+    return "; ".join(parts) or ", ".join(f"{k}={v:.4g}" for k, v in list(m.items())[:2]) or "-"
 
 
 def _pct(x: float) -> str:
@@ -154,8 +160,8 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def readable_card(card: ModelCard) -> str:
-    """The card's text first, then what a reader needs from the front matter: files, metrics with how they were
-    measured, and where the full record is (``--json``/``--raw``)."""
+    """The card's text first, then what a reader needs from the front matter: files, each evaluation's command and
+    metrics, and where the full record is (``--json``/``--raw``)."""
     arch = ", ".join(f"{k}={card.architecture[k]}" for k in ("n_layer", "n_embd", "n_head") if k in card.architecture)
     lines = [
         card.body.strip(),
@@ -165,10 +171,11 @@ def readable_card(card: ModelCard) -> str:
         f"recipe: {card.recipe or '-'}   data: {card.data_card or '-'}   licence: {card.license}",
         "files: " + ", ".join(f"{f.filename} ({_human(f.size)}, sha256 {f.sha256[:12]}…)" for f in card.files),
     ]
-    if card.metrics:
-        values = ", ".join(f"{k}={m['value']:.4g}" for k, m in card.metrics.items())
-        lines += textwrap.wrap(f"metrics: {values}", width=110, subsequent_indent="  ")
-    lines.append(f"how each metric was measured: ttompc zoo info {card.name} --json (--raw: the card file)")
+    for name, evaluation in card.evaluations.items():
+        lines.append(f"{name}: {evaluation['command']}" + (f"  ({evaluation['what']})" if "what" in evaluation else ""))
+        values = ", ".join(f"{k}={v:.4g}" for k, v in evaluation["metrics"].items())
+        lines += textwrap.wrap(values, width=110, initial_indent="  ", subsequent_indent="  ")
+    lines.append(f"the full record: ttompc zoo info {card.name} --json (--raw: the card file)")
     return "\n".join(lines) + "\n"
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 import tempfile
 import urllib.parse
 from collections.abc import Callable
@@ -30,9 +29,10 @@ from ttompc.zoo.cards import (
     REQUIRED_FILES,
     FileEntry,
     ModelCard,
+    evaluations_from_metrics,
     read_card,
     render_card,
-    validate_metrics,
+    validate_evaluations,
     validate_name,
 )
 from ttompc.zoo.download import local_path
@@ -42,8 +42,7 @@ from ttompc.zoo.registry import write_index, zoo_path
 
 DEFAULT_TAGS = ("ttompc", "trajectory-optimization", "mpc")
 MANIFEST_FILE = "manifest.json"  # a dataset folder's file list with sha256 (``ttompc.data.generate``)
-Evaluate = Callable[[Path], dict[str, dict[str, Any]]]
-_COMMAND_RE = re.compile(r"`(ttompc evaluate [^`]+)`")
+Evaluate = Callable[[Path], dict[str, dict[str, Any]]]  # bundle dir -> the card's evaluations
 
 
 def publish(
@@ -161,24 +160,24 @@ def _card(
     card_fields: dict[str, Any] | None,
     load_as: str,
 ) -> ModelCard:
-    """The card of ``bundle`` published as ``files``. Metrics: ``metrics`` if given; else, unless ``skip_eval``,
-    the existing card's when the files are byte-identical to the ones it describes (its numbers were measured on
-    these bytes), else ``evaluate(bundle)`` (the standard evaluation hook); a card never silently claims metrics it
-    was not given."""
+    """The card of ``bundle`` published as ``files``. Its evaluations (``metrics``, ``{name: {command, what,
+    metrics}}``): none with ``skip_eval``; when the files are byte-identical to the ones the existing card describes
+    (its numbers were measured on these bytes), the card's, with those of ``metrics`` replacing the evaluations of the
+    same name or with a metric in common; else ``metrics``, or ``evaluate(bundle)`` (the standard evaluation hook)
+    when not given. A card never silently claims metrics it was not given."""
     previous = read_card(card_path) if card_path.is_file() else None
     same_files = previous is not None and {(f.filename, f.sha256) for f in previous.files} == {
         (f.filename, f.sha256) for f in files
     }
-    if metrics is None and not skip_eval:
-        if previous is not None and same_files:
-            metrics = previous.metrics
-        elif evaluate is None:
+    if metrics is None and not skip_eval and not same_files:
+        if evaluate is None:
             raise PublishError(f"no metrics for the card of {name}", _metrics_hint(config, card_fields))
-        else:
-            metrics = evaluate(bundle)
-    metrics = validate_metrics(metrics or {})
+        metrics = evaluate(bundle)
+    evaluations = validate_evaluations(metrics or {})
+    if previous is not None and same_files and not skip_eval:
+        evaluations = _updated(previous.evaluations, evaluations)
     fields: dict[str, Any] = {"name": name, "kind": "TTO", "license": "mit", "tags": list(DEFAULT_TAGS)}
-    if previous is not None:  # keep what a maintainer edited by hand; metrics and files are replaced
+    if previous is not None:  # keep what a maintainer edited by hand; evaluations and files are replaced
         fields.update(
             kind=previous.kind,
             license=previous.license,
@@ -187,14 +186,22 @@ def _card(
             data_card=previous.data_card,
             datasets=previous.datasets,
             base_model=previous.base_model,
-            headline_metrics=[m for m in previous.headline_metrics if m in metrics],
         )
     fields.update({k: v for k, v in _from_config(config).items() if v})
-    fields.update(metrics=metrics, files=[f.to_dict() for f in files], **(card_fields or {}))
-    fields["inference"] = inference_settings(config, metrics)
+    fields.update(evaluations=evaluations, files=[f.to_dict() for f in files], **(card_fields or {}))
+    fields["inference"] = inference_settings(config)
     card = ModelCard.from_dict(fields, body=previous.body if previous else "")
     card.body = card.body or _default_body(card, load_as)
     return card
+
+
+def _updated(evaluations: dict[str, dict[str, Any]], new: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``evaluations`` less the ones ``new`` supersedes (of the same name, or with a metric in common), each of
+    ``new`` in the place of its namesake, else after them."""
+    keys = {k for e in new.values() for k in e["metrics"]}
+    out = {n: new.get(n, e) for n, e in evaluations.items() if n in new or not keys & set(e["metrics"])}
+    out.update(new)
+    return out
 
 
 def _metrics_hint(config: dict[str, Any], card_fields: dict[str, Any] | None) -> str:
@@ -211,21 +218,18 @@ def _metrics_hint(config: dict[str, Any], card_fields: dict[str, Any] | None) ->
     )
 
 
-def inference_settings(config: dict[str, Any], metrics: dict[str, dict[str, Any]]) -> dict[str, Any]:
+def inference_settings(config: dict[str, Any]) -> dict[str, Any]:
     """The card's ``inference`` section: the conditioning the model plans with by default (``rtg_scale`` from the
-    bundle's ``extra``, else the paper's 1) and the evaluation commands its metrics came from (the protocol)."""
+    bundle's ``extra``, else the paper's 1; a model with a value output feeds its value under
+    ``protocol=recommended``). The commands its numbers were measured with are the evaluations'."""
     extra = _extra(config)
-    commands = dict.fromkeys(c for m in metrics.values() for c in _COMMAND_RE.findall(m["how"]))
     conditioning = "rtg_0 = -rtg_scale * J_REL (cost of the relaxed problem), ctg_0 = 0"
     if int((config.get("model") or {}).get("value_width", 0) or 0) > 0:
         conditioning = (
             "rtg_t = -V(x_t, t), the model's value output at the measured state (protocol=recommended, "
             f"rtg_mode=value); under the paper's ledger {conditioning}"
         )
-    settings: dict[str, Any] = {"rtg_scale": float(extra.get("rtg_scale", 1.0)), "conditioning": conditioning}
-    if commands:
-        settings["protocol"] = list(commands)
-    return settings
+    return {"rtg_scale": float(extra.get("rtg_scale", 1.0)), "conditioning": conditioning}
 
 
 def _extra(config: dict[str, Any]) -> dict[str, Any]:
@@ -324,6 +328,9 @@ def _default_body(card: ModelCard, load_as: str) -> str:
 
 
 def load_metrics(path: str | Path) -> dict[str, dict[str, Any]]:
-    """Metrics from a JSON file ``{name: {value, how, ...}}`` (``--card-metrics``)."""
+    """The evaluations in a JSON file (``--card-metrics``): ``{name: {command, what, metrics}}`` as ``ttompc zoo
+    metrics`` writes it, or the first format's ``{key: {value, how}}``."""
     with open(path, encoding="utf-8") as fh:
-        return validate_metrics(json.load(fh))
+        data = json.load(fh)
+    first_format = isinstance(data, dict) and any(isinstance(m, dict) and "how" in m for m in data.values())
+    return validate_evaluations(evaluations_from_metrics(data) if first_format else data)

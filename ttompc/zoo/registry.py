@@ -15,7 +15,7 @@ from ttompc.errors import UserError
 from ttompc.zoo.cards import ModelCard, read_card, validate_name
 
 INDEX_FILE = "index.json"
-INDEX_FORMAT = 1
+INDEX_FORMAT = 2  # 2: evaluations {name: {command, what, metrics}} in place of metrics {key: {value, how}}
 _NOT_CARDS = {"readme.md"}
 
 
