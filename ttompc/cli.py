@@ -33,7 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "finetune": ("ttompc.commands.finetune", "DAgger fine-tuning of a trained transformer"),
     "evaluate": ("ttompc.commands.evaluate", "warm-start and MPC evaluations"),
     "zoo": ("ttompc.commands.zoo", "list, inspect, download and publish pretrained models"),
-    "demo": ("ttompc.commands.demo", "the quickstart: plan seeded problems with a shipped zoo model"),
+    "demo": ("ttompc.commands.demo", "the quickstart: zoo models' warm starts and MPC against REL's, one table"),
     "check-scenario": (
         "ttompc.commands.check_scenario",
         "check your scenario against the interface (docs/scenarios.md)",

@@ -1,17 +1,30 @@
-"""``ttompc demo [RECIPE.yaml] key=value ...``: the quickstart, offline. Load a shipped zoo model, run a few seeded
-held-out non-convex problems through the evaluation protocol's per-problem steps — open loop (SCP from REL, from
-the transformer (TTO) and the oracle's best optimum, ``evaluation.warmstart.evaluate_problem``) and closed loop at
-one horizon on the nominal plant (every method of ``evaluation.closed_loop``) — then print the table and save
-``demo.png`` (one column per problem, titled with its seed; open loop on top, closed loop below; each solution's
-cost in the legend, infeasible runs marked, and the title says why REL may cross obstacles) and ``demo.json``.
-``--model``, ``--problems``, ``--horizon``, ``--seed``, ``--no-mpc`` and ``--out`` are shortcuts for the
-``DemoConfig`` keys."""
+"""``ttompc demo [RECIPE.yaml] key=value ...``: the quickstart, offline. Two shipped zoo models on held-out non-convex
+problems where what they add shows, in a table that fits 100 columns:
+
+* warm start: the first ``scan`` problems of the evaluation stream of root seed ``seed`` (the held-out non-convex
+  problems of a ``Measurement``) each run the open-loop protocol (``evaluation.warmstart.evaluate_problem``: SCP
+  from REL and from ``model``'s rollout; the oracle without random detours). Shown: the ``problems`` whose two SCP
+  optima differ most — by |J_SCP(model) − J_SCP(REL)| / J_REL, a failure on one side counting as the largest
+  difference, then by the difference in SCP iterations, then in stream order — whichever side is cheaper;
+* MPC, on those problems, on the nominal plant: TTO-MPC with ``mpc_model`` at H = ``horizon`` under ``protocol``
+  with the robust target (``evaluate mpc``'s best method of the recommended protocol, named as its report names it:
+  R-FT-TTO-MPC[rtg=value] for the zoo's fine-tuned model with a value output) against REL-MPC, the paper's
+  baseline, at H = ``rel_horizon`` under the paper's protocol: goal reached, cost above J_REL, mean step time.
+
+A one-line summary closes the table: the scan's count of problems where the model's warm start reached a cheaper or
+a costlier optimum than REL's (``SAME`` apart or more; a failed SCP counts against its side), and the MPC goals and
+step-time ratio. ``demo.json`` has
+every scanned problem and the shown ones in full, ``demo.png`` draws the shown ones (open loop on top, closed loop
+below; each solution's cost in the legend, infeasible runs marked, and the title says why REL may cross obstacles).
+``--model``, ``--mpc-model``, ``--problems``, ``--horizon``, ``--seed``, ``--no-mpc`` and ``--out`` are shortcuts for
+the ``DemoConfig`` keys."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,30 +33,41 @@ from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
 from ttompc.errors import UserError
 
+SAME = 0.01  # SCP optima of one problem closer than 1% of J_REL count as the same optimum
+
 
 @dataclass
 class DemoConfig:
-    model: str = "freeflyer-tto-v3"  # zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt (the best free-flyer model)
-    problems: int = 2
-    horizon: int = 10  # MPC planning horizon H
-    seed: int = 0  # root seed of the held-out evaluation stream
+    model: str = "freeflyer-tto-v3"  # open-loop warm starts: zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt
+    mpc_model: str = "freeflyer-ft-tto-v5"  # TTO-MPC: the same forms, the same scenario as model
+    protocol: str = "recommended"  # MPC settings of mpc_model's TTO-MPC (a preset or YAML file); REL-MPC's: paper
+    problems: int = 2  # shown: the scanned problems whose two warm starts differ most
+    scan: int = 12  # held-out non-convex problems run open loop to choose them from
+    horizon: int = 10  # TTO-MPC planning horizon H
+    rel_horizon: int = 30  # REL-MPC planning horizon H (the paper's baseline)
+    seed: int = 4242  # root seed of the held-out evaluation stream (the zoo cards' seed)
     mpc: bool = True  # also close the loop (slower)
     out: str = "outputs/demo"
 
     def __post_init__(self) -> None:
-        if self.problems < 1 or self.horizon < 1:
-            raise ValueError(f"problems and horizon must be >= 1, got {self.problems}, {self.horizon}")
+        if min(self.problems, self.horizon, self.rel_horizon) < 1 or self.scan < self.problems:
+            raise ValueError(
+                "problems, horizon and rel_horizon must be >= 1 and scan >= problems, got "
+                f"{self.problems}, {self.horizon}, {self.rel_horizon} and {self.scan}"
+            )
 
 
-_FLAGS = ("model", "problems", "horizon", "seed", "out")  # shortcut flags, dest = config key
+_FLAGS = ("model", "mpc_model", "problems", "horizon", "seed", "out")  # shortcut flags, dest = config key
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_config_arguments(p, "problems=3 horizon=20")
-    p.add_argument("--model", help="zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt (default freeflyer-tto-v3)")
-    p.add_argument("--problems", type=int, help="held-out problems to plan (default 2)")
-    p.add_argument("--horizon", type=int, help="MPC planning horizon H (default 10)")
-    p.add_argument("--seed", type=int, help="root seed of the evaluation problem stream (default 0)")
+    add_config_arguments(p, "problems=3 scan=20 horizon=20")
+    p.add_argument("--model", help="warm-start model: zoo name, hf://ORG/NAME[@REV], bundle or .ckpt "
+                                   "(default freeflyer-tto-v3)")  # fmt: skip
+    p.add_argument("--mpc-model", help="TTO-MPC model, same forms (default freeflyer-ft-tto-v5)")
+    p.add_argument("--problems", type=int, help="problems shown, chosen from the first scan=12 (default 2)")
+    p.add_argument("--horizon", type=int, help="TTO-MPC planning horizon H (default 10; REL-MPC: rel_horizon=30)")
+    p.add_argument("--seed", type=int, help="root seed of the evaluation problem stream (default 4242)")
     p.add_argument("--no-mpc", action="store_true", help="open-loop warm starts only (fast); same as mpc=false")
     p.add_argument("--out", help="folder for demo.png and demo.json (default outputs/demo)")
 
@@ -57,96 +81,181 @@ def run(args: argparse.Namespace) -> int:
         return 0
     checks.seed(cfg.seed)
     checks.writable(cfg.out)
-    from ttompc.evaluation.closed_loop import ClosedLoopConfig, episodes_per_problem, run_problem
+    from ttompc.evaluation.closed_loop import ClosedLoopConfig, tto_method
+    from ttompc.evaluation.episodes import episode_record
+    from ttompc.evaluation.measurement import Measurement
     from ttompc.evaluation.plots import Panel, save_figure, trajectory_figure
     from ttompc.evaluation.warmstart import evaluate_problem
+    from ttompc.mpc.loop import run_mpc_batch
+    from ttompc.mpc.providers import RELProvider
+    from ttompc.mpc.tto import tto_providers
     from ttompc.parallel import single_torch_thread
     from ttompc.policy import Planner
     from ttompc.progress import Bar
 
+    # TTO-MPC under protocol, REL-MPC under the paper's, both on the nominal plant; the problems: tto_loop's
+    tto_loop = Measurement(protocol=cfg.protocol, problems=cfg.scan, seed=cfg.seed, horizons=[cfg.horizon])
+    rel_loop = Measurement(protocol="paper", problems=cfg.scan, seed=cfg.seed, horizons=[cfg.rel_horizon])
     planner = Planner.from_pretrained(cfg.model)
     scenario = planner.scenario
-    if cfg.mpc and cfg.horizon > scenario.n_steps:  # refused as `evaluate mpc` does, not clipped under its label
+    too_long = [h for h in (cfg.horizon, cfg.rel_horizon) if h > scenario.n_steps]
+    if cfg.mpc and too_long:  # refused as `evaluate mpc` does, not clipped under its label
         raise UserError(
-            f"horizon {cfg.horizon} exceeds the horizon of {scenario.name}, N = {scenario.n_steps} steps",
-            f"pass --horizon {scenario.n_steps} or less (or --no-mpc)",
+            f"horizon {too_long[0]} exceeds the horizon of {scenario.name}, N = {scenario.n_steps} steps",
+            f"pass horizon and rel_horizon of {scenario.n_steps} or less (or --no-mpc)",
         )
-    print(
-        f"model {cfg.model}: {scenario.name} v{scenario.version}, "
-        f"{sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M parameters"
-    )
-    # the measurement: the problems of the evaluation stream of seed, the paper's protocol, H on the nominal plant
-    loop = ClosedLoopConfig(scenario=scenario.name, problems=cfg.problems, seed=cfg.seed, horizons=[cfg.horizon],
-                            plants=["nominal"])  # fmt: skip
-    rows: list[dict[str, Any]] = []
-    open_panels, closed_panels = [], []
-    runs = cfg.problems * (1 + (episodes_per_problem(loop, models=1) if cfg.mpc else 0))  # open loop + episodes
-    with single_torch_thread(), Bar(runs, "demo", "run") as bar:
-        for i in range(cfg.problems):
-            [ep] = loop.problem_set(scenario, [i])
-            ws, trajs = evaluate_problem(scenario, ep, {"TTO": planner})
+    mpc_planner = Planner.from_pretrained(cfg.mpc_model) if cfg.mpc else None
+    if mpc_planner is not None and mpc_planner.scenario.name != scenario.name:
+        raise UserError(
+            f"mpc_model {cfg.mpc_model} plans {mpc_planner.scenario.name}, model {cfg.model} plans {scenario.name}",
+            f"pass --mpc-model with a {scenario.name} model (`ttompc zoo list`), or --no-mpc",
+        )
+    found = []  # (problem, its open-loop row, trajectories) of every scanned problem
+    with single_torch_thread(), Bar(cfg.scan, "demo: warm starts", "problem") as bar:
+        for ep in tto_loop.problem_set(scenario):
+            found.append((ep, *evaluate_problem(scenario, ep, {"TTO": planner}, oracle_detours=0,
+                                                backend=tto_loop.settings.backend)))  # fmt: skip
             bar.update()
-            row: dict[str, Any] = {"problem": i, "seed": ep.seed, "ctg0": ep.ctg0, "J_REL": ep.rel_cost}
-            for name, label in (("REL", "SCP(REL)"), ("TTO", "SCP(TTO)"), ("ORACLE", "ORACLE")):
-                row[label] = {
-                    "cost": ws[f"{name}_cost"],
-                    "iterations": ws[f"{name}_iterations"],
-                    "time": ws[f"{name}_time"],
-                    "feasible": ws[f"{name}_success"],
-                }
-            title = f"problem {i}, seed {ep.seed} (ctg0 = {ep.ctg0})"
-            failed = {f"SCP from {n}" for n in ("REL", "TTO") if not ws[f"{n}_success"]}
-            costs = {"REL (lower bound)": ep.rel_cost, "ORACLE (best optimum)": ws["ORACLE_cost"]}
-            costs |= {f"SCP from {n}": ws[f"{n}_cost"] for n in ("REL", "TTO") if ws[f"{n}_success"]}
-            open_panels.append(Panel(ep.problem, trajs, f"open loop: {title}", failed, costs))
-            if cfg.mpc:
-                records, executed = run_problem(scenario, ep, {"TTO": planner}, loop, bar.update)
-                for r in records:
-                    row[f"{r['method']}@{cfg.horizon}"] = {
-                        "cost": r["cost"],
-                        "feasible": r["feasible"],
-                        "mean_step": r["mean_step_time"],
-                        "max_step": r["max_step_time"],
-                    }
-                closed = {f"{m} H={H}": X for (_, m, H), X in executed.items()}
-                bad = {f"{r['method']} H={r['horizon']}" for r in records if not r["feasible"]}
-                applied = {f"{r['method']} H={r['horizon']}": r["cost"] for r in records if r["feasible"]}
-                closed_panels.append(Panel(ep.problem, closed, f"closed loop: {title}", bad, applied))
-            rows.append(row)
-    _print_table(rows)
+    scanned = [ws for _, ws, _ in found]
+    chosen = sorted(sorted(found, key=lambda f: _difference(f[1]))[: cfg.problems], key=lambda f: f[0].index)
+    rows: list[dict[str, Any]] = []
+    open_panels = []
+    for ep, ws, trajs in chosen:
+        row: dict[str, Any] = {"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, "J_REL": ep.rel_cost}
+        for name, label in (("REL", "SCP(REL)"), ("TTO", "SCP(TTO)"), ("ORACLE", "ORACLE")):
+            row[label] = {
+                "cost": ws[f"{name}_cost"],
+                "iterations": ws[f"{name}_iterations"],
+                "time": ws[f"{name}_time"],
+                "feasible": ws[f"{name}_success"],
+            }
+        rows.append(row)
+        failed = {f"SCP from {n}" for n in ("REL", "TTO") if not ws[f"{n}_success"]}
+        costs = {"REL (lower bound)": ep.rel_cost, "ORACLE (best optimum)": ws["ORACLE_cost"]}
+        costs |= {f"SCP from {n}": ws[f"{n}_cost"] for n in ("REL", "TTO") if ws[f"{n}_success"]}
+        open_panels.append(Panel(ep.problem, trajs, f"open loop: {_title(ep.index, cfg.seed, ep.ctg0)}", failed, costs))
+    mpc: tuple[str, str] | None = None  # the two methods' columns, model's first
+    closed_panels = []
+    if mpc_planner is not None:
+        eps = [ep for ep, _, _ in chosen]
+        kind = "FT-TTO" if "finetuned_from" in mpc_planner.extra else "TTO"  # as `zoo publish` tells the kind
+        blend = ClosedLoopConfig.robust_blend  # evaluate mpc's robust target
+        model_method = tto_method(kind, mpc_planner, tto_loop.settings, blend)
+        [(_, tto_run)], [(_, rel_run)] = tto_loop.runs(scenario), rel_loop.runs(scenario)
+        starts = [ep.start for ep in eps]
+        with single_torch_thread(), Bar(2 * len(eps), "demo: MPC", "episode") as bar:
+
+            def tick() -> None:  # one lockstep step of every episode
+                bar.update(len(eps) / scenario.n_steps)
+
+            models = tto_providers(mpc_planner, tto_loop.settings, [None] * len(eps), model_method, blend=blend)
+            episodes = run_mpc_batch(scenario, starts, models, tto_run, tick)
+            rel = [RELProvider(rel_loop.settings.backend) for _ in eps]
+            episodes += run_mpc_batch(scenario, starts, rel, rel_run, tick)
+        mpc = (f"{model_method}@{cfg.horizon}", f"REL-MPC@{cfg.rel_horizon}")
+        for i, (ep, row) in enumerate(zip(eps, rows, strict=True)):
+            closed, bad, applied = {}, set(), {}
+            for e in episodes[i :: len(eps)]:
+                r = episode_record(e)
+                key = f"{e.method}@{e.horizon}"
+                row[key] = {k: r[k] for k in ("cost", "rel_increment", "feasible", "terminal_error")}
+                row[key] |= {"mean_step": r["mean_step_time"], "max_step": r["max_step_time"]}
+                label = f"{e.method} H={e.horizon}"
+                closed[label] = e.X
+                if e.feasible:
+                    applied[label] = e.cost
+                else:
+                    bad.add(label)
+            title = f"closed loop: {_title(ep.index, cfg.seed, ep.ctg0)}"
+            closed_panels.append(Panel(ep.problem, closed, title, bad, applied))
+    print("\n".join(_table(cfg, scenario.name, scanned, rows, mpc)))
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "demo.json").write_text(
-        json.dumps({"model": cfg.model, "scenario": scenario.name, "rows": rows}, indent=2, default=float)
-    )
-    panels = open_panels + closed_panels
+    report = {"config": to_container(cfg), "scenario": scenario.name, "scanned": scanned, "rows": rows}
+    (out / "demo.json").write_text(json.dumps(report, indent=2, default=float))
     heading = (
-        f"{cfg.model} on {scenario.name}. J: control cost (lower is better).\nREL: the convex relaxation without "
-        "keep-out zones (a lower bound on J), so it may cross obstacles."
+        f"{cfg.model} (warm starts)" + (f" and {cfg.mpc_model} (MPC)" if cfg.mpc else "") + f" on {scenario.name}. "
+        "J: control cost (lower is better).\nREL: the convex relaxation without keep-out zones (a lower bound on J), "
+        "so it may cross obstacles."
     )
-    fig = trajectory_figure(scenario, panels, heading, rows=2 if closed_panels else 1)
+    fig = trajectory_figure(scenario, open_panels + closed_panels, heading, rows=2 if closed_panels else 1)
     save_figure(fig, out / "demo.png")
     print(f"saved {out / 'demo.png'} and {out / 'demo.json'}")
     return 0
 
 
-def _print_table(rows: list[dict[str, Any]]) -> None:
-    methods = [k for k in rows[0] if isinstance(rows[0][k], dict)]
-    width = max(22, *(len(m) + 1 for m in methods))
-    print(f"\n{'problem':>7} {'seed':>20} {'ctg0':>5} {'J_REL (LB)':>11} " + " ".join(f"{m:>{width}}" for m in methods))
+def _title(index: int, seed: int, ctg0: int) -> str:
+    return f"problem #{index} of root seed {seed} (ctg0 = {ctg0})"
+
+
+def _gap(ws: dict[str, Any]) -> float:
+    """(J_SCP(model) − J_SCP(REL)) / J_REL of an open-loop row: −inf when only SCP from REL failed, +inf when only
+    SCP from the model did, nan when both did."""
+    rel, tto = ws["REL_success"], ws["TTO_success"]
+    if rel and tto:
+        return float((ws["TTO_cost"] - ws["REL_cost"]) / ws["rel_cost"])
+    return math.nan if rel == tto else (math.inf if rel else -math.inf)
+
+
+def _difference(ws: dict[str, Any]) -> tuple[float, int, int]:
+    """Sort key, most different first: −|``_gap``| (0 when both runs failed), −|difference of their SCP
+    iterations|, the problem's index."""
+    gap = _gap(ws)
+    return -abs(gap) if not math.isnan(gap) else 0.0, -abs(ws["TTO_iterations"] - ws["REL_iterations"]), ws["problem"]
+
+
+def _above(cost: float, rel_cost: float, ok: bool) -> str:
+    """Cost above J_REL in percent ("failed" when the run failed or missed its goal)."""
+    return f"{100 * (cost - rel_cost) / rel_cost:+.1f}%" if ok and math.isfinite(cost) else "failed"
+
+
+def _table(
+    cfg: DemoConfig,
+    scenario: str,
+    scanned: Sequence[dict[str, Any]],
+    rows: Sequence[dict[str, Any]],
+    mpc: tuple[str, str] | None,
+) -> list[str]:
+    """The printed result, no line wider than 100 columns for zoo models: a header naming the problems, the
+    warm-start table, the MPC table (``mpc``: its two methods' keys in ``rows``, model first; None: left out) and
+    the summary line."""
+    n = len(rows)
+    lines = [
+        f"{scenario}, problem #i: held-out non-convex problem i of root seed {cfg.seed}. Shown: the {n} of",
+        f"#0-#{cfg.scan - 1} where the two warm starts differ most. Cost: J above J_REL, REL's lower bound.",
+        "",
+        f"warm start: full-horizon SCP from REL and from {cfg.model} (time: warm start + SCP)",
+        f"{'':20}  |  {'SCP from REL':<22}  |  SCP from the model",
+        f"{'problem':>7} {'ctg0':>4} {'J_REL':>7}  |  {'cost':>8} {'iters':>5} {'time':>7}  |  "
+        f"{'cost':>8} {'iters':>5} {'time':>7}",
+    ]
     for r in rows:
-        cells = []
-        for m in methods:
-            c = r[m]
-            mid = c["iterations"] if "iterations" in c else ("ok" if c["feasible"] else "INF")
-            cost = f"{c['cost']:.4f}" if math.isfinite(c["cost"]) else "INF"
-            t = c.get("time", c.get("mean_step"))
-            cells.append(f"{cost:>9} /{mid!s:>4} /{t:>6.3f}")
-        print(
-            f"{r['problem']:>7} {r['seed']:>20} {r['ctg0']:>5} {r['J_REL']:>11.4f} "
-            + " ".join(f"{c:>{width}}" for c in cells)
-        )
-    print(
-        "open-loop columns: cost / SCP iterations / warm start + SCP seconds;"
-        " MPC columns: applied cost (INF: infeasible or goal missed) / ok|INF / mean step seconds"
-    )
+        cells = [f"{'#' + str(r['problem']):>7} {r['ctg0']:>4} {r['J_REL']:>7.4f}"]
+        for c in (r["SCP(REL)"], r["SCP(TTO)"]):
+            cells.append(f"{_above(c['cost'], r['J_REL'], c['feasible']):>8} {c['iterations']:>5} {c['time']:>6.2f}s")
+        lines.append("  |  ".join(cells))
+    gaps = [_gap(s) for s in scanned]
+    cheaper, costlier = sum(g <= -SAME for g in gaps), sum(g >= SAME for g in gaps)  # nan: neither
+    summary = f"summary: warm start beats REL on {cheaper}/{len(scanned)}, loses on {costlier}"
+    if mpc is not None:
+        width = max(23, *(len(k) for k in mpc))
+        lines += [
+            "",
+            f"MPC, nominal plant: {cfg.mpc_model} under protocol={cfg.protocol}, REL-MPC under paper",
+            f"{'':7}  |  {mpc[0]:<{width}}  |  {mpc[1]:<{width}}  |",
+            f"{'problem':>7}  |  {'goal':<{width - 19}} {'cost':>8} {'step':>9}  |  "
+            f"{'goal':<{width - 19}} {'cost':>8} {'step':>9}  |  step-time ratio",
+        ]
+        for r in rows:
+            cells = [f"{'#' + str(r['problem']):>7}"]
+            for c in (r[k] for k in mpc):
+                goal = "yes" if c["feasible"] else "no"
+                cost = _above(c["cost"], r["J_REL"], c["feasible"])
+                cells.append(f"{goal:<{width - 19}} {cost:>8} {1e3 * c['mean_step']:>7.1f}ms")
+            cells.append(f"{r[mpc[1]]['mean_step'] / r[mpc[0]]['mean_step']:>14.1f}×")
+            lines.append("  |  ".join(cells))
+        goals = [sum(r[k]["feasible"] for r in rows) for k in mpc]
+        ratio = sum(r[mpc[1]]["mean_step"] for r in rows) / sum(r[mpc[0]]["mean_step"] for r in rows)
+        summary += f"; MPC goals {goals[0]}/{n} vs REL-MPC {goals[1]}/{n}, {ratio:.1f}× faster steps"
+        lines.append("goal: reached, every constraint met; step: mean time per MPC step (observe + warm start + solve)")
+    return [*lines, "", summary]

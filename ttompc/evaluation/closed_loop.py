@@ -110,15 +110,22 @@ def providers(
         [PlanProvider(plan, backend=backend, design=plain) for plan in plans],
         [OracleProvider(plan, backend=backend, design=plain) for plan in plans],
     ]
-    blends = {"": 0.0} | ({"R-": robust_blend} if robust_blend > 0 else {})
+    blends = [0.0, robust_blend] if robust_blend > 0 else [0.0]
     for name, planner in models.items():
-        mode = effective_rtg_mode(settings.rtg_mode, planner)
-        # a method fed another rtg than the paper's ledger says so in its name (the oracle's is a ceiling, not a method)
-        suffix = "" if mode == "running" else f"[rtg={mode}]"
-        for prefix, blend in blends.items():
-            out.append([*tto_providers(planner, settings, plans, f"{prefix}{name}-MPC{suffix}", blend=blend,
-                                       rtg_scale=rtg_scale)])  # fmt: skip
+        for blend in blends:
+            method = tto_method(name, planner, settings, blend)
+            out.append([*tto_providers(planner, settings, plans, method, blend=blend, rtg_scale=rtg_scale)])
     return out
+
+
+def tto_method(name: str, planner: Planner, settings: MPCSettings, blend: float) -> str:
+    """The method name of TTO-MPC with ``planner`` in the model slot ``name`` ("TTO", "FT-TTO") under ``settings``
+    and target blend ``blend``, as the report names it: "R-" for a robust target (blend > 0), and "[rtg=MODE]" when
+    the model is fed another rtg than the paper's ledger (``effective_rtg_mode``; the oracle's is a ceiling, not a
+    method), e.g. R-FT-TTO-MPC[rtg=value]."""
+    mode = effective_rtg_mode(settings.rtg_mode, planner)
+    suffix = "" if mode == "running" else f"[rtg={mode}]"
+    return f"{'R-' if blend > 0 else ''}{name}-MPC{suffix}"
 
 
 def run_problems(
