@@ -22,9 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
-import platform
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -33,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from record import Machine, result_path, write_result
 
 from ttompc.finetune.collect import collect_rollouts
 from ttompc.finetune.config import load_finetune_config
@@ -102,7 +100,7 @@ def main() -> None:
     batch = args.batch or dagger.collect.batch
     scenario = get_scenario(args.scenario)
     planner = Planner.from_pretrained(args.model, scenario)
-    load_start = os.getloadavg()
+    machine = Machine()
     cpu: dict[str, float] = dict.fromkeys(VARIANTS, 0.0)
     runs: dict[str, list[tuple[int, float]]] = {name: [] for name in VARIANTS}
     steps = 0
@@ -140,16 +138,9 @@ def main() -> None:
         "speedup_vs_before": results["before"]["cpu_s_per_rollout"] / results["batched"]["cpu_s_per_rollout"],
         "rollout_speedup_vs_before": results["before"]["rollout_cpu_s_per_rollout"]
         / results["batched"]["rollout_cpu_s_per_rollout"],
-        "load_average": load_start,
-        "load_average_end": os.getloadavg(),
-        "host": platform.node(),
-        "cpus": os.cpu_count(),
-        "torch": torch.__version__,
-        "date": time.strftime("%Y-%m-%d %H:%M"),
+        **machine.record(),
     }
-    out = Path(args.out or Path(__file__).parent / "results" / f"dagger_horizons_{args.scenario}.json")
-    out.write_text(json.dumps(summary, indent=2) + "\n")
-    print(json.dumps(summary))
+    write_result(summary, args.out or result_path(f"dagger_horizons_{args.scenario}"))
 
 
 if __name__ == "__main__":

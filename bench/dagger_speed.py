@@ -23,14 +23,11 @@ Ends with one JSON line, also written to bench/results/dagger_speed_<scenario>.j
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
+from record import Machine, result_path, write_result
 
 from ttompc.finetune.collect import collect_rollout, collect_rollouts
 from ttompc.finetune.config import ExplorationConfig, LabelConfig
@@ -60,7 +57,7 @@ def main() -> None:
     torch.set_num_threads(1)
     scenario = get_scenario(args.scenario)
     planner = Planner.from_pretrained(args.model, scenario)
-    load_start = os.getloadavg()
+    machine = Machine()
     cpu: dict[str, list[float]] = {}
     labels: dict[str, list[int]] = {}
     rows: dict[str, list[int]] = {}
@@ -104,16 +101,9 @@ def main() -> None:
         "speedup_batched_vs_paper": results["paper"]["cpu_s_per_rollout"] / results["v4-batched"]["cpu_s_per_rollout"],
         "speedup_batched_vs_v4": results["v4"]["cpu_s_per_rollout"] / results["v4-batched"]["cpu_s_per_rollout"],
         "batch": args.batch,
-        "load_average": load_start,
-        "load_average_end": os.getloadavg(),
-        "host": platform.node(),
-        "cpus": os.cpu_count(),
-        "torch": torch.__version__,
-        "date": time.strftime("%Y-%m-%d %H:%M"),
+        **machine.record(),
     }
-    out = Path(args.out or Path(__file__).parent / "results" / f"dagger_speed_{args.scenario}.json")
-    out.write_text(json.dumps(summary, indent=2) + "\n")
-    print(json.dumps(summary))
+    write_result(summary, args.out or result_path(f"dagger_speed_{args.scenario}"))
 
 
 if __name__ == "__main__":

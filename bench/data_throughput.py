@@ -12,8 +12,6 @@ Prints one JSON line and writes it to ``bench/results/data_throughput.json``.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import tempfile
 import time
@@ -24,6 +22,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from record import Machine, result_path, write_result  # noqa: E402
 
 from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig  # noqa: E402
 from ttompc.data.generate import generate  # noqa: E402
@@ -134,21 +134,16 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=1, help="generation workers")
     parser.add_argument("--rows", type=int, default=6000, help="synthetic rows for the DataModule")
     args = parser.parse_args()
+    machine = Machine()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         result = {
             "bench": "data_throughput",
-            "load_average": os.getloadavg(),
             "code_version": code_version(),
-            "cpus": os.cpu_count(),
             "generation": bench_generation(args.problems, args.workers, tmp),
             "datamodule": bench_datamodule(args.rows, tmp),
         }
-    line = json.dumps(result)
-    out = ROOT / "bench" / "results" / "data_throughput.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(line + "\n")
-    print(line)
+    write_result({**result, **machine.record()}, result_path("data_throughput"))
 
 
 if __name__ == "__main__":

@@ -1,11 +1,12 @@
 """Per-step MPC time of REL-MPC, DIST-MPC and TTO-MPC at H = 10 and H = 30, measured in the same run (paper Fig. 6
 and the "~7x" claim: REL-MPC needs H = 30 for the cost FT-TTO-MPC reaches at H = 10).
 
-Step time = warm start + windowed SCP (perf_counter; CUDA synchronised inside the TTO provider). Per episode we take
-the mean and the max over its steps (the paper plots the average over problems of the per-episode max); the ratio
-REL-MPC@30 / FT-TTO-MPC@10 is reported for both. Without ``--checkpoint`` the transformer is a *randomly
-initialised* model of the chosen size: its step times are right for that architecture, but its warm starts are
-poor, so the SCP part of TTO-MPC (iterations) is not representative — pass a fine-tuned model for the real claim.
+Step time = observe of the previous step's outcome + warm start + windowed SCP (``Episode.step_times``; perf_counter;
+CUDA synchronised inside the TTO provider). Per episode we take the mean and the max over its steps (the paper plots
+the average over problems of the per-episode max); the ratio REL-MPC@30 / FT-TTO-MPC@10 is reported for both.
+Without ``--checkpoint`` the transformer is a *randomly initialised* model of the chosen size: its step times are
+right for that architecture, but its warm starts are poor, so the SCP part of TTO-MPC (iterations) is not
+representative — pass a fine-tuned model for the real claim.
 
 Threads: a batch-1 rollout is a chain of tiny matmuls; with 2 OpenMP threads on a shared 2-core machine we measured
 a 10-step rollout of a 0.6M-parameter model at 4.2 s against 46 ms with one thread (spin-waiting under
@@ -27,8 +28,8 @@ then also runs the batched protocol with ``rti=true``, and its *before* re-solve
 model, default exploration) for R rollouts, each collected twice in the same run, alternating: the expert
 re-solving every step (before issue 21) and with plan reuse; plus the largest label difference between the two.
 
-With numba installed, ``REL-MPC[riccati]`` (and a third DAgger timing) run the opt-in Riccati interior-point
-backend (``backend="riccati"``) on the same problems.
+The default backend is the Riccati interior-point kernel (issue 36); ``REL-MPC[piqp]`` (and a third DAgger timing)
+run the PIQP path (``backend="piqp"``, the default before issue 36) on the same problems.
 
 ``--quick``: a smoke run (tiny random model, 2 problems, 3 MPC steps, H = 10, with ``--episode-cost``; no result
 file).
@@ -40,15 +41,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
-import json
-import os
-import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
+from record import Machine, result_path, write_result
 
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, episodes_per_problem, run_problems
 from ttompc.evaluation.problems import EvalProblem, eval_problem
@@ -58,8 +55,6 @@ from ttompc.mpc import DISTProvider, MPCSettings, RELProvider, TTOProvider, run_
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import Scenario, get_scenario
 from ttompc.solvers.backends import clear_solver_cache
-
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 SIZES = {
     "paper": {},
@@ -119,9 +114,7 @@ def episode_cost(
 def dagger_cost(scenario: Scenario, planner: Planner, rollouts: int, seed: int) -> dict[str, float]:
     """CPU-seconds per DAgger rollout with labels, the expert re-solving every step vs with plan reuse, alternating
     per rollout (module doc), and the largest difference between their labels."""
-    runs = [("before", False, "auto"), ("after", True, "auto")]
-    if HAVE_NUMBA:
-        runs.append(("riccati", True, "riccati"))
+    runs = [("before", False, "auto"), ("after", True, "auto"), ("piqp", True, "piqp")]
     cpu = {label: 0.0 for label, _, _ in runs}
     diff = {label: 0.0 for label, _, _ in runs[1:]}
     for r in range(rollouts):
@@ -142,10 +135,9 @@ def dagger_cost(scenario: Scenario, planner: Planner, rollouts: int, seed: int) 
         "cpu_ratio_after_over_before": cpu["after"] / cpu["before"],
         "max_label_difference": diff["after"],
     }
-    if "riccati" in cpu:
-        out["riccati_cpu_s_per_rollout"] = cpu["riccati"] / rollouts
-        out["cpu_ratio_riccati_over_before"] = cpu["riccati"] / cpu["before"]
-        out["max_label_difference_riccati"] = diff["riccati"]
+    out["piqp_cpu_s_per_rollout"] = cpu["piqp"] / rollouts
+    out["cpu_ratio_piqp_over_before"] = cpu["piqp"] / cpu["before"]
+    out["max_label_difference_piqp"] = diff["piqp"]
     return out
 
 
@@ -166,7 +158,7 @@ def main() -> None:
     ap.add_argument("--end-horizon", type=int, default=0, help="end_horizon of the --episode-cost protocol")
     ap.add_argument("--dagger", type=int, default=0, help="DAgger rollouts to time, before/after (0: none)")
     ap.add_argument("--quick", action="store_true", help="smoke run: tiny model, 2 problems, 3 steps, no result file")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "mpc_speed.json"))
+    ap.add_argument("--out", default=str(result_path("mpc_speed")))
     args = ap.parse_args()
     if args.quick:
         args.size, args.problems, args.max_steps, args.horizons, args.episode_cost = "tiny", 2, 3, "10", True
@@ -191,8 +183,8 @@ def main() -> None:
                  "REL-MPC[rti]": (lambda: RELProvider(), "auto", {"rti": True}),
                  f"{name}[rti]": (lambda: TTOProvider(planner, name), "auto", {"rti": True}),
                  "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic", {})}  # fmt: skip
-    if HAVE_NUMBA:  # "[riccati]": the Riccati interior-point backend wherever the subproblem is a penalised QP
-        providers["REL-MPC[riccati]"] = (lambda: RELProvider(backend="riccati"), "riccati", {})
+    # "[piqp]": the PIQP path, the default before issue 36 (the default runs the Riccati kernel where it can)
+    providers["REL-MPC[piqp]"] = (lambda: RELProvider(backend="piqp"), "piqp", {})
     # warm-up (imports, solver structure caches, torch kernels) outside the timing
     for make, backend, opts in providers.values():
         run_mpc(sc, problems[0].problem, make(), horizons[0], rel_cost=problems[0].rel.cost, max_steps=2,
@@ -200,7 +192,7 @@ def main() -> None:
     results: dict[str, dict[str, float]] = {}
     print(f"{sc.name}: {len(problems)} problems, model {model_desc} ({n_params / 1e6:.2f}M params, {args.device})")
     print(f"{'method':>11} {'H':>4} {'mean step [ms]':>15} {'max step [ms]':>14} {'warm [ms]':>10} {'cost':>9}")
-    t0 = time.perf_counter()
+    machine = Machine()
     for H in horizons:
         for method, (make, backend, opts) in providers.items():
             if method.endswith("]") and H != horizons[0]:
@@ -243,7 +235,7 @@ def main() -> None:
         speedup = results[f"REL-MPC[conic]@{h0}"]["mean_step_s"] / results[f"REL-MPC@{h0}"]["mean_step_s"]
         print(f"REL-MPC@{h0}: previous conic solver path / default, mean step time {speedup:.2f}x")
     today = {}
-    for variant in ("REL-MPC", "REL-MPC[rti]", "REL-MPC[riccati]", f"{name}[rti]"):
+    for variant in ("REL-MPC", "REL-MPC[rti]", "REL-MPC[piqp]", f"{name}[rti]"):
         ref = results.get(f"{name if variant.startswith(name) else 'REL-MPC[today]'}@{h0}")
         if ref and f"{variant}@{h0}" in results:
             today[variant] = results[f"{variant}@{h0}"]["cpu_s_per_step"] / ref["cpu_s_per_step"]
@@ -265,12 +257,10 @@ def main() -> None:
               f"re-solving every step, {dagger['after_cpu_s_per_rollout']:.2f} with plan reuse "
               f"({dagger['cpu_ratio_after_over_before']:.2f}x; labels differ by <= "
               f"{dagger['max_label_difference']:.1e})")  # fmt: skip
-        if "riccati_cpu_s_per_rollout" in dagger:
-            print(f"  with backend riccati: {dagger['riccati_cpu_s_per_rollout']:.2f} CPU-s "
-                  f"({dagger['cpu_ratio_riccati_over_before']:.2f}x; labels differ by <= "
-                  f"{dagger['max_label_difference_riccati']:.1e})")  # fmt: skip
+        print(f"  with backend piqp: {dagger['piqp_cpu_s_per_rollout']:.2f} CPU-s "
+              f"({dagger['cpu_ratio_piqp_over_before']:.2f}x; labels differ by <= "
+              f"{dagger['max_label_difference_piqp']:.1e})")  # fmt: skip
     summary = {
-        "load_average": os.getloadavg(),
         f"rel_mpc{h0}_speedup_vs_conic": speedup,
         "bench": "mpc_speed",
         "scenario": sc.name,
@@ -284,15 +274,9 @@ def main() -> None:
         f"ratios_at_h{h0}": today,
         "episode_cost": cost,
         "dagger": dagger,
-        "load_average_end": os.getloadavg(),
-        "wall_s": time.perf_counter() - t0,
-        "host": platform.node(),
-        "torch_threads": torch.get_num_threads(),
+        **machine.record(),
     }
-    if not args.quick:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(summary, indent=2) + "\n")
-    print(json.dumps(summary))
+    write_result(summary, None if args.quick else args.out)
 
 
 if __name__ == "__main__":

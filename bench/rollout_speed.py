@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import time
 from functools import partial
@@ -33,6 +32,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from record import Machine, read_result, result_path, write_result
 
 from ttompc.policy import ModelConfig, Planner, RolloutContext, TrajectoryGPT
 from ttompc.policy.rollout import rollout, stage_cost_torch
@@ -40,7 +40,7 @@ from ttompc.policy.stats import KEYS, NormStats
 
 STEPS = 100
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "bench" / "results" / "rollout_speed.json"
+RESULTS = result_path("rollout_speed")
 WINDOW_MODEL, WINDOW_T, WINDOW_H = "quadrotor-ft-tto-v6", 50, 10
 
 
@@ -257,10 +257,10 @@ def main() -> None:
     parser.add_argument("--only", choices=["paper", "zoo", "window"], help="run one part (merged into the results)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    load_before = os.getloadavg()[0]
+    machine = Machine()
     _, dyn_name = dynamics()
     rounded = lambda d: {k: round(v, 4) if isinstance(v, float) else v for k, v in d.items()}  # noqa: E731
-    headline: dict[str, Any] = json.loads(RESULTS.read_text()) if args.only and RESULTS.is_file() else {}
+    headline: dict[str, Any] = read_result(RESULTS) if args.only else {}
     if args.only in (None, "paper"):
         headline["paper"] = rounded(bench_model("paper 384/6/6", ModelConfig(), args.quick, fast_paths=True))
     if args.only in (None, "zoo"):
@@ -274,11 +274,9 @@ def main() -> None:
         "bench": "rollout_speed",
         "steps": STEPS,
         "threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "cpu": platform.processor() or platform.machine(),
         "dynamics": dyn_name,
         "timing": "min over repetitions",
-        "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],  # before, after: >2 means shared
+        **machine.record(),
     }
     for key, value in meta.items():  # --only keeps the run conditions of the parts it keeps (the window has its own)
         headline[key] = headline.get(key, value) if args.only else value
@@ -295,11 +293,7 @@ def main() -> None:
         ),
         **({"mpc_window_b1<500us": window["b1"]["decoder_us"] < 500} if window else {}),
     }
-    line = json.dumps(headline)
-    if not args.quick:
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(line + "\n")
-    print(line)
+    write_result(headline, None if args.quick else RESULTS)
 
 
 if __name__ == "__main__":

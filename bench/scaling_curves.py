@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 from pathlib import Path
+
+from record import result_path, write_result
 
 HERE = Path(__file__).resolve().parent
 
@@ -51,9 +52,7 @@ def main() -> None:
     fig.tight_layout()
     fig.savefig(args.plot, dpi=120)
     result = {"bench": "scaling", "curves": {k: [{"step": s, "val_loss": v} for s, v in c] for k, c in curves.items()}}
-    (HERE / "results").mkdir(exist_ok=True)
-    (HERE / "results" / "scaling.json").write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({"bench": "scaling", "last": {k: c[-1] for k, c in curves.items()}}))
+    write_result(result, result_path("scaling"), {"bench": "scaling", "last": {k: c[-1] for k, c in curves.items()}})
 
 
 if __name__ == "__main__":

@@ -12,20 +12,19 @@ docs/scenarios.md.
 
     python bench/scenario_settings.py [--problems 20] [--mpc-problems 6]
 
-Writes bench/results/scenario_settings.json and prints both tables as markdown.
+Prints both tables as markdown, then one JSON line, also written to bench/results/scenario_settings.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import platform
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from record import Machine, result_path, write_result
 
 from ttompc.evaluation.problems import eval_problem
 from ttompc.mpc import DISTProvider, RELProvider, run_mpc
@@ -34,7 +33,7 @@ from ttompc.seeding import problem_seed
 from ttompc.solvers import solve_problem
 
 EXAMPLE = f"{Path(__file__).resolve().parents[1] / 'examples' / 'di2d.py'}:DoubleIntegrator2D"
-RESULTS = Path(__file__).parent / "results" / "scenario_settings.json"
+RESULTS = result_path("scenario_settings")
 
 
 def variant(base: type[Scenario], **attrs: Any) -> Scenario:
@@ -43,8 +42,8 @@ def variant(base: type[Scenario], **attrs: Any) -> Scenario:
 
 
 def open_loop_variants(base: type[Scenario]) -> dict[str, tuple[Scenario, str]]:
-    """label -> (scenario, backend): the default backend (PIQP on the QP) and the conic chain (QOCO, Clarabel),
-    which is where scaling was measured to matter for RPOD (docs/design.md)."""
+    """label -> (scenario, backend): the default backend (the Riccati kernel, PIQP on other QPs) and the conic chain
+    (QOCO, Clarabel), which is where scaling was measured to matter for RPOD (docs/design.md)."""
     scp, sx, su = base.scp, base.state_scale, base.control_scale
     replace = dataclasses.replace
     unscaled = variant(base, state_scale=(), control_scale=())
@@ -159,27 +158,23 @@ def main() -> None:
     parser.add_argument("--mpc-problems", type=int, default=6, help="closed-loop problems per variant")
     args = parser.parse_args()
     base = type(get_scenario(EXAMPLE))
-    t0 = time.perf_counter()
+    machine = Machine()
     ol = open_loop(open_loop_variants(base), args.problems)
     print(markdown(ol), flush=True)
     cl = closed_loop(base, args.mpc_problems)
     print()
     print(markdown(cl))
-    RESULTS.write_text(
-        json.dumps(
-            {
-                "scenario": EXAMPLE.rpartition("/")[2],
-                "open_loop": ol,
-                "closed_loop": cl,
-                "problems": args.problems,
-                "mpc_problems": args.mpc_problems,
-                "wall_s": time.perf_counter() - t0,
-                "machine": platform.platform(),
-            },
-            indent=2,
-        )
-        + "\n"
-    )
+    record = machine.record()
+    result = {
+        "scenario": EXAMPLE.rpartition("/")[2],
+        "open_loop": ol,
+        "closed_loop": cl,
+        "problems": args.problems,
+        "mpc_problems": args.mpc_problems,
+        "wall_s": record["wall_s"],
+        "machine": record,
+    }
+    write_result(result, RESULTS)
 
 
 if __name__ == "__main__":

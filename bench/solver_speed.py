@@ -1,21 +1,23 @@
 """SCP engine speed and robustness, measured against baselines and a peer in the same run.
 
-1. Peer (free-flyer, quadrotor; the same seeded problems, interleaved): REL + SCP with the default backend (PIQP on
-   the compact QP, ∞-norm trust region), the opt-in Riccati interior-point backend (``backend="riccati"``, where
-   numba is installed), the previous default (``backend="conic"``: QOCO/Clarabel, 2-norm trust
-   region) and IPOPT through CasADi, built once as parametric NLPs with ``expand=True`` (REL, then the full problem
-   from the REL solution; ``bench/ipopt_peer.py``, needs the ``peer`` extra). Median time per problem, iterations
-   (SCP subproblems / IPOPT iterations), costs relative to IPOPT's.
-2. Robustness (free-flyer and quadrotor, 200 seeded problems each): failures of the default and of the Riccati
-   backend; for the free-flyer also the reference formulation (hard linearised constraints) and its costs where both
-   succeed.
+1. Peer (free-flyer, quadrotor; the same seeded problems, interleaved): REL + SCP with the PIQP path ("ours",
+   ``backend="piqp"``: PIQP on the compact QP, ∞-norm trust region; the default before issue 36), the Riccati
+   interior-point backend (``backend="riccati"``, the default ``auto``), the conic path (``backend="conic"``:
+   QOCO/Clarabel, 2-norm trust region; the default before the QP path) and IPOPT through CasADi, built once as
+   parametric NLPs with ``expand=True`` (REL, then the full problem from the REL solution; ``bench/ipopt_peer.py``,
+   needs the ``peer`` extra). Median time per problem, iterations (SCP subproblems / IPOPT iterations), costs
+   relative to IPOPT's.
+2. Robustness (free-flyer and quadrotor, 200 seeded problems each): failures of the PIQP path and of the Riccati
+   backend (the default); for the free-flyer also the reference formulation (hard linearised constraints, on its own
+   path: Clarabel) and its costs where both succeed.
 3. Subproblems (free-flyer, quadrotor; ``--only subproblems``): every subproblem of REL + SCP on a few seeded
-   problems, recorded from the default path and re-solved in the same order by PIQP (as the engine calls it: one
+   problems, recorded from the PIQP path and re-solved in the same order by PIQP (as the engine calls it: one
    solver per structure, updated in place, restarted per solve) and by the Riccati backend, problem by problem in
    alternating order, the least of 3 repeats: CPU-ms per subproblem, interior-point iterations, the largest
    objective difference.
-4. Naive baseline (every scenario, a few problems): time per SCP iteration of the default vs rebuilding a cvxpy
-   problem from per-timestep constraint lists every iteration (the reference's approach), and the cost difference.
+4. Naive baseline (every scenario, a few problems): time per SCP iteration of the default (``auto``) vs rebuilding a
+   cvxpy problem from per-timestep constraint lists every iteration (the reference's approach), and the cost
+   difference.
 
 Ends with one JSON line of headline figures, also written to bench/results/solver_speed.json.
 """
@@ -23,24 +25,17 @@ Ends with one JSON line of headline figures, also written to bench/results/solve
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import json
 import os
-import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
+from record import Machine, read_result, result_path, write_result
 
 from ttompc.scenarios import get_scenario, list_scenarios
 from ttompc.solvers import solve_problem
 from ttompc.solvers.backends import backend_chain
 
-sys.path.insert(0, str(Path(__file__).parent))  # bench/ipopt_peer.py
-
 PEER_SCENARIOS = ("freeflyer", "quadrotor")
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 
 def run_set(scenario, seeds, **kw) -> dict:
@@ -94,16 +89,16 @@ def speed(name: str, n_problems: int, n_naive: int) -> dict:
     return row
 
 
-def robustness(name: str, n: int, reference: bool, backend: str = "auto") -> dict:
+def robustness(name: str, n: int, reference: bool, backend: str) -> dict:
     """Failures of the penalized formulation with ``backend`` on seeds 0..n−1; with ``reference`` also the
-    hard-constraint formulation and the costs where both succeed."""
+    hard-constraint formulation (on its default path, Clarabel) and the costs where both succeed."""
     scenario = get_scenario(name)
     out: dict = {}
     for form in ("penalized", "reference") if reference else ("penalized",):
         costs, fails, its = [], [], []
         for seed in range(n):
             p = scenario.sample(np.random.default_rng(seed))
-            rel, scp = solve_problem(scenario, p, formulation=form, backend=backend)
+            rel, scp = solve_problem(scenario, p, formulation=form, backend=backend if form == "penalized" else "auto")
             good = scp is not None and scp.success
             costs.append(scp.cost if good else np.nan)
             its.append(rel.iterations + (scp.iterations if scp else 0))
@@ -132,18 +127,18 @@ def robustness(name: str, n: int, reference: bool, backend: str = "auto") -> dic
 
 
 def peer(name: str, n: int) -> dict:
-    """Ours (default), the previous conic default and built-once IPOPT on the same problems, interleaved."""
+    """Ours (the PIQP path), the Riccati backend (the default), the conic path and built-once IPOPT on the same
+    problems, interleaved."""
     from ipopt_peer import IpoptPeer
 
     scenario = get_scenario(name)
     ipopt = IpoptPeer(scenario)
     runners = {
-        "ours": lambda p: _ours(scenario, p, "auto"),
+        "ours": lambda p: _ours(scenario, p, "piqp"),
         "conic": lambda p: _ours(scenario, p, "conic"),
         "ipopt": lambda p: _ipopt(ipopt, scenario, p),
+        "riccati": lambda p: _ours(scenario, p, "riccati"),
     }
-    if HAVE_NUMBA:
-        runners["riccati"] = lambda p: _ours(scenario, p, "riccati")
     warm = scenario.sample(np.random.default_rng(10_000))
     for run in runners.values():  # imports, structure caches, CasADi code generation outside the timing
         run(warm)
@@ -153,7 +148,7 @@ def peer(name: str, n: int) -> dict:
         p = scenario.sample(np.random.default_rng(i))
         for k in order[i % len(order) :] + order[: i % len(order)]:  # rotate who goes first
             rows[k].append(runners[k](p))
-    out: dict = {"scenario": name, "problems": n, "backend": "+".join(backend_chain("auto", scenario))}
+    out: dict = {"scenario": name, "problems": n, "backend": "+".join(backend_chain("piqp", scenario))}
     cost = {}
     for k, r in rows.items():
         t, its, c, ok = (np.array(v) for v in zip(*r, strict=True))
@@ -213,7 +208,7 @@ def subproblems(name: str, n: int) -> dict:
     try:
         for seed in range(n):
             recorded.append([])  # the subproblems of one problem, in order
-            solve_problem(scenario, scenario.sample(np.random.default_rng(seed)))
+            solve_problem(scenario, scenario.sample(np.random.default_rng(seed)), backend="piqp")
     finally:
         qp_module.PIQPSolver.solve = original  # type: ignore[method-assign]
     count = sum(len(problem) for problem in recorded)
@@ -307,18 +302,11 @@ def main() -> None:
         "--only", choices=["peer", "robustness", "subproblems", "naive"], help="run one part (merged into --out)"
     )
     ap.add_argument("--scenarios", default=",".join(list_scenarios()))
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "solver_speed.json"))
+    ap.add_argument("--out", default=str(result_path("solver_speed")))
     args = ap.parse_args()
-    machine = {
-        "platform": platform.platform(),
-        "processor": platform.processor(),
-        "python": platform.python_version(),
-        "cpus": os.cpu_count(),
-    }
-    out = Path(args.out)
+    machine = Machine()
     # --only re-runs one part and keeps the others from the previous result file
-    result: dict = json.loads(out.read_text()) if args.only and out.is_file() else {}
-    result["machine"] = machine
+    result: dict = read_result(args.out) if args.only else {}
     scenarios = args.scenarios.split(",")
     loads = result.setdefault("load_average", {})  # per part: (start, end) 1/5/15-minute load averages
     if args.only in (None, "peer"):
@@ -328,18 +316,17 @@ def main() -> None:
     if args.only in (None, "robustness") and args.robustness:
         start = os.getloadavg()
         result["robustness"] = {
-            name: robustness(name, args.robustness, reference=name == "freeflyer")
+            name: robustness(name, args.robustness, reference=name == "freeflyer", backend="piqp")
             for name in scenarios
             if name in PEER_SCENARIOS
         }
-        if HAVE_NUMBA:
-            result["robustness_riccati"] = {
-                name: robustness(name, args.robustness, reference=False, backend="riccati")
-                for name in scenarios
-                if name in PEER_SCENARIOS
-            }
+        result["robustness_riccati"] = {
+            name: robustness(name, args.robustness, reference=False, backend="riccati")
+            for name in scenarios
+            if name in PEER_SCENARIOS
+        }
         loads["robustness"] = (start, os.getloadavg())
-    if args.only in (None, "subproblems") and HAVE_NUMBA:
+    if args.only in (None, "subproblems"):
         start = os.getloadavg()
         result["subproblems"] = {
             name: subproblems(name, args.subproblem_problems) for name in scenarios if name in PEER_SCENARIOS
@@ -371,9 +358,8 @@ def main() -> None:
     for name, row in result.get("naive", {}).items():
         headline[f"{name}_speedup_per_iter_vs_naive"] = row["speedup_per_iter"]
     result["headline"] = headline
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2, default=float))
-    print(json.dumps(headline, default=float))
+    result["machine"] = machine.record()
+    write_result(result, args.out, line=headline)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Where an MPC step's time goes (issue 36, item 1): the mean step of the shipped model's TTO-family MPC at H = 10
-(``protocol=recommended``: TTO-MPC and its robust variant R-TTO-MPC) beside REL-MPC at H = 30 (``protocol=paper``),
-on every scenario, in one run, split into its parts.
+(``protocol=recommended``: FT-TTO-MPC and its robust variant R-FT-TTO-MPC, fed the model's value output as
+reward-to-go) beside REL-MPC at H = 30 (``protocol=paper``), on every scenario, in one run, split into its parts.
 
 Usage::
 
@@ -8,10 +8,11 @@ Usage::
     .venv/bin/python bench/step_profile.py --scenario quadrotor --problems 20 --batch 1
     .venv/bin/python bench/step_profile.py --quick                                    # smoke run, no result file
 
-Models: ``freeflyer-ft-tto-v5``, ``quadrotor-ft-tto-v6`` (fine-tuned, run as ``ttompc evaluate mpc --ft-model``
-runs them: FT-TTO-MPC, R-FT-TTO-MPC) and ``rpod-tto-v3`` (no FT model: ``--model``, TTO-MPC, R-TTO-MPC);
-``--model SCENARIO=SOURCE`` replaces one. Problems: the first ``--problems`` held-out non-convex problems of root seed
-``--seed`` (4242, as in docs/evaluation.md; ``eval_problem``). Episodes: the nominal plant, all N steps (or
+Models: ``freeflyer-ft-tto-v5``, ``quadrotor-ft-tto-v6`` and ``rpod-ft-tto-v4``, fine-tuned with a value output, run
+as ``ttompc evaluate mpc --ft-model`` runs them (``rtg_mode=value`` under ``protocol=recommended``:
+FT-TTO-MPC[rtg=value], R-FT-TTO-MPC[rtg=value]); ``--model SCENARIO=SOURCE`` replaces one (a model whose name has no
+``ft`` runs as ``--model``: TTO-MPC, R-TTO-MPC). Problems: the first ``--problems`` held-out non-convex problems of
+root seed ``--seed`` (4242, as in docs/evaluation.md; ``eval_problem``). Episodes: the nominal plant, all N steps (or
 ``--max-steps``), the problems in lockstep in tasks of ``--batch`` (10, ``ttompc evaluate mpc``'s default: one
 batched rollout per step for a TTO method, each episode charged its share; ``--batch 1``: one robot's latency), one
 process (``workers=1``), one torch thread. The providers come from the evaluation's own factory
@@ -22,9 +23,11 @@ kernels, the solver structures of every window shape), so the profile is the ste
 Instrumentation: the bench wraps library functions with ``time.perf_counter`` timers by monkeypatching (restored at
 the end; nothing in the library changes, and ``--verify``, on with ``--quick``, reruns each method without the
 timers and checks that the executed controls are identical). A step is ``MPCController.plan`` (warm start + window
-SCP, the wall time of the call; the loop's own record of it, ``Episode.step_times``, is reported beside it). Timed
-regions nest; each part below is the time spent in it *exclusive* of the parts nested in it, so the parts sum to the
-step:
+SCP) and then ``MPCController.observe`` (the executed control and the next state handed to the provider), the wall
+time of the two calls. The loop's own record, ``Episode.step_times``, is reported beside it (``loop_step_ms``); it
+charges each observe to the step that plans from its state, so it holds T − 1 of an episode's T observes, the profile
+all T. Timed regions nest; each part below is the time spent in it *exclusive* of the parts nested in it, so the
+parts sum to the step:
 
 * ``rollout``: ``RolloutContext.rollout``, the transformer rollout (the shared batched one, charged 1/B per episode,
   or the lone one at ``--batch 1``);
@@ -32,34 +35,32 @@ step:
   value output, ``Planner.cost_to_go``; ``running``: nothing to compute);
 * ``terminal``: terminal design, the target construction (``TargetFilter`` for TTO-MPC, ``providers._terminal`` for
   REL-MPC);
-* ``finish``: the finish cost (``mpc.finish`` > 0 only);
 * ``rel_warm_start``: REL-MPC's remaining-horizon REL (``RemainingREL``: itself an SCP or one convex solve);
 * ``scp_setup``: the window SCP's linearisation and constraint blocks (``Scenario.convex_model``,
   ``Scenario.constraints``, once per SCP iteration);
 * ``scp_solve``: the window SCP's subproblem solver calls (``SubproblemSolver.solve``: writing the iteration's values
   into the built structure and the backend's solve);
 * ``scp_bookkeeping``: the rest of the SCP engine (merit, nonlinear violation, stopping rule, solver look-up);
-* ``overhead``: the rest of the step in Python (plan reuse check, warm-start conversions and copies, the rollout
-  group's tensor-to-array copies, the loop's shape checks).
+* ``overhead``: the rest of the plan in Python (plan reuse check, warm-start conversions and copies, the rollout
+  group's tensor-to-array copies, the loop's shape checks);
+* ``observe``: ``MPCController.observe`` after the step's control is executed (TTO: ``TTOProvider.observe``, the
+  KV-cache extension ``RolloutContext.advance``, reported alone as ``advance_ms``, once per lockstep step for the
+  group, charged 1/B per episode).
 
-Reported per method: ``mean_step_ms`` and the share of each part, window SCP iterations per step (and per solved
-step, with their histogram), the time per subproblem call and per linearisation, steps served by plan reuse, and
-``observe_ms``: the provider's ``observe`` after each step (TTO: the KV-cache extension ``RolloutContext.advance``),
-which runs after the step and is *not* in the loop's step time. Ratios: REL-MPC@30's mean step over each TTO method's
-(``ratio_rel30_over``), and the same with ``observe`` added to both (``ratio_rel30_over_with_observe``).
+Reported per method: ``mean_step_ms`` (plan + observe; ``plan_ms`` without observe) and the share of each part,
+window SCP iterations per step (and per solved step, with their histogram), the time per subproblem call and per
+linearisation, and steps served by plan reuse. Ratio: REL-MPC@30's mean step over each TTO method's
+(``ratio_rel30_over``).
 
 Ends with one JSON line, also written to bench/results/step_profile.json (not with ``--quick``: 1 problem, 4 steps,
-2 warm-up steps). Absolute times need a quiet machine; the ratios and shares are the figures to compare.
+2 warm-up steps), with the machine record (``bench/record.py``). Absolute times need a quiet machine; the ratios and
+shares are the figures to compare.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
-import json
-import os
-import platform
-import subprocess
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator
@@ -70,8 +71,8 @@ from typing import Any
 
 import numpy as np
 import torch
+from record import Machine, result_path, write_result
 
-import ttompc.mpc.loop as loop_mod
 import ttompc.mpc.providers as providers_mod
 import ttompc.solvers.engine as engine_mod
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, providers, tasks
@@ -85,10 +86,10 @@ from ttompc.scenarios import Scenario, get_scenario
 
 SCENARIOS = ("freeflyer", "quadrotor", "rpod")
 # the shipped model of each scenario's headline, and the role ``ttompc evaluate mpc`` gives it (its method names)
-MODELS = {"freeflyer": "freeflyer-ft-tto-v5", "quadrotor": "quadrotor-ft-tto-v6", "rpod": "rpod-tto-v3"}
+MODELS = {"freeflyer": "freeflyer-ft-tto-v5", "quadrotor": "quadrotor-ft-tto-v6", "rpod": "rpod-ft-tto-v4"}
 BASELINE = "REL-MPC"
-PARTS = ("rollout", "conditioning", "terminal", "finish", "rel_warm_start", "scp_setup", "scp_solve",
-         "scp_bookkeeping", "overhead")  # fmt: skip
+PARTS = ("rollout", "conditioning", "terminal", "rel_warm_start", "scp_setup", "scp_solve", "scp_bookkeeping",
+         "overhead", "observe")  # fmt: skip
 
 
 def role(source: str) -> str:
@@ -150,14 +151,16 @@ class Profiler:
 
 
 def part_of(path: str) -> str | None:
-    """The part (``PARTS``) a step's region counts in, by its path; None outside a step."""
+    """The part (``PARTS``) a step's region counts in, by its path: the plan's regions (``step/...``) and the observe
+    after it (``observe/...``); None for a path outside both."""
     names = path.split("/")
+    if names[0] == "observe":
+        return "observe"
     if names[0] != "step":
         return None
     inner = names[1:]
-    for region, part in (("rollout", "rollout"), ("conditioning", "conditioning"), ("terminal", "terminal"),
-                         ("finish", "finish")):  # fmt: skip
-        if region in inner:
+    for part in ("rollout", "conditioning", "terminal"):
+        if part in inner:
             return part
     if inner[:1] == ["warm_start"] and "rel" in inner:
         return "rel_warm_start"
@@ -223,11 +226,10 @@ def instrumented(prof: Profiler, scenario: Scenario) -> Iterator[None]:
         patch(TargetFilter, "__call__", lambda f: prof.region("terminal", f))
         patch(providers_mod, "_terminal", lambda f: prof.region("terminal", f))
         patch(RemainingREL, "__call__", lambda f: prof.region("rel", f, on_rel))
-        patch(loop_mod, "finish_cost", lambda f: prof.region("finish", f))
         patch(engine_mod, "get_solver", timed_lookup)
         patch(scenario, "convex_model", lambda f: prof.region("linearise", f))
         patch(scenario, "constraints", lambda f: prof.region("linearise", f))
-        patch(TTOProvider, "observe", lambda f: prof.region("observe", f))
+        patch(MPCController, "observe", lambda f: prof.region("observe", f))
         patch(RolloutContext, "advance", lambda f: prof.region("advance", f, sync=True))
         yield
     finally:
@@ -269,12 +271,14 @@ def run_method(
 
 
 def profile_row(prof: Profiler, episodes: list[Episode], horizon: int, protocol: str) -> dict[str, Any]:
-    """Per-step means (ms) of the parts, their shares, iterations and the tree of regions."""
+    """Per-step means (ms) of the parts, their shares, iterations and the tree of regions; a step is its plan and
+    the observe after it."""
     steps = sum(len(e.U) for e in episodes)
-    if prof.calls["step"] != steps:
-        raise RuntimeError(f"timed {prof.calls['step']} steps, the episodes ran {steps}")
+    for region in ("step", "observe"):
+        if prof.calls[region] != steps:
+            raise RuntimeError(f"timed {prof.calls[region]} calls of {region}, the episodes ran {steps} steps")
     ms = lambda seconds: 1e3 * seconds / steps  # noqa: E731  per episode-step
-    step = prof.incl["step"]
+    step = prof.incl["step"] + prof.incl["observe"]
     selfs = prof.self_times()
     parts = dict.fromkeys(PARTS, 0.0)
     for path, t in selfs.items():
@@ -293,6 +297,7 @@ def profile_row(prof: Profiler, episodes: list[Episode], horizon: int, protocol:
         "episodes": len(episodes),
         "steps": steps,
         "mean_step_ms": ms(step),
+        "plan_ms": ms(prof.incl["step"]),
         "loop_step_ms": 1e3 * float(np.mean(np.concatenate([e.step_times for e in episodes]))),
         "parts_ms": {k: ms(v) for k, v in parts.items()},
         "shares": {k: v / step for k, v in parts.items()},
@@ -309,7 +314,6 @@ def profile_row(prof: Profiler, episodes: list[Episode], horizon: int, protocol:
         "rel_warm_start_iterations_per_step": prof.count["step/warm_start/rel:iterations"] / steps,
         "reused_steps": prof.count["reused"] / steps,
         "fallbacks": prof.count["fallbacks"],
-        "observe_ms": ms(prof.incl.get("observe", 0.0)),
         "advance_ms": ms(prof.incl.get("observe/advance", 0.0)),
         "cost": float(np.mean([e.cost for e in episodes])),
         "feasible": float(np.mean([e.feasible for e in episodes])),
@@ -357,11 +361,7 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
                 row["untimed_loop_step_ms"] = 1e3 * float(np.mean(np.concatenate([e.step_times for e in plain])))
             rows[f"{method}@{H}"] = row
     base = rows[f"{BASELINE}@{args.rel_horizon}"]
-    ratios, ratios_observe = {}, {}
-    for key, r in rows.items():
-        if not key.startswith(BASELINE + "@"):
-            ratios[key] = base["mean_step_ms"] / r["mean_step_ms"]
-            ratios_observe[key] = (base["mean_step_ms"] + base["observe_ms"]) / (r["mean_step_ms"] + r["observe_ms"])
+    ratios = {k: base["mean_step_ms"] / r["mean_step_ms"] for k, r in rows.items() if not k.startswith(BASELINE + "@")}
     print_table(name, rows, ratios)
     return {
         "model": source,
@@ -374,43 +374,21 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
         "settings": {"tto": asdict(tto_cfg.settings), "rel": asdict(rel_cfg.settings)},
         "methods": rows,
         f"ratio_rel{args.rel_horizon}_over": ratios,
-        f"ratio_rel{args.rel_horizon}_over_with_observe": ratios_observe,
     }
 
 
 def print_table(name: str, rows: dict[str, dict[str, Any]], ratios: dict[str, float]) -> None:
-    short = {"rollout": "roll", "conditioning": "cond", "terminal": "term", "finish": "fin", "rel_warm_start": "REL",
-             "scp_setup": "setup", "scp_solve": "solve", "scp_bookkeeping": "scp-py", "overhead": "py"}  # fmt: skip
+    short = {"rollout": "roll", "conditioning": "cond", "terminal": "term", "rel_warm_start": "REL",
+             "scp_setup": "setup", "scp_solve": "solve", "scp_bookkeeping": "scp-py", "overhead": "py",
+             "observe": "obs"}  # fmt: skip
     head = " ".join(f"{short[p]:>6}" for p in PARTS)
-    print(f"{'method':>28} {'step ms':>8} {head} {'it/step':>7} {'sub ms':>6} {'obs ms':>6} {'ratio':>6}")
+    print(f"{'method':>28} {'step ms':>8} {head} {'it/step':>7} {'sub ms':>6} {'ratio':>6}")
     for key, r in rows.items():
         shares = " ".join(f"{100 * r['shares'][p]:>5.1f}%" for p in PARTS)
         ratio = f"{ratios[key]:>5.2f}x" if key in ratios else f"{'':>6}"
         print(f"{key:>28} {r['mean_step_ms']:>8.2f} {shares} {r['scp_iterations_per_step']:>7.2f} "
-              f"{r['subproblem_ms_per_call']:>6.2f} {r['observe_ms']:>6.2f} {ratio}")  # fmt: skip
+              f"{r['subproblem_ms_per_call']:>6.2f} {ratio}")  # fmt: skip
     print(f"  ({name}: shares of the mean step; ratio = {BASELINE}@30 mean step / the method's)")
-
-
-def cpu_model() -> str:
-    """The CPU's model name (/proc/cpuinfo), else the machine type."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def git_commit() -> str | None:
-    """HEAD of the checkout, with ``+dirty`` when the working tree has changes (what the numbers were run on)."""
-    root = Path(__file__).resolve().parent.parent
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True, check=True)
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
 def main() -> None:
@@ -430,7 +408,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--quick", action="store_true", help="smoke run: 1 problem, 4 steps, --verify, no result file")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "step_profile.json"))
+    ap.add_argument("--out", default=str(result_path("step_profile")))
     args = ap.parse_args()
     if args.quick:
         args.problems, args.max_steps, args.warmup_steps, args.verify = 1, 4, 2, True
@@ -442,7 +420,7 @@ def main() -> None:
             ap.error(f"--model takes SCENARIO=SOURCE with SCENARIO in {list(SCENARIOS)}, got {item!r}")
         sources[key] = src
     torch.set_num_threads(args.threads)
-    load0, t0 = os.getloadavg(), time.perf_counter()
+    machine = Machine()
     results = {name: profile_scenario(name, sources[name], args) for name in scenarios}
     summary = {
         "bench": "step_profile",
@@ -454,22 +432,9 @@ def main() -> None:
         "batch": args.batch,
         "max_steps": args.max_steps,
         "device": args.device,
-        "torch_threads": torch.get_num_threads(),
-        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-        "load_average": load0,
-        "load_average_end": os.getloadavg(),
-        "wall_s": time.perf_counter() - t0,
-        "host": platform.node(),
-        "cpu": cpu_model(),
-        "commit": git_commit(),
-        "cpus": os.cpu_count(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
+        **machine.record(),
     }
-    if not args.quick:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(summary, indent=2) + "\n")
-    print(json.dumps(summary))
+    write_result(summary, None if args.quick else args.out)
 
 
 if __name__ == "__main__":

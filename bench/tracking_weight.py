@@ -19,22 +19,18 @@ Ends with one JSON line, also written to bench/results/tracking_weight.json.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import time
-from pathlib import Path
 from typing import Any
 
 import cvxpy as cp
 import numpy as np
+from record import Machine, result_path, write_result
 
 from ttompc.evaluation.problems import eval_problem
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import BlockKind, Problem, Scenario, Window
 from ttompc.solvers import solve_problem
 
-RESULTS = Path(__file__).parent / "results" / "tracking_weight.json"
+RESULTS = result_path("tracking_weight")
 
 
 def terminal_multiplier(scenario: Scenario, problem: Problem, X: np.ndarray, U: np.ndarray, t: int, H: int) -> float:
@@ -86,7 +82,7 @@ def main() -> None:
         args.problems, args.stride = 1, 15
     H = args.horizon
     results: dict[str, Any] = {}
-    t0 = time.perf_counter()
+    machine = Machine()
     print(f"{'scenario':>10} {'problem':>7} {'max |ν|':>8} {'at t':>5} {'median':>7} {'tracking':>8}")
     for name in args.scenarios.split(","):
         sc = get_scenario(name)
@@ -115,15 +111,9 @@ def main() -> None:
         "problems": args.problems,
         "stride": args.stride,
         "results": results,
-        "wall_s": time.perf_counter() - t0,
-        "load_average": os.getloadavg(),
-        "host": platform.node(),
+        **machine.record(),
     }
-    out = args.out or (None if args.quick else str(RESULTS))
-    if out:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(json.dumps(summary, indent=2) + "\n")
-    print(json.dumps(summary))
+    write_result(summary, args.out or (None if args.quick else RESULTS))
 
 
 if __name__ == "__main__":

@@ -26,9 +26,6 @@ free-flyer trajectories generated here (sampled problems, smooth random thrust, 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
 import time
 from collections.abc import Iterator
@@ -39,13 +36,14 @@ from typing import Any
 
 import numpy as np
 import torch
+from record import Machine, load_average, result_path, write_result
 
 from ttompc.policy.config import TOKENS_PER_STEP
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import get_scenario
 from ttompc.training.module import TrajectoryTransformerModule
 
-RESULTS = Path(__file__).resolve().parent / "results" / "train_speed.json"
+RESULTS = result_path("train_speed")
 SIZES = {"tiny": (64, 2, 4), "0.6M": (128, 3, 4), "1.8M": (192, 4, 6), "11M": (384, 6, 6)}  # n_embd, n_layer, n_head
 N_STEPS = 100
 BASE = ("fp32", 2)  # mode, threads of the baseline every case of a size is compared with (its smallest batch)
@@ -285,20 +283,6 @@ def layout_rows(cases: list[Case]) -> list[dict[str, Any]]:
     return rows
 
 
-def load() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reps", type=int, default=3, help="timing rounds (median)")
@@ -314,7 +298,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
 
-    load_start = load()
+    machine = Machine()
     cases = layout_cases() if args.layout_study else default_cases(not args.no_paper, not args.no_compile)
     if args.sizes:
         cases = [c for c in cases if c.size in args.sizes.split(",")]
@@ -350,22 +334,14 @@ def main() -> None:
                 "compile_s": round(c.compile_s, 1) if c.compile_s is not None else None,
             }
         )
-    load_mid = load()
+    load_mid = load_average()
     t1 = time.perf_counter()
     runs = [("fp32", 0), (args.loss_mode, 0), ("fp32", 1)]
     losses = loss_check(runs, args.loss_steps, args.loss_every, args.loss_batch, args.data) if args.loss_steps else None
     best = {size: max((r for r in rows if r["size"] == size), key=lambda r: r["speedup"]) for size in base}
     result = {
         "bench": "train_speed",
-        "machine": {
-            "cpu": cpu_model(),
-            "cores": os.cpu_count(),
-            "torch": torch.__version__,
-            "python": platform.python_version(),
-            "load_start": load_start,
-            "load_after_speed": load_mid,
-            "load_end": load(),
-        },
+        "machine": {**machine.record(), "load_after_speed": load_mid},
         "tokens_per_trajectory": {k: N_STEPS * v for k, v in TOKENS_PER_STEP.items()},
         "reps": args.reps,
         "speed_s": round(speed_s, 1),
@@ -378,9 +354,7 @@ def main() -> None:
         "layouts": layout_rows(cases),
         "loss_check": losses,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
-    print(json.dumps(result))
+    write_result(result, args.out)
 
 
 if __name__ == "__main__":

@@ -21,17 +21,13 @@ Ends with one JSON line, also written to bench/results/tto_mpc_robustness.json (
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from record import Machine, result_path, write_result
 
-from ttompc.evaluation.metrics import write_json
 from ttompc.evaluation.problems import eval_problem
 from ttompc.evaluation.stats import interval
 from ttompc.mpc import DISTProvider, PlanProvider, RELProvider, TerminalDesign, run_mpc
@@ -213,10 +209,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="root seed of the evaluation stream")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--blend", type=float, default=BLEND, help="the robust target's blend β")
-    ap.add_argument("--out", default="bench/results/tto_mpc_robustness.json")
+    ap.add_argument("--out", default=str(result_path("tto_mpc_robustness")))
     args = ap.parse_args()
     names = args.scenarios.split(",")
-    t0 = time.perf_counter()
+    machine = Machine()
     tasks = [(n, args.seed, i, args.blend) for n in names for i in range(args.problems)]
     rows = [r for rs in pool_map(run_problem, tasks, args.workers, pin_torch=False) for r in rs]
     verdict, tables = {}, {}
@@ -224,6 +220,7 @@ def main() -> None:
         verdict[n], tables[n] = summarize([r for r in rows if r["scenario"] == n], args.seed)
     out = Path(args.out)
     plot(tables, out.with_suffix(".png"))
+    record = machine.record()
     result = {
         "bench": "tto_mpc_robustness",
         "horizon": H,
@@ -232,12 +229,11 @@ def main() -> None:
         "seed": args.seed,
         "verdict": verdict,
         "table": tables,
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg": os.getloadavg()},
-        "wall_time_s": time.perf_counter() - t0,
+        "machine": record,
+        "wall_time_s": record["wall_s"],
         "runs": rows,
     }
-    write_json(out, result)
-    print(json.dumps({"bench": "tto_mpc_robustness", "verdict": verdict}))
+    write_result(result, out, line={"bench": "tto_mpc_robustness", "verdict": verdict})
 
 
 if __name__ == "__main__":

@@ -444,6 +444,7 @@ def test_plan_noise_is_seeded_and_drift_is_correlated(setup: tuple, monkeypatch:
     assert spec is not None and spec.loader is not None
     bench = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, spec.name, bench)  # dataclasses look their module up
+    monkeypatch.syspath_prepend(str(path.parent))  # as `python bench/NAME.py` runs it: bench/record.py importable
     spec.loader.exec_module(bench)
     PlanNoise = bench.PlanNoise
     sc, problem, rel, scp = setup
