@@ -3,9 +3,10 @@ holds no absolute path, and describes the run it claims to: its scenario's data,
 architecture of the zoo model it produced, and (fine-tuning) the same open-loop dataset as the model it starts from.
 
 Layout (one recipe per job): ``recipes/<scenario>/`` and ``recipes/generic/`` hold exactly ``pretrain``, ``finetune``,
-``value`` and ``tiny``, and each ``recipes/<scenario>/`` also ``paper-{pretrain,finetune}.yaml``, the paper-size GPU
-recipes; ``recipes/zoo/<model>[-legN].yaml`` reproduce published models, each headed by the ``ttompc generate``
-command of its data. Every recipe path named in the cards, README, docs, scripts and code exists."""
+``value`` and ``tiny`` (``generic/`` also ``first-look``, the measured quick path), and each ``recipes/<scenario>/``
+also ``paper-{pretrain,finetune}.yaml``, the paper-size GPU recipes; ``recipes/zoo/<model>[-legN].yaml`` reproduce
+published models, each headed by the ``ttompc generate`` command of its data. Every recipe path named in the cards,
+README, docs, scripts and code exists."""
 
 from __future__ import annotations
 
@@ -86,7 +87,7 @@ def test_one_recipe_per_job() -> None:
     assert all(p.parent.parent == RECIPES for p in ALL)
     for folder in SCENARIOS:
         assert {p.stem for p in ALL if p.parent.name == folder} == JOBS | PAPER_JOBS, folder
-    assert {p.stem for p in ALL if p.parent.name == "generic"} == JOBS
+    assert {p.stem for p in ALL if p.parent.name == "generic"} == JOBS | {"first-look"}  # the measured quick path
     published = {p.stem for p in (ROOT / "zoo").glob("*.md") if p.stem != "README"}
     for path in (p for p in ALL if p.parent.name == "zoo"):
         # a published model, or a withdrawn FT model of one (kept to repeat the rows measured with it)
@@ -144,8 +145,10 @@ def test_training_recipe_builds_the_model_it_describes(path: Path) -> None:
         assert 10.5e6 < n_params < 11.5e6
     elif path.stem == "tiny":
         assert n_params < 300_000
-    else:  # the zoo model it trained: pretrain.yaml the current one (-tto-v3), recipes/zoo/ the one it names
+    else:  # the zoo model it trained: pretrain.yaml the current one (-tto-v3), recipes/zoo/ the one it names,
+        # first-look.yaml the -tto-small architecture (interleaved)
         model = zoo_model(path) if folder == "zoo" else f"{'freeflyer' if folder == 'generic' else folder}-tto-v3"
+        model = "freeflyer-tto-small" if path.stem == "first-look" else model
         bundle: dict[str, Any] = json.loads((ROOT / "zoo" / "models" / model / "config.json").read_text())
         keys = ARCHITECTURE[2:-1] if folder == "generic" else ARCHITECTURE  # generic: dims and horizon follow data
         assert {k: getattr(cfg.model, k) for k in keys} == {k: bundle["model"][k] for k in keys}
