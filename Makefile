@@ -38,3 +38,20 @@ lint: $(VENV)/.installed
 
 bench: $(VENV)/.installed
 	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done
+
+# The README's figures in docs/figures/ (ttompc.evaluation.figures), each drawn from the report of the command below,
+# which runs only when its report is missing: the warm-start report in about 1.5 CPU-minutes, the closed-loop one in
+# about 15-25 on one core. Other reports: make figures FIG_MPC=path/mpc.json FIG_WARMSTART=path/warmstart.json
+FIG_MPC ?= outputs/figures/mpc-freeflyer/mpc.json
+FIG_WARMSTART ?= outputs/figures/warmstart-freeflyer/warmstart.json
+
+outputs/figures/mpc-freeflyer/mpc.json: | $(VENV)/.installed
+	$(BIN)/ttompc evaluate mpc --model freeflyer-tto-v3 --ft-model freeflyer-ft-tto-v5 protocol=recommended \
+		horizons=[10,20,30,50] plants=[nominal] problems=20 seed=4242 robust_blend=0 workers=1 out=$(@D)
+
+outputs/figures/warmstart-freeflyer/warmstart.json: | $(VENV)/.installed
+	$(BIN)/ttompc evaluate warmstart --model freeflyer-tto-v3 --ft-model freeflyer-ft-tto-v5 problems=100 seed=4242 \
+		workers=1 out=$(@D)
+
+figures: $(VENV)/.installed $(FIG_MPC) $(FIG_WARMSTART)
+	$(BIN)/python -m ttompc.evaluation.figures --mpc $(FIG_MPC) --warmstart $(FIG_WARMSTART) --out docs/figures

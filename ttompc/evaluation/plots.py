@@ -52,52 +52,59 @@ def plot_horizon(summary: list[dict[str, Any]], out_dir: str | Path) -> list[Pat
 
 
 def horizon_cost_figure(summary: list[dict[str, Any]]) -> Any:
-    """Fig. 5 analogue: mean (J − J_REL)/J_REL over feasible runs ± s.e. vs H, one panel per plant. No method is
-    dropped where runs were infeasible: a hollow marker is the mean of the feasible runs when some were infeasible,
-    a hollow triangle at the top edge marks a horizon with no feasible run, both annotated feasible/runs."""
-    from matplotlib.lines import Line2D
-
+    """Fig. 5 analogue: mean (J − J_REL)/J_REL over feasible runs ± s.e. vs H, one panel per plant
+    (``horizon_cost_panel``)."""
     plt = _plt()
     plants = sorted({r["plant"] for r in summary})
-    methods = list(dict.fromkeys(r["method"] for r in summary))
     fig, axes = plt.subplots(1, len(plants), figsize=(5 * len(plants), 3.8), squeeze=False)
     for ax, plant in zip(axes[0], plants, strict=True):
-        for i, m in enumerate(methods):
-            rs = sorted((r for r in summary if r["method"] == m and r["plant"] == plant), key=lambda r: r["horizon"])
-            style = {**_style(i), "marker": "o", "markersize": 5}
-            style["markevery"] = [r["feasible"] == r["runs"] for r in rs]  # filled: every run feasible
-            line = ax.errorbar(
-                [r["horizon"] for r in rs],
-                [100 * r["rel_increment"]["mean"] if r["feasible"] else np.nan for r in rs],
-                yerr=[100 * np.nan_to_num(r["rel_increment"]["se"]) for r in rs],
-                capsize=3,
-                **style,
-                label=m,
-            )[0]
-            color = line.get_color()
-            for r in rs:
-                if r["feasible"] == r["runs"]:
-                    continue
-                count = f"{r['feasible']}/{r['runs']}"
-                if r["feasible"]:
-                    y, transform, marker = 100 * r["rel_increment"]["mean"], ax.transData, "o"
-                else:  # no cost to show: a marker at the top edge of the panel
-                    y, transform, marker = 0.97, ax.get_xaxis_transform(), "^"
-                ax.plot(
-                    [r["horizon"]], [y], marker, transform=transform, mfc="none", mec=color, mew=1.5, ms=8,
-                    clip_on=False, zorder=10, label=f"_{m} {count} feasible",
-                )  # fmt: skip
-                ax.annotate(count, (r["horizon"], y), xycoords=transform, xytext=(6, 3),
-                            textcoords="offset points", fontsize=6, color=color)  # fmt: skip
-        _horizon_axis(ax, summary)
+        horizon_cost_panel(ax, [r for r in summary if r["plant"] == plant])
         ax.set_title(f"{plant} plant", fontsize=9)
-        ax.set_ylabel("(J − J_REL)/J_REL of feasible runs [%]")
-        keys = [
-            Line2D([], [], ls="", marker="o", mfc="none", mec="0.4", label="some runs infeasible (feasible/runs)"),
-            Line2D([], [], ls="", marker="^", mfc="none", mec="0.4", label="no feasible run"),
-        ]
-        ax.legend(handles=[*ax.get_legend_handles_labels()[0], *keys], fontsize=7)
     return fig
+
+
+def horizon_cost_panel(ax: Any, rows: list[dict[str, Any]], labels: dict[str, str] | None = None) -> None:
+    """Mean (J − J_REL)/J_REL over feasible runs ± s.e. vs H of the summary ``rows`` of one plant on ``ax``, one line
+    per method (legend: ``labels[method]``, default the method). No method is dropped where runs were infeasible: a
+    hollow marker is the mean of the feasible runs when some were infeasible, a hollow triangle at the top edge marks
+    a horizon with no feasible run, both annotated feasible/runs."""
+    from matplotlib.lines import Line2D
+
+    labels = labels or {}
+    for i, m in enumerate(dict.fromkeys(r["method"] for r in rows)):
+        rs = sorted((r for r in rows if r["method"] == m), key=lambda r: r["horizon"])
+        style = {**_style(i), "marker": "o", "markersize": 5}
+        style["markevery"] = [r["feasible"] == r["runs"] for r in rs]  # filled: every run feasible
+        line = ax.errorbar(
+            [r["horizon"] for r in rs],
+            [100 * r["rel_increment"]["mean"] if r["feasible"] else np.nan for r in rs],
+            yerr=[100 * np.nan_to_num(r["rel_increment"]["se"]) for r in rs],
+            capsize=3,
+            **style,
+            label=labels.get(m, m),
+        )[0]
+        color = line.get_color()
+        for r in rs:
+            if r["feasible"] == r["runs"]:
+                continue
+            count = f"{r['feasible']}/{r['runs']}"
+            if r["feasible"]:
+                y, transform, marker = 100 * r["rel_increment"]["mean"], ax.transData, "o"
+            else:  # no cost to show: a marker at the top edge of the panel
+                y, transform, marker = 0.97, ax.get_xaxis_transform(), "^"
+            ax.plot(
+                [r["horizon"]], [y], marker, transform=transform, mfc="none", mec=color, mew=1.5, ms=8,
+                clip_on=False, zorder=10, label=f"_{m} {count} feasible",
+            )  # fmt: skip
+            ax.annotate(count, (r["horizon"], y), xycoords=transform, xytext=(6, 3),
+                        textcoords="offset points", fontsize=6, color=color)  # fmt: skip
+    _horizon_axis(ax, rows)
+    ax.set_ylabel("(J − J_REL)/J_REL of feasible runs [%]")
+    keys = [
+        Line2D([], [], ls="", marker="o", mfc="none", mec="0.4", label="some runs infeasible (feasible/runs)"),
+        Line2D([], [], ls="", marker="^", mfc="none", mec="0.4", label="no feasible run"),
+    ]
+    ax.legend(handles=[*ax.get_legend_handles_labels()[0], *keys], fontsize=7)
 
 
 def _horizon_axis(ax: Any, summary: list[dict[str, Any]]) -> None:

@@ -1,0 +1,163 @@
+"""The README's figures (``ttompc.evaluation.figures``): drawn from tiny synthetic reports built the way the
+``ttompc evaluate`` reports are, they plot the reports' numbers, name the command that reproduces each report, and
+write non-empty PNG images."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import mpc_fakes
+import numpy as np
+import pytest
+
+from ttompc.config import load_command_config, to_container
+from ttompc.errors import UserError
+from ttompc.evaluation import figures
+from ttompc.evaluation.closed_loop import ClosedLoopConfig
+from ttompc.evaluation.closed_loop_report import summarize
+from ttompc.evaluation.metrics import improvement_by_threshold, write_json
+from ttompc.evaluation.warmstart import WarmStartConfig, method_summary
+
+METHODS = ("REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC", "FT-TTO-MPC[rtg=value]")
+
+
+def mpc_report() -> dict[str, Any]:
+    """Three problems at H = 10 and 20 on the nominal plant, every method of a model run; TTO-MPC misses the goal
+    on problems 0 and 1 at H = 10 (so one problem is feasible for every method: standard errors are nan)."""
+    rng = np.random.default_rng(0)
+    runs = []
+    for problem in range(3):
+        for H in (10, 20):
+            for i, method in enumerate(METHODS):
+                feasible = not (method == "TTO-MPC" and H == 10 and problem < 2)
+                cost = 1.0 + 0.1 * i + 0.01 * problem + (0.05 if H == 10 else 0.0)
+                runs.append({
+                    "problem": problem, "method": method, "horizon": H, "plant": "nominal", "cost": cost,
+                    "rel_cost": 1.0, "feasible": feasible, "rel_increment": cost - 1.0 if feasible else float("nan"),
+                    "target_change": 0.1, "mean_step_time": float(rng.uniform(0.001, 0.01)),
+                    "max_step_time": float(rng.uniform(0.01, 0.1)),
+                    "fallbacks": 0, "terminal_error": 0.0 if feasible else 0.5, "mean_iterations": 1.0,
+                    "mean_iterations_solved": 1.0,
+                })  # fmt: skip
+    config = asdict(ClosedLoopConfig(model="tto-x", ft_model="ft-y", horizons=[10, 20], problems=3, seed=7, workers=1))
+    return {"config": config, "scenario": {"name": "freeflyer"}, "protocol": {"name": "paper"},
+            "summary": summarize(runs), "runs": runs}  # fmt: skip
+
+
+def warmstart_report() -> dict[str, Any]:
+    """Four problems, REL and two models and the oracle, nonconvexity 0.25 steps apart."""
+    problems = []
+    for k in range(4):
+        row: dict[str, Any] = {"problem": k, "rel_cost": 1.0, "nonconvexity": 0.25 * k}
+        for m, (gap, iterations) in {"REL": (0.4, 6), "TTO": (0.3, 5), "FT-TTO": (0.35, 7), "ORACLE": (0.2, 6)}.items():
+            row |= {f"{m}_success": True, f"{m}_cost": 1.0 + gap + 0.1 * k, f"{m}_iterations": iterations + k,
+                    f"{m}_suboptimality": gap + 0.1 * k, f"{m}_time": 0.1}  # fmt: skip
+        problems.append(row)
+    return {
+        "config": asdict(WarmStartConfig(model="tto-x", ft_model="ft-y", problems=4, seed=7, workers=1)),
+        "scenario": {"name": "freeflyer"},
+        "methods": method_summary(problems, ["REL", "TTO", "FT-TTO", "ORACLE"]),
+        "thresholds": improvement_by_threshold(problems, ["TTO", "FT-TTO", "ORACLE"], "REL", [0.0, 0.5, 0.9]),
+        "problems": problems,
+    }
+
+
+def test_the_paper_methods_are_picked_in_the_papers_order() -> None:
+    rows = figures.paper_rows(mpc_report())
+    names = [r["method"] for r in rows]
+    assert list(dict.fromkeys(names)) == ["REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC[rtg=value]"]
+    assert [r["horizon"] for r in rows] == [10, 20] * 4
+    with pytest.raises(UserError, match="perturbed plant"):
+        figures.paper_rows(mpc_report(), "perturbed")
+
+
+def test_step_times_average_each_episodes_largest_and_mean_step() -> None:
+    report = mpc_report()
+    for point in figures.step_times(report):
+        assert point["runs"] == 3
+        for key in ("max_step_time", "mean_step_time"):
+            times = [r[key] for r in report["runs"]
+                     if r["method"] == point["method"] and r["horizon"] == point["horizon"]]  # fmt: skip
+            assert point[key]["mean"] == pytest.approx(np.mean(times))
+            assert point[key]["se"] == pytest.approx(np.std(times, ddof=1) / np.sqrt(3))
+
+
+def test_warmstart_bars_are_the_reports_improvements() -> None:
+    report = warmstart_report()
+    bars = figures.warmstart_bars(report)
+    assert bars["methods"] == ["TTO", "FT-TTO", "ORACLE"] and bars["thresholds"] == [0.0, 0.5, 0.9]
+    assert bars["counts"] == [4, 2, 0]
+    assert bars["subopt"]["TTO"][0] == pytest.approx(100 * (1 - 0.45 / 0.55))  # mean gaps over the four problems
+    assert bars["iterations"]["FT-TTO"][1] == pytest.approx(100 * (1 - 9.5 / 8.5))
+    assert np.isnan(bars["subopt"]["TTO"][2])  # no problem at or above 0.9
+
+
+@pytest.mark.parametrize("kind", ["mpc", "warmstart"])
+def test_the_footer_command_reproduces_the_reports_settings(kind: str) -> None:
+    """Parsed back by the command's own loader, the line gives the settings the report recorded (but INERT)."""
+    report = mpc_report() if kind == "mpc" else warmstart_report()
+    config = report["config"]
+    if kind == "mpc":
+        config["mpc"] = {"end_horizon": 20}
+    line = figures.report_command(kind, config)
+    assert line.startswith(f"ttompc evaluate {kind} ") and "workers" not in line and "out=" not in line
+    assert "problems=" in line and "seed=7" in line
+    schema = ClosedLoopConfig if kind == "mpc" else WarmStartConfig
+    parsed = to_container(load_command_config(schema, None, line.split()[3:]))
+    assert {k: v for k, v in parsed.items() if k not in figures.INERT} == {
+        k: v for k, v in config.items() if k not in figures.INERT
+    }
+
+
+def test_the_figures_plot_the_reports_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    drawn: dict[str, Any] = {}
+    save = figures._save_with_footer
+
+    def keep(fig: Any, path: Path, text: str) -> Path:
+        drawn[path.name] = (fig.axes, text)
+        return save(fig, path, text)
+
+    monkeypatch.setattr(figures, "_save_with_footer", keep)
+    report = mpc_report()
+    figures.cost_figure(report, tmp_path / "cost.png")
+    figures.step_time_figure(report, tmp_path / "step.png")
+    (left, right), text = drawn["cost.png"]
+    assert text == f"From `{figures.report_command('mpc', report['config'])}`."
+
+    def line(ax: Any, label: str) -> np.ndarray:  # the y data of the error bars labelled ``label``
+        (found,) = [c.lines[0] for c in ax.containers if c.get_label() == label]
+        return np.asarray(found.get_ydata(), dtype=float)
+
+    ft = "FT-TTO-MPC[rtg=value] (ft-y)"
+    norm = [r["paper_norm"]["mean"] for r in figures.paper_rows(report) if r["method"] == "FT-TTO-MPC[rtg=value]"]
+    np.testing.assert_allclose(line(left, ft), norm)
+    increments = [100 * r["rel_increment"]["mean"] for r in figures.paper_rows(report) if r["method"] == "TTO-MPC"]
+    np.testing.assert_allclose(line(right, "TTO-MPC (tto-x)"), increments)
+    (largest, mean), _ = drawn["step.png"]
+    for ax, key in ((largest, "max_step_time"), (mean, "mean_step_time")):
+        steps = [1e3 * p[key]["mean"] for p in figures.step_times(report) if p["method"] == "REL-MPC"]
+        np.testing.assert_allclose(line(ax, "REL-MPC"), steps)
+
+
+def test_make_figures_writes_four_images(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """As the reports are written (``write_json``: nan as null), through the command line."""
+    import matplotlib.image
+
+    bundle = mpc_fakes.tiny_planner().save(tmp_path / "bundle")
+    write_json(tmp_path / "mpc.json", mpc_report())
+    write_json(tmp_path / "warmstart.json", warmstart_report())
+    args = ["--mpc", str(tmp_path / "mpc.json"), "--warmstart", str(tmp_path / "warmstart.json")]
+    out = tmp_path / "figures"
+    assert figures.main([*args, "--out", str(out), "--model", str(bundle), "--seed", "3", "--problems", "0"]) == 0
+    assert capsys.readouterr().out.split() == [str(out / name) for name in figures.FILES]
+    for name in figures.FILES:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        height, width, _ = matplotlib.image.imread(out / name).shape
+        assert height > 200 and width > 200
+
+
+def test_a_missing_report_is_one_line_naming_the_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = figures.main(["--mpc", str(tmp_path / "none.json"), "--warmstart", str(tmp_path / "none.json")])
+    assert rc == 2 and "no report at" in capsys.readouterr().err
