@@ -7,6 +7,7 @@ Usage::
     nice -n 19 env OMP_NUM_THREADS=1 .venv/bin/python bench/step_profile.py            # all three scenarios
     .venv/bin/python bench/step_profile.py --scenario quadrotor --problems 20 --batch 1
     .venv/bin/python bench/step_profile.py --quick                                    # smoke run, no result file
+    .venv/bin/python bench/step_profile.py --mpc rti=true --out bench/results/step_profile_rti.json  # a lever
 
 Models: ``freeflyer-ft-tto-v5``, ``quadrotor-ft-tto-v6`` and ``rpod-ft-tto-v4``, fine-tuned with a value output, run
 as ``ttompc evaluate mpc --ft-model`` runs them (``rtg_mode=value`` under ``protocol=recommended``:
@@ -71,6 +72,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import yaml
 from record import Machine, result_path, write_result
 
 import ttompc.mpc.providers as providers_mod
@@ -321,12 +323,20 @@ def profile_row(prof: Profiler, episodes: list[Episode], horizon: int, protocol:
     }
 
 
+def mpc_override(text: str) -> tuple[str, Any]:
+    """``KEY=VALUE`` of ``--mpc`` as a (key, YAML value) pair, e.g. ``rti=true`` -> ("rti", True)."""
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    return key, yaml.safe_load(value)
+
+
 def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[str, Any]:
     sc = get_scenario(name)
     planner = Planner.from_pretrained(source, sc, device=args.device)
     models = {role(source): planner}
-    tto_cfg = ClosedLoopConfig(scenario=name, protocol=args.protocol, horizons=[args.horizon], batch=args.batch,
-                               workers=1, device=args.device)  # fmt: skip
+    tto_cfg = ClosedLoopConfig(scenario=name, protocol=args.protocol, mpc=dict(args.mpc), horizons=[args.horizon],
+                               batch=args.batch, workers=1, device=args.device)  # fmt: skip
     rel_cfg = ClosedLoopConfig(scenario=name, protocol=args.rel_protocol, horizons=[args.rel_horizon],
                                batch=args.batch, workers=1, device=args.device)  # fmt: skip
     backend = tto_cfg.settings.backend
@@ -401,6 +411,8 @@ def main() -> None:
     ap.add_argument("--rel-horizon", type=int, default=30, help="H of REL-MPC")
     ap.add_argument("--protocol", default="recommended", help="protocol of the TTO methods")
     ap.add_argument("--rel-protocol", default="paper", help="protocol of REL-MPC")
+    ap.add_argument("--mpc", action="append", default=[], type=mpc_override, metavar="KEY=VALUE",
+                    help="repeatable: an MPC setting over the TTO methods' protocol, e.g. --mpc rti=true")  # fmt: skip
     ap.add_argument("--batch", type=int, default=ClosedLoopConfig.batch, help="problems in lockstep (evaluate's)")
     ap.add_argument("--max-steps", type=int, default=None, help="MPC steps per episode (default: all N)")
     ap.add_argument("--warmup-steps", type=int, default=None, help="steps of the warm-up episode (default: all N)")
