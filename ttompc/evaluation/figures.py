@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from ttompc.errors import UserError
-from ttompc.evaluation.plots import Panel, _horizon_axis, _style, horizon_cost_panel, trajectory_figure
+from ttompc.evaluation.plots import Panel, horizon_axis, horizon_cost_panel, line_style, trajectory_figure
 
 PAPER_METHODS = ("REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC")
 WARMSTART_METHODS = ("TTO", "FT-TTO", "ORACLE")
@@ -239,7 +239,7 @@ def cost_figure(report: dict[str, Any], path: Path, plant: str = "nominal") -> P
             [r["paper_norm"]["mean"] for r in rs],
             yerr=[np.nan_to_num(r["paper_norm"]["se"]) for r in rs],
             capsize=3,
-            **{**_style(i), "marker": "o", "markersize": 5, "markevery": 1},
+            **{**line_style(i), "marker": "o", "markersize": 5, "markevery": 1},
             label=labels[m],
         )
     n = max((r["paper_problems"] for r in normed), default=0)
@@ -250,7 +250,7 @@ def cost_figure(report: dict[str, Any], path: Path, plant: str = "nominal") -> P
         fontsize=9,
     )
     left.set_ylabel("normalised cost increment\n(DIST-MPC at its worst H = 1)")
-    _horizon_axis(left, rows)
+    horizon_axis(left, rows)
     horizon_cost_panel(right, rows, labels)
     right.set_title(f"each method's feasible runs,\n{plant} plant, {config['problems']} problems", fontsize=9)
     fig.suptitle(
@@ -276,10 +276,10 @@ def step_time_figure(report: dict[str, Any], path: Path, plant: str = "nominal")
                 [1e3 * p[key]["mean"] for p in ps],
                 yerr=[1e3 * np.nan_to_num(p[key]["se"]) for p in ps],
                 capsize=3,
-                **{**_style(i), "marker": "o", "markersize": 5, "markevery": 1},
+                **{**line_style(i), "marker": "o", "markersize": 5, "markevery": 1},
                 label=model_label(m, config),
             )
-        _horizon_axis(ax, points)
+        horizon_axis(ax, points)
         ax.set_yscale("log")
         ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))  # 10, 100: not 10^1, 10^2
         ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:g}"[0] in "25" else ""))

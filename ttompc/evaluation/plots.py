@@ -42,8 +42,8 @@ def plot_horizon(summary: list[dict[str, Any]], out_dir: str | Path) -> list[Pat
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for i, m in enumerate(methods):
         rs = sorted((r for r in summary if r["method"] == m and r["plant"] == plants[0]), key=lambda r: r["horizon"])
-        ax.plot([r["horizon"] for r in rs], [r["max_step_time"] for r in rs], **_style(i), label=m)
-    _horizon_axis(ax, summary)
+        ax.plot([r["horizon"] for r in rs], [r["max_step_time"] for r in rs], **line_style(i), label=m)
+    horizon_axis(ax, summary)
     ax.set_ylabel("max MPC step time [s]")
     ax.set_yscale("log")
     ax.legend(fontsize=7)
@@ -73,7 +73,7 @@ def horizon_cost_panel(ax: Any, rows: list[dict[str, Any]], labels: dict[str, st
     labels = labels or {}
     for i, m in enumerate(dict.fromkeys(r["method"] for r in rows)):
         rs = sorted((r for r in rows if r["method"] == m), key=lambda r: r["horizon"])
-        style = {**_style(i), "marker": "o", "markersize": 5}
+        style = {**line_style(i), "marker": "o", "markersize": 5}
         style["markevery"] = [r["feasible"] == r["runs"] for r in rs]  # filled: every run feasible
         line = ax.errorbar(
             [r["horizon"] for r in rs],
@@ -98,7 +98,7 @@ def horizon_cost_panel(ax: Any, rows: list[dict[str, Any]], labels: dict[str, st
             )  # fmt: skip
             ax.annotate(count, (r["horizon"], y), xycoords=transform, xytext=(6, 3),
                         textcoords="offset points", fontsize=6, color=color)  # fmt: skip
-    _horizon_axis(ax, rows)
+    horizon_axis(ax, rows)
     ax.set_ylabel("(J − J_REL)/J_REL of feasible runs [%]")
     keys = [
         Line2D([], [], ls="", marker="o", mfc="none", mec="0.4", label="some runs infeasible (feasible/runs)"),
@@ -107,7 +107,7 @@ def horizon_cost_panel(ax: Any, rows: list[dict[str, Any]], labels: dict[str, st
     ax.legend(handles=[*ax.get_legend_handles_labels()[0], *keys], fontsize=7)
 
 
-def _horizon_axis(ax: Any, summary: list[dict[str, Any]]) -> None:
+def horizon_axis(ax: Any, summary: list[dict[str, Any]]) -> None:
     """Ticks at the evaluated horizons only (integers, never 12.5)."""
     ax.set_xticks(sorted({int(r["horizon"]) for r in summary}))
     ax.set_xlabel("planning horizon H")
@@ -140,7 +140,7 @@ def plot_warmstart(rows: list[dict[str, Any]], methods: Sequence[str], out_dir: 
 _LINESTYLES = ("-", "--", "-.", ":")
 
 
-def _style(i: int) -> dict[str, Any]:
+def line_style(i: int) -> dict[str, Any]:
     """The i-th of a set of distinguishable line styles: colour, dash pattern and width all change, and earlier
     lines are wider and drawn below later ones, so two identical trajectories both stay visible."""
     return {
@@ -181,7 +181,7 @@ def trajectory_figure(scenario: Scenario, panels: Sequence[Panel], title: str = 
         for line in ax.get_lines():
             label = line.get_label()
             if label in labels:
-                line.set(**_style(labels.index(label)))
+                line.set(**line_style(labels.index(label)))
                 if label in panel.costs:
                     line.set_label(f"{line.get_label()}: J = {panel.costs[label]:.4g}")
                 if label in panel.infeasible:
