@@ -54,7 +54,8 @@ class NaiveCvxpySolver:
             else:
                 cons.append(x[H] == data.goal)
         else:
-            cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - data.terminal_target), 2)
+            order = 1 if spec.terminal == "soft_l1" else 2
+            cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - data.terminal_target), order)
         for block in data.blocks:
             for kk, k in enumerate(block.steps):
                 expr = block.Gx[kk] @ x[k]
