@@ -1,10 +1,13 @@
-"""``ttompc evaluate warmstart|mpc [RECIPE.yaml] key=value ...``: the evaluation protocol (docs/evaluation.md).
+"""``ttompc evaluate warmstart|mpc [RECIPE.yaml] key=value ...``: the evaluation protocol (docs/evaluation.md);
+``ttompc evaluate compare BASE OTHER ...``: pair closed-loop reports made on the same problems.
 
 * ``warmstart``: open-loop SCP warm starts, REL vs the model(s) vs the oracle (best of several warm starts), on
   ``problems`` (default 100) held-out non-convex problems (``WarmStartConfig`` keys);
 * ``mpc``: closed loop, REL-/DIST-MPC, plan-once, the oracle, TTO-MPC and the robust R-TTO-MPC, on the nominal and
   the perturbed plant, ``problems`` (default 20) held-out non-convex problems (``ClosedLoopConfig`` keys), under
-  ``protocol=paper|zoo|FILE.yaml`` with single settings overridden as ``mpc.KEY=VALUE`` (``ttompc.mpc.settings``).
+  ``protocol=paper|zoo|FILE.yaml`` with single settings overridden as ``mpc.KEY=VALUE`` (``ttompc.mpc.settings``);
+* ``compare``: pairs ``mpc`` reports on their common problems (``ttompc.evaluation.compare``), prints a table and
+  with ``--json FILE`` writes its rows.
 
 Reports (JSON, a markdown table, CSV, PNG) go to ``out`` (default ``outputs/evaluate/<kind>-<scenario>``).
 ``--print-config`` of ``mpc`` shows the protocol's resolved settings too (``settings``: what ``protocol=zoo`` means).
@@ -47,14 +50,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _shortcuts(ws, "problems=100 seed=2027 rtg_scale=1.3", 100)
     mpc = sub.add_parser("mpc", help="closed loop: REL/DIST/plan-once/oracle/TTO-MPC, nominal and perturbed plant")
     _shortcuts(mpc, "protocol=zoo horizons=[10,30] plants=[perturbed] plant.process_std=0.005", 20)
+    cmp = sub.add_parser(
+        "compare",
+        help="pair closed-loop reports made on the same held-out problems: goals lost/won, paired cost, step time",
+    )
+    cmp.add_argument("base", metavar="BASE", help="report folder of `evaluate mpc` (or its mpc_runs.csv)")
+    cmp.add_argument("others", metavar="OTHER", nargs="+", help="reports to pair against BASE, same forms")
+    cmp.add_argument("--methods", help="only these methods, comma-separated (e.g. REL-MPC,TTO-MPC)")
+    cmp.add_argument("--horizons", help="only these horizons, comma-separated (e.g. 10,30)")
+    cmp.add_argument("--json", metavar="FILE", help="also write the rows to FILE as JSON")
 
 
 def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
-    from ttompc.evaluation.warmstart import WarmStartConfig
-
     """The scenario defaults to the model's; settings and models are checked before any work. Every model is loaded
     here as the pool workers will load it: a name that is not in the zoo, a damaged bundle or a model of another
     scenario is one error line before the pool starts, not a failure in every worker."""
+    from ttompc.evaluation.warmstart import WarmStartConfig
+
     sources = [source for source in (cfg.model, cfg.ft_model) if source]
     if not sources:
         if cfg.scenario is None:
@@ -84,7 +96,28 @@ def _announce(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
     status(f"ttompc evaluate {kind}: {cfg.problems} problems; loading {models}")
 
 
+def _compare(args: argparse.Namespace) -> int:
+    """``evaluate compare``: the pairing and its table live in ``ttompc.evaluation.compare`` (no solver, no torch)."""
+    from ttompc.evaluation.compare import compare_reports, format_comparison
+    from ttompc.evaluation.metrics import write_json
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
+    horizons = None
+    if args.horizons:
+        try:
+            horizons = [int(h) for h in args.horizons.split(",") if h.strip()]
+        except ValueError:
+            raise UserError(f"--horizons {args.horizons} is not a list of integers", "e.g. --horizons 10,30") from None
+    rows = compare_reports(args.base, args.others, methods=methods, horizons=horizons)
+    print(format_comparison(rows))
+    if args.json:
+        write_json(args.json, rows)
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.evaluation == "compare":
+        return _compare(args)
     if args.evaluation == "warmstart":
         from ttompc.evaluation.warmstart import WarmStartConfig, run_warmstart
 
