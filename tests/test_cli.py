@@ -83,7 +83,7 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
         (["finetune", str(REPO / "recipes/freeflyer/finetune.yaml")], ["--model"]),
         (  # an MPC setting that does not exist (here the removed finish cost) is named with the valid ones
             ["evaluate", "mpc", "--scenario", "freeflyer", "mpc.finish=1"],
-            ["unknown setting 'finish'", "valid keys: mode, end_horizon, track, rtg_mode, reuse, rti, terminal_norm, backend"],
+            ["unknown setting 'finish'", "valid keys: mode, end_horizon, track, rtg_mode, reuse, rti, backend"],
         ),
         (["zoo", "info", "nope"], ["no model 'nope'"]),
         (

@@ -534,9 +534,7 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
     assert zoo.settings == MPCSettings(end_horizon=30, rtg_mode="reanchor")
     notes = departures(zoo.settings, sc)
     assert len(notes) == 3 and "weight 3" in notes[0] and "end horizon" in notes[1] and "reanchor" in notes[2]
-    assert "1-norm" in departures(MPCSettings(terminal_norm="l1"), sc)[-1]
-    bad_settings = ({"end_horizon": -1}, {"rtg_mode": "budget"}, {"rtg_mode": "floor"}, {"track": 0.0}, {"rti2": 1},
-                    {"terminal_norm": "l3"})  # fmt: skip
+    bad_settings = ({"end_horizon": -1}, {"rtg_mode": "budget"}, {"rtg_mode": "floor"}, {"track": 0.0}, {"rti2": 1})
     for bad in ({"batch": 0}, {"protocol": "nope"}, *({"mpc": m} for m in bad_settings)):
         with pytest.raises(ValueError):
             ClosedLoopConfig(scenario=sc.name, **bad)  # type: ignore[arg-type]
@@ -730,30 +728,3 @@ def test_iterations_are_the_window_solves_per_step(setup: tuple, monkeypatch: py
     summary = e.summary()
     assert summary["mean_iterations"] == pytest.approx(sum(expected) / T)
     assert summary["mean_iterations_solved"] == pytest.approx(sum(expected) / (T - 1))
-
-
-def test_terminal_norm_reaches_every_window_and_makes_it_a_qp(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``terminal_norm``: every window's terminal term (the provider's target, the soft end term) is in that norm; in
-    the 1-norm the window is a QP that the Riccati kernel solves, in the paper's 2-norm a cone program for QOCO."""
-    from ttompc.solvers import TerminalCost
-
-    sc, problem, rel, _ = setup
-    seen = []
-    real = loop_module.solve_scp
-
-    def spy(scp, X, U, options):
-        res = real(scp, X, U, options)
-        seen.append((scp.terminal, res.history[0].solver_status))
-        return res
-
-    monkeypatch.setattr(loop_module, "solve_scp", spy)
-    for norm, solver in (("l1", "RICCATI"), ("l2", "QOCO")):
-        seen.clear()
-        ep = run_mpc(sc, problem, RELProvider(), 10, rel_cost=rel.cost, settings=MPCSettings(terminal_norm=norm))
-        assert ep.complete and ep.fallbacks == 0  # (REL-MPC@10 misses this short problem's goal in either norm)
-        assert all(t is not None and t.norm == norm for t, _ in seen)  # soft mode: every window has a term
-        assert all(status.startswith(solver) for _, status in seen)
-    term = TerminalCost(np.zeros(2), [1.0, 2.0], "l1")
-    assert term(np.array([1.0, -1.0])) == pytest.approx(3.0) and term.in_norm("l2")(np.ones(2)) == pytest.approx(5**0.5)
-    with pytest.raises(ValueError, match="terminal norm"):
-        TerminalCost(np.zeros(2), 1.0, "linf")  # type: ignore[arg-type]

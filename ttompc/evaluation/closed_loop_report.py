@@ -57,11 +57,6 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
             "real-time iteration: one SCP subproblem per MPC step from the previous solution shifted (the paper "
             "solves every window to convergence)"
         )
-    if settings.terminal_norm == "l1":
-        out.append(
-            "soft terminal terms in the 1-norm, Σ wᵢ|x_t+H,ᵢ − x̄ᵢ| (the paper: the 2-norm; QP windows for the Riccati "
-            "kernel, docs/evaluation.md)"
-        )
     return out
 
 

@@ -168,10 +168,10 @@ def collect_rollouts(
     The learners of all rollouts share one batched transformer context (``RolloutGroup``: one batched rollout per
     step), so a rollout's learner plans equal its lone run's up to the rounding of the batch. Both controllers run
     under ``settings`` (default: the paper's), which ``check_rollout_settings`` refuses where the rollouts cannot
-    honour them (real-time iteration): mode, backend, terminal norm and plan reuse (without reuse the labels are the
-    same) for both; for the learner (its H drawn by the exploration, Alg. 1) also the end horizon and, through
-    ``tto_providers``, the tracking weight and the rtg mode (a model without a value output keeps the ledger). The
-    expert's windows always reach the end, where those three do not apply."""
+    honour them (real-time iteration): mode, backend and plan reuse (without reuse the labels are the same) for both;
+    for the learner (its H drawn by the exploration, Alg. 1) also the end horizon and, through ``tto_providers``, the
+    tracking weight and the rtg mode (a model without a value output keeps the ledger). The expert's windows always
+    reach the end, where those three do not apply."""
     labels = labels or LabelConfig()
     s = settings or MPCSettings()
     check_rollout_settings(s)

@@ -174,15 +174,12 @@ class MPCController:
         return Window(t, rest if rest <= self.settings.end_horizon else min(self.horizon, rest), N)
 
     def _terminal(self, window: Window, provided: TerminalCost | None, mode: Mode) -> TerminalCost | None:
-        """The window's terminal term in the settings' ``terminal_norm``: the provider's where the window stops
-        early, the soft end term where it reaches N in soft mode, none (x_N = goal) in hard mode."""
-        norm = self.settings.terminal_norm
         if not window.reaches_end:
             if provided is None:
                 raise ValueError(f"provider {self.provider.name!r} gave no terminal cost for window {window}")
-            return provided.in_norm(norm)
+            return provided
         if mode == "soft":
-            return TerminalCost(self.problem.goal, self.scenario.mpc.end, norm)
+            return TerminalCost(self.problem.goal, self.scenario.mpc.end)
         return None  # hard: x_N = goal
 
     def solve(

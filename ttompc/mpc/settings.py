@@ -16,8 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from ttompc.solvers.results import TERMINAL_NORMS, TerminalNorm
-
 Mode = Literal["soft", "hard"]
 RTGMode = Literal["running", "reanchor", "value", "oracle"]
 RTG_MODES: tuple[str, ...] = ("running", "reanchor", "value", "oracle")
@@ -36,10 +34,7 @@ class MPCSettings:
     plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``rtg_mode``:
     the reward-to-go TTO-MPC feeds in closed loop (``TTOProvider``). ``reuse``: plan reuse in windows that reach
     the end (same results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step.
-    ``terminal_norm``: the norm of every window's soft terminal term, the provider's target and the soft end term
-    (``TerminalCost``): ``l2`` the paper's; ``l1`` a departure that makes the free-flyer's and the quadrotor's
-    windows QPs for the Riccati kernel (measured in docs/evaluation.md). ``backend``: the QP/cone backend of every
-    solve (``ttompc.solvers.backends``)."""
+    ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``)."""
 
     mode: Mode = "soft"
     end_horizon: int = 0
@@ -47,7 +42,6 @@ class MPCSettings:
     rtg_mode: RTGMode = "running"
     reuse: bool = True
     rti: bool = False
-    terminal_norm: TerminalNorm = "l2"
     backend: str = "auto"
 
     def __post_init__(self) -> None:
@@ -59,8 +53,6 @@ class MPCSettings:
             raise ValueError(f"track must be > 0 or null, got {self.track}")
         if self.rtg_mode not in RTG_MODES:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
-        if self.terminal_norm not in TERMINAL_NORMS:
-            raise ValueError(f"terminal_norm must be one of {list(TERMINAL_NORMS)}, got {self.terminal_norm!r}")
 
     @property
     def reuse_tol(self) -> float | None:

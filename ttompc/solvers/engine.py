@@ -196,7 +196,7 @@ def _subproblem_solver(
         virtual_control=penalized and not sc.exact_linear_dynamics,
         vc_rows=tuple(sc.approximate_rows),
         trust=trust_norm if np.isfinite(settings.tr_start) else "none",
-        terminal="hard" if terminal is None else {"l2": "soft", "l1": "soft_l1"}[terminal.norm],
+        terminal="hard" if terminal is None else "soft",
         soft_equalities=scp.soft,
         penalty=float(settings.penalty),
         blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),

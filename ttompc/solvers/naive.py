@@ -54,8 +54,7 @@ class NaiveCvxpySolver:
             else:
                 cons.append(x[H] == data.goal)
         else:
-            order = 1 if spec.terminal == "soft_l1" else 2
-            cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - data.terminal_target), order)
+            cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - data.terminal_target), 2)
         for block in data.blocks:
             for kk, k in enumerate(block.steps):
                 expr = block.Gx[kk] @ x[k]

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -69,33 +68,17 @@ class SCPResult:
         }
 
 
-TerminalNorm = Literal["l2", "l1"]
-TERMINAL_NORMS: tuple[str, ...] = ("l2", "l1")
-
-
 @dataclass(frozen=True, init=False)
 class TerminalCost:
-    """Soft terminal term ‖diag(weights) (x_{t+H} − target)‖ replacing the terminal equality (MPC).
-
-    ``norm``: ``"l2"`` (the paper's 2-norm, a second-order cone in the subproblem) or ``"l1"`` (Σ wᵢ|xᵢ − x̄ᵢ|, a
-    departure that keeps a window's subproblem a QP; both are exact penalties, and the 1-norm with the same weights
-    holds the target at least as tightly, since ‖λ‖∞ ≤ ‖λ‖₂ for its multiplier λ)."""
+    """Soft terminal term ‖diag(weights) (x_{t+H} − target)‖₂ replacing the terminal equality (MPC)."""
 
     target: np.ndarray  # (n,)
     weights: np.ndarray  # (n,); a scalar given to the constructor weighs every state alike
-    norm: TerminalNorm
 
-    def __init__(self, target: ArrayLike, weights: ArrayLike, norm: TerminalNorm = "l2") -> None:
-        if norm not in TERMINAL_NORMS:
-            raise ValueError(f"terminal norm must be one of {list(TERMINAL_NORMS)}, got {norm!r}")
+    def __init__(self, target: ArrayLike, weights: ArrayLike) -> None:
         object.__setattr__(self, "target", np.asarray(target, dtype=np.float64))
         object.__setattr__(self, "weights", np.broadcast_to(np.asarray(weights, float), self.target.shape))
-        object.__setattr__(self, "norm", norm)
 
     def __call__(self, x: np.ndarray) -> float:
         """The term's value at the window's last state ``x``."""
-        return float(np.linalg.norm(self.weights * (np.asarray(x) - self.target), 1 if self.norm == "l1" else 2))
-
-    def in_norm(self, norm: TerminalNorm) -> TerminalCost:
-        """The same target and weights in ``norm``."""
-        return self if norm == self.norm else TerminalCost(self.target, self.weights, norm)
+        return float(np.linalg.norm(self.weights * (np.asarray(x) - self.target)))

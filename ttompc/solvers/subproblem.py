@@ -46,7 +46,7 @@ class SubproblemSpec:
     penalized: bool
     virtual_control: bool  # ν on the dynamics rows ``vc_rows`` (empty: all rows), with an exact L1 penalty
     trust: str  # "l2", "linf" or "none"
-    terminal: str  # "hard", "soft" (‖W(x_H − x̄)‖₂) or "soft_l1" (‖W(x_H − x̄)‖₁)
+    terminal: str  # "hard" or "soft"
     soft_equalities: bool
     penalty: float
     blocks: tuple[tuple[Any, ...], ...]
@@ -162,24 +162,13 @@ class AssembledSubproblem:
                 self._entries(zero, r, sm_, ("const", np.ones(n)))
                 self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
                 q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
-        elif spec.terminal == "soft_l1":  # Σ (s⁺ + s⁻) with W x_H − s⁺ + s⁻ = W x̄, s± ≥ 0: ‖W (x_H − x̄)‖₁
-            r = zero.add_rows(n)
-            self._entries(zero, r, self.ix[H], ("data", ("terminal_weights", np.arange(n), 1.0)))
-            zero.b.append((r, ("weighted_target", np.arange(n), 1.0)))
-            sp_, sm_ = self._var(n, sx), self._var(n, sx)
-            self._entries(zero, r, sp_, ("const", -np.ones(n)))
-            self._entries(zero, r, sm_, ("const", np.ones(n)))
-            self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
-            q_parts.append((np.concatenate([sp_, sm_]), 1.0))
-        elif spec.terminal == "soft":  # τ ≥ ‖W (x_H − x̄)‖₂
+        else:  # τ ≥ ‖W (x_H − x̄)‖₂
             tau = self._var(1)
             g = self._soc(1 + n)
             self._entries(g, np.array([0]), tau, ("const", -np.ones(1)))
             self._entries(g, np.arange(1, n + 1), self.ix[H], ("data", ("terminal_weights", np.arange(n), -1.0)))
             g.b.append((np.arange(1, n + 1), ("weighted_target", np.arange(n), -1.0)))
             q_parts.append((tau, 1.0))
-        else:
-            raise ValueError(f"unknown terminal mode {spec.terminal!r}")
 
         # stage cost
         if spec.cost_norm == "l1":  # t ≥ |u| elementwise

@@ -36,7 +36,7 @@ def is_qp(spec: SubproblemSpec) -> bool:
     return (
         spec.cost_norm in ("l1", "quad")
         and spec.trust in ("linf", "none")
-        and spec.terminal in ("hard", "soft_l1")
+        and spec.terminal == "hard"
         and not soft_eq
         and not any(BlockKind(sig[1]) is BlockKind.SOC for sig in spec.blocks)
     )

@@ -1,5 +1,5 @@
-"""The SCP subproblem as a compact QP, for subproblems without cones (L1 or quadratic cost, hard terminal state or
-the soft 1-norm terminal term, ∞-norm trust region), solved by PIQP with in-place data updates:
+"""The SCP subproblem as a compact QP, for subproblems without cones (L1 or quadratic cost, hard terminal state,
+∞-norm trust region), solved by PIQP with in-place data updates:
 
     min ½ zᵀPz + cᵀz   s.t.   A z = b,   h_l ≤ G z ≤ h_u,   z_l ≤ z ≤ z_u
 
@@ -110,18 +110,12 @@ class QPSubproblem:
             rows = spec.virtual_rows()
             self._penalised_slacks(eq, rd[:, rows].ravel(), np.tile(sx[rows], H), one)
 
-        # terminal x_H = goal (penalised: x_H − e⁺ + e⁻ = goal); the soft 1-norm term ‖W (x_H − x̄)‖₁ as
-        # W x_H − e⁺ + e⁻ = W x̄ at cost Σ(e⁺ + e⁻)
+        # terminal x_H = goal (penalised: x_H − e⁺ + e⁻ = goal)
         r = self._rows("eq", n)
-        if spec.terminal == "soft_l1":
-            eq.append((r, self.ix[H], self._key("terminal_weights"), np.ones(n)))
-            b_parts.append((r, self._key("weighted_target"), np.ones(n)))
-            self._penalised_slacks(eq, r, sx, one, cost=1.0)
-        else:
-            eq.append((r, self.ix[H], np.full(n, one), np.ones(n)))
-            b_parts.append((r, self._key("goal"), np.ones(n)))
-            if spec.penalized:
-                self._penalised_slacks(eq, r, sx, one)
+        eq.append((r, self.ix[H], np.full(n, one), np.ones(n)))
+        b_parts.append((r, self._key("goal"), np.ones(n)))
+        if spec.penalized:
+            self._penalised_slacks(eq, r, sx, one)
 
         # scenario blocks
         for bi, sig in enumerate(spec.blocks):
@@ -206,8 +200,6 @@ class QPSubproblem:
         """Offsets of every data array in the flat per-iteration vector (shapes follow from the spec)."""
         H, n, m = spec.H, spec.n, spec.m
         sizes = {"A": H * n * n, "B": H * n * m, "c": H * n, "x_start": n, "goal": n, "X_ref": (H + 1) * n, "delta": 1}
-        if spec.terminal == "soft_l1":
-            sizes.update(terminal_weights=n, weighted_target=n)
         for bi, sig in enumerate(spec.blocks):
             K, M, has_u, two_sided = len(sig[2]), sig[3], sig[4], sig[7]
             sizes[f"G{bi}x"] = K * M * n
@@ -249,20 +241,12 @@ class QPSubproblem:
         return r
 
     def _penalised_slacks(
-        self,
-        dest: list,
-        rows: np.ndarray,
-        scale: np.ndarray,
-        one: int,
-        signs: tuple[float, ...] = (-1.0, 1.0),
-        cost: float | None = None,
+        self, dest: list, rows: np.ndarray, scale: np.ndarray, one: int, signs: tuple[float, ...] = (-1.0, 1.0)
     ) -> None:
-        """Row − e⁺ + e⁻, e± ≥ 0 with cost ρ·(e⁺ + e⁻) (ρ: ``cost``, default the spec's penalty): an exact L1
-        penalty on the row's violation."""
+        """Row − e⁺ + e⁻, e± ≥ 0 with cost ρ·(e⁺ + e⁻): an exact L1 penalty on the row's violation."""
         k = len(rows)
-        rho = self.spec.penalty if cost is None else cost
         for sign in signs:
-            e = self._var(scale, 0.0, rho)
+            e = self._var(scale, 0.0, self.spec.penalty)
             dest.append((rows, e, np.full(k, one), np.full(k, sign)))
 
     def _finalise(self, eq, ineq, b_parts, lo_parts, hi_parts, lo_inf) -> None:
@@ -315,9 +299,6 @@ class QPSubproblem:
             np.ravel(data.X_ref),
             [data.delta],
         ]
-        if self.spec.terminal == "soft_l1":
-            assert data.terminal_weights is not None and data.terminal_target is not None
-            parts += [data.terminal_weights, data.terminal_weights * data.terminal_target]
         for block in data.blocks:
             parts.append(np.ravel(block.Gx))
             if block.Gu is not None:

@@ -5,9 +5,8 @@ It poses the optimisation problem of ``qp.QPSubproblem`` stage by stage instead 
 non-dimensionalised variables (x/state_scale, u/control_scale), so the two backends reach the same optima:
 
 * stage k holds y_k = [x_k, u_k, ν_k] (ν: virtual control on ``spec.vc_rows``, a column of B equal to 1);
-* the L1 fuel cost, the virtual control, the penalised terminal condition and the soft 1-norm terminal term
-  Σ wᵢ|x_H,ᵢ − x̄ᵢ| are soft boxes with zero width (ρ·|v| = ρ·dist(v, [0, 0])), the quadratic cost a diagonal stage
-  Hessian;
+* the L1 fuel cost, the virtual control and the penalised terminal condition are soft boxes with zero width
+  (ρ·|v| = ρ·dist(v, [0, 0])), the quadratic cost a diagonal stage Hessian;
 * the ∞-norm trust region and rows on one variable are boxes, other rows sparse over their structural columns
   (normalised, with the penalty scaled so that it still reads in the row's own units); a two-sided row is two
   one-sided rows, each with its own slack, as the QP's e⁺/e⁻ pair; penalised equality rows are two-sided with
@@ -92,7 +91,7 @@ class StageQP:
         j0 = np.concatenate(js) if js else np.zeros(0, np.int64)
         r0 = np.concatenate(rho) if rho else np.zeros(0)
         self.n_zero = 2 * len(k0)
-        # boxes whose places are fixed: zero boxes (±v ≤ 0), the terminal condition (±x_H ≤ ±goal or ±x̄), the trust
+        # boxes whose places are fixed: zero boxes (±v ≤ 0), the terminal condition (±x_H ≤ ±goal), the trust
         # region (±x_k ≤ ±x̄_k + δ, hard); only their right-hand sides change (``arrays``)
         self.tr_steps = np.asarray(spec.tr_states if spec.trust == "linf" else (), dtype=np.int64)
         T = len(self.tr_steps)
@@ -137,19 +136,11 @@ class StageQP:
         B = self.B.copy()
         B[:, :, :m] = data.model.B * self.b_scale
         c = data.model.c / sx
-        rho = self._box_rho
-        if self.spec.terminal == "soft_l1":  # ‖W (x_H − x̄)‖₁: zero-width soft boxes at x̄ of weight wᵢ (none where 0)
-            assert data.terminal_weights is not None and data.terminal_target is not None
-            w = data.terminal_weights
-            goal = np.where(w > 0, data.terminal_target / sx, np.inf)
-            rho = rho.copy()
-            rho[self.n_zero : self.n_zero + 2 * n] = np.tile(w * sx, 2)
-        else:
-            goal = data.goal / sx
+        goal = data.goal / sx
         ref = data.X_ref[self.tr_steps] / sx  # (T, n); an infinite δ gives infinite bounds, dropped below
         half = data.delta / sx
         d = np.concatenate([np.zeros(self.n_zero), goal, -goal, (ref + half).ravel(), (half - ref).ravel()])
-        boxes = [(self._box_k, self._box_j, self._box_s, d, rho)]
+        boxes = [(self._box_k, self._box_j, self._box_s, d, self._box_rho)]
         rows = []
         for b, block in zip(self.blocks, data.blocks, strict=True):
             K, M = block.h.shape
