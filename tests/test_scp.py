@@ -53,13 +53,43 @@ def test_rel_violates_obstacles_on_a_nonconvex_problem(ff, solved) -> None:
     assert scp.cost > rel.cost * 1.01
 
 
-def test_history_and_best_iterate(solved) -> None:
+def test_history_and_best_iterate(ff, solved) -> None:
+    """The returned iterate is the latest feasible one whose merit is within the stopping rule's tolerance of the
+    lowest feasible merit."""
+    tol = ff.scp.cost_tol
     for _, _, scp in solved:
         assert len(scp.history) == scp.iterations >= 1
-        feasible = [h for h in scp.history if h.violation <= 1e-4]
-        assert scp.cost == pytest.approx(min(h.cost for h in feasible), abs=1e-12)
+        feasible = [h for h in scp.history if h.violation <= ff.scp.feas_tol]
+        lowest = min(h.objective for h in feasible)
+        best = [h for h in feasible if h.objective <= lowest + tol][-1]
+        assert scp.best_iteration == best.iteration and scp.cost == pytest.approx(best.cost, abs=1e-12)
         radii = [h.trust_radius for h in scp.history]
         assert all(b < a for a, b in itertools.pairwise(radii))  # geometric shrink
+
+
+def test_merits_within_the_tolerance_count_as_equal() -> None:
+    """Iterates of a flat valley (merits within ``tie_tol``, e.g. a window with several optima) return the latest, so
+    rounding below the stopping rule's tolerance cannot pick one; a merit lower by more than it wins; infeasible
+    iterates never do."""
+    from ttompc.solvers.engine import _Iterates
+    from ttompc.solvers.results import IterateRecord
+
+    def record(it: int, merit: float, violation: float = 0.0) -> IterateRecord:
+        return IterateRecord(it, merit, merit, violation, 0.0, 1.0, 0.0, "ok")
+
+    def best(merits: list[tuple[float, float]]) -> int:
+        iterates = _Iterates(feas_tol=1e-4, tie_tol=1e-6)
+        for it, (merit, violation) in enumerate(merits):
+            iterates.add(record(it, merit, violation), np.full((2, 1), it), np.full((1, 1), it))
+        assert iterates.best is not None and iterates.best[1][0, 0] == iterates.best[4]
+        return iterates.best[4]
+
+    assert best([(1.0, 0), (1.0 + 5e-7, 0)]) == 1  # a tie: the latest
+    assert best([(1.0, 0), (1.0 - 5e-7, 0)]) == 1
+    assert best([(1.0, 0), (1.0 + 2e-6, 0)]) == 0  # worse by more than the tolerance
+    assert best([(1.0, 0), (0.5, 1.0)]) == 0  # infeasible
+    # ties are measured from the lowest merit, so a slow climb by less than the tolerance per iterate stops
+    assert best([(1.0, 0), (1.0 + 6e-7, 0), (1.0 + 1.2e-6, 0)]) == 1
 
 
 def test_deterministic(ff) -> None:

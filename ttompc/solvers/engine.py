@@ -33,7 +33,7 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
     X_ref, U_ref = X_init.copy(), U_init.copy()
     x_start = X_init[0].copy()
     delta = settings.tr_start
-    iterates = _Iterates(settings.feas_tol)
+    iterates = _Iterates(settings.feas_tol, settings.cost_tol)
     prev_merit: float | None = None
     status: SCPStatus | None = None  # None: the iteration cap
     solver: SubproblemSolver | None = None
@@ -92,9 +92,13 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
 @dataclass
 class _Iterates:
     """A solve's iterates: their records, the best feasible one (lowest merit among those whose nonlinear violation
-    is within ``feas_tol``) and the least violating one (the fallback when none is feasible)."""
+    is within ``feas_tol``; merits within ``tie_tol`` of the lowest count as equal, and the latest of them is the
+    best, so noise below the stopping rule's tolerance does not choose between iterates of a flat valley) and the
+    least violating one (the fallback when none is feasible)."""
 
     feas_tol: float
+    tie_tol: float
+    lowest: float = np.inf  # the lowest merit of a feasible iterate so far
     history: list[IterateRecord] = field(default_factory=list)
     best: tuple[float, np.ndarray, np.ndarray, float, int] | None = None  # (merit, X, U, violation, iteration)
     least_bad: tuple[float, np.ndarray, np.ndarray, int] | None = None  # (violation, X, U, iteration)
@@ -102,8 +106,9 @@ class _Iterates:
     def add(self, record: IterateRecord, X: np.ndarray, U: np.ndarray) -> None:
         """Record the iterate (X, U) that ``record`` describes."""
         self.history.append(record)
-        if record.violation <= self.feas_tol and (self.best is None or record.objective < self.best[0]):
+        if record.violation <= self.feas_tol and record.objective <= self.lowest + self.tie_tol:
             self.best = (record.objective, X, U, record.violation, record.iteration)
+            self.lowest = min(self.lowest, record.objective)
         if self.least_bad is None or record.violation < self.least_bad[0]:
             self.least_bad = (record.violation, X, U, record.iteration)
 
