@@ -50,7 +50,8 @@ parts sum to the step:
 
 Reported per method: ``mean_step_ms`` (plan + observe; ``plan_ms`` without observe) and the share of each part,
 window SCP iterations per step (and per solved step, with their histogram), the time per subproblem call and per
-linearisation, and steps served by plan reuse. Ratio: REL-MPC@30's mean step over each TTO method's
+linearisation, steps served by plan reuse, and the share of window subproblems the Riccati kernel solved
+(``kernel_share``; the rest went to the conic chain behind it). Ratio: REL-MPC@30's mean step over each TTO method's
 (``ratio_rel30_over``).
 
 Ends with one JSON line, also written to bench/results/step_profile.json (not with ``--quick``: 1 problem, 4 steps,
@@ -203,6 +204,7 @@ def instrumented(prof: Profiler, scenario: Scenario) -> Iterator[None]:
     def on_scp(res: Any, path: str) -> None:
         prof.count[f"{path}:iterations"] += res.iterations
         prof.count[f"{path}:backend_reported"] += res.solver_time  # the backends' own timers (not uniform across them)
+        prof.count[f"{path}:kernel"] += sum(h.solver_status.startswith("RICCATI") for h in res.history)
 
     def on_rel(res: Any, path: str) -> None:
         prof.count[f"{path}:iterations"] += res.iterations
@@ -315,6 +317,7 @@ def profile_row(prof: Profiler, episodes: list[Episode], horizon: int, protocol:
         ),
         "rel_warm_start_iterations_per_step": prof.count["step/warm_start/rel:iterations"] / steps,
         "reused_steps": prof.count["reused"] / steps,
+        "kernel_share": prof.count["step/scp:kernel"] / scp_iters if scp_iters else float("nan"),
         "fallbacks": prof.count["fallbacks"],
         "advance_ms": ms(prof.incl.get("observe/advance", 0.0)),
         "cost": float(np.mean([e.cost for e in episodes])),

@@ -1,6 +1,7 @@
 """The Riccati interior-point backend (first in the default chain, ``backend="auto"``): its kernel against a dense KKT
-solve and Clarabel on small stage QPs, its stage-wise form against PIQP on the engine's subproblems, whole REL + SCP
-solves against the PIQP path (``backend="piqp"``), the fallback, and where the chain takes it."""
+solve and Clarabel on small stage QPs, its stage-wise form against PIQP on the engine's subproblems, its terminal cone
+(MPC windows) against Clarabel and cvxpy, whole REL + SCP solves against the PIQP path (``backend="piqp"``), the
+fallback, and where the chain takes it."""
 
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ def _kernel(args, boxes, rows, n, nu):
     A, B, c, x0, Qd, q = args
     N = A.shape[0]
     y, pi = np.zeros((N + 1, n + nu)), np.zeros((N, n))
-    full = (A, B, c, x0, Qd, q, *boxes, *rows, y, pi, 1e-10, 1e-11, 100, n, nu)
+    full = (A, B, c, x0, Qd, q, *boxes, *rows, np.zeros(0), np.zeros(0), y, pi, 1e-10, 1e-11, 100, n, nu)
     code = solve(*full)[0]
     return code, y
 
@@ -119,7 +120,7 @@ def test_stage_form_matches_piqp(name, window, obstacles) -> None:
     assert supports(spec)
     X, U, sol = RiccatiSolver(spec).solve(data)
     _, Up, ref = PIQPSolver(spec).solve(data)
-    assert sol.ok and sol.status.startswith("RICCATI_SOLVED"), sol.status
+    assert sol.ok and sol.status.startswith("RICCATI_SOLVED ("), sol.status  # converged, not only close
     assert sol.objective == pytest.approx(ref.objective, rel=1e-6, abs=1e-9)
     assert sc.cost(U) == pytest.approx(sc.cost(Up), rel=1e-5, abs=1e-8)
     # a solution of the subproblem: initial state, dynamics on the rows without virtual control, trust region
@@ -166,6 +167,37 @@ def test_fallback_when_the_kernel_does_not_converge(monkeypatch) -> None:
     assert sol.objective == pytest.approx(ref.objective, rel=1e-9)
 
 
+@pytest.mark.parametrize("name", ["freeflyer", "quadrotor"])
+def test_mpc_windows_soft_terminal_cone_matches_clarabel(name) -> None:
+    """An MPC window (H = 10, the paper's soft terminal term ‖W(x_H − x̄)‖₂) in the kernel, its one cone: the
+    objective of the conic assembly solved by Clarabel and of the independent cvxpy model, for a target the window
+    reaches (the term is 0: an exact penalty), one slightly off and one far off (the term is active); the returned
+    trajectory keeps the trust region."""
+    import dataclasses
+
+    from ttompc.solvers.backends.conic import AssembledSolver
+    from ttompc.solvers.naive import NaiveCvxpySolver
+
+    sc, spec, data = qp_subproblem(name, 5, Window(20, 10, 100), True, True, delta=0.3)
+    spec = dataclasses.replace(spec, terminal="soft", tr_states=tuple(range(1, 11)))
+    assert supports(spec)
+    rng = np.random.default_rng(9)
+    weights = np.linspace(1.0, 4.0, sc.state_dim)
+    terms = []
+    for scale in (0.0, 0.05, 0.5):
+        target = data.X_ref[-1] + scale * rng.normal(size=sc.state_dim) * np.asarray(sc.state_scale)
+        d = dataclasses.replace(data, terminal_target=target, terminal_weights=weights)
+        X, _, sol = RiccatiSolver(spec).solve(d)
+        assert sol.ok and sol.status.startswith("RICCATI_SOLVED ("), sol.status  # converged, not only close
+        for other in (AssembledSolver(spec, ["clarabel"]), NaiveCvxpySolver(spec)):
+            _, _, ref = other.solve(d)
+            assert ref.ok and sol.objective == pytest.approx(ref.objective, rel=2e-6, abs=1e-7), type(other).__name__
+        term = float(np.linalg.norm(weights * (X[-1] - target)))
+        assert np.max(np.abs(X[1:] - d.X_ref[1:])) <= d.delta + 1e-7
+        terms.append(term)
+    assert terms[-1] > 1e-3  # the far target is not reached: the cone is active, not only its exact-penalty face
+
+
 def test_where_the_chain_takes_it() -> None:
     ff, rp = get_scenario("freeflyer"), get_scenario("rpod")
     assert backend_chain("auto", ff) == backend_chain("riccati", ff) == ["riccati", "piqp", "qoco", "clarabel"]
@@ -179,10 +211,12 @@ def test_where_the_chain_takes_it() -> None:
     p = ff.sample(np.random.default_rng(0))
     rel, scp = solve_problem(ff, p, backend="riccati", formulation="reference")
     assert scp is not None and scp.success and not any("RICCATI" in h.solver_status for h in scp.history)
-    # an MPC window's soft terminal term is a cone: the conic chain
+    # an MPC window's soft terminal term is the kernel's one cone: the kernel takes the window, `piqp` the cone path
     w = Window(0, 10, 100)
     window = SCPProblem(ff, p, w, TerminalCost(rel.X[10], 1.0))
     res = solve_scp(window, rel.X[:11], rel.U[:10], SCPOptions(backend="auto"))
+    assert res.success and all("RICCATI" in h.solver_status for h in res.history)
+    res = solve_scp(window, rel.X[:11], rel.U[:10], SCPOptions(backend="piqp"))
     assert res.success and not any("RICCATI" in h.solver_status for h in res.history)
 
 

@@ -24,8 +24,9 @@ def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
 
     * ``auto`` (the default): the Riccati interior-point kernel (``riccati.py``) ahead of the scenario's
       ``auto_backends`` where those start with PIQP, else ``auto_backends`` alone. On the default chain
-      ``riccati, piqp, qoco, clarabel`` the kernel takes the penalised QP subproblems (``riccati.supports``), PIQP
-      the other QPs, QOCO the ones with cones, and each passes its numerical failures on. RPOD's: Clarabel alone.
+      ``riccati, piqp, qoco, clarabel`` the kernel takes the penalised QP subproblems and the MPC windows whose one
+      cone is their soft terminal term (``riccati.supports``), PIQP the other QPs, QOCO the other cone programs, and
+      each passes its numerical failures on. RPOD's: Clarabel alone.
     * ``riccati``: the same as ``auto`` (the name that selected the kernel before it was the default).
     * ``piqp``: PIQP first, then the rest of ``auto_backends``, without the kernel: what ``auto`` ran before issue
       36 made the kernel the default (records from before then that say ``auto`` mean this), kept for comparisons.

@@ -1,5 +1,6 @@
 """The penalised SCP subproblem in stage-wise form, solved by a Riccati interior-point method (``riccati_kernel``,
-numba): the first solver of the default chain (``backend="auto"``) wherever the subproblem is a penalised QP.
+numba): the first solver of the default chain (``backend="auto"``) wherever the subproblem is a penalised QP, or
+one whose only cone is an MPC window's soft terminal term.
 
 It poses the optimisation problem of ``qp.QPSubproblem`` stage by stage instead of as one sparse QP, in the same
 non-dimensionalised variables (x/state_scale, u/control_scale), so the two backends reach the same optima:
@@ -7,18 +8,21 @@ non-dimensionalised variables (x/state_scale, u/control_scale), so the two backe
 * stage k holds y_k = [x_k, u_k, ν_k] (ν: virtual control on ``spec.vc_rows``, a column of B equal to 1);
 * the L1 fuel cost, the virtual control and the penalised terminal condition are soft boxes with zero width
   (ρ·|v| = ρ·dist(v, [0, 0])), the quadratic cost a diagonal stage Hessian;
+* an MPC window's soft terminal term ‖W(x_H − x̄)‖₂ is the kernel's one second-order cone, on the last stage's
+  first dummy control τ (its epigraph, at cost τ);
 * the ∞-norm trust region and rows on one variable are boxes, other rows sparse over their structural columns
   (normalised, with the penalty scaled so that it still reads in the row's own units); a two-sided row is two
   one-sided rows, each with its own slack, as the QP's e⁺/e⁻ pair; penalised equality rows are two-sided with
   lower = upper;
 * x_0 is fixed, so rows on x_0 alone are constants and dropped.
 
-Where the kernel does not converge the same data goes to ``fallback`` (the PIQP chain), so the backend never
-returns less than PIQP would.
+Where the kernel does not converge the same data goes to ``fallback`` (the PIQP chain; for a window, QOCO then
+Clarabel), so the backend never returns less than the chain behind it would.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,8 +40,10 @@ MAX_ITER = 100
 
 def supports(spec: SubproblemSpec) -> bool:
     """The stage-wise form needs soft (penalised) equalities and terminal condition: the kernel has no equality
-    rows besides the dynamics."""
-    return is_qp(spec) and spec.penalized
+    rows besides the dynamics. Its one cone is an MPC window's soft terminal term ‖W(x_H − x̄)‖₂."""
+    if not spec.penalized:
+        return False
+    return is_qp(spec) or (spec.terminal == "soft" and is_qp(dataclasses.replace(spec, terminal="hard")))
 
 
 @dataclass
@@ -73,10 +79,15 @@ class StageQP:
         self.B = np.zeros((H, n, self.nu))
         self.B[:, self.vr, m + np.arange(len(self.vr))] = 1.0
         self.Qd = np.zeros((H + 1, ny))
-        self.Qd[H, n:] = 1.0  # the last stage's dummy control
+        self.Qd[H, n:] = 1.0  # the last stage's dummy controls
+        self.cone = spec.terminal == "soft"  # τ ≥ ‖W(x_H − x̄)‖₂ at cost τ, τ the last stage's first dummy control
+        if self.cone:
+            self.Qd[H, n] = 0.0
         if spec.cost_norm == "quad":
             self.Qd[:H, n : n + m] = spec.fuel_weight * self.su**2
         self.q = np.zeros((H + 1, ny))
+        if self.cone:
+            self.q[H, n] = 1.0
         # constant soft zero boxes: the L1 fuel cost and the virtual control
         ks, js, rho = [], [], []
         if spec.cost_norm == "l1":
@@ -136,7 +147,8 @@ class StageQP:
         B = self.B.copy()
         B[:, :, :m] = data.model.B * self.b_scale
         c = data.model.c / sx
-        goal = data.goal / sx
+        # the terminal condition's boxes (none for the soft terminal term: its cone)
+        goal = np.full(n, np.inf) if self.cone else data.goal / sx
         ref = data.X_ref[self.tr_steps] / sx  # (T, n); an infinite δ gives infinite bounds, dropped below
         half = data.delta / sx
         d = np.concatenate([np.zeros(self.n_zero), goal, -goal, (ref + half).ravel(), (half - ref).ravel()])
@@ -184,14 +196,22 @@ class StageQP:
         else:
             rk, ri, rg = np.zeros(0, np.int64), np.zeros((0, self.width), np.int64), np.zeros((0, self.width))
             rd, rrho = np.zeros(0), np.zeros(0)
-        return A, B, c, data.x_start / sx, self.Qd, self.q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho
+        if self.cone:
+            assert data.terminal_weights is not None and data.terminal_target is not None
+            cw, cx = np.asarray(data.terminal_weights * sx, np.float64), data.terminal_target / sx
+        else:
+            cw = cx = np.zeros(0)
+        return A, B, c, data.x_start / sx, self.Qd, self.q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, cw, cx
 
     def objective(self, y: np.ndarray, arrays: tuple) -> float:
         """The subproblem's objective at y (the QP's, up to the constant penalties of rows on x_0 alone)."""
-        *_, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho = arrays
+        *_, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, cw, cx = arrays
         value = float(np.sum(0.5 * Qd * y**2 + q * y))
         value += float(brho @ np.maximum(bs * y[bk, bj] - bd, 0.0))
         value += float(rrho @ np.maximum(np.sum(rg * y[rk[:, None], ri], axis=1) - rd, 0.0))
+        if len(cw):  # the terminal term itself rather than its epigraph variable τ
+            n = len(cw)
+            value += float(np.linalg.norm(cw * (y[-1, :n] - cx))) - float(y[-1, n])
         return value
 
 
