@@ -81,8 +81,8 @@ def test_merits_within_the_tolerance_count_as_equal() -> None:
         iterates = _Iterates(feas_tol=1e-4, tie_tol=1e-6)
         for it, (merit, violation) in enumerate(merits):
             iterates.add(record(it, merit, violation), np.full((2, 1), it), np.full((1, 1), it))
-        assert iterates.best is not None and iterates.best[1][0, 0] == iterates.best[4]
-        return iterates.best[4]
+        assert iterates.best is not None and iterates.best[0][0, 0] == iterates.best[3]
+        return iterates.best[3]
 
     assert best([(1.0, 0), (1.0 + 5e-7, 0)]) == 1  # a tie: the latest
     assert best([(1.0, 0), (1.0 - 5e-7, 0)]) == 1

@@ -100,14 +100,14 @@ class _Iterates:
     tie_tol: float
     lowest: float = np.inf  # the lowest merit of a feasible iterate so far
     history: list[IterateRecord] = field(default_factory=list)
-    best: tuple[float, np.ndarray, np.ndarray, float, int] | None = None  # (merit, X, U, violation, iteration)
+    best: tuple[np.ndarray, np.ndarray, float, int] | None = None  # (X, U, violation, iteration)
     least_bad: tuple[float, np.ndarray, np.ndarray, int] | None = None  # (violation, X, U, iteration)
 
     def add(self, record: IterateRecord, X: np.ndarray, U: np.ndarray) -> None:
         """Record the iterate (X, U) that ``record`` describes."""
         self.history.append(record)
         if record.violation <= self.feas_tol and record.objective <= self.lowest + self.tie_tol:
-            self.best = (record.objective, X, U, record.violation, record.iteration)
+            self.best = (X, U, record.violation, record.iteration)
             self.lowest = min(self.lowest, record.objective)
         if self.least_bad is None or record.violation < self.least_bad[0]:
             self.least_bad = (record.violation, X, U, record.iteration)
@@ -126,7 +126,7 @@ class _Iterates:
             status = SCPStatus.INFEASIBLE if self.least_bad is not None else SCPStatus.SOLVER_ERROR
         assert status is not None  # each branch above sets it
         if self.best is not None and status in (SCPStatus.OPTIMAL, SCPStatus.FEASIBLE):
-            _, X, U, violation, it = self.best
+            X, U, violation, it = self.best
         elif self.least_bad is not None:
             violation, X, U, it = self.least_bad
         else:
