@@ -52,3 +52,47 @@ def tiny_planner(scenario_name: str = "freeflyer-short", seed: int = 0) -> Any:
         std={"states": np.ones(n), "actions": np.full(m, 3e-3), "goals": np.ones(n), "rtg": [0.2], "ctg": [5.0]},
     )
     return Planner(TrajectoryGPT(cfg), scenario, stats)
+
+
+def perturb_batched_rollouts(monkeypatch: Any, rounding: float) -> None:
+    """Make every batched transformer rollout (batch > 1) differ from the lone one as another CPU's rounding would:
+    its generated states and actions times (1 + ``rounding``·N(0, 1)), seeded by the step (the same on every
+    machine). On the CPU where a user's AVX2 machine first showed it, the batched and lone rollouts of one state
+    differ by about 1e-7; this makes that difference, and what the closed loop does with it, testable anywhere."""
+    import dataclasses
+
+    import torch
+
+    from ttompc.policy.rollout import RolloutContext
+
+    rollout = RolloutContext.rollout
+
+    def rounded(self: RolloutContext, horizon: int) -> Any:
+        out = rollout(self, horizon)
+        if self.batch == 1 or rounding == 0:
+            return out
+        g = torch.Generator().manual_seed(self.t)
+
+        def noisy(x: torch.Tensor) -> torch.Tensor:
+            return x * (1 + rounding * torch.randn(x.shape, generator=g, dtype=x.dtype))
+
+        states = torch.cat([out.states[:, :1], noisy(out.states[:, 1:])], dim=1)  # the measured state is exact
+        return dataclasses.replace(out, states=states, actions=noisy(out.actions))
+
+    monkeypatch.setattr(RolloutContext, "rollout", rounded)
+
+
+def record_plans(monkeypatch: Any) -> dict[int, list[Any]]:
+    """Every window plan (``StepPlan``) the MPC controllers make from now on, by ``id`` of the controller's problem."""
+    from ttompc.mpc.loop import MPCController
+
+    plans: dict[int, list[Any]] = {}
+    plan = MPCController.plan
+
+    def recording(self: MPCController, t: int, x: np.ndarray) -> Any:
+        p = plan(self, t, x)
+        plans.setdefault(id(self.problem), []).append(p)
+        return p
+
+    monkeypatch.setattr(MPCController, "plan", recording)
+    return plans

@@ -68,7 +68,9 @@ def test_in_place_updates_give_the_fresh_optimum() -> None:
     _, U_reused, a = reused.solve(d2)
     _, U_fresh, b = PIQPSolver(spec).solve(d2)
     assert a.objective == pytest.approx(b.objective, rel=1e-7)
-    np.testing.assert_allclose(U_reused, U_fresh, atol=1e-6)
+    # the free-flyer's L1 fuel has optimal faces: two solves can stop at other points of one face, at equal fuel
+    sc = get_scenario("freeflyer")
+    assert sc.cost(U_reused) == pytest.approx(sc.cost(U_fresh), rel=1e-6)
 
 
 def test_fallback_on_numerical_failure() -> None:
