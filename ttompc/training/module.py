@@ -24,6 +24,7 @@ import lightning as L
 import torch
 from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from torch import Tensor
+from torch.optim import Optimizer
 
 from ttompc.config import from_container
 from ttompc.data.schema import SOURCE_CODES
@@ -142,15 +143,20 @@ class TrajectoryTransformerModule(L.LightningModule):
         log_figure(self.trainer, "val/trajectories", fig, self.global_step)
 
     def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
+        """AdamW (weight decay on the matrices only) with warm-up and the ``optim.schedule``, stepped per optimiser
+        step. Fused (one kernel per step) on CUDA unless a GradScaler scales the gradients (16-mixed): Lightning
+        unscales them before ``configure_gradient_clipping`` only for an optimiser that does not unscale inside its
+        step. On the CPU, where it would be negligible, torch's default (docs/design.md)."""
         cfg = self.optim_cfg
         decay = [p for p in self.parameters() if p.requires_grad and p.dim() >= 2]
         no_decay = [p for p in self.parameters() if p.requires_grad and p.dim() < 2]
-        on_gpu = all(p.is_cuda for p in decay + no_decay)  # Lightning moved the model before this call
+        # Lightning moved the model before this call; the Trainer is consulted on CUDA only
+        fused = self.device.type == "cuda" and getattr(self.trainer.precision_plugin, "scaler", None) is None
         opt = torch.optim.AdamW(
             [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
             lr=cfg.lr,
             betas=(cfg.betas[0], cfg.betas[1]),
-            fused=True if on_gpu else None,  # one kernel per step on CUDA; negligible on CPU (docs/design.md)
+            fused=True if fused else None,
         )
         total = max(int(self.trainer.estimated_stepping_batches), 1) if cfg.schedule == "cosine" else 0
 
@@ -164,6 +170,26 @@ class TrajectoryTransformerModule(L.LightningModule):
 
         sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def configure_gradient_clipping(
+        self,
+        optimizer: Optimizer,
+        gradient_clip_val: float | None = None,
+        gradient_clip_algorithm: str | None = None,
+    ) -> None:
+        """Clip the global 2-norm of the gradients of ``optimizer``'s parameters to ``optim.grad_clip`` (0: off), as
+        ``Trainer(gradient_clip_val=grad_clip)`` would, bit for bit. Done here because Lightning's AMP plugin refuses
+        to clip for an optimiser that unscales inside its step (the fused AdamW of CUDA runs), even in bf16-mixed,
+        which has no GradScaler. Lightning calls this after backward and, under a GradScaler (whose optimiser is not
+        fused: ``configure_optimizers``), after unscaling. The recipe owns clipping: a Trainer's
+        ``gradient_clip_val`` is refused (ValueError)."""
+        if gradient_clip_val is not None:
+            raise ValueError(
+                f"Trainer(gradient_clip_val={gradient_clip_val}): clipping is optim.grad_clip, applied by the module"
+            )
+        if self.optim_cfg.grad_clip > 0:
+            params = [p for group in optimizer.param_groups for p in group["params"]]
+            torch.nn.utils.clip_grad_norm_(params, self.optim_cfg.grad_clip)
 
 
 class SaveLastCheckpoint(L.Callback):

@@ -49,7 +49,8 @@ def build_trainer(
     """The Lightning Trainer of a recipe's ``trainer``/``optim`` sections (pre-training and DAgger share it; the
     step budget, ``max_steps``/``max_epochs``, and the sanity validation steps are ``t``'s). A
     ``precision`` of ``auto`` is resolved for the machine (``ttompc.training.precision``); its checkpoints record the
-    precision that ran (``checkpoint["precision"]``)."""
+    precision that ran (``checkpoint["precision"]``). It sets no ``gradient_clip_val``: the module clips to
+    ``optim.grad_clip`` itself (``TrajectoryTransformerModule.configure_gradient_clipping``)."""
     import lightning as L
 
     from ttompc.training.checkpoints import AtomicCheckpointIO
@@ -70,7 +71,6 @@ def build_trainer(
         num_nodes=t.num_nodes,
         strategy=t.strategy,
         precision=resolve_precision(t.precision, accelerator=t.accelerator, strategy=t.strategy),
-        gradient_clip_val=optim.grad_clip or None,
         accumulate_grad_batches=optim.accumulate,
         log_every_n_steps=t.log_every_n_steps,
         num_sanity_val_steps=t.num_sanity_val_steps,
