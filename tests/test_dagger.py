@@ -658,3 +658,36 @@ def torch_finite(x: object) -> bool:
 
     return bool(torch.isfinite(x).all())  # type: ignore[arg-type]
 
+
+def test_a_share_of_rollouts_runs_on_the_perturbed_plant() -> None:
+    """``dagger.collect.perturbed``: each rollout draws its plant from its own seed; a perturbed rollout visits other
+    states than the same rollout on the exact plant (same problem, H and windows), labels them, and says so in its
+    status; a share of 0 is the exact plant for every rollout."""
+    from ttompc.finetune.collect import collect_rollouts, rollout_plant
+
+    sc = get_scenario(SHORT)
+    draws = [not rollout_plant(sc, rollout_seed(3, 0, r), 0.5).noise.nominal for r in range(200)]
+    assert 70 < sum(draws) < 130  # about half
+    assert all(rollout_plant(sc, rollout_seed(3, 0, r), 0.0).noise.nominal for r in range(20))
+    planner = mpc_fakes.tiny_planner()
+    explore = ExplorationConfig(horizons=[5], windows=[0, 0], window_length=[4, 6], end_window=False)
+    labels = LabelConfig(kind="step", per_rollout=3)
+    ((exact,),), ((disturbed,),) = (
+        collect_rollouts(sc, planner, 0, [0], 5, explore, labels, perturbed=p) for p in (0, 1)
+    )
+    assert exact["status"].endswith("plant=nominal;labels=3") and "plant=perturbed" in disturbed["status"]
+    assert exact["problem_id"] == disturbed["problem_id"]
+    np.testing.assert_array_equal(exact["states"][0], disturbed["states"][0])
+    assert np.abs(np.asarray(exact["states"][1:]) - np.asarray(disturbed["states"][1:])).max() > 1e-4
+    labelled = np.isfinite(np.asarray(disturbed["target_actions"])).all(axis=1)
+    assert labelled.sum() == 3
+
+
+def test_the_paper_scale_recipe_loads_at_the_authors_scale() -> None:
+    """recipes/quadrotor/dagger-scale.yaml: 8 iterations of 4,000 rollouts, aggregated (every iteration's folder is
+    trained on), the expert finishing each episode, a share on the perturbed plant, under protocol=recommended."""
+    cfg = load_finetune_config(RECIPES / "quadrotor" / "dagger-scale.yaml")
+    d = cfg.dagger
+    assert (d.iterations, d.collect.rollouts) == (8, 4000) and d.exploration.end_window
+    assert 0 < d.collect.perturbed < 1 and d.eval.protocol == "recommended" and d.eval.problems >= 50
+    assert cfg.data.closed_loop_share == "grow"

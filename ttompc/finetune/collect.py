@@ -19,9 +19,9 @@ Labels (``labels.kind``):
   expert's plan from x_t, with targets from t on (``_plan_row``). TTO-MPC's terminal target is the model's H-step
   rollout from the visited history; these rows supervise exactly that rollout.
 The solver columns hold the row's cost, the learner's/expert's compute time (solve_time/solver_time), the keep-out
-violations of the row's trajectory (violation) and "H=..;expert_steps=..;fallbacks=..;labels=.." (status; plan rows
-add ";plan_from=t"). Rollouts are kept whether or not they end feasible: their visited states are where the learner
-needs corrections.
+violations of the row's trajectory (violation) and "H=..;expert_steps=..;fallbacks=..;plant=..;labels=.." (status;
+plan rows add ";plan_from=t"). Rollouts are kept whether or not they end feasible: their visited states are where
+the learner needs corrections.
 
 Seeds: rollout (i, r) draws everything (problem, H, windows) from ``ttompc.seeding.rollout_seed(seed, i, r)``, never
 the wall clock. Rows go through the same resumable writer as open-loop generation (``ShardedFolder``, shard k =
@@ -50,6 +50,7 @@ from ttompc.data.schema import make_row, trajectory_features
 from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig, check_rollout_settings
 from ttompc.mpc.loop import MPCController, StepPlan
+from ttompc.mpc.plant import PLANT_STREAM, Plant, PlantNoise
 from ttompc.mpc.providers import ShiftProvider
 from ttompc.mpc.settings import MPCSettings
 from ttompc.mpc.tto import TTOProvider, tto_providers
@@ -57,6 +58,7 @@ from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Problem, Scenario, Window
+from ttompc.seeding import rng as seeded_rng
 from ttompc.seeding import rollout_seed
 from ttompc.solvers.scp import solve_rel
 
@@ -129,6 +131,7 @@ class _Episode:
     shift: ShiftProvider
     expert: MPCController
     x: np.ndarray
+    plant: Plant
     X: list[np.ndarray] = field(default_factory=list)
     U: list[np.ndarray] = field(default_factory=list)
     plans: dict[int, StepPlan] = field(default_factory=dict)  # the expert's plan at each labelled step
@@ -147,9 +150,22 @@ def collect_rollout(
     labels: LabelConfig | None = None,
     *,
     settings: MPCSettings | None = None,
+    perturbed: float = 0.0,
 ) -> list[dict[str, Any]]:
     """One DAgger rollout -> its schema rows: ``collect_rollouts`` for one index."""
-    return collect_rollouts(scenario, planner, iteration, [index], root_seed, exploration, labels, settings=settings)[0]
+    return collect_rollouts(
+        scenario, planner, iteration, [index], root_seed, exploration, labels, settings=settings, perturbed=perturbed
+    )[0]
+
+
+def rollout_plant(scenario: Scenario, seed: int, perturbed: float) -> Plant:
+    """The plant of the rollout seeded ``seed``: the evaluations' perturbed plant (``PlantNoise.perturbed``) with
+    probability ``perturbed``, else the exact dynamics; the draw and the disturbances come from the rollout's seed
+    on streams of their own (a share of 0 draws nothing), so the problem, horizon and windows stay the same."""
+    on_perturbed = perturbed > 0 and bool(seeded_rng(seed, PLANT_STREAM, 1).random() < perturbed)
+    plant = Plant(scenario, PlantNoise.perturbed(scenario) if on_perturbed else None)
+    plant.reset(seed)
+    return plant
 
 
 def collect_rollouts(
@@ -162,6 +178,7 @@ def collect_rollouts(
     labels: LabelConfig | None = None,
     *,
     settings: MPCSettings | None = None,
+    perturbed: float = 0.0,
 ) -> list[list[dict[str, Any]]]:
     """The DAgger rollouts ``indices`` of ``iteration``, run in lockstep -> each one's schema rows (see the module
     docstring for the labels): one row with ``kind="step"`` labels, one row per labelled step with ``kind="plan"``.
@@ -171,7 +188,8 @@ def collect_rollouts(
     honour them (real-time iteration): mode, backend and plan reuse (without reuse the labels are the same) for both;
     for the learner (its H drawn by the exploration, Alg. 1) also the end horizon and, through ``tto_providers``, the
     tracking weight and the rtg mode (a model without a value output keeps the ledger). The expert's windows always
-    reach the end, where those three do not apply."""
+    reach the end, where those three do not apply. A share ``perturbed`` of the rollouts runs on the perturbed plant
+    (``rollout_plant``): both controllers plan from its measured states, the expert labels them."""
     labels = labels or LabelConfig()
     s = settings or MPCSettings()
     check_rollout_settings(s)
@@ -192,7 +210,7 @@ def collect_rollouts(
         learner = MPCController(scenario, problem, provider, H, s)
         expert = MPCController(scenario, problem, shift, N, s)
         ep = _Episode(index, seed, problem, rel, H, expert_steps, labelled, provider, learner, shift, expert,
-                      problem.x0.copy())  # fmt: skip
+                      problem.x0.copy(), rollout_plant(scenario, seed, perturbed))  # fmt: skip
         ep.X.append(ep.x)
         episodes.append(ep)
     if len({ep.problem.n_steps for ep in episodes}) > 1:
@@ -205,7 +223,7 @@ def collect_rollouts(
         group.expect(t, max((ep.learner.window(t).length for ep in episodes if not ep.expert_steps[t]), default=0))
         steps = [_plan_step(scenario, ep, t, s.backend) for ep in episodes]
         for ep, (plan, e) in zip(episodes, steps, strict=True):
-            x_next = scenario.step(ep.problem, t, ep.x, plan.u)
+            x_next = ep.plant.step(ep.problem, t, ep.x, plan.u)
             if e is not None:
                 ep.expert.observe(e, plan.u, x_next)
             ep.learner.observe(plan, plan.u, x_next)
@@ -252,7 +270,8 @@ def _rows(
     common = dict(problem_id=rollout_id(iteration, ep.index), seed=ep.seed, source="dagger", iteration=iteration,
                   solve_time=ep.learner_time, solver_time=ep.expert_time)  # fmt: skip
     n_expert, n_labels = int(ep.expert_steps.sum()), int(ep.labelled.sum())
-    status = f"H={ep.H};expert_steps={n_expert};fallbacks={ep.fallbacks};labels={n_labels}"
+    plant = "nominal" if ep.plant.noise.nominal else "perturbed"
+    status = f"H={ep.H};expert_steps={n_expert};fallbacks={ep.fallbacks};plant={plant};labels={n_labels}"
     if labels.kind == "plan":
         return [
             _plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, status, common, labels.rtg)
@@ -377,6 +396,7 @@ def _collect_chunk(task: tuple[int, list[int]]) -> list[list[dict[str, Any]]]:
         cfg.exploration,
         cfg.labels,
         settings=cfg.eval.settings,
+        perturbed=cfg.collect.perturbed,
     )
 
 

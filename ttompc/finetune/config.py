@@ -90,6 +90,9 @@ class CollectConfig:
     shard_size: int = 50  # rollouts per shard (the unit of resumption and of the rank split)
     batch: int = 10  # rollouts a worker runs in lockstep (one batched transformer rollout per step for all)
     val_fraction: float = 0.1  # share of rollouts written to the DAgger val split (by rollout index hash)
+    # share of rollouts run on the evaluations' perturbed plant (``PlantNoise.perturbed``), each drawn from its own
+    # seed: the disturbed states are where re-planning from the measured state fails; 0 = the exact plant (paper)
+    perturbed: float = 0.0
     wait_s: float = 3600.0  # multi-rank: how long to wait for other ranks' shards and rank 0's decisions
 
     def __post_init__(self) -> None:
@@ -97,6 +100,8 @@ class CollectConfig:
             raise ValueError("dagger.collect.rollouts, dagger.collect.shard_size and dagger.collect.batch must be >= 1")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(f"dagger.collect.val_fraction must be in [0, 1), got {self.val_fraction}")
+        if not 0.0 <= self.perturbed <= 1.0:
+            raise ValueError(f"dagger.collect.perturbed must be in [0, 1], got {self.perturbed}")
 
 
 # MPCSettings values DAgger's rollouts cannot run (``check_rollout_settings``): they solve every window to

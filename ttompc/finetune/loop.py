@@ -21,11 +21,11 @@ never worse than its pretrained parent by that measure; it *is* the parent when 
 
 ``<run>/dagger_state.json`` records the source, the protocol of the measurement (``protocol_record``), the
 pretrained model's metrics, the current best and, per iteration, its checkpoint, planner, global step, metrics,
-parent and the keep/reject decision with its reason (also logged as ``dagger/*`` metrics and printed); the exported
-planner keeps the protocol record (``dagger_protocol``). Re-running the same command continues: finished
-iterations are skipped, done rollout shards are not recollected, and an iteration whose training was interrupted
-resumes from its checkpoint (refreshed every ``trainer.checkpoint_every_n_steps`` and on an exception such as
-Ctrl-C).
+parent, the keep/reject decision with its reason and the wall seconds of its phases (also logged as ``dagger/*``
+metrics and printed); the exported planner keeps the protocol record (``dagger_protocol``). Re-running the same
+command continues: finished iterations are skipped, done rollout shards are not recollected, and an iteration whose
+training was interrupted resumes from its checkpoint (refreshed every ``trainer.checkpoint_every_n_steps`` and on
+an exception such as Ctrl-C).
 Ranks: every rank collects its own shards and trains (Lightning strategy); rank 0 measures and decides, and the other
 ranks wait for its decision in the state file.
 """
@@ -327,12 +327,15 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
             f"{_model_name(parent['iteration'])}, then {cfg.dagger.steps_per_iteration} training steps"
         )
         folder = rollout_folder(run / "dagger" / f"iter-{i:03d}", scenario, c.rollouts, c.shard_size)
+        t0 = time.perf_counter()
         collect_iteration(cfg.dagger, scenario, i, Path(parent["planner"]), folder, ranks)
+        t1 = time.perf_counter()
         if not folder.wait(wait_s):
             raise TimeoutError(f"gave up waiting {wait_s:.0f} s for other ranks' rollout shards in {folder.root}")
         dirs = [str(run / "dagger" / f"iter-{j:03d}") for j in range(i + 1)]
         ckpt = run / "checkpoints" / f"iter-{i:03d}.ckpt"
         step = _train_iteration(cfg, i, source_planner, parent, dirs, logger, ckpt)
+        t2 = time.perf_counter()
         if ranks.is_main:
             candidate = Planner.from_pretrained(ckpt, scenario)
             # the candidate plans with its source's conditioning (rtg_0 = -rtg_scale * J_REL, chosen for the
@@ -347,8 +350,11 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
             measured = measure(cfg, candidate, problems)
             metrics = _json_safe(measured)
             kept, reason = improves(metrics, parent["metrics"])
+            # wall seconds of this process's phases (a resumed phase counts from the resume)
+            seconds = {"collect": t1 - t0, "train": t2 - t1, "measure": time.perf_counter() - t2}
             record = {"iteration": i, "checkpoint": str(ckpt), "planner": str(out), "global_step": step,
-                      "metrics": metrics, "parent": parent["iteration"], "kept": kept, "reason": reason}  # fmt: skip
+                      "metrics": metrics, "parent": parent["iteration"], "kept": kept, "reason": reason,
+                      "seconds": seconds}  # fmt: skip
             state["completed"].append(record)
             if kept:
                 state["best"] = {k: record[k] for k in ("iteration", "planner", "checkpoint", "global_step", "metrics")}
