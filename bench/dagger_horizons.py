@@ -1,4 +1,4 @@
-"""DAgger collection with mixed horizons (issue 36, item 5): the paper recipes' rollouts in lockstep batches.
+"""DAgger collection with mixed horizons: the paper recipes' rollouts in lockstep batches.
 
 The paper's exploration draws H per rollout from U{10..100}, so the learners of one lockstep batch ask windows of
 different lengths at every step. Variants, on the same rollouts (problems, H, expert windows, labels):

@@ -1,8 +1,8 @@
-"""DAgger collection speed: labelled rollouts per CPU-second, before and after issue 27, in the same run.
+"""DAgger collection speed: labelled rollouts per CPU-second, the paper's collection and the recipes', one run.
 
 Rows (each rollout index collected once per variant, variants alternating so that machine drift hits all alike):
 * ``paper``: the paper's exploration (H ~ U{10..100}, 1–3 expert windows, one at the end) and an expert label at every
-  visited step (``labels.kind=step``, ``per_rollout=0``): how every DAgger iteration collected before issue 27.
+  visited step (``labels.kind=step``, ``per_rollout=0``): how the paper's DAgger iterations collect.
 * ``subsampled``: the same exploration, labels on ``--labels`` random steps per rollout (a departure; the loss skips
   the others): the labelling lever alone.
 * ``v4``: the FT-v4 recipes' collection: the deployed policy (TTO-MPC at H = 10, no expert windows) with ``plan``

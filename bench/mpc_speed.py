@@ -14,22 +14,22 @@ oversubscription), so the default is one torch thread.
 
 ``--episode-cost``: the CPU-seconds per closed-loop episode of ``ttompc evaluate mpc`` (every method of the protocol,
 both plants, the first horizon) on the same problems, measured in the same run two ways: *before*, one problem at a
-time (each episode alone, as the evaluation ran before issue 18) and *after*, all problems in lockstep
+time (each episode alone, as the evaluation ran before batching) and *after*, all problems in lockstep
 (``run_problems``: one batched rollout per step for each TTO method, the solver structures of the first problem
 serving the others). Each way starts with an empty solver-structure cache, so neither inherits what the other built.
 CPU-seconds are this process's (``time.process_time``), so a loaded machine changes them less than the wall time.
 
-Issue 21 rows, at the first horizon, in the same run: ``REL-MPC[today]`` is REL-MPC re-solving every step (no plan
-reuse, the path before issue 21); ``REL-MPC[rti]`` and ``<TTO>[rti]`` are real-time iteration (one subproblem per step
-from the previous solution shifted; a departure from the paper), beside their converged rows. ``--episode-cost``
+Plan reuse and RTI rows, at the first horizon, in the same run: ``REL-MPC[today]`` is REL-MPC re-solving every
+step (``reuse=false``); ``REL-MPC[rti]`` and ``<TTO>[rti]`` are real-time iteration (one subproblem per step from
+the previous solution shifted; a departure from the paper), beside their converged rows. ``--episode-cost``
 then also runs the batched protocol with ``rti=true``, and its *before* re-solves every step (``reuse=false``).
 
 ``--dagger R``: CPU-seconds per DAgger rollout with labels (``collect_rollout``: 100 steps, the learner the
 model, default exploration) for R rollouts, each collected twice in the same run, alternating: the expert
-re-solving every step (before issue 21) and with plan reuse; plus the largest label difference between the two.
+re-solving every step (``reuse=false``) and with plan reuse; plus the largest label difference between the two.
 
-The default backend is the Riccati interior-point kernel (issue 36); ``REL-MPC[piqp]`` (and a third DAgger timing)
-run the PIQP path (``backend="piqp"``, the default before issue 36) on the same problems.
+The default backend is the Riccati interior-point kernel; ``REL-MPC[piqp]`` (and a third DAgger timing) run the
+PIQP path (``backend="piqp"``, the default chain without the kernel) on the same problems.
 
 ``--quick``: a smoke run (tiny random model, 2 problems, 3 MPC steps, H = 10, with ``--episode-cost``; no result
 file).
@@ -88,7 +88,7 @@ def episode_cost(
     end_horizon: int = 0,
 ) -> dict[str, float]:
     """CPU- and wall-seconds per closed-loop episode of the protocol: one problem at a time re-solving every step
-    (before issues 18 and 21) vs batched with plan reuse, and batched with real-time iteration (module doc)."""
+    (no batching, no plan reuse) vs batched with plan reuse, and batched with real-time iteration (module doc)."""
     cfg = ClosedLoopConfig(scenario=scenario.name, horizons=[horizon], max_steps=max_steps, batch=len(problems),
                            mpc={"end_horizon": end_horizon})  # fmt: skip
     models = {"TTO": planner}
@@ -183,7 +183,7 @@ def main() -> None:
                  "REL-MPC[rti]": (lambda: RELProvider(), "auto", {"rti": True}),
                  f"{name}[rti]": (lambda: TTOProvider(planner, name), "auto", {"rti": True}),
                  "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic", {})}  # fmt: skip
-    # "[piqp]": the PIQP path, the default before issue 36 (the default runs the Riccati kernel where it can)
+    # "[piqp]": the PIQP path, the default chain without the kernel (the default runs the Riccati kernel where it can)
     providers["REL-MPC[piqp]"] = (lambda: RELProvider(backend="piqp"), "piqp", {})
     # warm-up (imports, solver structure caches, torch kernels) outside the timing
     for make, backend, opts in providers.values():

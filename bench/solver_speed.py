@@ -1,7 +1,7 @@
 """SCP engine speed and robustness, measured against baselines and a peer in the same run.
 
 1. Peer (free-flyer, quadrotor; the same seeded problems, interleaved): REL + SCP with the PIQP path ("ours",
-   ``backend="piqp"``: PIQP on the compact QP, ∞-norm trust region; the default before issue 36), the Riccati
+   ``backend="piqp"``: PIQP on the compact QP, ∞-norm trust region; ``auto`` without the kernel), the Riccati
    interior-point backend (``backend="riccati"``, the default ``auto``), the conic path (``backend="conic"``:
    QOCO/Clarabel, 2-norm trust region; the default before the QP path) and IPOPT through CasADi, built once as
    parametric NLPs with ``expand=True`` (REL, then the full problem from the REL solution; ``bench/ipopt_peer.py``,

@@ -1,4 +1,4 @@
-"""Where an MPC step's time goes (issue 36, item 1): the mean step of the shipped model's TTO-family MPC at H = 10
+"""Where an MPC step's time goes: the mean step of the shipped model's TTO-family MPC at H = 10
 (``protocol=recommended``: FT-TTO-MPC and its robust variant R-FT-TTO-MPC, fed the model's value output as
 reward-to-go) beside REL-MPC at H = 30 (``protocol=paper``), on every scenario, in one run, split into its parts.
 

@@ -1,4 +1,4 @@
-"""How much plan error TTO-MPC tolerates: the noisy-oracle harness (issue 10, item 3).
+"""How much plan error TTO-MPC tolerates: the noisy-oracle harness.
 
 A model's plan is stood in for by the *oracle* — the open-loop SCP optimum of the problem, the best plan a perfect
 model could give — plus seeded noise of 0, 1, 3 and 10 cm per MPC step on the positions of the provided window

@@ -31,7 +31,7 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
     for path in paths:
         cfg = load_finetune_config(path)
         assert cfg.dagger.iterations >= 1 and 0 < cfg.data.open_loop_fraction <= 1
-        # at least the paper's first-iteration mix of labelled rollouts (issue 27: >= 1,000 per iteration) and a
+        # at least the paper's first-iteration mix of labelled rollouts (>= 1,000 per iteration) and a
         # keep/reject decision on >= 100 selection problems (recipes/zoo/*-ft-tto-small: the record of the v1 models;
         # recipes/<scenario>/paper-finetune.yaml: the paper's own settings)
         if path.parent.name != "zoo" and path.stem != "paper-finetune":
@@ -79,8 +79,8 @@ def test_protocol_reaches_the_closed_loop_measurement(monkeypatch: pytest.Monkey
 def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """DAgger's rollouts run under the resolved settings of dagger.eval (issue 37: the end horizon reached the
-    measurement but not the rollouts): both controllers get them whole, the learner's windows follow the end
+    """DAgger's rollouts run under the resolved settings of dagger.eval (the end horizon must reach the rollouts,
+    not only the measurement): both controllers get them whole, the learner's windows follow the end
     horizon; real-time iteration, which they cannot run, is refused in one line before anything runs."""
     import ttompc.finetune.collect as collect
     from ttompc.cli import main

@@ -173,8 +173,8 @@ def test_mismatched_generation_is_refused(dataset: tuple[Path, dict], tmp_path: 
         generate(_cfg(out, problems=10), progress=False)
 
 
-def test_a_folder_from_before_issue_36_continues_on_the_path_it_was_made_with(tmp_path: Path) -> None:
-    """Fingerprints record the resolved solver path; one without (written before issue 36) ran with ``auto`` what
+def test_a_folder_from_before_the_solver_path_record_continues_on_the_path_it_was_made_with(tmp_path: Path) -> None:
+    """Fingerprints record the resolved solver path; one without (written while ``auto`` had no kernel) ran what
     ``piqp`` runs now: the default (now the Riccati kernel first) is refused, ``backend=piqp`` continues it, and the
     manifest and card name the chain."""
     out = tmp_path / "old"
@@ -260,7 +260,7 @@ def test_cli_generate_writes_dataset_and_card_copy(tmp_path: Path, capsys: pytes
 
 
 def test_card_is_written_only_inside_out_unless_asked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 14: a `data_cards/` folder in the current directory used to receive a copy named after the folder
+    # a `data_cards/` folder in the current directory must not receive a copy named after the folder
     (tmp_path / "data_cards").mkdir()
     monkeypatch.chdir(tmp_path)
     default = GenerateConfig().card_dir

@@ -1,4 +1,4 @@
-"""The evaluation protocol (issue 10): seeded non-convex problems, intervals, infeasible runs counted apart, the
+"""The evaluation protocol: seeded non-convex problems, intervals, infeasible runs counted apart, the
 paper normalisation, the oracle, the open-loop and closed-loop reports, the commands and the training callback."""
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ def test_paper_normalisation_uses_problems_feasible_for_every_method() -> None:
 
 
 def test_closed_loop_rows_pair_each_method_with_rel_mpc_on_the_problems_both_ran_feasibly() -> None:
-    """The per-method means average different feasible sets; the paired column does not (issue 17's comparison)."""
+    """The per-method means average different feasible sets; the paired column does not."""
     from ttompc.evaluation.closed_loop_report import format_table, summarize
 
     common = {"mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0, "target_change": 0.1,
@@ -306,7 +306,7 @@ def test_evaluate_mpc_command_and_bad_settings(tmp_path: Path) -> None:
     with open(out / "mpc_runs.csv") as f:
         assert all(float(r["mean_iterations_solved"]) >= 1 for r in csv.DictReader(f))
     assert all(r["mean_iterations_solved"] >= 1 for r in report["summary"])
-    chain = ["riccati", "piqp", "qoco", "clarabel"]  # the resolved chain: "auto" meant ["piqp", ...] before issue 36
+    chain = ["riccati", "piqp", "qoco", "clarabel"]  # the resolved chain, not the name "auto"
     assert report["solver"] == {"backend": "auto", "chain": chain, "trust_norm": "linf"}
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "plants=[windy]"]) == 2
     assert main(["evaluate", "mpc", f"scenario={SHORT}", "protocol=nope"]) == 2
@@ -316,8 +316,8 @@ def test_evaluate_mpc_command_and_bad_settings(tmp_path: Path) -> None:
 
 
 def test_evaluate_mpc_prints_at_most_18_settings(capsys: pytest.CaptureFixture[str]) -> None:
-    """The closed-loop protocol is one named preset, not a key per MPC setting (issue 28: 24 leaves before); what
-    the preset resolves to is printed beside it (issue 37: ``protocol=zoo`` hid its end horizon)."""
+    """The closed-loop protocol is one named preset, not a key per MPC setting; what the preset resolves to is
+    printed beside it (``protocol=zoo`` must show its end horizon)."""
 
     def leaves(node: object) -> int:
         return sum(leaves(v) for v in node.values()) if isinstance(node, dict) else 1
@@ -335,7 +335,7 @@ def test_evaluate_mpc_prints_at_most_18_settings(capsys: pytest.CaptureFixture[s
 
 
 def test_the_plant_section_keeps_the_scenarios_own_disturbance_per_component() -> None:
-    """``plant`` is a PlantNoise (issue 28) whose unset components are the scenario's own perturbation (issue 30):
+    """``plant`` is a PlantNoise whose unset components are the scenario's own perturbation:
     ``plant.process_std=...`` overrides that component and keeps the scenario's others."""
     from ttompc.config import load_command_config
     from ttompc.mpc.plant import Plant, PlantNoise
@@ -613,7 +613,7 @@ def test_callback_plant_is_selectable() -> None:
 
 
 def test_a_measurement_resolves_its_protocol_once_and_builds_its_problems(monkeypatch: pytest.MonkeyPatch) -> None:
-    """One measurement object (issue 37): the protocol and its overrides are resolved when it is built, not on every
+    """One measurement object: the protocol and its overrides are resolved when it is built, not on every
     use; its problems are the evaluation stream's (what ``eval_problem`` gives), its runs one per (plant, H)."""
     import ttompc.evaluation.measurement as measurement
     from ttompc.mpc.settings import protocol_settings

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # /proc/cpuinfo flags (abridged) of an AMD EPYC with AVX2 only, and of an Intel Xeon with AVX512-BF16 and AMX
 AVX2_ONLY = frozenset({"fpu", "sse4_2", "avx", "avx2", "fma", "f16c", "sha_ni"})
 AMX = frozenset({"fpu", "sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile", "amx_int8"})
-# the recipes that said bf16-mixed before ``auto`` (issue 36)
+# the recipes that said bf16-mixed before they said ``auto``
 AUTO_RECIPES = [
     *(f"{s}/pretrain.yaml" for s in ("freeflyer", "quadrotor", "rpod", "generic")),
     *(f"{s}/paper-pretrain.yaml" for s in ("freeflyer", "quadrotor", "rpod")),

@@ -248,7 +248,7 @@ def test_unknown_key_and_wrong_type_name_the_key(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("scenario", SCENARIOS)
 def test_gpu_pretrain_script_builds_a_loadable_config(scenario: str, tmp_path: Path) -> None:
-    """scripts/gpu_pretrain.sh (issue 17 item 7) cannot run here (no GPU); its training overrides must still load."""
+    """scripts/gpu_pretrain.sh cannot run here (no GPU); its training overrides must still load."""
     import os
     import subprocess
     import sys

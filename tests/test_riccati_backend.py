@@ -141,8 +141,8 @@ def test_penalised_equality_rows_match_piqp() -> None:
 
 @pytest.mark.parametrize("name", ["freeflyer", "quadrotor"])
 def test_rel_and_scp_take_the_piqp_paths_iterates(name) -> None:
-    """Whole solves by the default path: the same number of subproblems and the same costs as the PIQP path (the
-    default before issue 36), feasible."""
+    """Whole solves by the default path: the same number of subproblems and the same costs as the PIQP path
+    (``backend="piqp"``), feasible."""
     sc = get_scenario(name)
     for seed in (1, 2):
         p = sc.sample(np.random.default_rng(seed))
@@ -201,9 +201,9 @@ def test_mpc_windows_soft_terminal_cone_matches_clarabel(name) -> None:
 def test_where_the_chain_takes_it() -> None:
     ff, rp = get_scenario("freeflyer"), get_scenario("rpod")
     assert backend_chain("auto", ff) == backend_chain("riccati", ff) == ["riccati", "piqp", "qoco", "clarabel"]
-    assert backend_chain("piqp", ff) == ["piqp", "qoco", "clarabel"]  # the default before issue 36
+    assert backend_chain("piqp", ff) == ["piqp", "qoco", "clarabel"]  # the chain without the kernel
     assert backend_chain("auto", rp) == backend_chain("riccati", rp) == ["clarabel"]  # RPOD's subproblems have cones
-    assert backend_chain("piqp", rp) == ["piqp", "clarabel"]  # PIQP takes no cone: Clarabel, as before issue 36
+    assert backend_chain("piqp", rp) == ["piqp", "clarabel"]  # PIQP takes no cone: Clarabel
     # the reference formulation (hard terminal equality) is not a stage-wise QP here: PIQP takes it
     _, spec, _ = qp_subproblem("freeflyer", 3, Window(0, 100, 100), True, False, delta=0.3)
     assert not supports(spec)

@@ -5,7 +5,8 @@
   ``problems`` (default 100) held-out non-convex problems (``WarmStartConfig`` keys);
 * ``mpc``: closed loop, REL-/DIST-MPC, plan-once, the oracle, TTO-MPC and the robust R-TTO-MPC, on the nominal and
   the perturbed plant, ``problems`` (default 20) held-out non-convex problems (``ClosedLoopConfig`` keys), under
-  ``protocol=paper|zoo|FILE.yaml`` with single settings overridden as ``mpc.KEY=VALUE`` (``ttompc.mpc.settings``);
+  ``protocol=paper|recommended|zoo|FILE.yaml`` with single settings overridden as ``mpc.KEY=VALUE``
+  (``ttompc.mpc.settings``);
 * ``compare``: pairs ``mpc`` reports on their common problems (``ttompc.evaluation.compare``), prints a table and
   with ``--json FILE`` writes its rows.
 

@@ -68,7 +68,7 @@ def split_of(problem_id: int, splits: SplitConfig) -> str:
 def fingerprint(cfg: GenerateConfig, scenario: Scenario) -> dict[str, Any]:
     """Everything that determines the rows of a shard (not the problem count, workers or ranks). ``backend`` is the
     name asked for, ``solver_path`` what it resolves to (chain and trust-region norm): the rows depend on the
-    latter, which a name's meaning may change (``auto`` became the Riccati kernel's chain in issue 36)."""
+    latter, which a name's meaning may change (``auto`` did when the Riccati kernel joined its chain)."""
     path = solver_path(cfg.backend or "auto", scenario)
     return {
         "schema_version": SCHEMA_VERSION,
@@ -83,10 +83,10 @@ def fingerprint(cfg: GenerateConfig, scenario: Scenario) -> dict[str, Any]:
     }
 
 
-def _path_before_issue_36(backend: str | None, scenario: Scenario) -> dict[str, Any]:
-    """The solver path a fingerprint without one (written before issue 36) ran: ``auto`` (or null) was the
-    scenario's ``auto_backends`` without the Riccati kernel (today's ``piqp`` chain), ``piqp`` PIQP alone; other
-    names resolve as they do now."""
+def _path_before_solver_path(backend: str | None, scenario: Scenario) -> dict[str, Any]:
+    """The solver path a fingerprint without one ran (fingerprints recorded none while ``auto`` was the scenario's
+    ``auto_backends`` without the Riccati kernel): ``auto`` (or null) ran today's ``piqp`` chain, ``piqp`` PIQP
+    alone; other names resolve as they do now."""
     name = backend or "auto"
     if name == "auto":
         chain = list(scenario.auto_backends)
@@ -292,16 +292,16 @@ def generate(
 def _check_folder(folder: ShardedFolder, cfg: GenerateConfig, scenario: Scenario) -> None:
     """Refuse to mix generations: the folder's recorded fingerprint must match, and no shard may lie beyond
     the requested problem count. Backend names match where they resolve to the same solver path: a folder made with
-    ``auto`` before issue 36 continues with ``backend=piqp``, which runs what that ``auto`` ran."""
+    ``auto`` and no recorded solver path continues with ``backend=piqp``, which runs what that ``auto`` ran."""
     out = folder.root
     fp = fingerprint(cfg, scenario)
     path = out / META_DIR / "generation.json"
     if path.is_file():
         stored = json.loads(path.read_text())
-        stored.setdefault("solver_path", _path_before_issue_36(stored.get("backend"), scenario))
+        stored.setdefault("solver_path", _path_before_solver_path(stored.get("backend"), scenario))
         diff = {k: (stored.get(k), fp[k]) for k in fp if k != "backend" and stored.get(k) != fp[k]}
         if diff:
-            hint = ", or a backend with the stored solver_path (before issue 36 the default was backend=piqp's)"
+            hint = ", or a backend with the stored solver_path (older folders, which record none, used backend=piqp's)"
             raise GenerationError(f"{out} holds another generation (stored vs requested: {diff}); use a new folder"
                                   + (hint if "solver_path" in diff else ""))  # fmt: skip
     else:

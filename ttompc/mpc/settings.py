@@ -4,8 +4,9 @@ One settings object serves every closed-loop consumer: the MPC loop (``ttompc.mp
 the closed-loop training callback and DAgger (its measurement and its rollouts), each through the one measurement
 object that resolves a protocol and its overrides once (``ttompc.evaluation.measurement.Measurement``). A protocol
 is a YAML file of ``MPCSettings`` keys: a shipped preset by name (``ttompc/mpc/presets/<name>.yaml``: ``paper``,
-``zoo``) or a path to a file of your own. Keys a file leaves out keep the ``MPCSettings`` defaults, which are the
-``paper`` preset's. Commands take ``protocol=NAME`` plus single-key overrides (``mpc.end_horizon=20``).
+``recommended``, ``zoo``) or a path to a file of your own. Keys a file leaves out keep the ``MPCSettings``
+defaults, which are the ``paper`` preset's. Commands take ``protocol=NAME`` plus single-key overrides
+(``mpc.end_horizon=20``).
 """
 
 from __future__ import annotations

@@ -77,7 +77,7 @@ class SCPOptions:
 
     * ``backend``: "auto" (the scenario's chain, see ``backends.backend_chain``: the Riccati interior-point kernel
       where the subproblem is a penalised QP, PIQP on the other subproblems without cones, QOCO/Clarabel on the
-      others), "riccati" (the same), "piqp" (that chain without the kernel: the default before issue 36), "conic"
+      others), "riccati" (the same), "piqp" (that chain without the kernel), "conic"
       (QOCO then Clarabel throughout), "clarabel", "qoco" or "cvxpy-naive" (the rebuild-every-iteration baseline),
       those three alone. The trust-region norm follows: the scenario's (``Scenario.trust_norm``), l2 for ``conic``
       and for the reference formulation with ``auto`` (the comparison paths, which solve with Clarabel).

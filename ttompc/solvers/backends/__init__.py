@@ -10,8 +10,8 @@
 What ``backend="auto"`` runs (``backend_chain``): the Riccati kernel on penalised QP subproblems, PIQP on the compact
 QP of the other subproblems without cones (and where the kernel does not converge), else QOCO with Clarabel as the
 fallback on a numerical failure (RPOD: Clarabel), with the scenario's trust-region norm (``Scenario.trust_norm``).
-``backend="piqp"`` is the same chain without the kernel (the default before issue 36). Every solver, numba
-included, is a dependency: the default does not depend on installed extras.
+``backend="piqp"`` is the same chain without the kernel. Every solver, numba included, is a dependency: the default
+does not depend on installed extras.
 """
 
 from ttompc.solvers.backends.base import BackendSolution, SubproblemSolver
