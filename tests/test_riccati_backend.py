@@ -5,6 +5,9 @@ fallback, and where the chain takes it."""
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import cvxpy as cp
 import numpy as np
 import pytest
@@ -15,45 +18,99 @@ from ttompc.solvers import SCPOptions, SCPProblem, TerminalCost, solve_problem, 
 from ttompc.solvers.backends import backend_chain, get_solver
 from ttompc.solvers.backends import riccati as riccati_module
 from ttompc.solvers.backends.qp import PIQPSolver
-from ttompc.solvers.backends.riccati import RiccatiSolver, supports
+from ttompc.solvers.backends.riccati import RiccatiSolver, StageQP, supports
+from ttompc.solvers.backends.riccati_qp import (
+    Boxes,
+    Dynamics,
+    RiccatiOptions,
+    RiccatiResult,
+    Rows,
+    StageCost,
+    StageQPData,
+    TerminalCone,
+)
+from ttompc.solvers.subproblem import QuadraticTerminalCost, SubproblemData, SubproblemSpec
 
 
-def _random_stage_qp(seed: int, N: int = 6, n: int = 3, nu: int = 2):
+def _random_stage_qp(seed: int, N: int = 6, n: int = 3, nu: int = 2) -> tuple[Dynamics, StageCost]:
     rng = np.random.default_rng(seed)
     A = np.eye(n) + 0.1 * rng.normal(size=(N, n, n))
     B = rng.normal(size=(N, n, nu))
     c = 0.1 * rng.normal(size=(N, n))
     Qd = rng.uniform(0.5, 2.0, size=(N + 1, n + nu))
     q = rng.normal(size=(N + 1, n + nu))
-    return A, B, c, rng.normal(size=n), Qd, q
+    return Dynamics(A, B, c, rng.normal(size=n)), StageCost(Qd, q)
 
 
-def _kernel(args, boxes, rows, n, nu):
+TIGHT = RiccatiOptions(tol=1e-10, gap_tol=1e-11, max_iter=100)
+# with the cone, the engine's tolerances: at TIGHT's the kernel ends within 100× them for some seeds (status 3)
+ENGINE = RiccatiOptions(tol=riccati_module.TOL, gap_tol=riccati_module.GAP_TOL, max_iter=riccati_module.MAX_ITER)
+
+
+def _kernel(qp: StageQPData, options: RiccatiOptions = TIGHT) -> tuple[RiccatiResult, np.ndarray, np.ndarray]:
+    """The kernel's solve of ``qp`` from y = 0, π = 0: (result, y, π)."""
     from ttompc.solvers.backends.riccati_kernel import solve
 
-    A, B, c, x0, Qd, q = args
-    N = A.shape[0]
+    N, n, nu = qp.shape
     y, pi = np.zeros((N + 1, n + nu)), np.zeros((N, n))
-    full = (A, B, c, x0, Qd, q, *boxes, *rows, np.zeros(0), np.zeros(0), y, pi, 1e-10, 1e-11, 100, n, nu)
-    code = solve(*full)[0]
-    return code, y
+    out = solve(qp, y, pi, options)
+    return out, y, pi
 
 
-def _no_rows(width: int = 1):
-    return np.zeros(0, np.int64), np.zeros((0, width), np.int64), np.zeros((0, width)), np.zeros(0), np.zeros(0)
+def _constraints(seed: int, N: int, n: int) -> tuple[Boxes, Rows]:
+    """Hard boxes |x[0]| ≤ 0.4 on stages 1..N, soft ones 0.7·|u[0]| (an L1 term), soft two-variable rows."""
+    rng = np.random.default_rng(seed)
+    ks = np.repeat(np.arange(1, N + 1), 2)
+    boxes = Boxes(
+        k=np.concatenate([ks, np.arange(N), np.arange(N)]),
+        j=np.concatenate([np.zeros(2 * N, np.int64), np.full(N, n), np.full(N, n)]),
+        sign=np.concatenate([np.tile([1.0, -1.0], N), np.ones(N), -np.ones(N)]),
+        d=np.concatenate([np.full(2 * N, 0.4), np.zeros(2 * N)]),
+        rho=np.concatenate([np.zeros(2 * N), np.full(2 * N, 0.7)]),
+    )
+    rows = Rows(
+        k=np.arange(1, N),
+        cols=np.tile([1, 2], (N - 1, 1)),
+        coef=rng.normal(size=(N - 1, 2)),
+        d=rng.uniform(-0.2, 0.2, size=N - 1),
+        rho=np.full(N - 1, 3.0),
+    )
+    return boxes, rows
+
+
+def _cvxpy_solve(qp: StageQPData) -> tuple[float, np.ndarray]:
+    """An independent cvxpy model of ``qp`` (the ``riccati_qp`` problem) solved by Clarabel: (objective, y)."""
+    dyn, cost, b, r, cone = qp.dynamics, qp.cost, qp.boxes, qp.rows, qp.cone
+    N, n, nu = qp.shape
+    Y = cp.Variable((N + 1, n + nu))
+    free = 1 if len(cone.w) else 0  # τ, stage N's first dummy control, is the cone's epigraph variable
+    cons = [Y[0, :n] == dyn.x0, Y[N, n + free :] == 0]
+    cons += [Y[k + 1, :n] == dyn.A[k] @ Y[k, :n] + dyn.B[k] @ Y[k, n:] + dyn.c[k] for k in range(N)]
+    cons += [b.sign[i] * Y[b.k[i], b.j[i]] <= b.d[i] for i in range(len(b.k)) if b.rho[i] == 0]
+    cons += [r.coef[i] @ Y[r.k[i], r.cols[i]] <= r.d[i] for i in range(len(r.k)) if r.rho[i] == 0]
+    if free:
+        cons += [cp.SOC(Y[N, n], cp.multiply(cone.w, Y[N, :n] - cone.center))]
+    obj = 0.5 * cp.sum(cp.multiply(cost.Qd, cp.square(Y))) + cp.sum(cp.multiply(cost.q, Y))
+    if cost.QN.size:
+        obj += 0.5 * cp.quad_form(Y[N, :n], cp.psd_wrap(cost.QN))
+    obj += sum(b.rho[i] * cp.pos(b.sign[i] * Y[b.k[i], b.j[i]] - b.d[i]) for i in range(len(b.k)) if b.rho[i] > 0)
+    obj += sum(r.rho[i] * cp.pos(r.coef[i] @ Y[r.k[i], r.cols[i]] - r.d[i]) for i in range(len(r.k)) if r.rho[i] > 0)
+    problem = cp.Problem(cp.Minimize(obj), cons)
+    problem.solve(solver=cp.CLARABEL, tol_gap_abs=1e-10, tol_gap_rel=1e-10, tol_feas=1e-10)
+    assert problem.status == cp.OPTIMAL, problem.status
+    return float(problem.value), Y.value
 
 
 def test_kernel_without_constraints_is_the_kkt_solution() -> None:
     """No inequalities: one Newton step; the dense KKT system of the equality-constrained QP gives the same y."""
     n, nu, N = 3, 2, 6
-    args = _random_stage_qp(0, N, n, nu)
-    A, B, c, x0, Qd, q = args
-    boxes = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0))
-    code, y = _kernel(args, boxes, _no_rows(), n, nu)
-    assert code == 0
+    dyn, cost = _random_stage_qp(0, N, n, nu)
+    out, y, _ = _kernel(StageQPData(dyn, cost))
+    assert out.status == 0
+    A, B, c, x0 = dyn.A, dyn.B, dyn.c, dyn.x0
     # dense KKT over z = [y_0 .. y_N] (the last stage's u is the kernel's dummy: fixed to 0 here too)
     ny, nz = n + nu, (N + 1) * (n + nu)
-    H, g = np.diag(Qd.ravel()), q.ravel().copy()
+    H, g = np.diag(cost.Qd.ravel()), cost.q.ravel().copy()
     E, e = [], []
     for k in range(N):  # x_{k+1} − A x_k − B u_k = c_k
         row = np.zeros((n, nz))
@@ -76,33 +133,75 @@ def test_kernel_without_constraints_is_the_kkt_solution() -> None:
 def test_kernel_with_boxes_and_soft_rows_matches_clarabel() -> None:
     """Hard boxes, soft boxes (an L1 term) and soft two-variable rows: the optimum of an independent cvxpy model."""
     n, nu, N = 3, 2, 6
-    args = _random_stage_qp(1, N, n, nu)
-    A, B, c, x0, Qd, q = args
-    rng = np.random.default_rng(2)
-    ks = np.repeat(np.arange(1, N + 1), 2)
-    bk = np.concatenate([ks, np.arange(N), np.arange(N)])
-    bj = np.concatenate([np.zeros(2 * N, np.int64), np.full(N, n), np.full(N, n)])
-    bs = np.concatenate([np.tile([1.0, -1.0], N), np.ones(N), -np.ones(N)])
-    bd = np.concatenate([np.full(2 * N, 0.4), np.zeros(2 * N)])
-    brho = np.concatenate([np.zeros(2 * N), np.full(2 * N, 0.7)])  # hard |x[0]| ≤ 0.4, then 0.7·|u[0]|
-    rk = np.arange(1, N)
-    ri = np.tile([1, 2], (N - 1, 1))
-    rg = rng.normal(size=(N - 1, 2))
-    rd = rng.uniform(-0.2, 0.2, size=N - 1)
-    rrho = np.full(N - 1, 3.0)
-    code, y = _kernel(args, (bk, bj, bs, bd, brho), (rk, ri, rg, rd, rrho), n, nu)
-    assert code == 0
-    Y = cp.Variable((N + 1, n + nu))
-    cons = [Y[0, :n] == x0, Y[N, n:] == 0]
-    cons += [Y[k + 1, :n] == A[k] @ Y[k, :n] + B[k] @ Y[k, n:] + c[k] for k in range(N)]
-    cons += [bs[i] * Y[bk[i], bj[i]] <= bd[i] for i in range(len(bk)) if brho[i] == 0]
-    soft = sum(brho[i] * cp.pos(bs[i] * Y[bk[i], bj[i]] - bd[i]) for i in range(len(bk)) if brho[i] > 0)
-    soft += sum(rrho[i] * cp.pos(rg[i] @ Y[rk[i], ri[i]] - rd[i]) for i in range(len(rk)))
-    obj = 0.5 * cp.sum(cp.multiply(Qd, cp.square(Y))) + cp.sum(cp.multiply(q, Y)) + soft
-    cp.Problem(cp.Minimize(obj), cons).solve(solver=cp.CLARABEL)
-    np.testing.assert_allclose(y, Y.value, atol=1e-5)
+    dyn, cost = _random_stage_qp(1, N, n, nu)
+    boxes, rows = _constraints(2, N, n)
+    qp = StageQPData(dyn, cost, boxes, rows)
+    out, y, _ = _kernel(qp)
+    assert out.status == 0
+    value, Y = _cvxpy_solve(qp)
+    np.testing.assert_allclose(y, Y, atol=1e-5)
+    assert qp.objective(y) == pytest.approx(value, rel=1e-6)
     assert np.max(np.abs(y[1:, 0])) <= 0.4 + 1e-9  # the hard boxes hold
     assert np.isclose(np.max(np.abs(y[1:, 0])), 0.4)  # and one of them is active
+
+
+def _terminal_block(seed: int, n: int) -> np.ndarray:
+    """A dense symmetric PSD (n, n) block of rank n − 1 (semidefinite, not definite)."""
+    M = np.random.default_rng(seed).normal(size=(n, n - 1))
+    return M @ M.T
+
+
+def _with_cone(cost: StageCost, seed: int, n: int) -> tuple[StageCost, TerminalCone]:
+    """τ = y[N, n] priced at 1 with no Qd (the kernel's contract), the other dummy controls' cost as before, and a
+    cone τ ≥ ‖w∘(x_N − center)‖₂ that binds (its centre away from the unconstrained optimum)."""
+    rng = np.random.default_rng(seed)
+    Qd, q = cost.Qd.copy(), cost.q.copy()
+    Qd[-1, n:], q[-1, n:] = 1.0, 0.0
+    Qd[-1, n], q[-1, n] = 0.0, 1.0
+    return StageCost(Qd, q), TerminalCone(w=rng.uniform(0.5, 3.0, n), center=rng.normal(size=n))
+
+
+@pytest.mark.parametrize("cone", [False, True])
+def test_kernel_dense_terminal_block_matches_cvxpy(cone) -> None:
+    """A dense PSD terminal block QN with the linear term q[N], under hard and soft boxes and soft rows, with and
+    without the terminal cone: the kernel's optimum is the independent cvxpy model's (objective and solution)."""
+    n, nu, N = 3, 2, 6
+    dyn, cost = _random_stage_qp(3, N, n, nu)
+    boxes, rows = _constraints(4, N, n)
+    qp = StageQPData(dyn, cost, boxes, rows)
+    if cone:
+        cost, tc = _with_cone(cost, 5, n)
+        qp = qp._replace(cost=cost, cone=tc)
+    qp = qp._replace(cost=StageCost(qp.cost.Qd, qp.cost.q, 4.0 * _terminal_block(6, n)))
+    options = ENGINE if cone else TIGHT
+    out, y, _ = _kernel(qp, options)
+    assert out.status == 0, out
+    value, Y = _cvxpy_solve(qp)
+    assert qp.objective(y) == pytest.approx(value, rel=1e-6)
+    np.testing.assert_allclose(y, Y, atol=1e-5)
+    # the block matters: without it the optimum moves
+    _, y0, _ = _kernel(qp._replace(cost=StageCost(qp.cost.Qd, qp.cost.q)), options)
+    assert np.max(np.abs(y0[-1, :n] - y[-1, :n])) > 1e-2
+    if cone:  # the cone binds: τ is the norm, not 0
+        assert y[-1, n] == pytest.approx(np.linalg.norm(tc.w * (y[-1, :n] - tc.center)), abs=1e-7)
+        assert y[-1, n] > 1e-2
+
+
+@pytest.mark.parametrize("cone", [False, True])
+def test_kernel_zero_terminal_block_is_no_block(cone) -> None:
+    """QN = 0 (n, n) is the kernel without a terminal block (QN empty, the default) to the last bit."""
+    n, nu, N = 3, 2, 6
+    dyn, cost = _random_stage_qp(7, N, n, nu)
+    boxes, rows = _constraints(8, N, n)
+    qp = StageQPData(dyn, cost, boxes, rows)
+    if cone:
+        cost, tc = _with_cone(cost, 9, n)
+        qp = qp._replace(cost=cost, cone=tc)
+    options = ENGINE if cone else TIGHT
+    out, y, pi = _kernel(qp, options)
+    out0, y0, pi0 = _kernel(qp._replace(cost=StageCost(qp.cost.Qd, qp.cost.q, np.zeros((n, n)))), options)
+    assert out.status == 0 and out == out0
+    assert y.tobytes() == y0.tobytes() and pi.tobytes() == pi0.tobytes()
 
 
 CASES = [
@@ -173,8 +272,6 @@ def test_mpc_windows_soft_terminal_cone_matches_clarabel(name) -> None:
     objective of the conic assembly solved by Clarabel and of the independent cvxpy model, for a target the window
     reaches (the term is 0: an exact penalty), one slightly off and one far off (the term is active); the returned
     trajectory keeps the trust region."""
-    import dataclasses
-
     from ttompc.solvers.backends.conic import AssembledSolver
     from ttompc.solvers.naive import NaiveCvxpySolver
 
@@ -196,6 +293,76 @@ def test_mpc_windows_soft_terminal_cone_matches_clarabel(name) -> None:
         assert np.max(np.abs(X[1:] - d.X_ref[1:])) <= d.delta + 1e-7
         terms.append(term)
     assert terms[-1] > 1e-3  # the far target is not reached: the cone is active, not only its exact-penalty face
+
+
+def _window_with_terminal_cost(name: str, seed: int) -> tuple[SubproblemSpec, SubproblemData, np.ndarray]:
+    """(spec, data, state units) of an MPC window (H = 10, the soft terminal cone, a target slightly off) whose data
+    carries a quadratic terminal cost-to-go model with a positive definite P, O(1) in the scaled variables."""
+    sc, spec, data = qp_subproblem(name, 5, Window(20, 10, 100), True, True, delta=0.3)
+    spec = dataclasses.replace(spec, terminal="soft", tr_states=tuple(range(1, 11)))
+    n, (sx, _) = sc.state_dim, spec.units()
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(n, n))
+    model = QuadraticTerminalCost(
+        hessian=(M @ M.T + 0.1 * np.eye(n)) / np.outer(sx, sx),
+        gradient=rng.normal(size=n) / sx,
+        center=data.X_ref[-1] + 0.1 * rng.normal(size=n) * sx,
+    )
+    target = data.X_ref[-1] + 0.05 * rng.normal(size=n) * sx
+    data = dataclasses.replace(data, terminal_target=target, terminal_weights=np.linspace(1.0, 4.0, n))
+    return spec, dataclasses.replace(data, terminal_cost=model), sx
+
+
+@pytest.mark.parametrize("name", ["freeflyer", "quadrotor"])
+def test_terminal_cost_model_through_the_stage_form(name) -> None:
+    """``SubproblemData.terminal_cost`` (state units) becomes QN and q[N] in the scaled variables: the objective
+    gains the model's value at any y, its constant included; without it the problem is the one before, array by
+    array; RiccatiSolver's optimum is the independent cvxpy model's, with the window's cone and constraints."""
+    spec, data, sx = _window_with_terminal_cost(name, 11)
+    n, model = spec.n, data.terminal_cost
+    assert model is not None
+    st = StageQP(spec)
+    qp, bare = st.build(data), dataclasses.replace(data, terminal_cost=None)
+    qp0 = st.build(bare)
+    assert qp0.cost.QN.shape == (0, 0) and qp0.cost.q is st.q  # no model: the arrays of the stage form without one
+    rng = np.random.default_rng(12)
+    for _ in range(3):
+        y = rng.normal(size=(spec.H + 1, n + st.nu))
+        e = y[-1, :n] * sx - model.center
+        value = 0.5 * e @ model.hessian @ e + model.gradient @ e
+        assert st.objective(y, qp, data) - st.objective(y, qp0, bare) == pytest.approx(value, rel=1e-9, abs=1e-9)
+    X, _, sol = RiccatiSolver(spec).solve(data)
+    assert sol.ok and sol.status.startswith("RICCATI_SOLVED ("), sol.status
+    ref, Y = _cvxpy_solve(qp)
+    const = 0.5 * model.center @ model.hessian @ model.center - model.gradient @ model.center
+    assert sol.objective == pytest.approx(ref + const, rel=1e-6, abs=1e-7)
+    np.testing.assert_allclose(X[-1] / sx, Y[-1, :n], atol=1e-5)  # x_H is unique (P definite); L1 controls need not be
+    _, _, sol0 = RiccatiSolver(spec).solve(bare)
+    assert abs(sol.objective - sol0.objective) > 1e-3  # the model moves the optimum
+
+
+def test_no_fallback_for_a_terminal_cost_model(monkeypatch) -> None:
+    """The solvers behind the kernel do not read ``SubproblemData.terminal_cost``: a kernel failure is returned."""
+    spec, data, _ = _window_with_terminal_cost("freeflyer", 13)
+    monkeypatch.setattr(riccati_module, "MAX_ITER", 3)
+    X, U, sol = RiccatiSolver(spec, fallback=lambda: PIQPSolver(spec)).solve(data)
+    assert X is None and U is None and not sol.ok
+    assert sol.status.startswith("RICCATI_MAX_ITER") and "->" not in sol.status
+
+
+def test_kernel_cache_is_keyed_on_all_its_sources() -> None:
+    """numba keys a cached function on its own file, while the kernel's functions contain those of its other files:
+    each carries the hash of all of them, so an edit to any recompiles the kernel."""
+    from numba.core.registry import CPUDispatcher
+
+    from ttompc.solvers.backends import riccati_cone, riccati_kernel, riccati_rows
+    from ttompc.solvers.backends.riccati_jit import KERNEL_SOURCES, kernel_stamp
+
+    modules = (riccati_cone, riccati_kernel, riccati_rows)
+    assert {Path(m.__file__).name for m in modules if m.__file__} < set(KERNEL_SOURCES)
+    dispatchers = [f for m in modules for f in vars(m).values() if isinstance(f, CPUDispatcher)]
+    assert len(dispatchers) >= 30
+    assert all(f._cache._cache_file._source_stamp == kernel_stamp() for f in dispatchers)
 
 
 def test_where_the_chain_takes_it() -> None:

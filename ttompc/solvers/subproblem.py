@@ -12,12 +12,21 @@ and radius, targets) through precomputed index maps. No modelling layer runs ins
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
 
 from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, units_of
+
+
+class QuadraticTerminalCost(NamedTuple):
+    """½ (x_H − x̄)ᵀ P (x_H − x̄) + gᵀ(x_H − x̄) on the window's last state, in the state's own units: a convex local
+    model of a terminal cost-to-go about x̄."""
+
+    hessian: np.ndarray  # (n, n) P, symmetric positive semidefinite
+    gradient: np.ndarray  # (n,) g
+    center: np.ndarray  # (n,) x̄
 
 
 @dataclass
@@ -32,6 +41,8 @@ class SubproblemData:
     goal: np.ndarray  # (n,) terminal state for a hard terminal condition
     terminal_target: np.ndarray | None  # (n,) x̄ for the soft terminal term
     terminal_weights: np.ndarray | None  # (n,) diagonal of P
+    # added to the objective; read by the riccati backend only (``StageQP.build``): the other backends ignore it
+    terminal_cost: QuadraticTerminalCost | None = None
 
 
 @dataclass(frozen=True)
@@ -46,7 +57,7 @@ class SubproblemSpec:
     penalized: bool
     virtual_control: bool  # ν on the dynamics rows ``vc_rows`` (empty: all rows), with an exact L1 penalty
     trust: str  # "l2", "linf" or "none"
-    terminal: str  # "hard" or "soft"
+    terminal: str  # "hard", "soft" (the 2-norm term's cone) or "value" (a cost-to-go model alone: riccati only)
     soft_equalities: bool
     penalty: float
     blocks: tuple[tuple[Any, ...], ...]
@@ -162,6 +173,8 @@ class AssembledSubproblem:
                 self._entries(zero, r, sm_, ("const", np.ones(n)))
                 self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
                 q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
+        elif spec.terminal == "value":
+            raise ValueError("the conic path takes no terminal cost-to-go model yet: use backend='auto' (riccati)")
         else:  # τ ≥ ‖W (x_H − x̄)‖₂
             tau = self._var(1)
             g = self._soc(1 + n)

@@ -1,6 +1,7 @@
-"""The penalised SCP subproblem in stage-wise form, solved by a Riccati interior-point method (``riccati_kernel``,
-numba): the first solver of the default chain (``backend="auto"``) wherever the subproblem is a penalised QP, or
-one whose only cone is an MPC window's soft terminal term.
+"""The penalised SCP subproblem in stage-wise form (``StageQP``: a ``riccati_qp.StageQPData`` per iteration), solved by
+a Riccati interior-point method (``riccati_kernel``, numba): the first solver of the default chain
+(``backend="auto"``) wherever the subproblem is a penalised QP, or one whose only cone is an MPC window's soft
+terminal term.
 
 It poses the optimisation problem of ``qp.QPSubproblem`` stage by stage instead of as one sparse QP, in the same
 non-dimensionalised variables (x/state_scale, u/control_scale), so the two backends reach the same optima:
@@ -14,10 +15,13 @@ non-dimensionalised variables (x/state_scale, u/control_scale), so the two backe
   (normalised, with the penalty scaled so that it still reads in the row's own units); a two-sided row is two
   one-sided rows, each with its own slack, as the QP's e⁺/e⁻ pair; penalised equality rows are two-sided with
   lower = upper;
-* x_0 is fixed, so rows on x_0 alone are constants and dropped.
+* x_0 is fixed, so rows on x_0 alone are constants and dropped;
+* a quadratic model of a terminal cost-to-go (``SubproblemData.terminal_cost``) is the kernel's dense block QN on
+  x_H with its linear term in the last stage's q.
 
 Where the kernel does not converge the same data goes to ``fallback`` (the PIQP chain; for a window, QOCO then
-Clarabel), so the backend never returns less than the chain behind it would.
+Clarabel), so the backend never returns less than the chain behind it would; not data with a terminal cost-to-go
+model, which the solvers behind it do not read: that failure is returned as it is.
 """
 
 from __future__ import annotations
@@ -31,7 +35,16 @@ import numpy as np
 
 from ttompc.scenarios.base import BlockKind
 from ttompc.solvers.backends.base import BackendSolution, Fallback, SubproblemSolver, is_qp
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec, structural_mask
+from ttompc.solvers.backends.riccati_qp import (
+    Boxes,
+    Dynamics,
+    RiccatiOptions,
+    Rows,
+    StageCost,
+    StageQPData,
+    TerminalCone,
+)
+from ttompc.solvers.subproblem import QuadraticTerminalCost, SubproblemData, SubproblemSpec, structural_mask
 
 TOL = 1e-8  # residuals of the scaled problem (PIQP's eps_abs)
 GAP_TOL = 1e-9  # total complementarity = duality gap: the SCP's stopping rule compares merits to 1e-6
@@ -43,7 +56,8 @@ def supports(spec: SubproblemSpec) -> bool:
     rows besides the dynamics. Its one cone is an MPC window's soft terminal term ‖W(x_H − x̄)‖₂."""
     if not spec.penalized:
         return False
-    return is_qp(spec) or (spec.terminal == "soft" and is_qp(dataclasses.replace(spec, terminal="hard")))
+    soft_end = spec.terminal in ("soft", "value")  # the 2-norm term's cone, or a cost-to-go model alone
+    return is_qp(spec) or (soft_end and is_qp(dataclasses.replace(spec, terminal="hard")))
 
 
 @dataclass
@@ -62,12 +76,14 @@ class _BlockMap:
 
 
 class StageQP:
-    """Index maps from ``SubproblemData`` to the kernel's arrays for one structure (see the module docstring)."""
+    """Index maps from ``SubproblemData`` to the kernel's problem for one structure (see the module docstring)."""
 
     def __init__(self, spec: SubproblemSpec) -> None:
         if not supports(spec):
-            raise ValueError("the riccati backend solves penalised QP subproblems only (no cones, formulation "
-                             "'penalized'); use backend='piqp' or 'auto'")  # fmt: skip
+            raise ValueError(
+                "the riccati backend solves penalised subproblems (formulation 'penalized') that are QPs or whose "
+                "only cone is an MPC window's soft terminal term; use backend='auto'"
+            )
         self.spec = spec
         H, n, m = spec.H, spec.n, spec.m
         self.sx, self.su = spec.units()
@@ -140,15 +156,15 @@ class StageQP:
             mask=mask,
         )
 
-    def arrays(self, data: SubproblemData) -> tuple:
-        """The kernel's problem arrays for one iteration's data."""
+    def build(self, data: SubproblemData) -> StageQPData:
+        """The kernel's problem for one iteration's data, in the scaled variables."""
         n, m, sx, su = self.spec.n, self.spec.m, self.sx, self.su
         A = np.ascontiguousarray(data.model.A * self.a_scale)
         B = self.B.copy()
         B[:, :, :m] = data.model.B * self.b_scale
         c = data.model.c / sx
         # the terminal condition's boxes (none for the soft terminal term: its cone)
-        goal = np.full(n, np.inf) if self.cone else data.goal / sx
+        goal = data.goal / sx if self.spec.terminal == "hard" else np.full(n, np.inf)
         ref = data.X_ref[self.tr_steps] / sx  # (T, n); an infinite δ gives infinite bounds, dropped below
         half = data.delta / sx
         d = np.concatenate([np.zeros(self.n_zero), goal, -goal, (ref + half).ravel(), (half - ref).ravel()])
@@ -198,20 +214,41 @@ class StageQP:
             rd, rrho = np.zeros(0), np.zeros(0)
         if self.cone:
             assert data.terminal_weights is not None and data.terminal_target is not None
-            cw, cx = np.asarray(data.terminal_weights * sx, np.float64), data.terminal_target / sx
+            cone = TerminalCone(np.asarray(data.terminal_weights * sx, np.float64), data.terminal_target / sx)
         else:
-            cw = cx = np.zeros(0)
-        return A, B, c, data.x_start / sx, self.Qd, self.q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, cw, cx
+            cone = TerminalCone.none()
+        cost = StageCost(self.Qd, self.q)
+        if data.terminal_cost is not None:
+            QN, grad = self._terminal_block(data.terminal_cost)
+            q = self.q.copy()
+            q[-1, :n] += grad
+            cost = StageCost(self.Qd, q, QN)
+        return StageQPData(
+            dynamics=Dynamics(A, B, c, data.x_start / sx),
+            cost=cost,
+            boxes=Boxes(bk, bj, bs, bd, brho),
+            rows=Rows(rk, ri, rg, rd, rrho),
+            cone=cone,
+        )
 
-    def objective(self, y: np.ndarray, arrays: tuple) -> float:
-        """The subproblem's objective at y (the QP's, up to the constant penalties of rows on x_0 alone)."""
-        *_, Qd, q, bk, bj, bs, bd, brho, rk, ri, rg, rd, rrho, cw, cx = arrays
-        value = float(np.sum(0.5 * Qd * y**2 + q * y))
-        value += float(brho @ np.maximum(bs * y[bk, bj] - bd, 0.0))
-        value += float(rrho @ np.maximum(np.sum(rg * y[rk[:, None], ri], axis=1) - rd, 0.0))
-        if len(cw):  # the terminal term itself rather than its epigraph variable τ
-            n = len(cw)
-            value += float(np.linalg.norm(cw * (y[-1, :n] - cx))) - float(y[-1, n])
+    def _terminal_block(self, terminal: QuadraticTerminalCost) -> tuple[np.ndarray, np.ndarray]:
+        """½ (x − x̄)ᵀP(x − x̄) + gᵀ(x − x̄) in the scaled state x̃ = x / sx: ½ x̃ᵀ QN x̃ + lᵀx̃ + const with QN = SPS
+        (symmetrised) and l = S(g − P x̄), S = diag(sx); returns (QN (n, n), l (n,))."""
+        P = np.asarray(terminal.hessian, np.float64)
+        P = 0.5 * (P + P.T)
+        QN = np.ascontiguousarray(self.sx[:, None] * P * self.sx[None, :])
+        return QN, self.sx * (terminal.gradient - P @ terminal.center)
+
+    def objective(self, y: np.ndarray, qp: StageQPData, data: SubproblemData) -> float:
+        """The subproblem's objective at y (the QP's, up to the constant penalties of rows on x_0 alone), with the
+        terminal term's value in place of its epigraph variable τ and the terminal cost-to-go model's constant."""
+        value = qp.objective(y)
+        if self.cone:
+            n = self.spec.n
+            value += float(np.linalg.norm(qp.cone.w * (y[-1, :n] - qp.cone.center))) - float(y[-1, n])
+        if data.terminal_cost is not None:
+            tc = data.terminal_cost
+            value += 0.5 * float(tc.center @ tc.hessian @ tc.center) - float(tc.gradient @ tc.center)
         return value
 
 
@@ -232,19 +269,21 @@ class RiccatiSolver:
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         t0 = time.perf_counter()
         st, spec = self.stage, self.stage.spec
-        arrays = st.arrays(data)
+        qp = st.build(data)
         y = np.zeros((spec.H + 1, spec.n + st.nu))
         y[:, : spec.n] = data.X_ref / st.sx
         pi = np.zeros((spec.H, spec.n))
         # numba is imported at the first solve, not with the engine (processes that never solve do not pay it)
         from ttompc.solvers.backends.riccati_kernel import solve
 
-        code, iters, res, gap = solve(*arrays, y, pi, TOL, GAP_TOL, MAX_ITER, spec.n, st.nu)
-        name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[code]
-        status = f"{name} ({iters} it, residual {res:.1e}, gap {gap:.1e})"
-        ok = code in (0, 3)
-        sol = BackendSolution(None, st.objective(y, arrays) if ok else np.nan, ok, False, status,
+        out = solve(qp, y, pi, RiccatiOptions(TOL, GAP_TOL, MAX_ITER))
+        name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[out.status]
+        status = f"{name} ({out.iterations} it, residual {out.residual:.1e}, gap {out.gap:.1e})"
+        ok = out.status in (0, 3)
+        sol = BackendSolution(None, st.objective(y, qp, data) if ok else np.nan, ok, False, status,
                               time.perf_counter() - t0)  # fmt: skip
         if ok:
             return y[:, : spec.n] * st.sx, y[: spec.H, spec.n : spec.n + spec.m] * st.su, sol
+        if data.terminal_cost is not None:  # the fallback's solvers would drop the terminal cost-to-go model
+            return None, None, sol
         return self.fallback.take(data, sol)
