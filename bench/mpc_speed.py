@@ -92,7 +92,7 @@ def episode_cost(
     cfg = ClosedLoopConfig(scenario=scenario.name, horizons=[horizon], max_steps=max_steps, batch=len(problems),
                            mpc={"end_horizon": end_horizon})  # fmt: skip
     models = {"TTO": planner}
-    episodes = len(problems) * episodes_per_problem(cfg, len(models))
+    episodes = len(problems) * episodes_per_problem(cfg, models)
     out: dict[str, float] = {"episodes": episodes, "end_horizon": end_horizon}
     runs = (
         ("before", [[ep] for ep in problems], dataclasses.replace(cfg, mpc={**cfg.mpc, "reuse": False})),

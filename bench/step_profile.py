@@ -16,9 +16,9 @@ FT-TTO-MPC[rtg=value], R-FT-TTO-MPC[rtg=value]); ``--model SCENARIO=SOURCE`` rep
 root seed ``--seed`` (4242, as in docs/evaluation.md; ``eval_problem``). Episodes: the nominal plant, all N steps (or
 ``--max-steps``), the problems in lockstep in tasks of ``--batch`` (10, ``ttompc evaluate mpc``'s default: one
 batched rollout per step for a TTO method, each episode charged its share; ``--batch 1``: one robot's latency), one
-process (``workers=1``), one torch thread. The providers come from the evaluation's own factory
-(``ttompc.evaluation.closed_loop.providers``) with the settings of ``ClosedLoopConfig(protocol=...)``, so the methods
-are the evaluation's; each method first runs one warm-up episode on problem 0 outside the timing (imports, torch
+process (``workers=1``), one torch thread. The providers come from the methods' own factories (``ttompc.mpc.methods``,
+as ``evaluate mpc`` makes them) with the settings of ``ClosedLoopConfig(protocol=...)``, so the methods are the
+evaluation's; each method first runs one warm-up episode on problem 0 outside the timing (imports, torch
 kernels, the solver structures of every window shape), so the profile is the steady state.
 
 Instrumentation: the bench wraps library functions with ``time.perf_counter`` timers by monkeypatching (restored at
@@ -78,10 +78,12 @@ from record import Machine, result_path, write_result
 
 import ttompc.mpc.providers as providers_mod
 import ttompc.solvers.engine as engine_mod
-from ttompc.evaluation.closed_loop import ClosedLoopConfig, providers, tasks
+from ttompc.evaluation.closed_loop import ClosedLoopConfig, tasks
 from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.mpc.loop import Episode, MPCController, MPCRun, run_mpc_batch
-from ttompc.mpc.providers import Provider, RELProvider, RemainingREL, TargetFilter, full_horizon_plan
+from ttompc.mpc.methods import MethodInputs, methods_for
+from ttompc.mpc.providers import Provider, RELProvider, RemainingREL, full_horizon_plan
+from ttompc.mpc.terminal import TargetFilter
 from ttompc.mpc.tto import TTOProvider
 from ttompc.policy import Planner
 from ttompc.policy.rollout import RolloutContext
@@ -246,11 +248,12 @@ def instrumented(prof: Profiler, scenario: Scenario) -> Iterator[None]:
 
 # ---------------------------------------------------------------------------------------------------------- runs
 def method_providers(name: str, cfg: ClosedLoopConfig, plans: list[Any], models: dict[str, Planner]) -> list[Provider]:
-    """Fresh providers of method ``name`` for the problems of ``plans``, from the evaluation's factory."""
+    """Fresh providers of method ``name`` (as the report names it) for the problems of ``plans``, from its factory."""
     s = cfg.settings
-    for group in providers(plans, models, s, robust_blend=cfg.robust_blend, rtg_scale=cfg.rtg_scale):
-        if group and group[0].name == name:
-            return group
+    for method in methods_for(models, cfg.robust_blend):
+        model = models.get(method.model or "")
+        if method.label(s, model) == name:
+            return method.providers(MethodInputs(s, plans, model, cfg.robust_blend, cfg.rtg_scale))
     raise KeyError(f"the evaluation has no method {name!r} under protocol {cfg.protocol!r}")
 
 
@@ -347,8 +350,8 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
     eps = [eval_problem(sc, args.seed, i, nonconvex_only=True, backend=backend) for i in range(args.problems)]
     plans = [full_horizon_plan(sc, ep.problem, backend) for ep in eps]  # PLAN-ONCE/ORACLE's, as run_problems
     setup_s = time.perf_counter() - t0
-    tto_names = [g[0].name for g in providers(plans[:1], models, tto_cfg.settings, robust_blend=tto_cfg.robust_blend)
-                 if isinstance(g[0], TTOProvider)]  # fmt: skip
+    tto_names = [m.label(tto_cfg.settings, models[m.model]) for m in methods_for(models, tto_cfg.robust_blend)
+                 if m.model is not None]  # fmt: skip
     methods = [(BASELINE, rel_cfg, args.rel_horizon)] + [(m, tto_cfg, args.horizon) for m in tto_names]
     prof = Profiler(cuda=planner.device.type == "cuda")
     rows: dict[str, dict[str, Any]] = {}

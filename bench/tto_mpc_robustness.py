@@ -30,7 +30,7 @@ from record import Machine, result_path, write_result
 
 from ttompc.evaluation.problems import eval_problem
 from ttompc.evaluation.stats import interval
-from ttompc.mpc import DISTProvider, PlanProvider, RELProvider, TerminalDesign, run_mpc
+from ttompc.mpc import DISTProvider, PlanProvider, RELProvider, TargetFilter, TerminalDesign, run_mpc
 from ttompc.mpc.providers import full_horizon_plan
 from ttompc.parallel import pool_map
 from ttompc.scenarios import Problem, Scenario, get_scenario
@@ -67,7 +67,7 @@ class NoisyPlanProvider(PlanProvider):
     taken from it."""
 
     def __init__(self, plan: tuple[np.ndarray, np.ndarray], noise: PlanNoise, design: TerminalDesign | None) -> None:
-        super().__init__(plan, design=design)
+        super().__init__(plan, terminal=TargetFilter(design))
         self.noise = noise
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
@@ -92,7 +92,7 @@ def variants(scenario: str, seed: int, blend: float) -> list[tuple[str, Any]]:
         ("REL-MPC", lambda plan: RELProvider()),
         ("DIST-MPC", lambda plan: DISTProvider()),
         ("oracle", lambda plan: PlanProvider(plan)),
-        ("robust_noise0", lambda plan: PlanProvider(plan, design=robust)),
+        ("robust_noise0", lambda plan: PlanProvider(plan, terminal=TargetFilter(robust))),
     ]
     for design_name, design in (("paper", None), ("robust", robust)):
         for kind in KINDS:

@@ -83,7 +83,10 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
         (["finetune", str(REPO / "recipes/freeflyer/finetune.yaml")], ["--model"]),
         (  # an MPC setting that does not exist (here the removed finish cost) is named with the valid ones
             ["evaluate", "mpc", "--scenario", "freeflyer", "mpc.finish=1"],
-            ["unknown setting 'finish'", "valid keys: mode, end_horizon, track, rtg_mode, reuse, rti, backend"],
+            [
+                "unknown setting 'finish'",
+                "valid keys: mode, end_horizon, track, terminal, rtg_mode, reuse, rti, backend",
+            ],
         ),
         (["zoo", "info", "nope"], ["no model 'nope'"]),
         (
@@ -305,7 +308,7 @@ def test_ctrl_c_during_train_says_how_to_resume_and_the_rerun_resumes(tmp_path: 
         (["finetune", str(REPO / "recipes/freeflyer/finetune.yaml")], "dagger.seed"),
         (["evaluate", "warmstart"], "seed"),
         (["evaluate", "mpc"], "seed"),
-        (["demo"], "seed"),
+        (["demo"], "eval.seed"),
     ],
 )
 def test_every_command_takes_key_value_settings(argv: list[str], key: str, capsys: pytest.CaptureFixture[str]) -> None:

@@ -507,8 +507,8 @@ def test_demo_command_tiny(
     monkeypatch.chdir(tmp_path)  # short names, as `make demo` prints them (a zoo name, outputs/demo)
     Path("model").symlink_to(bundle)
     out = tmp_path / "demo"
-    argv = ["demo", "--model", "model", "mpc_model=model", "scan=2", "problems=1", "horizon=5", "rel_horizon=6",
-            "out=demo"]  # fmt: skip
+    argv = ["demo", "--model", "model", "mpc_model=model", "eval.problems=2", "problems=1", "--horizon", "5",
+            "rel_horizon=6", "out=demo"]  # fmt: skip
     assert main(argv) == 0
     printed = capsys.readouterr().out.splitlines()
     assert max(len(line) for line in printed) <= 100, printed
@@ -526,21 +526,25 @@ def test_demo_command_tiny(
     assert isinstance(rows[0]["REL-MPC@6"]["feasible"], bool) and isinstance(rows[0]["R-TTO-MPC@5"]["feasible"], bool)
     assert f"#{rows[0]['problem']}" in " ".join(printed) and str(rows[0]["seed"]) not in " ".join(printed)
     assert (out / "demo.png").stat().st_size > 0
-    assert main(["demo", "--model", str(bundle), "horizon=0"]) == 2  # a clear error, exit code 2
-    assert main(["demo", "--model", str(bundle), "scan=1", "problems=2"]) == 2
+    assert main(["demo", "--model", str(bundle), "eval.horizons=[0]"]) == 2  # a clear error, exit code 2
+    assert main(["demo", "--model", str(bundle), "eval.problems=1", "problems=2"]) == 2
+    assert main(["demo", "--model", str(bundle), "eval.plants=[perturbed]"]) == 2  # the demo's loop is nominal
 
 
 def test_tto_methods_are_named_as_the_report_names_them(bundle: Path) -> None:
     """One name for the report and the demo: "R-" for the robust target, "[rtg=MODE]" for a fed rtg other than the
-    ledger, which a model without a value output keeps under ``recommended``."""
-    from ttompc.evaluation.closed_loop import tto_method
+    ledger, which a model without a value output keeps under ``recommended``; the providers carry it."""
+    from ttompc.mpc.methods import METHODS, MethodInputs
     from ttompc.mpc.settings import protocol_settings
     from ttompc.policy import Planner
 
     planner = Planner.from_pretrained(bundle)
     assert not planner.has_value
-    assert tto_method("FT-TTO", planner, protocol_settings("recommended"), 0.95) == "R-FT-TTO-MPC"
-    assert tto_method("TTO", planner, MPCSettings(rtg_mode="reanchor"), 0.0) == "TTO-MPC[rtg=reanchor]"
+    assert METHODS["R-FT-TTO-MPC"].label(protocol_settings("recommended"), planner) == "R-FT-TTO-MPC"
+    settings = MPCSettings(rtg_mode="reanchor")
+    assert METHODS["TTO-MPC"].label(settings, planner) == "TTO-MPC[rtg=reanchor]"
+    (provider,) = METHODS["TTO-MPC"].providers(MethodInputs(settings, [None], planner))
+    assert provider.name == "TTO-MPC[rtg=reanchor]"
 
 
 def test_demo_figure_shows_costs_and_why_rel_crosses_obstacles(
@@ -550,7 +554,7 @@ def test_demo_figure_shows_costs_and_why_rel_crosses_obstacles(
 
     figures: list[Any] = []
     monkeypatch.setattr(plots, "save_figure", lambda fig, path: figures.append(fig) or Path(path))
-    assert main(["demo", "--model", str(bundle), "--no-mpc", "problems=1", "scan=1", f"out={tmp_path}"]) == 0
+    assert main(["demo", "--model", str(bundle), "--no-mpc", "problems=1", "eval.problems=1", f"out={tmp_path}"]) == 0
     row = json.loads((tmp_path / "demo.json").read_text())["rows"][0]
     (fig,) = figures
     assert "convex relaxation without keep-out zones" in " ".join(fig._suptitle.get_text().split())

@@ -171,3 +171,27 @@ def test_cli_mismatch_is_one_line_and_exit_2(reports: Any, tmp_path: Path, capsy
     assert "same scenario and seed" in lines[0] and captured.out == ""
     assert main(["evaluate", "compare", str(base), str(moved), "--horizons", "ten"]) == 2
     assert "--horizons ten is not a list of integers" in capsys.readouterr().err
+
+
+def test_the_report_and_compare_pair_alike(
+    reports: tuple[Path, Path, list[dict[str, Any]], list[dict[str, Any]]],
+) -> None:
+    """One paired comparison (``stats.paired``): a method against REL-MPC within a report (its vs_rel_mpc column)
+    is what ``evaluate compare`` gives for the two as separate reports, up to the points' scale; problems only one
+    side ran are left out."""
+    from ttompc.evaluation.closed_loop_report import summarize
+    from ttompc.evaluation.stats import Outcome, paired
+
+    _, _, base_runs, _ = reports
+    recs = [{**r, "plant": "nominal", "cost": 1.0, "rel_cost": 1.0, "max_step_time": 0.1, "fallbacks": 0,
+             "target_change": 0.1, "terminal_error": 0.0, "mean_iterations": 1.0, "mean_iterations_solved": 1.0,
+             "rel_increment": r["rel_increment"] if r["feasible"] else float("nan")}
+            for r in base_runs if r["horizon"] == 10 and r["method"] != "PLAN-ONCE"]  # fmt: skip
+    (row,) = [r for r in summarize(recs) if r["method"] == "TTO-MPC"]
+    rel = {r["problem"]: Outcome.of(r) for r in recs if r["method"] == "REL-MPC"}
+    tto = {r["problem"]: Outcome.of(r) for r in recs if r["method"] == "TTO-MPC"}
+    pair = paired(rel, tto, scale=100)
+    assert row["vs_rel_mpc"]["n"] == pair["paired"]["n"] == sum(BASE_FEASIBLE)
+    assert 100 * row["vs_rel_mpc"]["mean"] == pytest.approx(pair["paired"]["mean"], rel=1e-12)
+    assert (pair["problems"], pair["base_goals"], pair["other_goals"], pair["lost"], pair["won"]) == (6, 6, 5, 1, 0)
+    assert paired({**rel, 99: rel[0]}, tto)["problems"] == 6 and paired(rel, {})["paired"]["n"] == 0

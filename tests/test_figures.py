@@ -4,6 +4,7 @@ write non-empty PNG images."""
 
 from __future__ import annotations
 
+import shlex
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,7 @@ import mpc_fakes
 import numpy as np
 import pytest
 
-from ttompc.config import load_command_config, to_container
+from ttompc.config import command_config, to_container
 from ttompc.errors import UserError
 from ttompc.evaluation import figures
 from ttompc.evaluation.closed_loop import ClosedLoopConfig
@@ -96,19 +97,26 @@ def test_warmstart_bars_are_the_reports_improvements() -> None:
 
 @pytest.mark.parametrize("kind", ["mpc", "warmstart"])
 def test_the_footer_command_reproduces_the_reports_settings(kind: str) -> None:
-    """Parsed back by the command's own loader, the line gives the settings the report recorded (but INERT)."""
+    """Parsed back by the command's own parser and loader, the line gives the settings the report recorded (but
+    INERT), in the form the zoo's cards print (models as flags, then the protocol's keys)."""
+    from ttompc.cli import build_parser
+    from ttompc.commands.evaluate import _FLAGS
+    from ttompc.evaluation.reproduce import INERT
+
     report = mpc_report() if kind == "mpc" else warmstart_report()
     config = report["config"]
     if kind == "mpc":
         config["mpc"] = {"end_horizon": 20}
+        config["plant"] = {**config["plant"], "process_std": 0.005}  # a nested setting, as a dotted key
     line = figures.report_command(kind, config)
-    assert line.startswith(f"ttompc evaluate {kind} ") and "workers" not in line and "out=" not in line
-    assert "problems=" in line and "seed=7" in line
+    assert line.startswith(f"ttompc evaluate {kind} --model tto-x --ft-model ft-y problems=")
+    assert "workers" not in line and "out=" not in line and "seed=7" in line
+    argv = shlex.split(line)[1:]
     schema = ClosedLoopConfig if kind == "mpc" else WarmStartConfig
-    parsed = to_container(load_command_config(schema, None, line.split()[3:]))
-    assert {k: v for k, v in parsed.items() if k not in figures.INERT} == {
-        k: v for k, v in config.items() if k not in figures.INERT
-    }
+    parsed = to_container(command_config(schema, build_parser(argv).parse_args(argv), _FLAGS))
+    assert {k: v for k, v in parsed.items() if k not in INERT} == {k: v for k, v in config.items() if k not in INERT}
+    if kind == "mpc":
+        assert "mpc.end_horizon=20 plant.process_std=0.005" in line
 
 
 def test_the_figures_plot_the_reports_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

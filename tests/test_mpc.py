@@ -29,8 +29,8 @@ from ttompc.mpc import (
     run_mpc,
     run_mpc_batch,
 )
-from ttompc.mpc.loop import target_change
-from ttompc.mpc.providers import TargetFilter
+from ttompc.mpc.episode import target_change
+from ttompc.mpc.terminal import TargetFilter
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import Window
 from ttompc.solvers.scp import SCPResult, SCPStatus, solve_problem, solve_rel
@@ -347,7 +347,7 @@ def test_rtg_modes_keep_the_fed_rtg_in_the_training_range(setup: tuple) -> None:
     assert np.all(fed[1] >= lo - 1e-6) and np.all(fed[1] <= hi + 1e-6), fed[1]
     assert np.all(fed[1, 1:] < -0.1)  # re-anchored on the remaining REL cost (~J_REL here), not the tiny rtg_0
     with pytest.raises(ValueError, match="rtg_mode"):
-        TTOProvider(planner, rtg_mode="budget")  # type: ignore[arg-type]
+        TTOProvider(planner, rtg_mode="budget")
 
 
 @pytest.mark.parametrize("rounding", [0.0, 1e-7])
@@ -565,7 +565,8 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
     """``evaluate mpc`` lists the settings that depart from the paper under its table, validates the protocol and
     its overrides, and splits the problems into pool tasks that do not depend on the number of workers."""
     from ttompc.evaluation.closed_loop import ClosedLoopConfig, tasks
-    from ttompc.evaluation.closed_loop_report import departures, protocol_label
+    from ttompc.evaluation.closed_loop_report import protocol_label
+    from ttompc.mpc.settings import departures
 
     sc = get_scenario(mpc_fakes.FreeFlyerShort.name)
     paper = ClosedLoopConfig(scenario=sc.name, mpc={"track": sc.mpc.terminal})
@@ -574,7 +575,14 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
     assert zoo.settings == MPCSettings(end_horizon=30, rtg_mode="reanchor")
     notes = departures(zoo.settings, sc)
     assert len(notes) == 3 and "weight 3" in notes[0] and "end horizon" in notes[1] and "reanchor" in notes[2]
-    bad_settings = ({"end_horizon": -1}, {"rtg_mode": "budget"}, {"rtg_mode": "floor"}, {"track": 0.0}, {"rti2": 1})
+    bad_settings = (
+        {"end_horizon": -1},
+        {"rtg_mode": "budget"},
+        {"rtg_mode": "floor"},
+        {"track": 0.0},
+        {"rti2": 1},
+        {"terminal": "goal"},
+    )
     for bad in ({"batch": 0}, {"protocol": "nope"}, *({"mpc": m} for m in bad_settings)):
         with pytest.raises(ValueError):
             ClosedLoopConfig(scenario=sc.name, **bad)  # type: ignore[arg-type]
@@ -591,6 +599,114 @@ def test_presets_are_the_settings_the_cards_and_the_paper_use() -> None:
     assert MPCSettings().rtg_mode == "running"
     assert protocol_settings("zoo") == MPCSettings(end_horizon=30)
     assert protocol_settings("recommended") == MPCSettings(rtg_mode="value")
+
+
+def test_settings_name_self_describing_rtg_modes_and_terminal_terms() -> None:
+    """One list each: ``MPCSettings.rtg_mode`` and ``terminal`` take the names of ``RTG_MODES`` and ``TERMINALS``,
+    the presets name registered ones, and each entry says whether it departs from the paper (the reports'
+    departures, the methods' names) and whether DAgger's rollouts run it."""
+    import yaml
+
+    from ttompc.finetune.config import check_rollout_settings
+    from ttompc.mpc import RTG_MODES, TERMINALS
+    from ttompc.mpc.settings import PRESETS, departures
+    from ttompc.mpc.terminal import terminal_term
+
+    sc = get_scenario(mpc_fakes.FreeFlyerShort.name)
+    assert list(RTG_MODES) == ["running", "reanchor", "value", "oracle"]
+    assert list(TERMINALS) == ["target", "value+target", "value"]
+    for path in PRESETS.glob("*.yaml"):
+        preset = yaml.safe_load(path.read_text())
+        assert preset["rtg_mode"] in RTG_MODES and preset["terminal"] in TERMINALS, path
+    for name, mode in RTG_MODES.items():
+        MPCSettings(rtg_mode=name)
+        notes = departures(MPCSettings(rtg_mode=name, track=sc.mpc.terminal), sc)
+        assert (notes == []) == mode.paper == (mode.label() == "") and (not notes or name in notes[0])
+        assert mode.rollouts  # every mode runs in DAgger's rollouts so far
+        check_rollout_settings(MPCSettings(rtg_mode=name))
+    with pytest.raises(ValueError, match=r"rtg_mode must be one of \['running', 'reanchor', 'value', 'oracle'\]"):
+        MPCSettings(rtg_mode="budget")
+    with pytest.raises(ValueError, match="terminal must be one of"):
+        MPCSettings(terminal="goal")
+    assert departures(MPCSettings(), sc) == TERMINALS["target"].departures(MPCSettings(), sc)  # the tracking weight
+    assert TERMINALS["target"].refusal(None) is None and TERMINALS["target"].rollouts
+    # the learned cost-to-go needs a value output with curvature; methods without a model keep the target
+    for kind in ("value", "value+target"):
+        assert "curvature" in str(TERMINALS[kind].refusal(mpc_fakes.tiny_planner()))
+        assert isinstance(terminal_term(MPCSettings(terminal=kind)), TERMINALS["target"])
+        assert departures(MPCSettings(terminal=kind, track=sc.mpc.terminal), sc)[0].startswith(f"terminal {kind}")
+
+
+def test_methods_are_registered_once_with_what_they_need() -> None:
+    """``METHODS``: each closed-loop method once, with its model slot, its robust target and its providers;
+    ``evaluate mpc`` runs those its models allow, in registry order, robust variants only with a blend."""
+    from ttompc.mpc import METHODS, MethodInputs, methods_for
+    from ttompc.mpc.methods import model_method
+
+    assert list(METHODS) == ["REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC", "FT-TTO-MPC",
+                             "R-FT-TTO-MPC"]  # fmt: skip
+    names = lambda methods: [m.name for m in methods]  # noqa: E731
+    assert names(methods_for([])) == ["REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC"]
+    assert names(methods_for(["FT-TTO"], 0.0))[4:] == ["FT-TTO-MPC"]
+    assert names(methods_for(["FT-TTO", "TTO"]))[4:] == ["TTO-MPC", "R-TTO-MPC", "FT-TTO-MPC", "R-FT-TTO-MPC"]
+    with pytest.raises(ValueError, match="model slots"):
+        methods_for(["BIG"])
+    assert model_method("FT-TTO", robust=True) is METHODS["R-FT-TTO-MPC"]
+    planner, settings = mpc_fakes.tiny_planner(), MPCSettings(track=2.5)
+    kinds = {"REL-MPC": RELProvider, "DIST-MPC": DISTProvider, "PLAN-ONCE": PlanProvider, "ORACLE-MPC": OracleProvider}
+    for name, method in METHODS.items():
+        provs = method.providers(MethodInputs(settings, [None, None], planner if method.model else None))
+        assert len(provs) == 2 and all(isinstance(p, kinds.get(name, TTOProvider)) for p in provs)
+        if method.model is not None:
+            assert provs[0].group is provs[1].group and provs[0].name == name  # one batched rollout per step
+            assert provs[0].target.design.blend == (0.95 if method.robust else 0.0)
+            assert provs[0].target.design.weights == (2.5,)
+            with pytest.raises(ValueError, match="plans with a model"):
+                method.providers(MethodInputs(settings, [None]))
+    with pytest.raises(ValueError, match="robust_blend"):
+        METHODS["R-TTO-MPC"].providers(MethodInputs(settings, [None], planner, robust_blend=0.0))
+
+
+class _ActEvery:
+    """A ``StepHook`` whose own controller's plan acts in one episode at the steps ``acts``."""
+
+    def __init__(self, expert: MPCController, episode: int, acts: set[int]) -> None:
+        self.expert, self.episode, self.acts, self.seen = expert, episode, acts, []
+
+    def before(self, t, controllers, xs):
+        given = [None] * len(xs)
+        if t in self.acts:
+            given[self.episode] = self.plan = self.expert.plan(t, xs[self.episode])
+        return given
+
+    def after(self, t, plans, xs) -> None:
+        self.seen.append((t, plans[self.episode].u, xs[self.episode].copy()))
+        if t in self.acts:
+            self.expert.observe(self.plan, plans[self.episode].u, xs[self.episode])
+
+
+def test_a_step_hook_acts_instead_of_the_controller_and_episodes_take_their_own_horizon_and_plant(
+    setup: tuple,
+) -> None:
+    """``run_mpc_batch``: a plan the hook gives acts in its episode and is recorded as its step (the controller
+    does not plan, but observes it); ``EpisodeStart`` gives an episode its own horizon and plant (DAgger's
+    rollouts)."""
+    sc, problem, rel, scp = setup
+    N, T = problem.n_steps, 4
+    expert = MPCController(sc, problem, PlanProvider((scp.X, scp.U)), N)
+    expert.provider.reset(sc, problem, rel.cost)
+    hook = _ActEvery(expert, 1, {1, 2})
+    starts = [EpisodeStart(problem, rel.cost, 3), EpisodeStart(problem, rel.cost, 3, horizon=7, plant=PlantNoise())]
+    provs = [_Windows(PlanProvider((scp.X, scp.U))) for _ in starts]
+    run = MPCRun(5, max_steps=T, plant=PlantNoise.perturbed(sc))
+    a, b = run_mpc_batch(sc, starts, provs, run, hook=hook)
+    assert (a.horizon, a.plant, b.horizon, b.plant) == (5, "perturbed", 7, "nominal")
+    assert [w.start for w in provs[1].windows] == [0, 3] and provs[1].windows[0].length == 7
+    assert [t for t, _, _ in hook.seen] == list(range(T))
+    np.testing.assert_array_equal(b.U[1], hook.seen[1][1])
+    np.testing.assert_allclose(b.X, sc.rollout(problem, b.U), atol=1e-9)  # the exact plant, whoever acted
+    assert (b.warm_times[2], b.solve_times[2]) == (hook.plan.warm_time, hook.plan.solve_time)  # the acting plan's
+    assert not np.allclose(a.X, b.X)
 
 
 def test_plan_reuse_applies_the_own_plan_tail_and_keeps_the_results(setup: tuple) -> None:

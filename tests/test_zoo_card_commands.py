@@ -60,6 +60,24 @@ def test_cards_print_reproduce_commands_that_name_only_zoo_models() -> None:
         assert not missing, f"{name}'s card prints `{shlex.join(argv)}`, which names {missing}, not in the zoo"
 
 
+def test_cards_print_the_command_the_reports_settings_give() -> None:
+    """Each card command is the one reproduce command (``ttompc.evaluation.reproduce.report_command``) of the
+    settings it sets, as the report records them (the scenario resolved from the model, inert settings set)."""
+    from ttompc.cli import build_parser
+    from ttompc.commands.evaluate import _FLAGS
+    from ttompc.config import command_config, to_container
+    from ttompc.evaluation.closed_loop import ClosedLoopConfig
+    from ttompc.evaluation.reproduce import report_command
+    from ttompc.evaluation.warmstart import WarmStartConfig
+
+    for name, argv in COMMANDS:
+        kind = argv[2]
+        args = build_parser(argv[1:]).parse_args(argv[1:])
+        cfg = command_config(ClosedLoopConfig if kind == "mpc" else WarmStartConfig, args, _FLAGS)
+        recorded = {**to_container(cfg), "scenario": name.split("-")[0], "workers": 1, "out": "report"}
+        assert report_command(kind, recorded) == " ".join(argv), name
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(("card", "argv"), COMMANDS, ids=[f"{name}-{argv[2]}" for name, argv in COMMANDS])
 def test_card_command_runs(card: str, argv: list[str], tmp_path: Path) -> None:

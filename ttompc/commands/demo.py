@@ -1,23 +1,25 @@
 """``ttompc demo [RECIPE.yaml] key=value ...``: the quickstart, offline. Two shipped zoo models on held-out non-convex
 problems where what they add shows, in a table that fits 100 columns:
 
-* warm start: the first ``scan`` problems of the evaluation stream of root seed ``seed`` (the held-out non-convex
-  problems of a ``Measurement``) each run the open-loop protocol (``evaluation.warmstart.evaluate_problem``: SCP
-  from REL and from ``model``'s rollout; the oracle without random detours). Shown: the ``problems`` whose two SCP
-  optima differ most — by |J_SCP(model) − J_SCP(REL)| / J_REL, a failure on one side counting as the largest
-  difference, then by the difference in SCP iterations, then in stream order — whichever side is cheaper;
-* MPC, on those problems, on the nominal plant: TTO-MPC with ``mpc_model`` at H = ``horizon`` under ``protocol``
-  with the robust target (``evaluate mpc``'s best method of the recommended protocol, named as its report names it:
-  R-FT-TTO-MPC[rtg=value] for the zoo's fine-tuned model with a value output) against REL-MPC, the paper's
-  baseline, at H = ``rel_horizon`` under the paper's protocol: goal reached, cost above J_REL, mean step time.
+* warm start: the problems of the measurement ``eval`` (a ``Measurement``: the first ``eval.problems`` held-out
+  non-convex problems of the evaluation stream of root seed ``eval.seed``) each run the open-loop protocol
+  (``evaluation.warmstart.evaluate_problem``: SCP from REL and from ``model``'s rollout; the oracle without random
+  detours). Shown: the ``problems`` whose two SCP optima differ most — by |J_SCP(model) − J_SCP(REL)| / J_REL, a
+  failure on one side counting as the largest difference, then by the difference in SCP iterations, then in stream
+  order — whichever side is cheaper;
+* MPC, on those problems, as ``eval`` says (its one horizon, on the nominal plant, under its protocol and ``mpc``
+  overrides): the robust TTO-MPC of ``mpc_model``'s model slot (``ttompc.mpc.methods``: ``evaluate mpc``'s best
+  method of the recommended protocol, named as its report names it: R-FT-TTO-MPC[rtg=value] for the zoo's
+  fine-tuned model with a value output) against REL-MPC, the paper's baseline, at H = ``rel_horizon`` under the
+  paper's protocol: goal reached, cost above J_REL, mean step time.
 
 A one-line summary closes the table: the scan's count of problems where the model's warm start reached a cheaper or
 a costlier optimum than REL's (``SAME`` apart or more; a failed SCP counts against its side), and the MPC goals and
-step-time ratio. ``demo.json`` has
-every scanned problem and the shown ones in full, ``demo.png`` draws the shown ones (open loop on top, closed loop
-below; each solution's cost in the legend, infeasible runs marked, and the title says why REL may cross obstacles).
-``--model``, ``--mpc-model``, ``--problems``, ``--horizon``, ``--seed``, ``--no-mpc`` and ``--out`` are shortcuts for
-the ``DemoConfig`` keys."""
+step-time ratio (``stats.paired``, the comparison of ``evaluate compare``). ``demo.json`` has every scanned problem
+and the shown ones in full, ``demo.png`` draws the shown ones (open loop on top, closed loop below; each solution's
+cost in the legend, infeasible runs marked, and the title says why REL may cross obstacles). ``--model``,
+``--mpc-model``, ``--problems``, ``--horizon`` (``eval.horizons=[H]``), ``--seed`` (``eval.seed``), ``--no-mpc`` and
+``--out`` are shortcuts for the ``DemoConfig`` keys."""
 
 from __future__ import annotations
 
@@ -25,13 +27,19 @@ import argparse
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
 from ttompc.errors import UserError
+from ttompc.evaluation.measurement import Measurement
+
+if TYPE_CHECKING:
+    from ttompc.evaluation.plots import Panel
+    from ttompc.evaluation.problems import EvalProblem
+    from ttompc.policy import Planner
 
 SAME = 0.01  # SCP optima of one problem closer than 1% of J_REL count as the same optimum
 
@@ -40,34 +48,51 @@ SAME = 0.01  # SCP optima of one problem closer than 1% of J_REL count as the sa
 class DemoConfig:
     model: str = "freeflyer-tto-v3"  # open-loop warm starts: zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt
     mpc_model: str = "freeflyer-ft-tto-v5"  # TTO-MPC: the same forms, the same scenario as model
-    protocol: str = "recommended"  # MPC settings of mpc_model's TTO-MPC (a preset or YAML file); REL-MPC's: paper
     problems: int = 2  # shown: the scanned problems whose two warm starts differ most
-    scan: int = 12  # held-out non-convex problems run open loop to choose them from
-    horizon: int = 10  # TTO-MPC planning horizon H
-    rel_horizon: int = 30  # REL-MPC planning horizon H (the paper's baseline)
-    seed: int = 4242  # root seed of the held-out evaluation stream (the zoo cards' seed)
+    # the scan (its held-out non-convex problems, run open loop to choose the shown ones from; the zoo cards' seed)
+    # and TTO-MPC's closed loop (its protocol and one horizon, on the nominal plant)
+    eval: Measurement = field(
+        default_factory=lambda: Measurement(protocol="recommended", problems=12, seed=4242, horizons=[10])
+    )
+    rel_horizon: int = 30  # REL-MPC planning horizon H (the paper's baseline, under the paper's protocol)
     mpc: bool = True  # also close the loop (slower)
     out: str = "outputs/demo"
 
     def __post_init__(self) -> None:
-        if min(self.problems, self.horizon, self.rel_horizon) < 1 or self.scan < self.problems:
+        self.eval.check_single("demo.eval")
+        if self.eval.plants != ["nominal"]:
+            raise ValueError(f"demo.eval runs on the nominal plant, got plants={self.eval.plants}")
+        if min(self.problems, self.rel_horizon) < 1 or self.eval.problems < self.problems:
             raise ValueError(
-                "problems, horizon and rel_horizon must be >= 1 and scan >= problems, got "
-                f"{self.problems}, {self.horizon}, {self.rel_horizon} and {self.scan}"
+                "problems and rel_horizon must be >= 1 and eval.problems (the scan) >= problems, got "
+                f"{self.problems}, {self.rel_horizon} and {self.eval.problems}"
             )
 
+    def rel_loop(self) -> Measurement:
+        """REL-MPC's closed loop: ``eval``'s problems at H = ``rel_horizon`` under the paper's protocol."""
+        return Measurement(protocol="paper", problems=self.eval.problems, seed=self.eval.seed,
+                           horizons=[self.rel_horizon])  # fmt: skip
 
-_FLAGS = ("model", "mpc_model", "problems", "horizon", "seed", "out")  # shortcut flags, dest = config key
+
+# shortcut flags: argparse dest -> config key
+_FLAGS = {"model": "model", "mpc_model": "mpc_model", "problems": "problems", "horizon": "eval.horizons",
+          "seed": "eval.seed", "out": "out"}  # fmt: skip
+
+
+def _one_horizon(text: str) -> str:
+    """``--horizon H`` as the value of ``eval.horizons``: ``[H]``."""
+    return f"[{int(text)}]"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_config_arguments(p, "problems=3 scan=20 horizon=20")
+    add_config_arguments(p, "problems=3 eval.problems=20 eval.horizons=[20]")
     p.add_argument("--model", help="warm-start model: zoo name, hf://ORG/NAME[@REV], bundle or .ckpt "
                                    "(default freeflyer-tto-v3)")  # fmt: skip
     p.add_argument("--mpc-model", help="TTO-MPC model, same forms (default freeflyer-ft-tto-v5)")
-    p.add_argument("--problems", type=int, help="problems shown, chosen from the first scan=12 (default 2)")
-    p.add_argument("--horizon", type=int, help="TTO-MPC planning horizon H (default 10; REL-MPC: rel_horizon=30)")
-    p.add_argument("--seed", type=int, help="root seed of the evaluation problem stream (default 4242)")
+    p.add_argument("--problems", type=int, help="problems shown, chosen from the first eval.problems=12 (default 2)")
+    p.add_argument("--horizon", type=_one_horizon, help="TTO-MPC planning horizon H, eval.horizons=[H] (default 10; "
+                                                         "REL-MPC: rel_horizon=30)")  # fmt: skip
+    p.add_argument("--seed", type=int, help="root seed of the evaluation problem stream, eval.seed (default 4242)")
     p.add_argument("--no-mpc", action="store_true", help="open-loop warm starts only (fast); same as mpc=false")
     p.add_argument("--out", help="folder for demo.png and demo.json (default outputs/demo)")
 
@@ -79,30 +104,18 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
-    checks.seed(cfg.seed)
+    checks.seed(cfg.eval.seed)
     checks.writable(cfg.out)
-    from ttompc.evaluation.closed_loop import ClosedLoopConfig, tto_method
-    from ttompc.evaluation.episodes import episode_record
-    from ttompc.evaluation.measurement import Measurement
-    from ttompc.evaluation.plots import Panel, save_figure, trajectory_figure
-    from ttompc.evaluation.warmstart import evaluate_problem
-    from ttompc.mpc.loop import run_mpc_batch
-    from ttompc.mpc.providers import RELProvider
-    from ttompc.mpc.tto import tto_providers
-    from ttompc.parallel import single_torch_thread
+    from ttompc.evaluation.plots import save_figure, trajectory_figure
     from ttompc.policy import Planner
-    from ttompc.progress import Bar
 
-    # TTO-MPC under protocol, REL-MPC under the paper's, both on the nominal plant; the problems: tto_loop's
-    tto_loop = Measurement(protocol=cfg.protocol, problems=cfg.scan, seed=cfg.seed, horizons=[cfg.horizon])
-    rel_loop = Measurement(protocol="paper", problems=cfg.scan, seed=cfg.seed, horizons=[cfg.rel_horizon])
     planner = Planner.from_pretrained(cfg.model)
     scenario = planner.scenario
-    too_long = [h for h in (cfg.horizon, cfg.rel_horizon) if h > scenario.n_steps]
+    too_long = [h for h in (cfg.eval.horizons[0], cfg.rel_horizon) if h > scenario.n_steps]
     if cfg.mpc and too_long:  # refused as `evaluate mpc` does, not clipped under its label
         raise UserError(
             f"horizon {too_long[0]} exceeds the horizon of {scenario.name}, N = {scenario.n_steps} steps",
-            f"pass horizon and rel_horizon of {scenario.n_steps} or less (or --no-mpc)",
+            f"pass eval.horizons and rel_horizon of {scenario.n_steps} or less (or --no-mpc)",
         )
     mpc_planner = Planner.from_pretrained(cfg.mpc_model) if cfg.mpc else None
     if mpc_planner is not None and mpc_planner.scenario.name != scenario.name:
@@ -110,16 +123,46 @@ def run(args: argparse.Namespace) -> int:
             f"mpc_model {cfg.mpc_model} plans {mpc_planner.scenario.name}, model {cfg.model} plans {scenario.name}",
             f"pass --mpc-model with a {scenario.name} model (`ttompc zoo list`), or --no-mpc",
         )
+    scanned, rows, panels, chosen = _open_loop(cfg, planner)
+    mpc: tuple[str, str] | None = None  # the two methods' columns, model's first
+    if mpc_planner is not None:
+        mpc, closed = _closed_loop(cfg, mpc_planner, chosen, rows)
+        panels += closed
+    print("\n".join(_table(cfg, scenario.name, scanned, rows, mpc)))
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"config": to_container(cfg), "scenario": scenario.name, "scanned": scanned, "rows": rows}
+    (out / "demo.json").write_text(json.dumps(report, indent=2, default=float))
+    heading = (
+        f"{cfg.model} (warm starts)" + (f" and {cfg.mpc_model} (MPC)" if cfg.mpc else "") + f" on {scenario.name}. "
+        "J: control cost (lower is better).\nREL: the convex relaxation without keep-out zones (a lower bound on J), "
+        "so it may cross obstacles."
+    )
+    fig = trajectory_figure(scenario, panels, heading, rows=2 if mpc is not None else 1)
+    save_figure(fig, out / "demo.png")
+    print(f"saved {out / 'demo.png'} and {out / 'demo.json'}")
+    return 0
+
+
+def _open_loop(cfg: DemoConfig, planner: Planner) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[Panel],
+                                                           list[EvalProblem]]:  # fmt: skip
+    """The scan: every problem of ``cfg.eval`` run open loop (``evaluate_problem``); returns the scanned rows, the rows
+    and panels of the ``cfg.problems`` chosen ones (module doc) and those problems, in stream order."""
+    from ttompc.evaluation.plots import Panel
+    from ttompc.evaluation.warmstart import evaluate_problem
+    from ttompc.parallel import single_torch_thread
+    from ttompc.progress import Bar
+
+    scenario = planner.scenario
     found = []  # (problem, its open-loop row, trajectories) of every scanned problem
-    with single_torch_thread(), Bar(cfg.scan, "demo: warm starts", "problem") as bar:
-        for ep in tto_loop.problem_set(scenario):
+    with single_torch_thread(), Bar(cfg.eval.problems, "demo: warm starts", "problem") as bar:
+        for ep in cfg.eval.problem_set(scenario):
             found.append((ep, *evaluate_problem(scenario, ep, {"TTO": planner}, oracle_detours=0,
-                                                backend=tto_loop.settings.backend)))  # fmt: skip
+                                                backend=cfg.eval.settings.backend)))  # fmt: skip
             bar.update()
-    scanned = [ws for _, ws, _ in found]
     chosen = sorted(sorted(found, key=lambda f: _difference(f[1]))[: cfg.problems], key=lambda f: f[0].index)
     rows: list[dict[str, Any]] = []
-    open_panels = []
+    panels = []
     for ep, ws, trajs in chosen:
         row: dict[str, Any] = {"problem": ep.index, "seed": ep.seed, "ctg0": ep.ctg0, "J_REL": ep.rel_cost}
         for name, label in (("REL", "SCP(REL)"), ("TTO", "SCP(TTO)"), ("ORACLE", "ORACLE")):
@@ -133,55 +176,56 @@ def run(args: argparse.Namespace) -> int:
         failed = {f"SCP from {n}" for n in ("REL", "TTO") if not ws[f"{n}_success"]}
         costs = {"REL (lower bound)": ep.rel_cost, "ORACLE (best optimum)": ws["ORACLE_cost"]}
         costs |= {f"SCP from {n}": ws[f"{n}_cost"] for n in ("REL", "TTO") if ws[f"{n}_success"]}
-        open_panels.append(Panel(ep.problem, trajs, f"open loop: {_title(ep.index, cfg.seed, ep.ctg0)}", failed, costs))
-    mpc: tuple[str, str] | None = None  # the two methods' columns, model's first
-    closed_panels = []
-    if mpc_planner is not None:
-        eps = [ep for ep, _, _ in chosen]
-        kind = "FT-TTO" if "finetuned_from" in mpc_planner.extra else "TTO"  # as `zoo publish` tells the kind
-        blend = ClosedLoopConfig.robust_blend  # evaluate mpc's robust target
-        model_method = tto_method(kind, mpc_planner, tto_loop.settings, blend)
-        [(_, tto_run)], [(_, rel_run)] = tto_loop.runs(scenario), rel_loop.runs(scenario)
-        starts = [ep.start for ep in eps]
-        with single_torch_thread(), Bar(2 * len(eps), "demo: MPC", "episode") as bar:
+        title = f"open loop: {_title(ep.index, cfg.eval.seed, ep.ctg0)}"
+        panels.append(Panel(ep.problem, trajs, title, failed, costs))
+    return [ws for _, ws, _ in found], rows, panels, [ep for ep, _, _ in chosen]
 
-            def tick() -> None:  # one lockstep step of every episode
-                bar.update(len(eps) / scenario.n_steps)
 
-            models = tto_providers(mpc_planner, tto_loop.settings, [None] * len(eps), model_method, blend=blend)
-            episodes = run_mpc_batch(scenario, starts, models, tto_run, tick)
-            rel = [RELProvider(rel_loop.settings.backend) for _ in eps]
-            episodes += run_mpc_batch(scenario, starts, rel, rel_run, tick)
-        mpc = (f"{model_method}@{cfg.horizon}", f"REL-MPC@{cfg.rel_horizon}")
-        for i, (ep, row) in enumerate(zip(eps, rows, strict=True)):
-            closed, bad, applied = {}, set(), {}
-            for e in episodes[i :: len(eps)]:
-                r = episode_record(e)
-                key = f"{e.method}@{e.horizon}"
-                row[key] = {k: r[k] for k in ("cost", "rel_increment", "feasible", "terminal_error")}
-                row[key] |= {"mean_step": r["mean_step_time"], "max_step": r["max_step_time"]}
-                label = f"{e.method} H={e.horizon}"
-                closed[label] = e.X
-                if e.feasible:
-                    applied[label] = e.cost
-                else:
-                    bad.add(label)
-            title = f"closed loop: {_title(ep.index, cfg.seed, ep.ctg0)}"
-            closed_panels.append(Panel(ep.problem, closed, title, bad, applied))
-    print("\n".join(_table(cfg, scenario.name, scanned, rows, mpc)))
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    report = {"config": to_container(cfg), "scenario": scenario.name, "scanned": scanned, "rows": rows}
-    (out / "demo.json").write_text(json.dumps(report, indent=2, default=float))
-    heading = (
-        f"{cfg.model} (warm starts)" + (f" and {cfg.mpc_model} (MPC)" if cfg.mpc else "") + f" on {scenario.name}. "
-        "J: control cost (lower is better).\nREL: the convex relaxation without keep-out zones (a lower bound on J), "
-        "so it may cross obstacles."
-    )
-    fig = trajectory_figure(scenario, open_panels + closed_panels, heading, rows=2 if closed_panels else 1)
-    save_figure(fig, out / "demo.png")
-    print(f"saved {out / 'demo.png'} and {out / 'demo.json'}")
-    return 0
+def _closed_loop(
+    cfg: DemoConfig, planner: Planner, eps: list[EvalProblem], rows: list[dict[str, Any]]
+) -> tuple[tuple[str, str], list[Panel]]:
+    """The robust TTO-MPC of ``planner``'s model slot under ``cfg.eval`` and REL-MPC under ``cfg.rel_loop()`` on the
+    chosen problems ``eps``, both from ``ttompc.mpc.methods``: each episode's numbers into its problem's row (under
+    "METHOD@H"); returns the two methods' keys (the model's first) and one panel per problem."""
+    from ttompc.evaluation.episodes import episode_record
+    from ttompc.evaluation.plots import Panel
+    from ttompc.mpc.loop import run_mpc_batch
+    from ttompc.mpc.methods import METHODS, MethodInputs, model_method
+    from ttompc.parallel import single_torch_thread
+    from ttompc.progress import Bar
+
+    scenario = planner.scenario
+    slot = "FT-TTO" if "finetuned_from" in planner.extra else "TTO"  # as `zoo publish` tells the kind
+    methods = [(model_method(slot, robust=True), cfg.eval, planner), (METHODS["REL-MPC"], cfg.rel_loop(), None)]
+    starts = [ep.start for ep in eps]
+    episodes = []
+    with single_torch_thread(), Bar(len(methods) * len(eps), "demo: MPC", "episode") as bar:
+
+        def tick() -> None:  # one lockstep step of every episode
+            bar.update(len(eps) / scenario.n_steps)
+
+        for method, loop, model in methods:
+            [(_, run)] = loop.runs(scenario)
+            providers = method.providers(MethodInputs(loop.settings, [None] * len(eps), model))
+            episodes += run_mpc_batch(scenario, starts, providers, run, tick)
+    keys = [f"{e.method}@{e.horizon}" for e in episodes[:: len(eps)]]
+    panels = []
+    for i, (ep, row) in enumerate(zip(eps, rows, strict=True)):
+        closed, bad, applied = {}, set(), {}
+        for e in episodes[i :: len(eps)]:
+            r = episode_record(e)
+            key = f"{e.method}@{e.horizon}"
+            row[key] = {k: r[k] for k in ("cost", "rel_increment", "feasible", "terminal_error")}
+            row[key] |= {"mean_step": r["mean_step_time"], "max_step": r["max_step_time"]}
+            label = f"{e.method} H={e.horizon}"
+            closed[label] = e.X
+            if e.feasible:
+                applied[label] = e.cost
+            else:
+                bad.add(label)
+        title = f"closed loop: {_title(ep.index, cfg.eval.seed, ep.ctg0)}"
+        panels.append(Panel(ep.problem, closed, title, bad, applied))
+    return (keys[0], keys[1]), panels
 
 
 def _title(index: int, seed: int, ctg0: int) -> str:
@@ -221,8 +265,8 @@ def _table(
     the summary line."""
     n = len(rows)
     lines = [
-        f"{scenario}, problem #i: held-out non-convex problem i of root seed {cfg.seed}. Shown: the {n} of",
-        f"#0-#{cfg.scan - 1} where the two warm starts differ most. Cost: J above J_REL, REL's lower bound.",
+        f"{scenario}, problem #i: held-out non-convex problem i of root seed {cfg.eval.seed}. Shown: the {n} of",
+        f"#0-#{cfg.eval.problems - 1} where the two warm starts differ most. Cost: J above J_REL, REL's lower bound.",
         "",
         f"warm start: full-horizon SCP from REL and from {cfg.model} (time: warm start + SCP)",
         f"{'':20}  |  {'SCP from REL':<22}  |  SCP from the model",
@@ -238,10 +282,13 @@ def _table(
     cheaper, costlier = sum(g <= -SAME for g in gaps), sum(g >= SAME for g in gaps)  # nan: neither
     summary = f"summary: warm start beats REL on {cheaper}/{len(scanned)}, loses on {costlier}"
     if mpc is not None:
+        from ttompc.evaluation.closed_loop_report import protocol_label
+        from ttompc.evaluation.stats import Outcome, paired
+
         width = max(23, *(len(k) for k in mpc))
         lines += [
             "",
-            f"MPC, nominal plant: {cfg.mpc_model} under protocol={cfg.protocol}, REL-MPC under paper",
+            f"MPC, nominal plant: {cfg.mpc_model} under protocol={protocol_label(cfg.eval)}, REL-MPC under paper",
             f"{'':7}  |  {mpc[0]:<{width}}  |  {mpc[1]:<{width}}  |",
             f"{'problem':>7}  |  {'goal':<{width - 19}} {'cost':>8} {'step':>9}  |  "
             f"{'goal':<{width - 19}} {'cost':>8} {'step':>9}  |  step-time ratio",
@@ -254,8 +301,10 @@ def _table(
                 cells.append(f"{goal:<{width - 19}} {cost:>8} {1e3 * c['mean_step']:>7.1f}ms")
             cells.append(f"{r[mpc[1]]['mean_step'] / r[mpc[0]]['mean_step']:>14.1f}×")
             lines.append("  |  ".join(cells))
-        goals = [sum(r[k]["feasible"] for r in rows) for k in mpc]
-        ratio = sum(r[mpc[1]]["mean_step"] for r in rows) / sum(r[mpc[0]]["mean_step"] for r in rows)
-        summary += f"; MPC goals {goals[0]}/{n} vs REL-MPC {goals[1]}/{n}, {ratio:.1f}× faster steps"
+        model, rel = ({r["problem"]: Outcome(r[k]["feasible"], r[k]["rel_increment"], r[k]["mean_step"]) for r in rows}
+                      for k in mpc)  # fmt: skip
+        pair = paired(rel, model)
+        summary += (f"; MPC goals {pair['other_goals']}/{n} vs REL-MPC {pair['base_goals']}/{n}, "
+                    f"{pair['step_ratio']:.1f}× faster steps")  # fmt: skip
         lines.append("goal: reached, every constraint met; step: mean time per MPC step (observe + warm start + solve)")
     return [*lines, "", summary]

@@ -30,6 +30,7 @@ from ttompc.progress import status
 if TYPE_CHECKING:
     from ttompc.evaluation.closed_loop import ClosedLoopConfig
     from ttompc.evaluation.warmstart import WarmStartConfig
+    from ttompc.policy import Planner
 
 _FLAGS = ("model", "ft_model", "scenario", "problems", "seed", "workers", "out")  # shortcut flags, dest = config key
 
@@ -80,9 +81,24 @@ def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
             cfg.scenario = Planner.from_pretrained(sources[0]).scenario.name
         scenario = checks.scenario(cfg.scenario)
         for source in sources:
-            Planner.from_pretrained(source, scenario, device=cfg.device)
+            planner = Planner.from_pretrained(source, scenario, device=cfg.device)
+            if not isinstance(cfg, WarmStartConfig):
+                _announce_rtg(source, planner, cfg.settings.rtg_mode)
     checks.seed(cfg.seed)
     checks.backend(cfg.backend if isinstance(cfg, WarmStartConfig) else cfg.settings.backend)
+
+
+def _announce_rtg(source: str, planner: Planner, mode: str) -> None:
+    """Say so when ``planner`` runs another rtg mode than the settings name (``ttompc.mpc.rtg``: a model without a
+    value output runs the paper's ledger under ``value``), whose methods the report names without the mode."""
+    from ttompc.mpc.rtg import RTG_MODES, rtg_feed
+
+    runs = rtg_feed(mode, planner).name
+    if runs != mode:
+        status(
+            f"ttompc evaluate mpc: {source} has no value output, which rtg_mode={mode} reads: its methods run "
+            f"rtg_mode={runs} (named without {RTG_MODES[mode].label()})"
+        )
 
 
 def _check_output(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:

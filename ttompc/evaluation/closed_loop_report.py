@@ -8,8 +8,8 @@ REL-MPC on the problems both ran feasibly (fair where the feasible sets differ),
 REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between steps), step times and SCP
 iterations per solved step (``summarize``, ``format_table``); with more than one horizon, every method at the
 shortest against REL-MPC at the longest (``headline``). The report names its protocol (``protocol_label``) and
-records the resolved settings; the settings that depart from the paper preset (``departures``) are listed under the
-table (``write_report``).
+records the resolved settings; the settings that depart from the paper preset (``ttompc.mpc.settings.departures``)
+are listed under the table (``write_report``). Every paired difference is ``stats.paired``'s.
 """
 
 from __future__ import annotations
@@ -24,40 +24,11 @@ import numpy as np
 from ttompc.evaluation.episodes import summarize_episodes
 from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
-from ttompc.evaluation.stats import format_interval, interval
-from ttompc.mpc.settings import MPCSettings
+from ttompc.evaluation.stats import Outcome, format_interval, paired
+from ttompc.mpc.methods import BASELINE, CEILING, REFERENCE
+from ttompc.mpc.settings import departures
 from ttompc.scenarios.base import Scenario
 from ttompc.solvers.backends import solver_path
-
-BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"
-
-
-def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
-    """The settings of a run that depart from the paper (and from the authors' code), one sentence each."""
-    out = []
-    track = scenario.mpc.tracking if settings.track is None else settings.track
-    if track != scenario.mpc.terminal:
-        out.append(
-            f"plan-tracking terminal weight {track:g} for TTO-MPC, PLAN-ONCE and ORACLE-MPC (the paper: "
-            f"{scenario.mpc.terminal:g}, below the terminal multipliers of optimal plans; docs/evaluation.md)"
-        )
-    if settings.end_horizon > 0:
-        out.append(
-            f"shrinking end horizon: windows run to N once N − t <= {settings.end_horizon} (the paper keeps H and "
-            "truncates the windows at N)"
-        )
-    if settings.rtg_mode != "running":
-        out.append(
-            f"reward-to-go fed in closed loop: {settings.rtg_mode} (the paper: the running rtg_0 + executed cost)"
-        )
-    if settings.mode != "soft":
-        out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
-    if settings.rti:
-        out.append(
-            "real-time iteration: one SCP subproblem per MPC step from the previous solution shifted (the paper "
-            "solves every window to convergence)"
-        )
-    return out
 
 
 def protocol_label(cfg: Measurement) -> str:
@@ -85,14 +56,12 @@ def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, An
                 if (m, H) in paper:
                     row["paper_norm"] = paper[(m, H)]["paper_norm"]
                     row["paper_problems"] = paper[(m, H)]["problems"]
-                if m != BASELINE:  # paired with REL-MPC on the problems both ran feasibly (nan = infeasible)
-                    inc = {
-                        k: {r["problem"]: r["rel_increment"] for r in recs if r["method"] == k and r["horizon"] == H}
+                if m != BASELINE:  # paired with REL-MPC on the problems both ran feasibly
+                    runs = {
+                        k: {r["problem"]: Outcome.of(r) for r in recs if r["method"] == k and r["horizon"] == H}
                         for k in (BASELINE, m)
                     }
-                    row["vs_rel_mpc"] = interval(
-                        [v - inc[BASELINE][p] for p, v in inc[m].items() if p in inc[BASELINE]], seed=seed
-                    )
+                    row["vs_rel_mpc"] = paired(runs[BASELINE], runs[m], seed=seed)["paired"]
                 if m not in (BASELINE, CEILING):
                     cost = {
                         k: {r["problem"]: (r["cost"] if r["feasible"] else np.nan) for r in recs
@@ -118,17 +87,14 @@ def headline(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any
     rows = []
     for plant in sorted({r["plant"] for r in records}):
         base = [r for r in records if r["plant"] == plant and r["method"] == BASELINE and r["horizon"] == long]
-        ref = {r["problem"]: r for r in base}
+        ref = {r["problem"]: Outcome.of(r) for r in base}
         for m in dict.fromkeys(r["method"] for r in records if r["plant"] == plant):
             group = [r for r in records if r["plant"] == plant and r["method"] == m and r["horizon"] == short]
-            both = [(r, ref[r["problem"]]) for r in group
-                    if r["feasible"] and r["problem"] in ref and ref[r["problem"]]["feasible"]]  # fmt: skip
+            pair = paired(ref, {r["problem"]: Outcome.of(r) for r in group}, seed=seed)
             rows.append({
                 "plant": plant, "method": m, "horizon": short, "baseline_horizon": long, "runs": len(group),
                 "feasible": sum(r["feasible"] for r in group), "baseline_feasible": sum(r["feasible"] for r in base),
-                "vs_baseline": interval([a["rel_increment"] - b["rel_increment"] for a, b in both], seed=seed),
-                "step_ratio": float(np.mean([r["mean_step_time"] for r in base])
-                                    / np.mean([r["mean_step_time"] for r in group])),
+                "vs_baseline": pair["paired"], "step_ratio": pair["step_ratio"],
             })  # fmt: skip
     return rows
 

@@ -12,7 +12,9 @@ reports share a folder name). Runs are matched on (plant, method, horizon, probl
   ``stats.interval`` (mean, standard error with ddof=1, 95% bootstrap interval lo/hi, n); negative: the other is
   cheaper;
 * ``step_ratio``: mean step time of the base / of the other over the problems both ran, feasible or not (> 1: the
-  other steps faster).
+  other steps faster);
+
+all of them ``stats.paired``'s, the comparison the closed-loop report and the demo make too.
 
 Refused with a ``UserError`` (one line, what to do): a report that cannot be read, two reports whose ``mpc.json``
 configs differ in scenario or seed, a matched run whose per-problem ``seed`` differs (not the same held-out problem),
@@ -25,15 +27,13 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ttompc.errors import UserError
-from ttompc.evaluation.stats import format_interval, interval
+from ttompc.evaluation.stats import Outcome, format_interval, paired
 
 RUNS_FILE, CONFIG_FILE = "mpc_runs.csv", "mpc.json"
 COLUMNS = ("problem", "seed", "method", "horizon", "plant", "rel_increment", "feasible", "mean_step_time")
@@ -44,12 +44,10 @@ Key = tuple[str, str, int]  # (plant, method, horizon)
 
 @dataclass(frozen=True)
 class Run:
-    """One closed-loop episode of a report: what the comparison reads of its CSV row."""
+    """One closed-loop episode of a report: its problem's seed and what the comparison reads of its CSV row."""
 
     seed: str
-    feasible: bool
-    rel_increment: float
-    mean_step_time: float
+    outcome: Outcome
 
 
 @dataclass
@@ -95,9 +93,11 @@ def load_report(path: str | Path, label: str | None = None) -> Report:
                 problem = int(row["problem"])
                 run = Run(
                     seed=row["seed"].strip(),
-                    feasible=_bool(row["feasible"]),
-                    rel_increment=float(row["rel_increment"] or "nan"),
-                    mean_step_time=float(row["mean_step_time"] or "nan"),
+                    outcome=Outcome(
+                        feasible=_bool(row["feasible"]),
+                        rel_increment=float(row["rel_increment"] or "nan"),
+                        step_time=float(row["mean_step_time"] or "nan"),
+                    ),
                 )
             except (ValueError, TypeError) as err:
                 raise UserError(f"{csv_path}, line {line}: unreadable run ({err})", _WHAT) from err
@@ -134,11 +134,6 @@ def _check_configs(base: Report, other: Report) -> None:
             )
 
 
-def _mean(values: Iterable[float]) -> float:
-    x = [v for v in values if math.isfinite(v)]
-    return float(np.mean(x)) if x else float("nan")
-
-
 def _pair(base: Report, other: Report, key: Key, seed: int) -> dict[str, Any]:
     b, o = base.runs[key], other.runs[key]
     problems = sorted(set(b) & set(o))
@@ -149,24 +144,8 @@ def _pair(base: Report, other: Report, key: Key, seed: int) -> dict[str, Any]:
                 "not the same held-out problem",
                 "compare reports of `ttompc evaluate mpc` run with the same scenario and seed",
             )
-    both = [p for p in problems if b[p].feasible and o[p].feasible]
-    base_step, other_step = _mean(b[p].mean_step_time for p in problems), _mean(o[p].mean_step_time for p in problems)
-    return {
-        "base": base.label,
-        "other": other.label,
-        "plant": key[0],
-        "method": key[1],
-        "horizon": key[2],
-        "problems": len(problems),
-        "base_goals": sum(b[p].feasible for p in problems),
-        "other_goals": sum(o[p].feasible for p in problems),
-        "lost": sum(b[p].feasible and not o[p].feasible for p in problems),
-        "won": sum(o[p].feasible and not b[p].feasible for p in problems),
-        "paired": interval([100 * (o[p].rel_increment - b[p].rel_increment) for p in both], seed=seed),
-        "base_step_time": base_step,
-        "other_step_time": other_step,
-        "step_ratio": base_step / other_step if other_step > 0 else float("nan"),
-    }
+    pair = paired({p: b[p].outcome for p in problems}, {p: o[p].outcome for p in problems}, scale=100, seed=seed)
+    return {"base": base.label, "other": other.label, "plant": key[0], "method": key[1], "horizon": key[2], **pair}
 
 
 def compare_reports(

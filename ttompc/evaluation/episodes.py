@@ -16,8 +16,9 @@ import numpy as np
 from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.problems import EvalProblem
 from ttompc.evaluation.stats import interval
-from ttompc.mpc.loop import Episode, run_mpc_batch
-from ttompc.mpc.tto import tto_providers
+from ttompc.mpc.episode import Episode
+from ttompc.mpc.loop import run_mpc_batch
+from ttompc.mpc.methods import METHODS, MethodInputs
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -63,10 +64,10 @@ def closed_loop_metrics(
     *,
     progress: str = "",
 ) -> tuple[dict[str, float], list[Episode]]:
-    """TTO-MPC with ``planner`` (conditioned at its own ``rtg_scale``) on fixed ``problems``
+    """TTO-MPC (``METHODS``) with ``planner`` (conditioned at its own ``rtg_scale``) on fixed ``problems``
     (``measurement.problem_set``) as the single-horizon, single-plant ``measurement`` says (its settings, horizon,
     plant and max_steps; the perturbed plant seeded per problem), all episodes in lockstep with one batched rollout
-    per step (``tto_providers``): flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count),
+    per step: flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count),
     ``cost_increment`` and its ``_se`` (mean (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible
     runs), ``target_change``, step times (``Episode.step_times``: each episode's share of the batched rollout and
     context advance plus its own solves) and ``fallbacks``. ``progress``: the label of a progress bar over the
@@ -76,7 +77,7 @@ def closed_loop_metrics(
     sc = planner.scenario
     measurement.check_single("closed_loop_metrics")
     [(_, run)] = measurement.runs(sc)
-    provs = tto_providers(planner, run.settings, [None] * len(problems))
+    provs = METHODS["TTO-MPC"].providers(MethodInputs(run.settings, [None] * len(problems), planner))
     steps = min(run.max_steps or sc.n_steps, sc.n_steps)
     with Bar(len(problems), progress, "episode", show=bool(progress)) as bar:
         episodes = run_mpc_batch(sc, [ep.start for ep in problems], provs, run,

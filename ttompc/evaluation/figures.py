@@ -1,6 +1,6 @@
 """The README's figures (``make figures``): a planned trajectory and the paper's Fig. 4–6 as we measure them, each
 drawn from a report that a stated ``ttompc evaluate`` command writes, and each carrying that command in its footer
-(``report_command``, rebuilt from the settings the report records).
+(``ttompc.evaluation.reproduce.report_command``, rebuilt from the settings the report records).
 
 * ``planned_trajectory.png``: held-out non-convex problems (``--problems`` of the evaluation stream of ``--seed``),
   computed here with the evaluation protocol's per-problem step (``warmstart.evaluate_problem``): keep-out zones,
@@ -38,17 +38,16 @@ import numpy as np
 
 from ttompc.errors import UserError
 from ttompc.evaluation.plots import Panel, horizon_axis, horizon_cost_panel, line_style, trajectory_figure
+from ttompc.evaluation.reproduce import report_command
 
 PAPER_METHODS = ("REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC")
 WARMSTART_METHODS = ("TTO", "FT-TTO", "ORACLE")
 MODEL_KEYS = {"TTO": "model", "FT-TTO": "ft_model"}  # method -> the config key naming its model
-INERT = ("out", "workers")  # recorded settings that do not change a report's numbers, left out of its command
 FILES = ("planned_trajectory.png", "warmstart.png", "closed_loop_cost.png", "step_time.png")
 # The planned problems of the stream of seed 4242 (the zoo cards'): 0, the first, on which SCP from REL and from
 # freeflyer-ft-tto-v5 reach the same optimum (as on 68 of the 100 problems of the warm-start report that `make figures`
 # runs); 7, the first on which SCP from the model reaches a cheaper one (21 of 100; 11 the other way).
 PROBLEMS = (0, 7)
-ALWAYS = ("problems", "seed")  # settings every command line shows, default or not
 
 
 def load_report(path: str | Path, kind: str) -> dict[str, Any]:
@@ -72,40 +71,6 @@ def _nan(data: Any) -> Any:
     if isinstance(data, list):
         return [_nan(v) for v in data]
     return float("nan") if data is None else data
-
-
-def report_command(kind: str, config: dict[str, Any]) -> str:
-    """The ``ttompc evaluate KIND`` command line that reproduces a report: its recorded ``config`` as ``key=value``,
-    ``ALWAYS`` and every setting that differs from the command's default (nested settings as dotted keys),
-    ``INERT`` ones left out. A setting the command no longer has is kept, so the line shows what ran."""
-    from dataclasses import asdict
-
-    from ttompc.evaluation.closed_loop import ClosedLoopConfig
-    from ttompc.evaluation.warmstart import WarmStartConfig
-
-    defaults = _flat(asdict(ClosedLoopConfig() if kind == "mpc" else WarmStartConfig()))
-    parts = [
-        f"{key}={_value(v)}"
-        for key, v in _flat(config).items()
-        if key.split(".")[0] not in INERT and (key in ALWAYS or key not in defaults or defaults[key] != v)
-    ]
-    return " ".join(["ttompc evaluate", kind, *parts])
-
-
-def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, v in d.items():
-        if isinstance(v, dict) and v:
-            out |= _flat(v, f"{prefix}{key}.")
-        else:
-            out[f"{prefix}{key}"] = v
-    return out
-
-
-def _value(v: Any) -> str:
-    if isinstance(v, list):
-        return "[" + ",".join(_value(x) for x in v) + "]"
-    return "null" if v is None else "{}" if v == {} else str(v)
 
 
 def model_label(method: str, config: dict[str, Any]) -> str:

@@ -1,10 +1,14 @@
 """Bootstrap statistics of the evaluation reports: means with their standard error and a seeded percentile
-bootstrap interval, so two models can be told apart from noise (``interval``), and their table format."""
+bootstrap interval, so two models can be told apart from noise (``interval``), and their table format; and the one
+paired comparison of two methods on the problems both ran (``paired``), which ``ttompc evaluate compare``, the
+closed-loop report and the demo read."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Hashable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -36,3 +40,49 @@ def format_interval(iv: dict[str, float], scale: float = 1.0, digits: int = 3) -
     if not math.isfinite(se):
         return f"{m:.{digits}g}"
     return f"{m:.{digits}g} ± {se:.2g} [{lo:.{digits}g}, {hi:.{digits}g}]"
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a paired comparison reads of one episode: whether it ran feasibly (goal reached, every constraint met),
+    its (J − J_REL)/J_REL (nan when infeasible) and its mean step time (s)."""
+
+    feasible: bool
+    rel_increment: float
+    step_time: float
+
+    @classmethod
+    def of(cls, record: Mapping[str, Any]) -> Outcome:
+        """From an episode record (``ttompc.evaluation.episodes.episode_record``, a report's run)."""
+        return cls(bool(record["feasible"]), float(record["rel_increment"]), float(record["mean_step_time"]))
+
+
+def paired(
+    base: Mapping[Hashable, Outcome], other: Mapping[Hashable, Outcome], *, scale: float = 1.0, seed: int = 0
+) -> dict[str, Any]:
+    """Method ``other`` against ``base`` on the problems both ran (keys, in ``other``'s order): ``problems`` (how
+    many), ``base_goals`` / ``other_goals`` (feasible episodes among them), ``lost`` (feasible in the base only),
+    ``won`` (in the other only), ``paired``: the ``interval`` (mean, standard error, 95% bootstrap lo/hi, n) of
+    ``scale``·(other − base) in (J − J_REL)/J_REL over the n problems both ran feasibly (negative: the other is
+    cheaper), ``base_step_time`` / ``other_step_time``: the mean step times over the problems both ran (feasible or
+    not) and ``step_ratio``: base / other (> 1: the other steps faster). ``seed`` seeds the bootstrap."""
+    problems = [p for p in other if p in base]
+    b, o = [base[p] for p in problems], [other[p] for p in problems]
+    both = [(x, y) for x, y in zip(b, o, strict=True) if x.feasible and y.feasible]
+    base_step, other_step = _finite_mean(x.step_time for x in b), _finite_mean(y.step_time for y in o)
+    return {
+        "problems": len(problems),
+        "base_goals": sum(x.feasible for x in b),
+        "other_goals": sum(y.feasible for y in o),
+        "lost": sum(x.feasible and not y.feasible for x, y in zip(b, o, strict=True)),
+        "won": sum(y.feasible and not x.feasible for x, y in zip(b, o, strict=True)),
+        "paired": interval([scale * (y.rel_increment - x.rel_increment) for x, y in both], seed=seed),
+        "base_step_time": base_step,
+        "other_step_time": other_step,
+        "step_ratio": base_step / other_step if other_step > 0 else float("nan"),
+    }
+
+
+def _finite_mean(values: Iterable[float]) -> float:
+    x = [v for v in values if math.isfinite(v)]
+    return float(np.mean(x)) if x else float("nan")

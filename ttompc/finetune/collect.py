@@ -16,7 +16,7 @@ Labels (``labels.kind``):
   action token; our (target_action, target_next_state) pair is always consistent. One row per rollout: the visited
   states, executed actions and the learner's running conditioning, NaN targets at unlabelled steps (no loss).
 * ``plan`` (a departure): one row per labelled step t whose expert solve converged: the visited prefix, then the
-  expert's plan from x_t, with targets from t on (``_plan_row``). TTO-MPC's terminal target is the model's H-step
+  expert's plan from x_t, with targets from t on (``rows.plan_row``). TTO-MPC's terminal target is the model's H-step
   rollout from the visited history; these rows supervise exactly that rollout.
 The solver columns hold the row's cost, the learner's/expert's compute time (solve_time/solver_time), the keep-out
 violations of the row's trajectory (violation) and "H=..;expert_steps=..;fallbacks=..;plant=..;labels=.." (status;
@@ -27,8 +27,10 @@ Seeds: rollout (i, r) draws everything (problem, H, windows) from ``ttompc.seedi
 the wall clock. Rows go through the same resumable writer as open-loop generation (``ShardedFolder``, shard k =
 rollouts [k·S, (k+1)·S), ``source="dagger"``, ``iteration=i``) into ``<run>/dagger/iter-<i>/``, which the DataModule
 reads like an open-loop folder; each rank collects its own shards with the shared process pool. A worker runs
-``collect.batch`` rollouts of one shard in lockstep (``collect_rollouts``): their learners share one batched
-transformer context, one rollout per step for all (the expert's solves stay per rollout).
+``collect.batch`` rollouts of one shard in lockstep (``collect_rollouts``) through the MPC loop
+(``ttompc.mpc.loop.run_mpc_batch``: the learners are its episodes, the expert a ``StepHook`` beside them): their
+learners share one batched transformer context, one rollout per step for all (the expert's solves stay per
+rollout).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -46,14 +48,17 @@ from ttompc.data.config import SplitConfig
 from ttompc.data.distributed import RankInfo
 from ttompc.data.generate import split_of
 from ttompc.data.resumable import ShardedFolder
-from ttompc.data.schema import make_row, trajectory_features
+from ttompc.data.schema import trajectory_features
 from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig, check_rollout_settings
-from ttompc.mpc.loop import MPCController, StepPlan
+from ttompc.finetune.rows import plan_row, trajectory_row
+from ttompc.mpc.episode import Episode
+from ttompc.mpc.loop import EpisodeStart, MPCController, MPCRun, StepPlan, run_mpc_batch
+from ttompc.mpc.methods import METHODS, MethodInputs
 from ttompc.mpc.plant import PLANT_STREAM, Plant, PlantNoise
-from ttompc.mpc.providers import ShiftProvider
+from ttompc.mpc.providers import Provider, ShiftProvider
 from ttompc.mpc.settings import MPCSettings
-from ttompc.mpc.tto import TTOProvider, tto_providers
+from ttompc.mpc.tto import RolloutGroup, TTOProvider
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -116,8 +121,9 @@ def label_schedule(rng: np.random.Generator, n_steps: int, per_rollout: int, lat
 
 
 @dataclass
-class _Episode:
-    """One rollout's state while it runs in lockstep with others (``collect_rollouts``)."""
+class _Rollout:
+    """One rollout's draws (``rollout_seed``: problem, horizon H, expert windows, labelled steps, plant) and its
+    expert (a full-horizon ``MPCController`` warm-started by ``shift``) with the plans it made at labelled steps."""
 
     index: int
     seed: int
@@ -126,18 +132,48 @@ class _Episode:
     H: int
     expert_steps: np.ndarray
     labelled: np.ndarray
-    learner_provider: TTOProvider
-    learner: MPCController
+    plant: PlantNoise
     shift: ShiftProvider
     expert: MPCController
-    x: np.ndarray
-    plant: Plant
-    X: list[np.ndarray] = field(default_factory=list)
-    U: list[np.ndarray] = field(default_factory=list)
     plans: dict[int, StepPlan] = field(default_factory=dict)  # the expert's plan at each labelled step
-    learner_time: float = 0.0
     expert_time: float = 0.0
-    fallbacks: int = 0
+
+
+class _Expert:
+    """The expert beside the learners' lockstep loop (a ``StepHook`` of ``run_mpc_batch``): at each labelled step of
+    a rollout it plans [t, N) from the measured state, starting from REL over [t, N) from x_t as a from-scratch solve
+    does (REL from the straight line, not warm-started by an earlier step's REL, which can stop at another point, and
+    the label with it; REL at t = 0 is the rollout's own); in the rollout's expert windows its plan acts. Before each
+    step it tells the learners' ``RolloutGroup`` the longest window they will ask, so one batched rollout serves
+    them all."""
+
+    def __init__(self, scenario: Scenario, rollouts: Sequence[_Rollout], group: RolloutGroup, backend: str) -> None:
+        self.scenario, self.rollouts, self.group, self.backend = scenario, rollouts, group, backend
+
+    def before(self, t: int, controllers: Sequence[MPCController], xs: Sequence[np.ndarray]) -> list[StepPlan | None]:
+        windows = [c.window(t).length for r, c in zip(self.rollouts, controllers, strict=True) if not r.expert_steps[t]]
+        self.group.expect(t, max(windows, default=0))
+        acting: list[StepPlan | None] = []
+        for r, x in zip(self.rollouts, xs, strict=True):
+            e = self._label(r, t, x) if r.labelled[t] else None
+            acting.append(e if r.expert_steps[t] else None)
+        return acting
+
+    def _label(self, r: _Rollout, t: int, x: np.ndarray) -> StepPlan:
+        t0 = time.perf_counter()
+        N = r.problem.n_steps
+        start = r.rel if t == 0 else solve_rel(self.scenario, r.problem, window=Window(t, N - t, N), x_start=x,
+                                               backend=self.backend)  # fmt: skip
+        r.shift.reset_plan(start.X, start.U)
+        r.expert_time += time.perf_counter() - t0
+        e = r.plans[t] = r.expert.plan(t, x)
+        r.expert_time += e.warm_time + e.solve_time
+        return e
+
+    def after(self, t: int, plans: Sequence[StepPlan], xs: Sequence[np.ndarray]) -> None:
+        for r, plan, x_next in zip(self.rollouts, plans, xs, strict=True):
+            if r.labelled[t]:
+                r.expert.observe(r.plans[t], plan.u, x_next)
 
 
 def collect_rollout(
@@ -182,23 +218,24 @@ def collect_rollouts(
 ) -> list[list[dict[str, Any]]]:
     """The DAgger rollouts ``indices`` of ``iteration``, run in lockstep -> each one's schema rows (see the module
     docstring for the labels): one row with ``kind="step"`` labels, one row per labelled step with ``kind="plan"``.
-    The learners of all rollouts share one batched transformer context (``RolloutGroup``: one batched rollout per
-    step), so a rollout's learner plans equal its lone run's up to the rounding of the batch. Both controllers run
+    The learners are TTO-MPC (``METHODS``) at each rollout's H, the episodes of ``run_mpc_batch``, and share one
+    batched transformer context (``RolloutGroup``: one batched rollout per step), so a rollout's learner plans equal
+    its lone run's up to the rounding of the batch; the expert acts beside them (``_Expert``). Both controllers run
     under ``settings`` (default: the paper's), which ``check_rollout_settings`` refuses where the rollouts cannot
-    honour them (real-time iteration): mode, backend and plan reuse (without reuse the labels are the same) for both;
-    for the learner (its H drawn by the exploration, Alg. 1) also the end horizon and, through ``tto_providers``, the
-    tracking weight and the rtg mode (a model without a value output keeps the ledger). The expert's windows always
-    reach the end, where those three do not apply. A share ``perturbed`` of the rollouts runs on the perturbed plant
-    (``rollout_plant``): both controllers plan from its measured states, the expert labels them."""
+    honour them (real-time iteration, a terminal term or rtg mode they cannot run): mode, backend and plan reuse
+    (without reuse the labels are the same) for both; for the learner (its H drawn by the exploration, Alg. 1) also
+    the end horizon, the terminal term with its tracking weight and the rtg mode (the one its model runs,
+    ``ttompc.mpc.rtg``). The expert's windows always reach the end, where those three do not apply. A share
+    ``perturbed`` of the rollouts runs on the perturbed plant (``rollout_plant``): both controllers plan from its
+    measured states, the expert labels them."""
     labels = labels or LabelConfig()
     s = settings or MPCSettings()
     check_rollout_settings(s)
     if not indices:
         return []
-    learners = tto_providers(planner, s, [None] * len(indices))
-    group = learners[0].group
-    episodes = []
-    for index, provider in zip(indices, learners, strict=True):
+    learners = _tto(METHODS["TTO-MPC"].providers(MethodInputs(s, [None] * len(indices), planner)))
+    rollouts, starts = [], []
+    for index in indices:
         seed = rollout_seed(root_seed, iteration, index)
         rng = np.random.default_rng(seed)
         problem, rel = _sample_problem(scenario, rng)
@@ -207,154 +244,69 @@ def collect_rollouts(
         expert_steps = expert_schedule(rng, N, exploration)
         labelled = label_schedule(rng, N, labels.per_rollout, labels.late) | expert_steps
         shift = ShiftProvider()
-        learner = MPCController(scenario, problem, provider, H, s)
         expert = MPCController(scenario, problem, shift, N, s)
-        ep = _Episode(index, seed, problem, rel, H, expert_steps, labelled, provider, learner, shift, expert,
-                      problem.x0.copy(), rollout_plant(scenario, seed, perturbed))  # fmt: skip
-        ep.X.append(ep.x)
-        episodes.append(ep)
-    if len({ep.problem.n_steps for ep in episodes}) > 1:
+        plant = rollout_plant(scenario, seed, perturbed).noise
+        rollouts.append(_Rollout(index, seed, problem, rel, H, expert_steps, labelled, plant, shift, expert))
+        starts.append(EpisodeStart(problem, rel.cost, seed, horizon=H, plant=plant))
+    if len({r.problem.n_steps for r in rollouts}) > 1:
         raise ValueError("rollouts run in lockstep need problems of one length N")
-    for ep in episodes:
-        ep.learner_provider.reset(scenario, ep.problem, ep.rel.cost)
-        ep.shift.reset(scenario, ep.problem, ep.rel.cost)
-    N = episodes[0].problem.n_steps
-    for t in range(N):  # the learners' longest window: one batched rollout serves them all
-        group.expect(t, max((ep.learner.window(t).length for ep in episodes if not ep.expert_steps[t]), default=0))
-        steps = [_plan_step(scenario, ep, t, s.backend) for ep in episodes]
-        for ep, (plan, e) in zip(episodes, steps, strict=True):
-            x_next = ep.plant.step(ep.problem, t, ep.x, plan.u)
-            if e is not None:
-                ep.expert.observe(e, plan.u, x_next)
-            ep.learner.observe(plan, plan.u, x_next)
-            ep.X.append(x_next)
-            ep.U.append(plan.u)
-            ep.x = x_next
-    ctx = group.context
-    return [_rows(scenario, ep, iteration, labels, ctx) for ep in episodes]
+    for r in rollouts:
+        r.shift.reset(scenario, r.problem, r.rel.cost)
+    group = learners[0].group  # the learners', made together (``Method.providers``)
+    run = MPCRun(max(r.H for r in rollouts), s)  # each rollout plans at its own H (EpisodeStart.horizon)
+    episodes = run_mpc_batch(scenario, starts, learners, run, hook=_Expert(scenario, rollouts, group, s.backend))
+    return [
+        _rows(scenario, r, e, learner.slot, iteration, labels, group.context)
+        for r, e, learner in zip(rollouts, episodes, learners, strict=True)
+    ]
 
 
-def _plan_step(scenario: Scenario, ep: _Episode, t: int, backend: str) -> tuple[StepPlan, StepPlan | None]:
-    """Step t of a rollout: the expert's plan where the step is labelled (None elsewhere) and the plan that acts
-    (the expert's in its windows, the learner's elsewhere)."""
-    e = None
-    # the expert starts from REL over [t, N) from x_t, as a from-scratch solve does: REL from the straight line,
-    # not warm-started by an earlier step's REL (which can stop at another point, and the label with it)
-    if ep.labelled[t]:
-        t0 = time.perf_counter()
-        N = ep.problem.n_steps
-        start = ep.rel if t == 0 else solve_rel(scenario, ep.problem, window=Window(t, N - t, N), x_start=ep.x,
-                                                backend=backend)  # fmt: skip
-        ep.shift.reset_plan(start.X, start.U)
-        ep.expert_time += time.perf_counter() - t0
-        e = ep.plans[t] = ep.expert.plan(t, ep.x)
-        ep.expert_time += e.warm_time + e.solve_time
-    if ep.expert_steps[t]:
-        assert e is not None
-        return e, e
-    plan = ep.learner.plan(t, ep.x)
-    ep.learner_time += plan.warm_time + plan.solve_time
-    ep.fallbacks += plan.fallback
-    return plan, e
+def _tto(providers: Sequence[Provider]) -> list[TTOProvider]:
+    """TTO-MPC's providers, as the TTO providers they are."""
+    out = [p for p in providers if isinstance(p, TTOProvider)]
+    if len(out) != len(providers):
+        raise TypeError("DAgger's learners are TTO-MPC providers")
+    return out
 
 
 def _rows(
-    scenario: Scenario, ep: _Episode, iteration: int, labels: LabelConfig, ctx: RolloutContext | None
+    scenario: Scenario,
+    r: _Rollout,
+    episode: Episode,
+    slot: int,
+    iteration: int,
+    labels: LabelConfig,
+    ctx: RolloutContext | None,
 ) -> list[dict[str, Any]]:
-    """A finished rollout's schema rows (``labels.kind``), its rtg/ctg from its row of the learners' context."""
-    problem, N = ep.problem, ep.problem.n_steps
-    Xa, Ua = np.stack(ep.X), np.stack(ep.U)
+    """A finished rollout's schema rows (``labels.kind``) from its learner's ``episode``: its rtg/ctg from row ``slot``
+    of the learners' context, the learner's time and fallbacks from the steps it acted in."""
+    problem, N = r.problem, r.problem.n_steps
+    Xa, Ua = episode.X, episode.U
     assert ctx is not None
-    slot = ep.learner_provider.slot
     rtg, ctg = ctx.rtg[slot, :N].double().cpu().numpy(), ctx.ctg[slot, :N].double().cpu().numpy()
-    common = dict(problem_id=rollout_id(iteration, ep.index), seed=ep.seed, source="dagger", iteration=iteration,
-                  solve_time=ep.learner_time, solver_time=ep.expert_time)  # fmt: skip
-    n_expert, n_labels = int(ep.expert_steps.sum()), int(ep.labelled.sum())
-    plant = "nominal" if ep.plant.noise.nominal else "perturbed"
-    status = f"H={ep.H};expert_steps={n_expert};fallbacks={ep.fallbacks};plant={plant};labels={n_labels}"
+    learned = ~r.expert_steps[: len(Ua)]
+    learner_time = float(np.sum(episode.warm_times[learned] + episode.solve_times[learned]))
+    fallbacks = episode.fallbacks - sum(e.fallback for t, e in r.plans.items() if r.expert_steps[t])
+    common = dict(problem_id=rollout_id(iteration, r.index), seed=r.seed, source="dagger", iteration=iteration,
+                  solve_time=learner_time, solver_time=r.expert_time)  # fmt: skip
+    n_expert, n_labels = int(r.expert_steps.sum()), int(r.labelled.sum())
+    plant = "nominal" if r.plant.nominal else "perturbed"
+    status = f"H={r.H};expert_steps={n_expert};fallbacks={fallbacks};plant={plant};labels={n_labels}"
     if labels.kind == "plan":
         return [
-            _plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, status, common, labels.rtg)
-            for t, e in sorted(ep.plans.items())
+            plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, status, common, labels.rtg)
+            for t, e in sorted(r.plans.items())
             if not e.fallback
         ]
     m, n = scenario.control_dim, scenario.state_dim
     target_actions = np.full((N, m), np.nan)
     target_next = np.full((N, n), np.nan)
-    for t, e in ep.plans.items():
+    for t, e in r.plans.items():
         target_actions[t] = e.u
         x_star = scenario.step(problem, t, Xa[t], e.u)
         target_next[t] = scenario.to_model_states(problem, x_star[None], start=t + 1)[0]
     S = scenario.to_model_states(problem, Xa)
-    return [_row(scenario, problem, Xa, Ua, S, rtg, ctg, target_actions, target_next, status, common)]
-
-
-def _row(
-    scenario: Scenario,
-    problem: Problem,
-    X: np.ndarray,
-    U: np.ndarray,
-    S: np.ndarray,
-    rtg: np.ndarray,
-    ctg: np.ndarray,
-    target_actions: np.ndarray,
-    target_next: np.ndarray,
-    status: str,
-    common: dict[str, Any],
-) -> dict[str, Any]:
-    """A DAgger row of the trajectory (X, U) with model states S: its cost and keep-out violations, the targets."""
-    return make_row(
-        scenario,
-        problem,
-        states=S,
-        states_opt=X,
-        actions=U,
-        rtg=rtg,
-        ctg=ctg,
-        target_actions=target_actions,
-        target_next_states=target_next,
-        cost=scenario.cost(U),
-        status=status,
-        violation=float(np.sum(scenario.violations(problem, X))),
-        **common,
-    )
-
-
-def _plan_row(
-    scenario: Scenario,
-    problem: Problem,
-    X: np.ndarray,
-    U: np.ndarray,
-    rtg: np.ndarray,
-    ctg: np.ndarray,
-    t: int,
-    e: StepPlan,
-    status: str,
-    common: dict[str, Any],
-    rtg_label: Literal["learner", "expert"],
-) -> dict[str, Any]:
-    """The row of a ``plan`` label at step t: the visited prefix (states x_0..x_t, executed u_0..u_(t-1), the learner's
-    rtg/ctg) followed by the expert's plan from x_t over [t, N); targets (the plan's controls and next states) from t
-    on, NaN (no loss) before. From t the rtg is, with ``rtg="learner"``, the learner's value run on as the context
-    runs it (rtg_(s+1) = rtg_s + c(u*_s)); with ``rtg="expert"`` the plan's own cost-to-go −Σ_(k>=s) c(u*_k), as in
-    open-loop rows. The ctg is held (the expert plan is feasible)."""
-    N = problem.n_steps
-    Xr = np.concatenate([X[:t], e.X])  # (N+1, n)
-    Ur = np.concatenate([U[:t], e.U])  # (N, m)
-    S = scenario.to_model_states(problem, Xr)
-    stage = scenario.stage_cost(e.U)  # (N - t,)
-    if rtg_label == "expert":
-        togo = -np.cumsum(stage[::-1])[::-1]
-    else:
-        togo = rtg[t] + np.concatenate([[0.0], np.cumsum(stage[:-1])])
-    rtg_r = np.concatenate([rtg[:t], togo])
-    ctg_r = np.concatenate([ctg[:t], np.full(N - t, ctg[t])])
-    target_actions = np.full_like(Ur, np.nan)
-    target_actions[t:] = e.U
-    target_next = np.full((N, S.shape[1]), np.nan)
-    target_next[t:] = S[t + 1 :]
-    status = f"{status};plan_from={t}"
-    return _row(scenario, problem, Xr, Ur, S, rtg_r, ctg_r, target_actions, target_next, status, common)
+    return [trajectory_row(scenario, problem, Xa, Ua, S, rtg, ctg, target_actions, target_next, status, common)]
 
 
 # ------------------------------------------------------------------------------------------------ collection

@@ -8,8 +8,8 @@ iteration and always exports the selected planner, so a recipe or override that 
 ``keep_checkpoints``, ``resume`` or ``export_planner`` is rejected. A fine-tuning names its MPC settings once, in
 its keep/reject measurement ``dagger.eval`` (a ``ttompc.evaluation.measurement.Measurement``): ``dagger.eval.protocol``
 (a preset of ``ttompc.mpc.settings`` or a YAML file) with single-key overrides in ``dagger.eval.mpc``. The rollouts
-take every setting from it but those they cannot run (``ROLLOUT_FIXED``: refused when the recipe loads), and the
-training callback measures under it too (a recipe that sets ``callbacks.eval_mpc.protocol`` or
+take every setting from it but those they cannot run (``check_rollout_settings``: refused when the recipe loads),
+and the training callback measures under it too (a recipe that sets ``callbacks.eval_mpc.protocol`` or
 ``callbacks.eval_mpc.mpc`` is rejected). The open-loop/closed-loop mix is ``data.open_loop_fraction``
 with ``data.closed_loop_share``: "grow" is the paper's (9:1 at the first iteration, then the closed-loop share grows
 as DAgger data accumulates), "fixed" keeps that fraction at every iteration.
@@ -26,7 +26,9 @@ from typing import Any, Literal
 from ttompc.config import ConfigError, given_keys, load_command_config
 from ttompc.data.config import DataConfig
 from ttompc.evaluation.measurement import Measurement
+from ttompc.mpc.rtg import RTG_MODES
 from ttompc.mpc.settings import MPCSettings
+from ttompc.mpc.terminal import TERMINALS
 from ttompc.training.config import CallbacksConfig, LoggerConfig, OptimConfig, TrainerConfig
 
 DAGGER_OWNED = ("max_steps", "max_epochs", "keep_checkpoints", "resume", "export_planner")  # trainer keys DAgger sets
@@ -110,15 +112,22 @@ ROLLOUT_FIXED: dict[str, Any] = {"rti": False}
 
 
 def check_rollout_settings(settings: MPCSettings) -> None:
-    """Refuse, in one line naming the keys, the settings DAgger's rollouts cannot honour (``ROLLOUT_FIXED``); they
-    take every other key (``ttompc.finetune.collect.collect_rollouts``). Raises ``ConfigError``."""
-    bad = [k for k, v in ROLLOUT_FIXED.items() if getattr(settings, k) != v]
-    if bad:
-        given = " ".join(f"{k}={json.dumps(getattr(settings, k))}" for k in bad)
-        fixed = " ".join(f"dagger.eval.mpc.{k}={json.dumps(ROLLOUT_FIXED[k])}" for k in bad)
+    """Refuse, in one line naming the keys, the settings DAgger's rollouts cannot honour: ``ROLLOUT_FIXED``'s, and a
+    terminal term or rtg mode that declares it cannot run in them (``TerminalTerm.rollouts``, ``RTGFeed.rollouts``);
+    they take every other key (``ttompc.finetune.collect.collect_rollouts``). Raises ``ConfigError``."""
+    fixed = [k for k, v in ROLLOUT_FIXED.items() if getattr(settings, k) != v]
+    runnable = {  # the terminal terms and rtg modes the rollouts run
+        "terminal": [name for name, kind in TERMINALS.items() if kind.rollouts],
+        "rtg_mode": [name for name, mode in RTG_MODES.items() if mode.rollouts],
+    }
+    refused = [k for k, names in runnable.items() if getattr(settings, k) not in names]
+    if fixed or refused:
+        given = " ".join(f"{k}={json.dumps(getattr(settings, k))}" for k in fixed + refused)
+        fix = [f"dagger.eval.mpc.{k}={json.dumps(ROLLOUT_FIXED[k])}" for k in fixed]
+        fix += [f"dagger.eval.mpc.{k} among {runnable[k]}" for k in refused]
         raise ConfigError(
             f"dagger.eval: DAgger's rollouts cannot run {given} (they solve every window to convergence)",
-            f"use {fixed}, and measure it with `ttompc evaluate mpc`",
+            f"use {' '.join(fix)}, and measure it with `ttompc evaluate mpc`",
         )
 
 

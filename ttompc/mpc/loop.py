@@ -43,32 +43,25 @@ Two ways a step does less than SCP to convergence from the provider's warm start
   back. Measured against convergence in docs/evaluation.md.
 
 The plant is ``ttompc.mpc.plant.Plant``: the exact dynamics, optionally with seeded actuation error and process
-noise (``PlantNoise``). Plan consistency is recorded per episode: ``target_change`` is the mean over consecutive
-steps of ‖(x̄_t − x̄_{t−1}) / state_scale‖₂, the change of the terminal target between MPC steps in units of the
-scenario's characteristic magnitudes (a consistent plan moves it by about one step of motion; a jittering one by
-much more).
+noise (``PlantNoise``). An episode's record and feasibility: ``ttompc.mpc.episode``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
+from ttompc.mpc.episode import Episode, EpisodeTrace
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
 from ttompc.mpc.settings import Mode, MPCSettings
 from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
 from ttompc.solvers.scp import SCPOptions, SCPProblem, SCPResult, SCPStatus, TerminalCost, solve_scp
-
-# Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol. A goal miss is not the soft end
-# penalty's: tracking an exact plan ends on the goal once the tracking weight exceeds the multiplier of the window's
-# terminal constraint (``MPCWeights.track``); a plan that lags (REL-MPC at H = 10, docs/design.md) brings the goal
-# into the window when the control bound no longer lets it be reached (``end_horizon``).
 
 
 @dataclass
@@ -86,62 +79,6 @@ class StepPlan:
     soft_end: bool = False  # hard mode: the goal was out of reach, the window used the soft end term
     reused: bool = False  # the previous plan's tail, neither provider nor solver called (module doc)
     converged: bool = False  # the SCP met its stopping rule (a fixed point), or the tail of such a plan: reusable
-
-
-@dataclass
-class Episode:
-    """A closed-loop run: executed trajectory (T+1 states, T controls; T = N unless ``max_steps``) and metrics."""
-
-    method: str
-    horizon: int
-    X: np.ndarray
-    U: np.ndarray
-    cost: float  # Σ c(u) of the executed controls
-    rel_cost: float  # J_REL of the open-loop REL solution (lower bound of the full problem)
-    step_times: np.ndarray  # (T,) observe + warm start + solve per step (s): measured state to control (module doc)
-    observe_times: np.ndarray  # (T,) the observe of the previous step's outcome (0 at t = 0)
-    warm_times: np.ndarray
-    solve_times: np.ndarray
-    iterations: np.ndarray  # (T,) SCP iterations per step (all the step's window solves; 0 for a reused plan)
-    fallbacks: int
-    terminal_error: float  # ‖x_N − goal‖₂ (nan for truncated episodes)
-    keepout_violations: int  # states of the executed trajectory inside a keep-out zone
-    path_violation: float  # largest exact path-constraint violation (keep-out depth, bounds, ...)
-    complete: bool  # ran all N steps
-    feasible: bool  # no keep-out violation, path violation ≤ tol and (if complete) terminal error ≤ tol
-    target_change: float = float("nan")  # plan consistency (module doc); nan without two consecutive targets
-    plant: str = "nominal"  # "nominal" or "perturbed"
-    soft_ends: int = 0  # hard mode: steps whose end window fell back to the soft end term (goal out of reach)
-    reuses: int = 0  # steps that applied the previous plan's tail (plan reuse, module doc)
-    rti: bool = False  # real-time iteration: one subproblem per step (module doc)
-
-    def summary(self) -> dict[str, float | int | str | bool]:
-        """Flat per-episode metrics (a run's row in the reports): the fields above, with the arrays reduced to
-        ``mean_step_time``/``max_step_time`` (s), ``mean_iterations`` (SCP iterations per step, a reused step 0)
-        and ``mean_iterations_solved`` (per step that ran the window SCP, i.e. not reused; nan if none did)."""
-        solved = len(self.iterations) - self.reuses
-        return {
-            "method": self.method,
-            "horizon": self.horizon,
-            "cost": self.cost,
-            "rel_cost": self.rel_cost,
-            "steps": len(self.U),
-            "mean_step_time": float(np.mean(self.step_times)) if len(self.step_times) else float("nan"),
-            "max_step_time": float(np.max(self.step_times)) if len(self.step_times) else float("nan"),
-            "mean_iterations": float(np.mean(self.iterations)) if len(self.iterations) else float("nan"),
-            "mean_iterations_solved": float(np.sum(self.iterations) / solved) if solved else float("nan"),
-            "fallbacks": self.fallbacks,
-            "terminal_error": self.terminal_error,
-            "keepout_violations": self.keepout_violations,
-            "path_violation": self.path_violation,
-            "complete": self.complete,
-            "feasible": self.feasible,
-            "target_change": self.target_change,
-            "plant": self.plant,
-            "soft_ends": self.soft_ends,
-            "reuses": self.reuses,
-            "rti": self.rti,
-        }
 
 
 class MPCController:
@@ -291,50 +228,18 @@ def observe_charges(seconds: np.ndarray, shared: Sequence[float | None]) -> np.n
     return charges
 
 
-def episode_metrics(
-    scenario: Scenario,
-    problem: Problem,
-    X: np.ndarray,
-    U: np.ndarray,
-    *,
-    path_tol: float = 1e-3,
-    strict_keepout: bool = True,
-) -> dict[str, float | int | bool]:
-    """Feasibility of an executed trajectory: terminal error (within ``scenario.terminal_tol``), keep-out violations,
-    exact path violation. With
-    ``strict_keepout`` any state inside a keep-out zone makes it infeasible; without, only a depth (part of the
-    path violation) beyond ``path_tol`` does (the perturbed plant, whose disturbances no controller can undo)."""
-    T = len(U)
-    complete = T == problem.n_steps
-    err = float(np.linalg.norm(X[-1] - problem.goal)) if complete else float("nan")
-    koz = int(np.sum(scenario.violations(problem, X)))
-    path = scenario.path_violation(problem, X, U, Window(0, T, problem.n_steps)) if T else 0.0
-    feasible = (koz == 0 or not strict_keepout) and path <= path_tol and (not complete or err <= scenario.terminal_tol)
-    return {
-        "terminal_error": err,
-        "keepout_violations": koz,
-        "path_violation": float(path),
-        "complete": complete,
-        "feasible": bool(feasible),
-    }
-
-
-def target_change(scenario: Scenario, targets: list[np.ndarray | None]) -> float:
-    """Mean ‖(x̄_t − x̄_{t−1}) / state_scale‖₂ over consecutive steps that both have a terminal target."""
-    scale = scenario.state_units()
-    d = [np.linalg.norm((b - a) / scale) for a, b in itertools.pairwise(targets) if a is not None and b is not None]
-    return float(np.mean(d)) if d else float("nan")
-
-
 @dataclass(frozen=True)
 class EpisodeStart:
     """Where an episode starts: its problem, J_REL of the problem's open-loop REL solution (the lower bound of the
     metrics and the TTO conditioning, rtg_0 = −J_REL) and the seed of the plant's disturbances (same seed, same
-    disturbances; unused on the exact plant)."""
+    disturbances; unused on the exact plant); ``horizon`` and ``plant`` replace the run's for this episode (None: the
+    run's; ``PlantNoise()`` is the exact plant)."""
 
     problem: Problem
     rel_cost: float
     plant_seed: int = 0
+    horizon: int | None = None
+    plant: PlantNoise | None = None
 
 
 @dataclass(frozen=True)
@@ -351,6 +256,19 @@ class MPCRun:
     def __post_init__(self) -> None:
         if self.horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+
+
+class StepHook(Protocol):
+    """What acts beside the controllers of a lockstep batch (``run_mpc_batch``), e.g. DAgger's expert."""
+
+    def before(
+        self, t: int, controllers: Sequence[MPCController], xs: Sequence[np.ndarray]
+    ) -> Sequence[StepPlan | None]:
+        """Before step t is planned, from the measured states ``xs``: per episode, the plan that acts at step t
+        instead of its controller's (which then does not plan, and observes that plan's outcome), or None."""
+
+    def after(self, t: int, plans: Sequence[StepPlan], xs: Sequence[np.ndarray]) -> None:
+        """After step t: the plans that acted and the measured next states."""
 
 
 def run_mpc(
@@ -381,12 +299,14 @@ def run_mpc_batch(
     providers: Sequence[Provider],
     run: MPCRun,
     on_step: Callable[[], None] | None = None,
+    hook: StepHook | None = None,
 ) -> list[Episode]:
     """The episodes of B ``starts`` (one provider each) run as ``run`` says, in lockstep: at every step all B
     episodes plan, then all B act. Each episode is what it gives when run alone (for TTO up to the rounding of a
     batched rollout); stepping together lets providers share work across episodes (the TTO providers of one
     ``RolloutGroup``: one batched rollout and one batched context advance per step), and each episode's step times
-    hold its share of that work (module doc). ``on_step`` is called after every step (progress)."""
+    hold its share of that work (module doc). ``on_step`` is called after every step (progress); ``hook`` acts beside
+    the controllers (``StepHook``: a plan it gives acts instead of the controller's)."""
     B = len(starts)
     if len(providers) != B:
         raise ValueError(f"{B} episodes need as many providers, got {len(providers)}")
@@ -395,79 +315,38 @@ def run_mpc_batch(
         raise ValueError("episodes run in lockstep need problems of one length N")
     if B == 0:
         return []
-    plant = None if run.plant is None else run.plant.resolve(scenario)  # None components: the scenario's own
-    horizon = run.horizon
     N = problems[0].n_steps
     T = N if run.max_steps is None else min(run.max_steps, N)
+    horizons = [run.horizon if s.horizon is None else s.horizon for s in starts]
+    # each episode's plant, None components the scenario's own; None: the exact dynamics
+    noises = [None if n is None else n.resolve(scenario) for n in (run.plant if s.plant is None else s.plant
+                                                                    for s in starts)]  # fmt: skip
     ctrls, sims = [], []
-    for start, provider in zip(starts, providers, strict=True):
+    for start, provider, horizon, noise in zip(starts, providers, horizons, noises, strict=True):
         provider.reset(scenario, start.problem, start.rel_cost)
         ctrls.append(MPCController(scenario, start.problem, provider, horizon, run.settings))
-        sim = Plant(scenario, plant)
+        sim = Plant(scenario, noise)
         sim.reset(start.plant_seed)
         sims.append(sim)
     xs = [p.x0.copy() for p in problems]
-    X: list[list[np.ndarray]] = [[x] for x in xs]
-    U: list[list[np.ndarray]] = [[] for _ in range(B)]
-    warm, solve, iters = np.zeros((B, T)), np.zeros((B, T)), np.zeros((B, T), dtype=int)
-    observed = np.zeros((B, T))  # observed[:, t]: the observe of step t − 1's outcome, part of step t
-    targets: list[list[np.ndarray | None]] = [[] for _ in range(B)]
-    fallbacks, soft_ends, reuses = [0] * B, [0] * B, [0] * B
+    traces = [EpisodeTrace(x, T) for x in xs]
     for t in range(T):
-        plans = [ctrl.plan(t, x) for ctrl, x in zip(ctrls, xs, strict=True)]
+        given = [None] * B if hook is None else hook.before(t, ctrls, xs)
+        plans = [ctrl.plan(t, x) if g is None else g for ctrl, x, g in zip(ctrls, xs, given, strict=True)]
         seconds = np.zeros(B)  # each episode's observe call (s), and the shared work its provider reported in it
         shared: list[float | None] = [None] * B
         for b, plan in enumerate(plans):
             xs[b] = sims[b].step(problems[b], t, xs[b], plan.u)
             seconds[b], shared[b] = ctrls[b].observe(plan, plan.u, xs[b])
-            X[b].append(xs[b])
-            U[b].append(plan.u)
-            warm[b, t], solve[b, t], iters[b, t] = plan.warm_time, plan.solve_time, plan.iterations
-            targets[b].append(plan.target)
-            fallbacks[b] += plan.fallback
-            soft_ends[b] += plan.soft_end
-            reuses[b] += plan.reused
+            traces[b].record(t, plan, xs[b])
+        if hook is not None:
+            hook.after(t, plans, xs)
         if t + 1 < T:  # the last step's outcome is observed but planned from by no step
-            observed[:, t + 1] = observe_charges(seconds, shared)
+            for trace, charge in zip(traces, observe_charges(seconds, shared), strict=True):
+                trace.observed[t + 1] = charge
         if on_step is not None:
             on_step()
-    perturbed = plant is not None and not plant.nominal
-    episodes = []
-    for b, problem in enumerate(problems):
-        Xa = np.stack(X[b])
-        Ua = np.stack(U[b]) if U[b] else np.zeros((0, scenario.control_dim))
-        m = episode_metrics(
-            scenario,
-            problem,
-            Xa,
-            Ua,
-            path_tol=plant.path_tol(scenario) if plant is not None and perturbed else 1e-3,
-            strict_keepout=not perturbed,
-        )
-        episodes.append(
-            Episode(
-                method=providers[b].name,
-                horizon=horizon,
-                X=Xa,
-                U=Ua,
-                cost=scenario.cost(Ua),
-                rel_cost=float(starts[b].rel_cost),
-                step_times=observed[b] + warm[b] + solve[b],
-                observe_times=observed[b],
-                warm_times=warm[b],
-                solve_times=solve[b],
-                iterations=iters[b],
-                fallbacks=fallbacks[b],
-                terminal_error=float(m["terminal_error"]),
-                keepout_violations=int(m["keepout_violations"]),
-                path_violation=float(m["path_violation"]),
-                complete=bool(m["complete"]),
-                feasible=bool(m["feasible"]),
-                target_change=target_change(scenario, targets[b]),
-                plant="perturbed" if perturbed else "nominal",
-                soft_ends=soft_ends[b],
-                reuses=reuses[b],
-                rti=run.settings.rti,
-            )
-        )
-    return episodes
+    return [
+        trace.episode(scenario, start.problem, provider.name, horizon, start.rel_cost, noise, run.settings.rti)
+        for trace, start, provider, horizon, noise in zip(traces, starts, providers, horizons, noises, strict=True)
+    ]

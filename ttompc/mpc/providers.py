@@ -17,16 +17,9 @@ first row is the measured state, controls (H, m)) and, for windows that stop bef
   (re-solved, warm-started from its own previous plan, whenever the state leaves the plan), as warm start and
   terminal target — what a perfect model could give.
 
-Terminal targets of TTO-MPC and the plan providers go through a ``TerminalDesign``: the paper's target (the plan's
-state at t+H) or the robust variant measured in ``docs/evaluation.md`` (the new target blended with the previous
-target shifted by one step), weighted by ``mpc.tracking`` on every component. That weight must exceed the multiplier
-of the window's terminal constraint for a window to keep an exact plan (``MPCWeights``); the paper's
-``mpc.terminal`` does not on the free-flyer and the quadrotor, so ``mpc.track`` (3 and 2 there) is a departure from the
-paper for TTO-MPC, which PLAN-ONCE and ORACLE-MPC share so that they stay its ceilings.
-
-Terminal index: our terminal term penalises x_{t+H}, the state *after* the last window control (the window has
-H+1 states). The reference penalised x_{t+H−1}, the last state *before* the last control, which leaves the last
-control of every window free of the terminal term.
+Terminal targets of TTO-MPC and the plan providers are their terminal term's (``ttompc.mpc.terminal``: the paper's
+target, the plan's state at t+H, or its robust variant), the same kind for all three so that PLAN-ONCE and ORACLE-MPC
+stay TTO-MPC's ceilings.
 """
 
 from __future__ import annotations
@@ -36,6 +29,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ttompc.mpc.terminal import TargetFilter, TerminalTerm
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import SCPOptions, SCPProblem, SCPResult, TerminalCost, solve_problem, solve_rel, solve_scp
 
@@ -73,53 +67,6 @@ class Provider(Protocol):
 def _terminal(window: Window, target: np.ndarray, weights: np.ndarray | float) -> TerminalCost | None:
     """The soft terminal term of a window that stops early; None when it reaches the end (the loop decides)."""
     return None if window.reaches_end else TerminalCost(target=target, weights=np.asarray(weights, dtype=np.float64))
-
-
-@dataclass(frozen=True)
-class TerminalDesign:
-    """How a plan (a model rollout, an oracle) becomes the terminal cost of a window that stops early.
-
-    ``blend`` β ∈ [0, 1): the target is (1 − β)·x̂_{t+H} + β·(x̄_{t−1} + x̂_{t+H} − x̂_{t+H−1}), the new plan's state
-    at t+H blended with the previous target moved on by the new plan's last step. β = 0 is the paper's target. A
-    consistent plan gives the same target for every β (the shifted previous target *is* the new one), while
-    step-to-step plan noise is averaged over about (1 + β)/(1 − β) steps. ``weights``: per-component terminal
-    weights; None = ``mpc.tracking`` on every component (``MPCWeights``)."""
-
-    blend: float = 0.0
-    weights: tuple[float, ...] | None = None
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.blend < 1.0:
-            raise ValueError(f"TerminalDesign.blend must be in [0, 1), got {self.blend}")
-        if self.weights is not None and any(w < 0 for w in self.weights):
-            raise ValueError(f"TerminalDesign.weights must be >= 0, got {self.weights}")
-
-
-class TargetFilter:
-    """The per-episode state of a ``TerminalDesign``: remembers the previous target."""
-
-    def __init__(self, design: TerminalDesign | None = None) -> None:
-        self.design = design or TerminalDesign()
-        self.reset()
-
-    def reset(self) -> None:
-        self._prev: np.ndarray | None = None
-        self._prev_stop = -1
-
-    def __call__(self, scenario: Scenario, window: Window, X: np.ndarray) -> TerminalCost | None:
-        """The terminal cost of ``window`` from the provider's window plan ``X`` (H+1, n); None at the end."""
-        if window.reaches_end:
-            self.reset()
-            return None
-        target = X[-1].copy()
-        beta = self.design.blend
-        if beta > 0 and self._prev is not None and self._prev_stop == window.stop - 1 and len(X) >= 2:
-            target = (1 - beta) * target + beta * (self._prev + X[-1] - X[-2])
-        self._prev, self._prev_stop = target, window.stop
-        weights = scenario.mpc.tracking if self.design.weights is None else self.design.weights
-        if np.size(weights) not in (1, len(target)):
-            raise ValueError(f"terminal weights {weights} do not fit a state of size {len(target)}")
-        return TerminalCost(target=target, weights=np.asarray(weights, dtype=np.float64))
 
 
 class RemainingREL:
@@ -234,25 +181,25 @@ class ShiftProvider:
 
 class PlanProvider:
     """PLAN-ONCE: a fixed full-horizon plan (given, or the open-loop SCP optimum solved at t = 0) as warm start and
-    terminal target of every window. ``window_plan`` is the plan a window gets (``bench/tto_mpc_robustness.py``
-    perturbs it: the noisy oracle)."""
+    terminal target of every window through ``terminal`` (None: the paper's target). ``window_plan`` is the plan a
+    window gets (``bench/tto_mpc_robustness.py`` perturbs it: the noisy oracle)."""
 
     def __init__(
         self,
         plan: tuple[np.ndarray, np.ndarray] | None = None,
         *,
         name: str = "PLAN-ONCE",
-        design: TerminalDesign | None = None,
+        terminal: TerminalTerm | None = None,
         backend: str = "auto",
     ) -> None:
         self.name, self.backend = name, backend
         self._given = plan
-        self.target = TargetFilter(design)
+        self.target = terminal if terminal is not None else TargetFilter()
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         self.scenario, self.problem = scenario, problem
         self.X, self.U = self._given if self._given is not None else full_horizon_plan(scenario, problem, self.backend)
-        self.target.reset()
+        self.target.reset(scenario, problem)
 
     def window_plan(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the plan's states (H+1, n) and controls (H, m) over ``window``."""
@@ -317,8 +264,8 @@ class RemainingOptimum:
 
 class OracleProvider:
     """ORACLE-MPC (the ceiling): the full remaining-horizon SCP optimum from the measured state
-    (``RemainingOptimum``; the first plan given, or REL → SCP) as warm start and terminal target — what a perfect
-    model could give. ``replans`` counts its re-solves."""
+    (``RemainingOptimum``; the first plan given, or REL → SCP) as warm start and terminal target through ``terminal``
+    (None: the paper's target) — what a perfect model could give. ``replans`` counts its re-solves."""
 
     name = "ORACLE-MPC"
 
@@ -327,10 +274,10 @@ class OracleProvider:
         plan: tuple[np.ndarray, np.ndarray] | None = None,
         *,
         backend: str = "auto",
-        design: TerminalDesign | None = None,
+        terminal: TerminalTerm | None = None,
     ) -> None:
         self.optimum = RemainingOptimum(plan, backend)
-        self.target = TargetFilter(design)
+        self.target = terminal if terminal is not None else TargetFilter()
 
     @property
     def replans(self) -> int:
@@ -339,7 +286,7 @@ class OracleProvider:
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         self.scenario = scenario
         self.optimum.reset(scenario, problem)
-        self.target.reset()
+        self.target.reset(scenario, problem)
 
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
         X, U = self.optimum(window.start, x)

@@ -7,6 +7,11 @@ is a YAML file of ``MPCSettings`` keys: a shipped preset by name (``ttompc/mpc/p
 ``recommended``, ``zoo``) or a path to a file of your own. Keys a file leaves out keep the ``MPCSettings``
 defaults, which are the ``paper`` preset's. Commands take ``protocol=NAME`` plus single-key overrides
 (``mpc.end_horizon=20``).
+
+The terminal term and the rtg mode are named from their registries (``ttompc.mpc.terminal.TERMINALS``,
+``ttompc.mpc.rtg.RTG_MODES``), whose entries describe themselves: what they need of the model, whether they depart
+from the paper (``departures``, listed under every report's table) and whether DAgger's rollouts run them. A new
+terminal term or rtg mode is a class in its registry's module plus the presets that name it.
 """
 
 from __future__ import annotations
@@ -15,11 +20,15 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
+
+from ttompc.mpc.rtg import RTG_MODES
+from ttompc.mpc.terminal import TERMINALS
+
+if TYPE_CHECKING:
+    from ttompc.scenarios.base import Scenario
 
 Mode = Literal["soft", "hard"]
-RTGMode = Literal["running", "reanchor", "value", "oracle"]
-RTG_MODES: tuple[str, ...] = ("running", "reanchor", "value", "oracle")
 PRESETS = Path(__file__).with_name("presets")
 # plan reuse: the measured state is the own plan's prediction within this many state_scale units (∞-norm). On an
 # exact plant the two differ by the subproblem solver's residual of the dynamics rows (about 1e-9 here).
@@ -32,15 +41,17 @@ class MPCSettings:
 
     ``mode``: soft (all paper analyses) or hard end condition. ``end_horizon``: windows run to N once
     N − t <= end_horizon (0: the paper's fixed H, windows truncated at N). ``track``: terminal weight of the
-    plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``rtg_mode``:
-    the reward-to-go TTO-MPC feeds in closed loop (``TTOProvider``). ``reuse``: plan reuse in windows that reach
-    the end (same results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step.
-    ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``)."""
+    plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``terminal``:
+    the kind of their terminal term (``ttompc.mpc.terminal.TERMINALS``). ``rtg_mode``: the reward-to-go TTO-MPC feeds
+    in closed loop (``ttompc.mpc.rtg.RTG_MODES``). ``reuse``: plan reuse in windows that reach the end (same
+    results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step. ``backend``: the
+    QP/cone backend of every solve (``ttompc.solvers.backends``)."""
 
     mode: Mode = "soft"
     end_horizon: int = 0
     track: float | None = None
-    rtg_mode: RTGMode = "running"
+    terminal: str = "target"
+    rtg_mode: str = "running"
     reuse: bool = True
     rti: bool = False
     backend: str = "auto"
@@ -52,6 +63,8 @@ class MPCSettings:
             raise ValueError(f"end_horizon must be >= 0, got {self.end_horizon}")
         if self.track is not None and not self.track > 0:
             raise ValueError(f"track must be > 0 or null, got {self.track}")
+        if self.terminal not in TERMINALS:
+            raise ValueError(f"terminal must be one of {list(TERMINALS)}, got {self.terminal!r}")
         if self.rtg_mode not in RTG_MODES:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
 
@@ -59,6 +72,26 @@ class MPCSettings:
     def reuse_tol(self) -> float | None:
         """The plan-reuse tolerance of the loop (None: re-solve every step)."""
         return REUSE_TOL if self.reuse else None
+
+
+def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
+    """The settings of a run on ``scenario`` that depart from the paper (and from the authors' code), one sentence
+    each: the terminal term's (``TerminalTerm.departures``), the loop's and the rtg mode's (``RTGFeed.departures``)."""
+    out = TERMINALS[settings.terminal].departures(settings, scenario)
+    if settings.end_horizon > 0:
+        out.append(
+            f"shrinking end horizon: windows run to N once N − t <= {settings.end_horizon} (the paper keeps H and "
+            "truncates the windows at N)"
+        )
+    out += RTG_MODES[settings.rtg_mode].departures()
+    if settings.mode != "soft":
+        out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
+    if settings.rti:
+        out.append(
+            "real-time iteration: one SCP subproblem per MPC step from the previous solution shifted (the paper "
+            "solves every window to convergence)"
+        )
+    return out
 
 
 def preset_names() -> list[str]:

@@ -2,22 +2,22 @@
 
 ``TTOProvider`` (TTO-MPC / FT-TTO-MPC): an H-step transformer rollout from the running ``RolloutContext``
 (conditioned on rtg_0 = −κ·J_REL, ctg_0 = 0); the context is advanced with every executed action and measured
-state, so its KV cache is extended, never recomputed. x̄ = the predicted state at t+H, through a
-``TerminalDesign`` (``ttompc.mpc.providers``). The TTO providers of B episodes run in lockstep (``run_mpc_batch``)
-share one batched context (``RolloutGroup``). ``rtg_mode`` chooses the reward-to-go fed at each step
-(``RTG_MODES``). ``tto_providers`` makes one method's providers from ``MPCSettings`` (design, rtg mode, backend).
+state, so its KV cache is extended, never recomputed. x̄ = the predicted state at t+H, through the provider's
+terminal term (``ttompc.mpc.terminal``). The reward-to-go fed at each step is its rtg mode's (``ttompc.mpc.rtg``).
+The TTO providers of B episodes run in lockstep (``run_mpc_batch``) share one batched context (``RolloutGroup``).
+A method's providers under ``MPCSettings`` are made by its entry in ``ttompc.mpc.methods``.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ttompc.mpc.providers import RemainingOptimum, RemainingREL, TargetFilter, TerminalDesign, WarmStart
-from ttompc.mpc.settings import RTG_MODES, MPCSettings, RTGMode
+from ttompc.mpc.providers import WarmStart
+from ttompc.mpc.rtg import rtg_feed
+from ttompc.mpc.terminal import TargetFilter, TerminalTerm
 from ttompc.scenarios.base import Problem, Scenario, Window
 
 if TYPE_CHECKING:
@@ -38,63 +38,18 @@ def check_rtg_scale(value: float, key: str = "rtg_scale") -> None:
         )
 
 
-def effective_rtg_mode(rtg_mode: RTGMode, planner: Planner) -> RTGMode:
-    """The rtg mode a model runs under ``rtg_mode``: ``value`` needs a value output, and a model without one (every
-    bundle from before it) keeps the paper's ledger (``running``)."""
-    return "running" if rtg_mode == "value" and not planner.has_value else rtg_mode
-
-
-def tracking_design(settings: MPCSettings, blend: float = 0.0) -> TerminalDesign:
-    """The terminal design of the plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC) under ``settings``: the
-    tracking weight ``settings.track`` on every component (None: the scenario's ``mpc.tracking``), targets blended
-    by ``blend`` (0: the paper's target; ``TerminalDesign``)."""
-    return TerminalDesign(blend, None if settings.track is None else (settings.track,))
-
-
-def tto_providers(
-    planner: Planner,
-    settings: MPCSettings,
-    plans: Sequence[tuple[np.ndarray, np.ndarray] | None],
-    name: str = "TTO-MPC",
-    *,
-    blend: float = 0.0,
-    rtg_scale: float | None = None,
-) -> list[TTOProvider]:
-    """One TTO method's providers under ``settings``, one per episode (``plans``: each episode's open-loop optimum
-    for ``rtg_mode="oracle"``, or None to solve it), sharing one ``RolloutGroup`` (one batched rollout per lockstep
-    step): the design of ``tracking_design(settings, blend)``, the rtg mode the model can run
-    (``effective_rtg_mode``) and the settings' backend. The one place settings become TTO providers (``ttompc
-    evaluate mpc``, the closed-loop metrics of training and DAgger, DAgger's learners)."""
-    group = RolloutGroup(planner)
-    design = tracking_design(settings, blend)
-    mode = effective_rtg_mode(settings.rtg_mode, planner)
-    return [
-        TTOProvider(planner, name, rtg_scale=rtg_scale, design=design, rtg_mode=mode, group=group,
-                    backend=settings.backend, plan=plan)
-        for plan in plans
-    ]  # fmt: skip
-
-
 class TTOProvider:
     """TTO-MPC: H-step rollout from a persistent rollout context (one per episode, KV cache reused; or one batched
     context shared by the providers of a ``group``), conditioned on rtg_0 = −``rtg_scale``·J_REL (None: the model's
-    own, ``Planner.rtg_scale``; the paper: 1) and ctg_0 = 0; the target goes through ``design``.
+    own, ``Planner.rtg_scale``; the paper: 1) and ctg_0 = 0; the target comes from ``terminal`` (None: the paper's
+    target).
 
-    ``rtg_mode``, the reward-to-go fed at step t (training rows hold rtg_t = −Σ_(τ≥t) c(u_τ), never above 0):
-
-    * ``running`` (the paper, the default): rtg_t = rtg_0 + the cost executed so far. Closed loop the executed cost
-      soon exceeds J_REL and rtg_t turns positive, where no training row lives.
-    * ``reanchor``: rtg_t = −κ·J_REL(t), the REL cost of the remaining horizon [t, N) from the measured state (one
-      ``RemainingREL`` per step, as REL-MPC solves; its time counts in the warm start); the running value where
-      that REL fails.
-    * ``value``: rtg_t = −V(x_t, t), the model's own value output (``Planner.cost_to_go``: the learned cost-to-go
-      of an optimal plan from the measured state); a model without one is refused at construction.
-    * ``oracle`` (a diagnostic, the ceiling of ``value``): rtg_t = −J*(x_t, t), the cost of the full remaining-
-      horizon SCP optimum from the measured state (``RemainingOptimum``, from the open-loop optimum ``plan``
-      or REL → SCP at t = 0; its solves count in the warm start).
-
-    Every mode but ``running`` clips its value to [μ − 3σ, −``RTG_FLOOR``·|rtg_0|] (μ, σ: the model's rtg
-    statistics), the range training rows' rtg lie in.
+    ``rtg_mode`` names the reward-to-go fed at each step (``ttompc.mpc.rtg.RTG_MODES``; ``running``, the paper's, by
+    default): the provider runs the mode its model can (``rtg_feed``: a model without a value output runs the
+    ledger under ``value``), ``rtg_mode`` holds that one. ``plan`` is the episode's open-loop optimum for a mode that
+    reads it (``oracle``; None: solved at ``reset``); ``backend`` solves the mode's own problems. Every mode but
+    ``running`` is clipped to [μ − 3σ, −``RTG_FLOOR``·|rtg_0|] (μ, σ: the model's rtg statistics), the range training
+    rows' rtg lie in.
 
     Inside a window the rollout still adds the model's own planned costs to the fed value (the rollout's rule).
     ``use_cache`` configures the provider's own group; a given ``group`` has its own."""
@@ -106,30 +61,23 @@ class TTOProvider:
         *,
         use_cache: bool = True,
         rtg_scale: float | None = None,
-        design: TerminalDesign | None = None,
-        rtg_mode: RTGMode = "running",
+        terminal: TerminalTerm | None = None,
+        rtg_mode: str = "running",
         group: RolloutGroup | None = None,
         backend: str = "auto",
         plan: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
-        if rtg_mode not in RTG_MODES:
-            raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {rtg_mode!r}")
-        if rtg_mode == "value" and not planner.has_value:
-            raise ValueError(
-                "rtg_mode=value needs a model with a value output (model.value_width > 0); this one has none: use "
-                "rtg_mode=running (the paper's ledger)"
-            )
+        mode = rtg_feed(rtg_mode, planner)
         self.planner, self.name = planner, name
         self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
         check_rtg_scale(self.rtg_scale)
-        self.rtg_mode = rtg_mode
-        self.target = TargetFilter(design)
+        self.rtg_mode = mode.name
+        self.rtg = mode(backend, plan)
+        self.target = terminal if terminal is not None else TargetFilter()
         self.group = group or RolloutGroup(planner, use_cache=use_cache)
         if self.group.planner is not planner:
             raise ValueError("the providers of a RolloutGroup must share its planner")
         self.slot = self.group.add(self)
-        self.rel = RemainingREL(backend)
-        self.optimum = RemainingOptimum(plan, backend) if rtg_mode == "oracle" else None
 
     @property
     def context(self) -> RolloutContext | None:
@@ -140,10 +88,8 @@ class TTOProvider:
         if scenario.name != self.planner.scenario.name:
             raise ValueError(f"model was trained on {self.planner.scenario.name!r}, not {scenario.name!r}")
         self.scenario, self.problem = scenario, problem
-        self.target.reset()
-        self.rel.reset()
-        if self.optimum is not None:
-            self.optimum.reset(scenario, problem)
+        self.target.reset(scenario, problem)
+        self.rtg.reset(scenario, problem)
         self.rtg0 = -self.rtg_scale * rel_cost
         self.spent = 0.0  # Σ c(u) of the executed controls
         self.x = problem.x0
@@ -157,19 +103,9 @@ class TTOProvider:
         return min(lo, hi), hi
 
     def conditioning(self, t: int) -> float | None:
-        """The rtg to feed at step t (None: the context's running value, ``running``)."""
-        if self.rtg_mode == "running":
-            return None
-        value = self.rtg0 + self.spent  # at t = 0 also reanchor's: rtg_0 = −κ·J_REL(0)
-        if self.rtg_mode == "value":
-            value = -float(self.planner.cost_to_go([self.problem], self.x[None], t)[0])
-        elif self.optimum is not None:  # oracle
-            value = -self.scenario.cost(self.optimum(t, self.x)[1])
-        elif t > 0:
-            rel = self.rel(self.scenario, self.problem, t, self.x)
-            if rel.success:
-                value = -self.rtg_scale * rel.cost
-        return float(np.clip(value, *self.rtg_range()))
+        """The rtg to feed at step t: the rtg mode's, clipped to ``rtg_range`` (None: the context's running value)."""
+        value = self.rtg(self, t)
+        return None if value is None else float(np.clip(value, *self.rtg_range()))
 
     def warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
         t0 = time.perf_counter()

@@ -13,7 +13,7 @@ from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, SCPSe
 from ttompc.solvers.backends import SubproblemSolver, default_trust_norm, get_solver
 from ttompc.solvers.problem import SCPOptions, SCPProblem
 from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+from ttompc.solvers.subproblem import QuadraticTerminalCost, SubproblemData, SubproblemSpec
 
 
 def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SCPOptions) -> SCPResult:
@@ -201,7 +201,7 @@ def _subproblem_solver(
         virtual_control=penalized and not sc.exact_linear_dynamics,
         vc_rows=tuple(sc.approximate_rows),
         trust=trust_norm if np.isfinite(settings.tr_start) else "none",
-        terminal="hard" if terminal is None else "soft",
+        terminal=_terminal_kind(terminal),
         soft_equalities=scp.soft,
         penalty=float(settings.penalty),
         blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
@@ -233,6 +233,11 @@ def _subproblem_data(
 ) -> SubproblemData:
     """The subproblem's data at the reference ``X_ref`` with trust radius ``delta``."""
     terminal = scp.terminal
+    norm = terminal if terminal is not None and terminal.has_norm else None
+    local = None
+    if terminal is not None and terminal.value is not None:  # the cost-to-go's local model about the reference
+        e = terminal.value.expand(X_ref[-1])
+        local = QuadraticTerminalCost(hessian=e.hessian, gradient=e.gradient, center=np.array(X_ref[-1]))
     return SubproblemData(
         x_start=x_start,
         model=model,
@@ -240,9 +245,18 @@ def _subproblem_data(
         X_ref=X_ref,
         delta=float(delta),
         goal=scp.problem.goal,
-        terminal_target=None if terminal is None else terminal.target,
-        terminal_weights=None if terminal is None else terminal.weights,
+        terminal_target=None if norm is None else norm.target,
+        terminal_weights=None if norm is None else norm.weights,
+        terminal_cost=local,
     )
+
+
+def _terminal_kind(terminal: TerminalCost | None) -> str:
+    """The subproblem's terminal structure: "hard" (x_N = goal), "soft" (the 2-norm term's cone, with a cost-to-go
+    model where the term has a value) or "value" (the cost-to-go model alone)."""
+    if terminal is None:
+        return "hard"
+    return "soft" if terminal.has_norm else "value"
 
 
 def _merit(scp: SCPProblem, X: np.ndarray, U: np.ndarray, blocks: list[ConstraintBlock]) -> float:

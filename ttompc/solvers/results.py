@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -68,17 +69,51 @@ class SCPResult:
         }
 
 
+class LocalModel(Protocol):
+    """A cost-to-go's value, gradient (n,) and positive semidefinite Hessian (n, n) at one state."""
+
+    @property
+    def value(self) -> float: ...
+
+    @property
+    def gradient(self) -> np.ndarray: ...
+
+    @property
+    def hessian(self) -> np.ndarray: ...
+
+
+class TerminalValue(Protocol):
+    """A cost-to-go J(x) of a window's last state (e.g. a model's value output at the window's end step): its value,
+    and a convex local model about a state that each SCP iteration re-expands about its reference."""
+
+    def __call__(self, x: np.ndarray) -> float: ...
+
+    def expand(self, x: np.ndarray) -> LocalModel: ...
+
+
 @dataclass(frozen=True, init=False)
 class TerminalCost:
-    """Soft terminal term ‖diag(weights) (x_{t+H} − target)‖₂ replacing the terminal equality (MPC)."""
+    """Soft terminal term replacing the terminal equality (MPC): ‖diag(weights) (x_{t+H} − target)‖₂ (the paper's;
+    all-zero weights: none) plus, where given, a cost-to-go ``value`` J(x_{t+H}) that each SCP iteration models by
+    its local quadratic about the iteration's reference (``TerminalValue``)."""
 
     target: np.ndarray  # (n,)
     weights: np.ndarray  # (n,); a scalar given to the constructor weighs every state alike
+    value: TerminalValue | None
 
-    def __init__(self, target: ArrayLike, weights: ArrayLike) -> None:
+    def __init__(self, target: ArrayLike, weights: ArrayLike, value: TerminalValue | None = None) -> None:
         object.__setattr__(self, "target", np.asarray(target, dtype=np.float64))
         object.__setattr__(self, "weights", np.broadcast_to(np.asarray(weights, float), self.target.shape))
+        object.__setattr__(self, "value", value)
+        if value is None and not self.weights.any():
+            raise ValueError("a terminal cost needs weights > 0 or a value")
+
+    @property
+    def has_norm(self) -> bool:
+        """Whether the 2-norm term is present (some weight > 0)."""
+        return bool(self.weights.any())
 
     def __call__(self, x: np.ndarray) -> float:
         """The term's value at the window's last state ``x``."""
-        return float(np.linalg.norm(self.weights * (np.asarray(x) - self.target)))
+        norm = float(np.linalg.norm(self.weights * (np.asarray(x) - self.target)))
+        return norm if self.value is None else norm + self.value(np.asarray(x))

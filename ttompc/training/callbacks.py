@@ -89,7 +89,7 @@ class ClosedLoopEvalCallback(L.Callback):
         from ttompc.training.loggers import log_figure
 
         ep, e = problems[0], episodes[0]
-        label = f"TTO-MPC H={self.measurement.horizons[0]}"
+        label = f"{e.method} H={e.horizon}"  # the method as ttompc.mpc.methods names it
         panel = Panel(
             ep.problem,
             {"REL (open loop)": ep.rel.X, label: e.X},
