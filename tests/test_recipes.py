@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 from omegaconf import OmegaConf
 
 from ttompc.config import ConfigError, to_container
@@ -45,7 +46,8 @@ def is_paper(path: Path) -> bool:
 
 
 def is_finetune(path: Path) -> bool:
-    return path.stem == "finetune" or path.stem.endswith("-finetune") or "-ft-" in path.stem
+    """A fine-tuning recipe has a ``dagger`` section (a FT model's value output is added by a training recipe)."""
+    return "dagger" in (yaml.safe_load(path.read_text()) or {})
 
 
 def scenario_of(path: Path) -> str:

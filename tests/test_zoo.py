@@ -1,5 +1,7 @@
-"""Model zoo: cards and index, publish -> list -> download round trips, hash verification, HTTP resume, path
-safety and "weights are never unpickled". Everything is local (tmp dirs, file://, a loopback HTTP server)."""
+"""Model zoo: cards, their metrics files and the index, publish -> list -> download round trips, hash verification,
+HTTP resume, path safety and "weights are never unpickled", and the shipped cards' layout (numbers in the metrics
+file, rounded to their standard errors where shown, the recipe that built each model under recipes/zoo/). Everything
+is local (tmp dirs, file://, a loopback HTTP server)."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import hashlib
 import http.server
 import json
 import pickle
+import re
 import sys
 import threading
 from collections.abc import Iterator
@@ -16,6 +19,7 @@ from typing import Any
 import helpers
 import numpy as np
 import pytest
+import yaml
 from safetensors.numpy import save_file
 
 from ttompc import zoo
@@ -23,9 +27,11 @@ from ttompc.cli import main
 from ttompc.policy import Planner
 from ttompc.zoo import cache, cards, registry
 from ttompc.zoo.download import fetch
-from ttompc.zoo.publish import load_metrics
+from ttompc.zoo.evaluations import METRICS_FILE, decode_evaluations, load_metrics
+from ttompc.zoo.rounding import SE_DIGITS, se_decimals
 
-REPO_ZOO = Path(__file__).resolve().parents[1] / "zoo"
+REPO = Path(__file__).resolve().parents[1]
+REPO_ZOO = REPO / "zoo"
 METRICS = {"unit": {"command": "pytest tests/test_zoo.py", "what": "0 problems", "metrics": {"success_rate": 0.9}}}
 BAD_NAMES = ["../x", "a/b", "..", ".hidden", "a\\b", "a..b", "", "x" * 101, "/abs", "name with space"]
 
@@ -132,6 +138,59 @@ def test_repo_cards_parse_and_index_is_in_sync() -> None:
     assert main(["zoo", "index", "--check", "--zoo-dir", str(REPO_ZOO)]) == 0
 
 
+def test_shipped_cards_keep_their_numbers_beside_their_bundles() -> None:
+    """Every shipped card names its metrics file, shipped beside its bundle (``zoo/models/<name>/metrics.json``), and
+    its front matter states no number but the model-index, each value rounded to its standard error."""
+    for card in zoo.list_models(REPO_ZOO):
+        entry = card.evaluations_entry
+        assert entry is not None and entry.url == f"models/{card.name}/{METRICS_FILE}", card.name
+        front = yaml.safe_load((REPO_ZOO / f"{card.name}.md").read_text().split("---\n")[1])
+        assert front["evaluations"] == METRICS_FILE and "command" not in json.dumps(front), card.name
+        metrics = {m["type"]: m["value"] for r in front["model-index"][0]["results"] for m in r["metrics"]}
+        for key, value in metrics.items():
+            se = card.metrics.get(f"{key}_se")
+            assert value == (round(card.metrics[key], se_decimals(se)) if se else float(f"{card.metrics[key]:.3g}"))
+
+
+NUMBER = r"[+\-−]?\d{1,3}(?:,\d{3})+(?:\.\d+)?|[+\-−]?\d+(?:\.\d+)?"
+MEAN_SE = re.compile(rf"(?<![\w.])({NUMBER}) ± ({NUMBER})(?![\w.])")  # a standard error in exponent form is left out
+
+
+def test_card_tables_show_what_the_standard_errors_support() -> None:
+    """Every ``mean ± s.e.`` in a shipped card's text shows the standard error with at most two significant digits
+    and the mean to no finer a decimal place than the standard error's second digit (0.84 ± 0.15, not 0.838 ±
+    0.153): finer digits are noise."""
+    finer = []
+    for path in sorted(REPO_ZOO.glob("*-*.md")):
+        for mean, se in MEAN_SE.findall(path.read_text()):
+            se_digits = se.replace(",", "").replace(".", "").lstrip("0")
+            places = se_decimals(float(se.replace(",", "")))
+            decimals = len(mean.split(".")[1]) if "." in mean else 0
+            if decimals > max(places, 0) or len(se_digits if "." in se else se_digits.rstrip("0")) > SE_DIGITS:
+                finer.append(f"{path.name}: {mean} ± {se}")
+    assert not finer, finer
+
+
+def test_every_card_names_the_recipe_that_built_it_in_recipes_zoo() -> None:
+    """The recipe that built a zoo model has one home, ``recipes/zoo/<name>.yaml`` (for a model trained in legs its
+    last leg, ``<name>-legN.yaml``, whose header names the legs before it); ``recipes/<scenario>/`` holds the
+    templates. Each card's recipe is there and loads with its command's loader (``ttompc finetune`` for a recipe with
+    a ``dagger`` section, else ``ttompc train``); a training recipe builds the card's architecture."""
+    from ttompc.finetune.config import load_finetune_config
+    from ttompc.training.config import load_train_config
+
+    for card in zoo.list_models(REPO_ZOO):
+        assert re.fullmatch(rf"recipes/zoo/{re.escape(card.name)}(-leg\d+)?\.yaml", card.recipe), card.name
+        path = REPO / card.recipe
+        if "dagger" in yaml.safe_load(path.read_text()):
+            load_finetune_config(path)
+            continue
+        model = load_train_config(path).model
+        assert {k: getattr(model, k) for k in ("n_embd", "n_layer", "n_head")} == {
+            k: card.architecture[k] for k in ("n_embd", "n_layer", "n_head")
+        }, card.name
+
+
 def test_card_round_trip_and_strict_parsing(env: Path) -> None:
     files = entries({"model.safetensors": "m", "config.json": "c"}, {"model.safetensors": b"1", "config.json": b"2"})
     write_card(env / "zoo", "m1", files)
@@ -147,6 +206,8 @@ def test_card_round_trip_and_strict_parsing(env: Path) -> None:
             **front,
             "evaluations": {"e": {"command": "c", "metrics": {"sr": 1}}, "f": {"command": "d", "metrics": {"sr": 2}}},
         },
+        {**front, "evaluations": METRICS_FILE},  # a metrics file the card does not list
+        {**front, "evaluations": "config.json"},  # a bundle file is no metrics file
         {**front, "metrics": {"sr": {"value": 0.5}}},  # the first format: a metric without how it was measured
         {**front, "files": [{**front["files"][0], "sha256": "ab"}, front["files"][1]]},
         {**front, "files": [{**front["files"][0], "filename": "../model.safetensors"}, front["files"][1]]},
@@ -159,12 +220,58 @@ def test_card_round_trip_and_strict_parsing(env: Path) -> None:
         zoo.list_models()
 
 
+def test_numbers_live_in_the_metrics_file_beside_the_bundle(env: Path) -> None:
+    """A published card names its metrics file (``evaluations: metrics.json``), lists it with its sha256 and size
+    beside the bundle's files, and states no number but its model-index; the file holds the evaluations at full
+    precision. Bytes that are not the listed ones, or a model-index that is not their numbers, are refused."""
+    measured = {
+        "command": "ttompc evaluate warmstart --model m problems=9",
+        "metrics": {
+            "ws_suboptimality": 0.4327860321807093,
+            "ws_suboptimality_se": 0.02843456346991821,
+            "ws_iterations": 6.43,
+        },
+    }
+    card = zoo.publish(make_bundle(env / "b"), "m", str(env / "zoo" / "models" / "m"), metrics={"warmstart": measured})
+    text = (env / "zoo" / "m.md").read_text()
+    front = yaml.safe_load(text.split("---\n")[1])
+    assert front["evaluations"] == METRICS_FILE and measured["command"] not in text
+    assert [f["filename"] for f in front["files"]] == ["model.safetensors", "config.json", METRICS_FILE]
+    assert front["files"][2]["url"] == "models/m/metrics.json"
+    values = {m["type"]: m["value"] for m in front["model-index"][0]["results"][0]["metrics"]}
+    assert values == {"ws_suboptimality": 0.433, "ws_iterations": 6.43}  # rounded to s.e. 0.028; three digits
+    data = (env / "zoo" / "models" / "m" / METRICS_FILE).read_bytes()
+    assert decode_evaluations(data, "metrics") == {"warmstart": measured} == card.evaluations  # full precision
+    assert zoo.model_info("m").evaluations == card.evaluations
+    assert (zoo.download("m", progress=False) / METRICS_FILE).read_bytes() == data  # verified with the bundle
+
+    (env / "zoo" / "models" / "m" / METRICS_FILE).write_bytes(data.replace(b"6.43", b"5.43"))
+    with pytest.raises(cards.CardError, match=r"metrics\.json is not the file the card lists"):
+        zoo.model_info("m")
+    (env / "zoo" / "models" / "m" / METRICS_FILE).write_bytes(data)
+    parsed = cards.parse_card(text.replace("value: 0.433}", "value: 0.4}"))
+    with pytest.raises(cards.CardError, match=r"model-index does not match .*\(ws_suboptimality\)"):
+        cards.load_evaluations(parsed, data)
+    assert cards.load_evaluations(cards.parse_card(text), data) == card
+    with pytest.raises(cards.CardError, match="has not been read"):
+        cards.render_card(cards.parse_card(text))  # never written without its numbers
+
+
+def test_a_remote_metrics_file_is_fetched_once_and_verified(env: Path, server: Any) -> None:
+    """A card published with ``--base-url`` is indexed before its files are uploaded; reading it then fetches its
+    metrics file into the cache once, checked like the weights."""
+    zoo.publish(make_bundle(env / "b"), "m", str(env / "staging"), metrics=METRICS, base_url=server.url)
+    assert registry.index_is_current() and server.requests == []
+    server.files = {f"/{p.name}": p.read_bytes() for p in (env / "staging").iterdir()}
+    assert zoo.model_info("m").evaluations == METRICS
+    assert zoo.model_info("m").evaluations == METRICS  # from the cache
+    assert server.requests == [(f"/{METRICS_FILE}", None)]
+
+
 def test_cards_of_the_first_format_still_load(env: Path) -> None:
     """A card published before evaluations (``metrics: {key: {value, how}}``, the command quoted in every ``how``, the
-    full model-index), e.g. on a user's Hub repository, loads with its numbers grouped by command and re-renders in
-    today's format; its model-index is still checked against the numbers."""
-    import yaml
-
+    full model-index), e.g. on a user's Hub repository, loads with its numbers grouped by command; its model-index is
+    still checked against the numbers, and it is never written back in that format."""
     files = entries({"model.safetensors": "m", "config.json": "c"}, {"model.safetensors": b"1", "config.json": b"2"})
     write_card(env / "zoo", "old", files)
     front = zoo.model_info("old").to_dict()
@@ -190,8 +297,8 @@ def test_cards_of_the_first_format_still_load(env: Path) -> None:
         "eval": {"command": "counted by hand", "metrics": {"success_rate": 0.9}},
     }
     assert card.inference == {"rtg_scale": 1.0} and card.body == "Text.\n"
-    text = cards.render_card(card)
-    assert cards.parse_card(text) == card and "how:" not in text and text.count(ws) == 1
+    with pytest.raises(cards.CardError, match="holds its numbers in its front matter"):
+        cards.render_card(card)
     first["model-index"][0]["results"][0]["metrics"][0]["value"] = 0.3
     with pytest.raises(cards.CardError, match=r"model-index does not match .*\(ws_suboptimality\)"):
         cards.parse_card(f"---\n{yaml.safe_dump(first)}---\n")
@@ -199,6 +306,26 @@ def test_cards_of_the_first_format_still_load(env: Path) -> None:
         cards.ModelCard.from_dict({**front, "metrics": first["metrics"]})
     (env / "first.json").write_text(json.dumps(first["metrics"]))  # a `ttompc zoo metrics` file of the first format
     assert load_metrics(env / "first.json") == card.evaluations
+
+
+def test_a_card_with_numbers_in_its_front_matter_loads_and_publishing_moves_them(env: Path) -> None:
+    """A card of the format before metrics files (``evaluations: {name: {command, what, metrics}}`` in the front
+    matter, its model-index at full precision) loads read-only; publishing the same bytes again writes the card with
+    a metrics file holding the same numbers, and the rest of the card kept."""
+    src, to = make_bundle(env / "b"), str(env / "zoo" / "models" / "m")
+    zoo.publish(src, "m", to, skip_eval=True)
+    numbers = {"warmstart": {"command": "ttompc evaluate warmstart --model m", "metrics": {"ws_suboptimality": 0.4328}}}
+    front = zoo.model_info("m").front_matter() | {"evaluations": numbers, "model-index": [{"name": "m", "results": [
+        {"task": {}, "dataset": {}, "metrics": [{"type": "ws_suboptimality", "value": 0.4328}]}]}]}  # fmt: skip
+    (env / "zoo" / "m.md").write_text(f"---\n{yaml.safe_dump(front)}---\nNotes.\n")
+    old = zoo.model_info("m")
+    assert old.evaluations == numbers and old.evaluations_file == ""
+    card = zoo.publish(src, "m", to)  # no metrics: the same bytes keep theirs
+    assert card.evaluations == numbers and card.evaluations_file == METRICS_FILE and card.body == "Notes.\n"
+    assert "ws_suboptimality: 0.4328" not in (env / "zoo" / "m.md").read_text()
+    assert decode_evaluations((env / "zoo" / "models" / "m" / METRICS_FILE).read_bytes(), "m") == numbers
+    assert zoo.publish(src, "m", to, skip_eval=True).evaluations_file == ""
+    assert not (env / "zoo" / "models" / "m" / METRICS_FILE).exists()  # a card without numbers has no metrics file
 
 
 def test_publishing_an_evaluation_for_the_same_bytes_keeps_the_others(env: Path) -> None:
@@ -242,7 +369,9 @@ def test_publish_list_download_round_trip(env: Path, capsys: pytest.CaptureFixtu
     argv = ["zoo", "publish", str(src), "--name", "ff-tiny", "--to", str(dest), "--card-metrics"]
     assert main([*argv, str(env / "metrics.json"), "--recipe", "recipes/toy.yaml"]) == 0
     card = zoo.model_info("ff-tiny")
-    assert [f.url for f in card.files] == ["models/ff-tiny/model.safetensors", "models/ff-tiny/config.json"]
+    assert [f.url for f in card.files] == [
+        f"models/ff-tiny/{f}" for f in ("model.safetensors", "config.json", METRICS_FILE)
+    ]
     assert (card.scenario, card.scenario_version, card.recipe, card.evaluations) == (
         "toy",
         "0.1",
@@ -267,6 +396,7 @@ def test_publish_list_download_round_trip(env: Path, capsys: pytest.CaptureFixtu
     assert bundle.is_relative_to(env / "cache")
     for name in ("model.safetensors", "config.json"):
         assert (bundle / name).read_bytes() == (src / name).read_bytes()
+    assert json.loads((bundle / METRICS_FILE).read_text()) == METRICS
     assert zoo.download("ff-tiny", progress=False) == bundle  # cached: same snapshot, nothing refetched
 
 

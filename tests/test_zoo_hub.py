@@ -1,6 +1,6 @@
 """The Hugging Face Hub: ``ttompc zoo publish --to hf://`` and ``Planner.from_pretrained("hf://...")`` with the real
-``huggingface_hub`` client against the loopback stand-in of ``hub_server.py`` (no network), and the Hub metadata of
-the shipped cards read back by ``huggingface_hub.ModelCard``."""
+``huggingface_hub`` client against the loopback stand-in of ``hub_server.py`` (no network), cards published before
+the metrics file still loading, and the Hub metadata of the shipped cards read back by ``huggingface_hub.ModelCard``."""
 
 from __future__ import annotations
 
@@ -13,12 +13,16 @@ import helpers
 import hub_server
 import numpy as np
 import pytest
+import yaml
 
 from ttompc import zoo
 from ttompc.cli import main
 from ttompc.policy import Planner
 from ttompc.scenarios import get_scenario
 from ttompc.zoo import cards, registry
+from ttompc.zoo.evaluations import METRICS_FILE
+from ttompc.zoo.hub import parse_hf_url, upload
+from ttompc.zoo.rounding import rounded
 
 REPO_ZOO = Path(__file__).resolve().parents[1] / "zoo"
 TOKEN = "hf_test_token"
@@ -99,6 +103,7 @@ def test_publish_download_plan_gives_the_same_warm_start(
     tree = repo.commits[revision]
     for name in ("model.safetensors", "config.json"):
         assert tree[name] == (bundle / name).read_bytes()
+    assert json.loads(tree[METRICS_FILE]) == METRICS  # the numbers beside the bundle, at full precision
 
     loaded = Planner.from_pretrained(f"hf://org/toy-tto@{revision}", progress=False)
     problems = [get_scenario("toy").sample(np.random.default_rng(s)) for s in range(3)]
@@ -117,7 +122,8 @@ def test_publish_download_plan_gives_the_same_warm_start(
     }
     assert [r.dataset_config for r in card.data.eval_results] == ["warmstart", "mpc"]  # the evaluation of each
     ours = cards.parse_card((snapshot / "README.md").read_text())
-    assert 'Planner.from_pretrained("hf://org/toy-tto")' in ours.body
+    assert 'Planner.from_pretrained("hf://org/toy-tto")' in ours.body and ours.evaluations_file == METRICS_FILE
+    cards.load_evaluations(ours, (snapshot / METRICS_FILE).read_bytes())
     assert ours.evaluations == METRICS and ours.inference["rtg_scale"] == local.rtg_scale
 
     assert main(["zoo", "download", "hf://org/toy-tto", "--no-progress"]) == 0  # main: the same commit
@@ -136,6 +142,33 @@ def test_republish_is_a_new_revision_and_old_revisions_still_load(
     for planner, seed in ((old, 1), (new, 2)):
         expected = helpers.tiny_toy_planner(seed=seed).model.state_dict()
         assert all(np.array_equal(v.numpy(), expected[k].numpy()) for k, v in planner.model.state_dict().items())
+
+
+def test_a_card_published_before_the_metrics_file_still_loads(hub: hub_server.HubServer, tmp_path: Path) -> None:
+    """A Hub repository published before cards had a metrics file holds the bundle and a README.md with the numbers
+    in its front matter (and a model-index at full precision): it loads for ``Planner.from_pretrained`` and
+    ``ttompc zoo download``, its numbers read from the front matter."""
+    local = helpers.tiny_toy_planner(seed=4)
+    bundle = local.save(tmp_path / "bundle")
+    card, _ = zoo.publish_to_hub(bundle, "hf://org/new", metrics=METRICS)
+    front = card.front_matter() | {
+        "files": [f.to_dict() for f in card.files if f.filename != METRICS_FILE],
+        "evaluations": METRICS,
+        "model-index": [{"name": "old", "results": [{"task": {}, "dataset": {"config": "warmstart"},
+                         "metrics": [{"type": "ws_suboptimality", "value": 0.25}]}]}],
+    }  # fmt: skip
+    readme = tmp_path / "README.md"
+    readme.write_text(f"---\n{yaml.safe_dump(front, sort_keys=False)}---\nAn earlier card.\n")
+    files = {"README.md": readme, **{f: bundle / f for f in ("model.safetensors", "config.json")}}
+    upload(parse_hf_url("hf://org/old"), files, "Publish old", private=False)
+
+    loaded = Planner.from_pretrained("hf://org/old", progress=False)
+    assert all(
+        np.array_equal(v.numpy(), local.model.state_dict()[k].numpy()) for k, v in loaded.model.state_dict().items()
+    )
+    snapshot, _ = zoo.download_model("hf://org/old", progress=False)
+    old = cards.parse_card((snapshot / "README.md").read_text())
+    assert old.evaluations == METRICS and old.evaluations_file == "" and not (snapshot / METRICS_FILE).exists()
 
 
 def test_a_fine_tuned_model_names_its_base_model_and_data(hub: hub_server.HubServer, tmp_path: Path) -> None:
@@ -284,8 +317,8 @@ def test_shipped_cards_give_the_hub_their_results() -> None:
         hub_card = huggingface_hub.ModelCard.load(path)
         assert hub_card.data.library_name == "ttompc" and hub_card.data.license == "mit"
         results = hub_card.data.eval_results
-        for r in results:
-            assert r.metric_value == ours.evaluations[r.dataset_config]["metrics"][r.metric_type], path.name
+        for r in results:  # the card's number, rounded to its standard error
+            assert r.metric_value == rounded(ours.evaluations[r.dataset_config]["metrics"], r.metric_type), path.name
         types = {r.metric_type for r in results}
         if "ws_suboptimality" in ours.metrics:
             assert {"ws_suboptimality", "ws_suboptimality_rel", "ws_iterations", "ws_iterations_rel"} <= types
@@ -299,10 +332,11 @@ def test_shipped_cards_give_the_hub_their_results() -> None:
 
 def test_cards_refuse_a_model_index_that_is_not_their_metrics(tmp_path: Path) -> None:
     text = (REPO_ZOO / "rpod-tto-small.md").read_text()
-    value = cards.parse_card(text).metrics["ws_suboptimality"]
+    numbers = (REPO_ZOO / "models" / "rpod-tto-small" / METRICS_FILE).read_bytes()
+    value = rounded(registry.get_card("rpod-tto-small", REPO_ZOO).metrics, "ws_suboptimality")
     edited = text.replace(f"type: ws_suboptimality, value: {value}}}", "type: ws_suboptimality, value: 0.0}")
     assert edited.count("0.0}") == text.count("0.0}") + 1
     with pytest.raises(cards.CardError, match="model-index does not match the evaluations' metrics"):
-        cards.parse_card(edited)
+        cards.load_evaluations(cards.parse_card(edited), numbers)
     with pytest.raises(cards.CardError, match="must be the Hugging Face id ORG/NAME"):
         cards.parse_card(text.replace("kind: TTO", "kind: TTO\nbase_model: org/base"))

@@ -1,5 +1,6 @@
-"""Card evaluations are the evaluation reports' numbers, each evaluation with the command that reproduces it, and the
-model-index is their headline."""
+"""Card evaluations are the evaluation reports' numbers, each mean with its standard error and each evaluation with
+the command that reproduces it; the model-index is their headline, and a card shows a number at the precision its
+standard error supports."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from ttompc.zoo.cards import headline_metrics, validate_evaluations
+from ttompc.zoo.evaluations import headline_metrics, validate_evaluations
 from ttompc.zoo.report_metrics import card_metrics, command_line
+from ttompc.zoo.rounding import format_with_se, round_to_se, shown
 
 
 def _iv(mean: float, se: float = 0.01) -> dict[str, float]:
@@ -71,6 +73,9 @@ def test_metrics_are_the_reports_numbers_with_their_command() -> None:
     assert m["ws_suboptimality_vs_rel_se"] == pytest.approx(0.02)
     assert m["ws_suboptimality_vs_rel_n"] == 10  # how many problems the paired difference pairs
     assert m["ws_iterations_vs_rel"] == pytest.approx(-0.5)
+    # every mean with its standard error, which sets the precision the card shows it at
+    assert m["ws_iterations_se"] == m["ws_iterations_rel_se"] == m["ws_gain_share_se"] == pytest.approx(0.01)
+    assert m["mpc10_nominal_rel_rel_increment_se"] == m["mpc10_nominal_rel_paper_norm_se"] == pytest.approx(0.01)
     assert m["ws_failures"] == 1
     assert m["mpc10_nominal_model_feasible_rate"] == pytest.approx(0.5)
     assert m["mpc10_nominal_rel_paper_norm"] == pytest.approx(0.7)
@@ -162,6 +167,9 @@ def test_cli_writes_publishable_metrics(tmp_path) -> None:
     assert done.returncode == 0, done.stderr
     written = validate_evaluations(json.loads(out.read_text()))
     assert list(written) == ["warmstart"] and written["warmstart"]["metrics"]["ws_suboptimality"] == pytest.approx(0.35)
+    # the headline as the card shows it, for its body: each value at the precision of its standard error (0.01)
+    assert "| warmstart | (J - J_REL)/J_REL, SCP from the TTO warm start | 0.350 ± 0.010 |" in done.stdout
+    assert "| warmstart | SCP iterations from the REL warm start | 5.800 ± 0.010 |" in done.stdout
     bad = subprocess.run([*cmd[:-4], "--method", "TTO"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "needs a report" in bad.stderr
 
@@ -192,3 +200,30 @@ def test_card_inference_names_the_value_rtg_of_a_model_with_a_value_output() -> 
     }
     assert valued["conditioning"].startswith("rtg_t = -V(x_t, t)") and "rtg_mode=value" in valued["conditioning"]
     assert plain["conditioning"] in valued["conditioning"]  # the ledger it keeps under protocol=paper
+
+
+@pytest.mark.parametrize(
+    ("value", "se", "rounded", "text"),
+    [
+        (0.837622734441122, 0.153, 0.84, "0.84 ± 0.15"),  # two significant digits of the s.e., the mean to match
+        (1049.3, 68.7, 1049.0, "1049 ± 69"),
+        (446.9, 152.0, 450.0, "450 ± 150"),  # tens: no exponent notation
+        (0.0032651321326674755, 0.000312, 0.00327, "0.00327 ± 0.00031"),
+        (-0.004, 0.2, 0.0, "0.00 ± 0.20"),  # no "-0.00"
+        (0.8376, None, 0.838, "0.838"),  # no standard error: three significant digits
+        (0.9, float("nan"), 0.9, "0.9"),  # nor trailing zeros that claim a precision
+        (1049.3, 0.0, 1050.0, "1050"),
+    ],
+)
+def test_numbers_are_rounded_to_what_their_standard_error_supports(
+    value: float, se: float | None, rounded: float, text: str
+) -> None:
+    assert round_to_se(value, se) == rounded
+    assert format_with_se(value, se) == text
+
+
+def test_a_card_shows_each_metric_with_its_standard_error() -> None:
+    metrics = {"ws_suboptimality": 0.4327860321807093, "ws_suboptimality_se": 0.02843456346991821, "n": 20}
+    assert shown(metrics, "ws_suboptimality") == "0.433 ± 0.028"
+    assert shown(metrics, "ws_suboptimality_se") == "0.028"
+    assert shown(metrics, "n") == "20"  # a count as it is

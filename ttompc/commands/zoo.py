@@ -16,9 +16,11 @@ from typing import Any
 
 from ttompc import zoo
 from ttompc.errors import UserError
-from ttompc.zoo.cards import KINDS, ModelCard, render_card
+from ttompc.zoo.cards import KINDS, ModelCard
+from ttompc.zoo.evaluations import headline_metrics, load_metrics
 from ttompc.zoo.hub import parse_hf_url
-from ttompc.zoo.registry import index_is_current, write_index
+from ttompc.zoo.registry import index_is_current, write_index, zoo_path
+from ttompc.zoo.rounding import SE_SUFFIX, round_to_se, shown
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -57,8 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--private", action="store_true", help="create the Hub repository as private")
     p.add_argument(
         "--card-metrics",
-        help="JSON file of evaluations {name: {command, what, metrics}} from `ttompc zoo metrics` to put in the card "
-        "(for the bytes the card describes: replaces its evaluations of the same name, keeps the others)",
+        help="JSON file of evaluations {name: {command, what, metrics}} from `ttompc zoo metrics`, published as the "
+        "card's metrics.json (for the bytes the card describes: replaces its evaluations of the same name, keeps the "
+        "others)",
     )
     p.add_argument("--skip-eval", action="store_true", help="publish without metrics")
     p.add_argument("--base-url", help="card URLs become BASE_URL/<file> (when the files are uploaded there)")
@@ -84,7 +87,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--warmstart", help="warmstart.json of `ttompc evaluate warmstart`")
     p.add_argument("--mpc", help="mpc.json of `ttompc evaluate mpc`")
     p.add_argument("--horizon", type=int, default=10, help="closed-loop horizon to report (default 10)")
-    p.add_argument("--out", help="write the JSON here (for `zoo publish --card-metrics`) instead of stdout")
+    p.add_argument(
+        "--out",
+        help="write the JSON here (for `zoo publish --card-metrics`) instead of stdout, and print the headline "
+        "rounded to its standard errors (a Markdown table for the card's body)",
+    )
 
     p = sub.add_parser("index", parents=[common], help="regenerate zoo/index.json from the cards")
     p.add_argument("--check", action="store_true", help="only check that index.json is up to date (exit 1 if not)")
@@ -124,23 +131,25 @@ def format_table(cards: list[ModelCard]) -> str:
 
 
 def headline_text(card: ModelCard) -> str:
-    """A card's protocol numbers in words: open loop (J − J_REL)/J_REL of SCP from REL → from the model and the share
-    of the reachable gain, closed-loop goal-reached rates at H = 10 (nominal · perturbed); a card without them shows
-    its first two metrics as key=value."""
+    """A card's protocol numbers in words, each rounded to its standard error: open loop (J − J_REL)/J_REL of SCP from
+    REL → from the model and the share of the reachable gain, closed-loop goal-reached rates at H = 10 (nominal ·
+    perturbed); a card without them shows its first two metrics as key=value."""
     m = card.metrics
     parts = []
     if "ws_suboptimality" in m:
-        rel = f"from REL {_pct(m['ws_suboptimality_rel'])} → " if "ws_suboptimality_rel" in m else ""
-        gain = f", {_pct(m['ws_gain_share'])} of the reachable gain" if "ws_gain_share" in m else ""
-        parts.append(f"open loop above J_REL {rel}from model {_pct(m['ws_suboptimality'])}{gain}")
-    rates = [m[k] for p in ("nominal", "perturbed") if (k := f"mpc10_{p}_model_feasible_rate") in m]
+        rel = f"from REL {_pct(m, 'ws_suboptimality_rel')} → " if "ws_suboptimality_rel" in m else ""
+        gain = f", {_pct(m, 'ws_gain_share')} of the reachable gain" if "ws_gain_share" in m else ""
+        parts.append(f"open loop above J_REL {rel}from model {_pct(m, 'ws_suboptimality')}{gain}")
+    rates = [k for p in ("nominal", "perturbed") if (k := f"mpc10_{p}_model_feasible_rate") in m]
     if rates:
-        parts.append("closed-loop goal reached " + " · ".join(_pct(r) for r in rates))
-    return "; ".join(parts) or ", ".join(f"{k}={v:.4g}" for k, v in list(m.items())[:2]) or "-"
+        parts.append("closed-loop goal reached " + " · ".join(_pct(m, k) for k in rates))
+    return "; ".join(parts) or ", ".join(f"{k}={shown(m, k)}" for k in list(m)[:2]) or "-"
 
 
-def _pct(x: float) -> str:
-    return f"{100 * x:.3g}%"
+def _pct(metrics: dict[str, int | float], key: str) -> str:
+    """Metric ``key`` of ``metrics`` in per cent, rounded to its standard error (``key_se``) where it has one."""
+    se = metrics.get(key + SE_SUFFIX)
+    return f"{round_to_se(100 * metrics[key], None if se is None else 100 * se):g}%"
 
 
 def _human(n: int) -> str:
@@ -153,7 +162,7 @@ def _info(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(card.to_dict(), indent=2))
     elif args.raw:
-        sys.stdout.write(render_card(card))
+        sys.stdout.write((zoo_path(args.zoo_dir) / f"{card.name}.md").read_text(encoding="utf-8"))
     else:
         sys.stdout.write(readable_card(card))
     return 0
@@ -161,7 +170,8 @@ def _info(args: argparse.Namespace) -> int:
 
 def readable_card(card: ModelCard) -> str:
     """The card's text first, then what a reader needs from the front matter: files, each evaluation's command and
-    metrics, and where the full record is (``--json``/``--raw``)."""
+    metrics (rounded to their standard errors: ``value ± se``), and where the full record is (``--json``/``--raw``,
+    the metrics file)."""
     arch = ", ".join(f"{k}={card.architecture[k]}" for k in ("n_layer", "n_embd", "n_head") if k in card.architecture)
     lines = [
         card.body.strip(),
@@ -173,9 +183,12 @@ def readable_card(card: ModelCard) -> str:
     ]
     for name, evaluation in card.evaluations.items():
         lines.append(f"{name}: {evaluation['command']}" + (f"  ({evaluation['what']})" if "what" in evaluation else ""))
-        values = ", ".join(f"{k}={v:.4g}" for k, v in evaluation["metrics"].items())
+        metrics = evaluation["metrics"]
+        shown_keys = [k for k in metrics if not (k.endswith(SE_SUFFIX) and k.removesuffix(SE_SUFFIX) in metrics)]
+        values = ", ".join(f"{k}={shown(metrics, k)}" for k in shown_keys)
         lines += textwrap.wrap(values, width=110, initial_indent="  ", subsequent_indent="  ")
-    lines.append(f"the full record: ttompc zoo info {card.name} --json (--raw: the card file)")
+    where = f"; every number at full precision: its {card.evaluations_file}" if card.evaluations_file else ""
+    lines.append(f"the full record: ttompc zoo info {card.name} --json (--raw: the card file){where}")
     return "\n".join(lines) + "\n"
 
 
@@ -204,8 +217,6 @@ def _as_bundle(source: Path, extra: dict[str, Any]) -> Iterator[Path]:
 
 
 def _publish(args: argparse.Namespace) -> int:
-    from ttompc.zoo.publish import load_metrics
-
     hub = zoo.is_hub_ref(args.to)
     if hub and parse_hf_url(args.to).repo_type == "dataset":
         commit = zoo.publish_dataset(args.source, args.to, private=args.private)
@@ -280,11 +291,24 @@ def _metrics(args: argparse.Namespace) -> int:
     except KeyError as err:
         raise UserError(str(err.args[0]), "evaluate with --model (TTO) and --ft-model (FT-TTO)") from err
     text = json.dumps(metrics, indent=2)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
-    else:
+    if not args.out:
         print(text)
+        return 0
+    Path(args.out).write_text(text + "\n")
+    print(f"wrote {args.out}; the headline (the card's model-index), rounded to its standard errors:")
+    print(headline_table(metrics, args.method))
     return 0
+
+
+def headline_table(evaluations: dict[str, dict[str, Any]], kind: str) -> str:
+    """The headline of a ``kind`` model's ``evaluations`` (what the card's model-index states) as a Markdown table,
+    each value with its standard error, at the precision the standard error supports (``ttompc.zoo.rounding``)."""
+    rows = ["| evaluation | metric | value |", "|---|---|---|"]
+    for name, evaluation in evaluations.items():
+        headline = headline_metrics(evaluation["metrics"], kind)
+        for key, label in headline[1] if headline else []:
+            rows.append(f"| {name} | {label} | {shown(evaluation['metrics'], key)} |")
+    return "\n".join(rows)
 
 
 def _index(args: argparse.Namespace) -> int:

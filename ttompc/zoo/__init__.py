@@ -3,7 +3,8 @@
 published to ``hf://`` repositories and models loaded from them through the Hugging Face cache (``hub``).
 
 A published model is a *bundle*: ``model.safetensors`` (weights) + ``config.json`` (model config, scenario,
-normalisation statistics, recipe, code version), each listed in the card with its URL, sha256 and size.
+normalisation statistics, recipe, code version), published with the card's ``metrics.json`` (every number of the
+card, under the command that measured it), each listed in the card with its URL, sha256 and size.
 Importing this package does not import torch or Lightning.
 """
 

@@ -1,22 +1,28 @@
 """Model cards: ``zoo/<name>.md``, Markdown with a YAML front matter that is also Hugging Face model-card metadata.
 
 The front matter is the machine-readable record (what ``zoo/index.json`` is generated from); the Markdown body is
-for people, with the full tables. Parsing is strict (unknown keys, bad hashes, unsafe names are errors) because the
-card decides which bytes land in a user's cache and under which file names.
+for people, with the tables. Parsing is strict (unknown keys, bad hashes, unsafe names are errors) because the card
+decides which bytes land in a user's cache and under which file names.
 
-Numbers live in ``evaluations``: ``{name: {command, what, metrics: {key: value}}}``, each evaluation's command (how to
-reproduce its numbers) stated once. Besides our record the rendered front matter carries the Hub's keys:
-``library_name: ttompc``, ``license``, ``tags``, ``datasets`` (Hub ids of the training data), ``base_model`` (the
-source of a fine-tuned model) and a ``model-index`` that ``huggingface_hub.ModelCard.load(...).data.eval_results``
-reads: the headline results only (``headline_metrics``), one per evaluation that has them, derived from
-``evaluations``. A card whose ``model-index`` states a number its evaluations do not hold is refused, so the numbers
-the Hub shows are the card's. Cards of the first format (``metrics: {key: {value, how}}``, the command repeated in
-every ``how``) still load (``evaluations_from_metrics``).
+The numbers are not in the front matter: ``evaluations: metrics.json`` names the card's metrics file, one of its
+``files`` (so its sha256 and size are the card's), which holds the evaluations at full precision
+(``ttompc.zoo.evaluations``). ``load_evaluations`` reads them into a parsed card from the file's bytes, checked
+against the card; the registry (zoo cards) and the Hub download do so. Besides our record the rendered front matter
+carries the Hub's keys: ``library_name: ttompc``, ``license``, ``tags``, ``datasets`` (Hub ids of the training data),
+``base_model`` (the source of a fine-tuned model) and a ``model-index`` that
+``huggingface_hub.ModelCard.load(...).data.eval_results`` reads: the headline results only, one per evaluation that
+has them, rounded to their standard errors (``ttompc.zoo.rounding``). A card whose ``model-index`` states a number
+its evaluations do not hold is refused once they are loaded.
+
+Cards of the earlier formats held their numbers in the front matter (``evaluations: {name: {command, what,
+metrics}}``, or the first format's ``metrics: {key: {value, how}}``); they load read-only (those published to the Hub
+before, for instance), with their numbers from the front matter and their model-index checked at once. They are
+never written: publishing the same bytes again writes the card in this layout, its numbers moved to a metrics file.
 """
 
 from __future__ import annotations
 
-import math
+import hashlib
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,28 +30,27 @@ from typing import Any
 
 import yaml
 
-from ttompc.errors import UserError
+from ttompc.zoo.errors import CardError
+from ttompc.zoo.evaluations import (
+    decode_evaluations,
+    evaluations_from_metrics,
+    headline_metrics,
+    index_mismatches,
+    validate_evaluations,
+)
+from ttompc.zoo.rounding import rounded
 
 KINDS = ("TTO", "FT-TTO")  # pre-trained transformer / DAgger fine-tuned transformer
 LIBRARY_NAME = "ttompc"
 INFERENCE_KEYS = ("rtg_scale", "conditioning")  # what the card's ``inference`` section may hold
-# the Hub tasks of the model-index results: an open-loop (warm start) and a closed-loop (MPC) evaluation's headline
-WARMSTART_TASK = {"type": "trajectory-optimization", "name": "Open-loop warm start of full-horizon SCP"}
-MPC_TASK = {"type": "model-predictive-control", "name": "Closed-loop TTO-MPC"}
 REQUIRED_FILES = ("model.safetensors", "config.json")
 # Names become directory and file names in the cache: one path component, no leading dot, no "..".
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
-_OPTIONAL_HUB_KEYS = ("datasets", "base_model", "inference")
+_OPTIONAL_KEYS = ("datasets", "base_model", "inference", "evaluations")  # left out of the front matter when empty
 _HUB_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,95}/[A-Za-z0-9][A-Za-z0-9._-]{0,95}$")
 _FRONT_MATTER_RE = re.compile(r"\A---[ \t]*\r?\n(.*?)\r?\n---[ \t]*(?:\r?\n|\Z)(.*)\Z", re.DOTALL)
-_MODEL_MPC_RE = re.compile(r"mpc(\d+)_nominal_(model|robust)_feasible_rate")
-_REL_MPC_RE = re.compile(r"mpc(\d+)_nominal_rel_feasible_rate")
-_LEGACY_COMMAND_RE = re.compile(r"`([^`]+)`")  # the command a first-format ``how`` starts with
-
-
-class CardError(UserError, ValueError):
-    """A model card (or a name in one) that does not match the format."""
+_REPUBLISH = "publish the same bytes again (`ttompc zoo publish`) to write the card with its metrics file"
 
 
 def validate_name(name: str, what: str = "model name") -> str:
@@ -87,7 +92,12 @@ class FileEntry:
 
 @dataclass
 class ModelCard:
-    """The front matter of ``zoo/<name>.md`` (``body`` is the Markdown after it)."""
+    """The front matter of ``zoo/<name>.md`` (``body`` is the Markdown after it).
+
+    ``evaluations_file`` names the entry of ``files`` that holds the evaluations (``""``: none, or an earlier format's
+    card whose numbers are in its front matter). ``evaluations`` are the numbers once read: from that file through
+    ``load_evaluations``, or from an earlier format's front matter. ``stated_index`` keeps the (metric key, value)
+    pairs of the parsed ``model-index`` until ``load_evaluations`` checks them."""
 
     name: str
     kind: str
@@ -105,6 +115,8 @@ class ModelCard:
     base_model: str = ""
     inference: dict[str, Any] = field(default_factory=dict)
     body: str = ""
+    evaluations_file: str = ""
+    stated_index: list[tuple[Any, Any]] = field(default_factory=list, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         validate_name(self.name)
@@ -120,6 +132,11 @@ class ModelCard:
         missing = [f for f in REQUIRED_FILES if f not in names]
         if missing or len(set(names)) != len(names):
             raise CardError(f"card {self.name!r}: files must list {REQUIRED_FILES} once each, got {names}")
+        if self.evaluations_file and (self.evaluations_file not in names or self.evaluations_file in REQUIRED_FILES):
+            raise CardError(
+                f"card {self.name!r}: evaluations must name its metrics file, one of its files besides "
+                f"{REQUIRED_FILES}, got {self.evaluations_file!r}"
+            )
         bad = [d for d in self.datasets if not _HUB_ID_RE.fullmatch(d) or ".." in d]
         if bad:
             raise CardError(f"card {self.name!r}: datasets must be Hugging Face ids ORG/NAME, got {bad}")
@@ -140,8 +157,14 @@ class ModelCard:
         """Every number of every evaluation, by key (a key is in one evaluation only)."""
         return {k: v for e in self.evaluations.values() for k, v in e["metrics"].items()}
 
+    @property
+    def evaluations_entry(self) -> FileEntry | None:
+        """The entry of ``files`` that holds the evaluations; None for a card without one."""
+        return next((f for f in self.files if f.filename == self.evaluations_file), None)
+
     def to_dict(self) -> dict[str, Any]:
-        """Front-matter mapping (also one entry of ``index.json``); key order is the documented card order."""
+        """Front-matter mapping (also one entry of ``index.json``); key order is the documented card order.
+        ``evaluations`` is the metrics file's name (an earlier format's card: its numbers, as it states them)."""
         return {
             "name": self.name,
             "kind": self.kind,
@@ -156,19 +179,20 @@ class ModelCard:
             "datasets": self.datasets,
             "base_model": self.base_model,
             "inference": self.inference,
-            "evaluations": self.evaluations,
+            "evaluations": self.evaluations_file or self.evaluations,
         }
 
     def front_matter(self) -> dict[str, Any]:
-        """The record (``to_dict``) plus the Hub's derived keys; empty optional Hub keys are left out."""
-        record = {k: v for k, v in self.to_dict().items() if v or k not in _OPTIONAL_HUB_KEYS}
+        """The record (``to_dict``) plus the Hub's derived keys; empty optional keys are left out."""
+        record = {k: v for k, v in self.to_dict().items() if v or k not in _OPTIONAL_KEYS}
         index = self.model_index()
         return {"library_name": LIBRARY_NAME, **record, **({"model-index": index} if index else {})}
 
     def model_index(self) -> list[dict[str, Any]]:
         """The Hub's ``model-index``: one result per evaluation with a headline (``headline_metrics``), its dataset's
-        ``config`` naming the evaluation; empty when no evaluation has one. The other numbers and the commands stay
-        in ``evaluations`` (the Hub's result format has no place for a command)."""
+        ``config`` naming the evaluation, each value rounded to its standard error; empty when no evaluation has one.
+        The other numbers and the commands stay in the metrics file (the Hub's result format has no place for a
+        command)."""
         results = []
         for name, evaluation in self.evaluations.items():
             headline = headline_metrics(evaluation["metrics"], self.kind)
@@ -180,13 +204,17 @@ class ModelCard:
                 "name": f"{self.scenario} v{self.scenario_version} held-out problems",
                 "config": name,
             }
-            metrics = [{"name": label, "type": key, "value": evaluation["metrics"][key]} for key, label in keys]
+            metrics = [
+                {"name": label, "type": key, "value": rounded(evaluation["metrics"], key)} for key, label in keys
+            ]
             results.append({"task": dict(task), "dataset": dataset, "metrics": metrics})
         return [{"name": self.name, "results": results}] if results else []
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], body: str = "") -> ModelCard:
-        """The card of the front matter ``d`` (either format), checked; ``CardError`` names what is wrong."""
+        """The card of the front matter ``d`` (any format), checked; ``CardError`` names what is wrong. Numbers in
+        the front matter (an earlier format) are read and the model-index checked against them; a card with a
+        metrics file keeps its model-index in ``stated_index`` for ``load_evaluations``."""
         if not isinstance(d, dict):
             raise CardError("card front matter must be a YAML mapping")
         d = _from_first_format(d)
@@ -224,6 +252,8 @@ class ModelCard:
             raise CardError(f"card {d['name']!r}: bad file entry ({err})") from None
         if d.get("library_name", LIBRARY_NAME) != LIBRARY_NAME:
             raise CardError(f"card {d['name']!r}: library_name must be {LIBRARY_NAME!r}, got {d['library_name']!r}")
+        evaluations = d.get("evaluations") or {}
+        evaluations_file = evaluations if isinstance(evaluations, str) else ""
         card = cls(
             name=d["name"],
             kind=d["kind"],
@@ -234,23 +264,49 @@ class ModelCard:
             data_card=str(d.get("data_card", "")),
             files=entries,
             code_version=str(d["code_version"]),
-            evaluations=d.get("evaluations") or {},
+            evaluations={} if evaluations_file else evaluations,
             license=str(d.get("license", "mit")),
             tags=[str(t) for t in d.get("tags") or []],
             datasets=[str(t) for t in d.get("datasets") or []],
             base_model=str(d.get("base_model") or ""),
             inference=d.get("inference") or {},
             body=body,
+            evaluations_file=evaluations_file,
+            stated_index=_model_index_values(d["model-index"]) if "model-index" in d else [],
         )
-        metrics = card.metrics
-        stated = _model_index_values(d["model-index"]) if "model-index" in d else []
-        wrong = sorted({str(k) for k, v in stated if not isinstance(k, str) or k not in metrics or metrics[k] != v})
-        if wrong:
-            raise CardError(
-                f"card {d['name']!r}: model-index does not match the evaluations' metrics ({', '.join(wrong)})",
-                "edit evaluations only and re-render the card (the model-index is derived from them)",
-            )
+        if not evaluations_file:
+            _check_model_index(card)
         return card
+
+
+def load_evaluations(card: ModelCard, data: bytes) -> ModelCard:
+    """``card`` with its evaluations read from ``data``, the bytes of its metrics file (``evaluations_entry``):
+    ``CardError`` when they are not the bytes the card lists (sha256 and size), not a metrics file, or do not hold
+    the numbers its model-index states."""
+    entry = card.evaluations_entry
+    if entry is None:
+        raise CardError(f"card {card.name!r} names no metrics file")
+    actual = hashlib.sha256(data).hexdigest()
+    if (actual, len(data)) != (entry.sha256, entry.size):
+        raise CardError(
+            f"card {card.name!r}: {entry.filename} is not the file the card lists (sha256 {actual}, {len(data)} "
+            f"bytes; the card: {entry.sha256}, {entry.size} bytes)",
+            "a card's numbers change only by publishing them (`ttompc zoo publish --card-metrics`)",
+        )
+    card.evaluations = decode_evaluations(data, f"card {card.name!r}: {entry.filename}")
+    _check_model_index(card)
+    return card
+
+
+def _check_model_index(card: ModelCard) -> None:
+    """``CardError`` unless every number of the card's stated model-index is one of its evaluations' metrics (as
+    measured, or rounded to its standard error)."""
+    wrong = index_mismatches(card.stated_index, card.evaluations)
+    if wrong:
+        raise CardError(
+            f"card {card.name!r}: model-index does not match the evaluations' metrics ({', '.join(wrong)})",
+            "edit the metrics file only and publish the card again (the model-index is derived from it)",
+        )
 
 
 def _model_index_values(index: Any) -> list[tuple[Any, Any]]:
@@ -263,116 +319,10 @@ def _model_index_values(index: Any) -> list[tuple[Any, Any]]:
         ) from None
 
 
-def headline_metrics(metrics: dict[str, int | float], kind: str) -> tuple[dict[str, str], list[tuple[str, str]]] | None:
-    """The headline of one evaluation's ``metrics`` of a ``kind`` model, as (Hub task, [(metric key, its name)]);
-    None when it has none. Open loop: (J - J_REL)/J_REL and SCP iterations of SCP warm-started by the model and by
-    REL. Closed loop, nominal plant, at the shortest horizon the model ran: goals reached and (J - J_REL)/J_REL of
-    its better variant (more goals, then cheaper: TTO-MPC or the robust R-TTO-MPC) and of REL-MPC at each horizon
-    the evaluation ran it."""
-    if "ws_suboptimality" in metrics:
-        names = {
-            "ws_suboptimality": f"(J - J_REL)/J_REL, SCP from the {kind} warm start",
-            "ws_suboptimality_rel": "(J - J_REL)/J_REL, SCP from the REL warm start",
-            "ws_iterations": f"SCP iterations from the {kind} warm start",
-            "ws_iterations_rel": "SCP iterations from the REL warm start",
-        }
-        return WARMSTART_TASK, [(k, name) for k, name in names.items() if k in metrics]
-    runs = [(int(m.group(1)), m.group(2)) for m in map(_MODEL_MPC_RE.fullmatch, metrics) if m]
-    if not runs:
-        return None
-    horizon = min(h for h, _ in runs)
-
-    def rank(variant: str) -> tuple[float, float]:
-        key = f"mpc{horizon}_nominal_{variant}"
-        return -metrics[f"{key}_feasible_rate"], metrics.get(f"{key}_rel_increment", math.inf)
-
-    best = min((v for h, v in runs if h == horizon), key=rank)
-    label = f"{kind}-MPC" if best == "model" else f"R-{kind}-MPC"
-    rows = [(f"mpc{horizon}_nominal_{best}", f"{label}@{horizon}")]
-    rel = sorted(int(m.group(1)) for m in map(_REL_MPC_RE.fullmatch, metrics) if m)
-    rows += [(f"mpc{h}_nominal_rel", f"REL-MPC@{h}") for h in rel]
-    keys = []
-    for key, label in rows:
-        keys.append((f"{key}_feasible_rate", f"{label}: goals reached, nominal plant"))
-        if f"{key}_rel_increment" in metrics:
-            keys.append((f"{key}_rel_increment", f"{label}: (J - J_REL)/J_REL, nominal plant"))
-    return MPC_TASK, keys
-
-
-def is_metric_value(x: Any) -> bool:
-    """A reportable metric value: a finite int or float (not a bool)."""
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def validate_evaluations(evaluations: Any) -> dict[str, dict[str, Any]]:
-    """``evaluations`` as ``{name: {command, what, metrics}}`` in that key order (``what`` left out when empty), or
-    ``CardError``. Each evaluation has a non-empty ``command`` (how to reproduce its numbers: a number without it is
-    not reportable), an optional one-line ``what`` and ``metrics: {key: finite number}``; a key is in one evaluation
-    only."""
-    if not isinstance(evaluations, dict):
-        raise CardError(f"evaluations must be a mapping of name -> {{command, what, metrics}}, got {evaluations!r}")
-    out: dict[str, dict[str, Any]] = {}
-    for name, e in evaluations.items():
-        ok = (
-            isinstance(name, str)
-            and name
-            and isinstance(e, dict)
-            and set(e) <= {"command", "what", "metrics"}
-            and isinstance(e.get("command"), str)
-            and e["command"].strip()
-            and isinstance(e.get("what", ""), str)
-            and isinstance(e.get("metrics", {}), dict)
-        )
-        if not ok:
-            raise CardError(
-                f"evaluation {name!r} must be {{command: non-empty text, what: text, metrics: {{key: number}}}}, "
-                f"got {e!r}"
-            )
-        metrics = e.get("metrics", {})
-        bad = [k for k, v in metrics.items() if not isinstance(k, str) or not is_metric_value(v)]
-        twice = sorted(k for k in metrics if any(k in o["metrics"] for o in out.values()))
-        if bad or twice:
-            raise CardError(
-                f"evaluation {name!r}: metrics {bad} are not finite numbers, {twice} are in another evaluation too"
-            )
-        out[name] = {
-            "command": e["command"],
-            **({"what": e["what"]} if e.get("what") else {}),
-            "metrics": dict(metrics),
-        }
-    return out
-
-
-def evaluations_from_metrics(metrics: Any) -> dict[str, dict[str, Any]]:
-    """The first card format's ``metrics: {key: {value, how}}`` as evaluations: a metric goes to the evaluation of the
-    command quoted at the start of its ``how`` (the whole ``how`` when it quotes none), named after its
-    ``ttompc evaluate`` kind (``warmstart``, ``mpc``; ``mpc_2`` for a second one), else ``eval``."""
-    if not isinstance(metrics, dict):
-        raise CardError(f"metrics must be a mapping of name -> {{value, how}}, got {type(metrics).__name__}")
-    by_command: dict[str, dict[str, Any]] = {}
-    for key, m in metrics.items():
-        ok = isinstance(m, dict) and isinstance(m.get("how"), str) and m["how"].strip()
-        if not ok or not is_metric_value(m.get("value")):
-            raise CardError(f"metric {key!r} must be {{value: finite number, how: non-empty text}}, got {m!r}")
-        quoted = _LEGACY_COMMAND_RE.match(m["how"])
-        command = quoted.group(1) if quoted else m["how"]
-        by_command.setdefault(command, {"command": command, "metrics": {}})["metrics"][key] = m["value"]
-    out: dict[str, dict[str, Any]] = {}
-    for command, evaluation in by_command.items():
-        words = command.split()
-        base = words[2] if len(words) > 2 and words[:2] == ["ttompc", "evaluate"] else "eval"
-        name, i = base, 1
-        while name in out:
-            i += 1
-            name = f"{base}_{i}"
-        out[name] = evaluation
-    return out
-
-
 def _from_first_format(d: dict[str, Any]) -> dict[str, Any]:
     """A front matter of the first card format (``metrics: {key: {value, how}}``, ``headline_metrics``,
-    ``inference.protocol``: the commands again) in today's, so cards published before the change (on the Hub, in a
-    user's zoo) still load; a current one as given."""
+    ``inference.protocol``: the commands again) with its numbers as front-matter evaluations, so cards published
+    before the change (on the Hub, in a user's zoo) still load; any other front matter as given."""
     if "metrics" not in d and "headline_metrics" not in d:
         return d
     if "evaluations" in d:
@@ -385,6 +335,8 @@ def _from_first_format(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def parse_card(text: str) -> ModelCard:
+    """The card in ``text``, its front matter checked; a card with a metrics file has its evaluations once
+    ``load_evaluations`` has read that file."""
     match = _FRONT_MATTER_RE.match(text)
     if match is None:
         raise CardError("a model card must start with a YAML front matter block between '---' lines")
@@ -396,14 +348,20 @@ def parse_card(text: str) -> ModelCard:
 
 
 def render_card(card: ModelCard) -> str:
-    """The card file: its front matter, with mappings and lists of plain values in flow style (``{...}``, ``[...]``:
-    an evaluation's metrics read as one paragraph, not a line each), then its body."""
+    """The card file: its front matter, with mappings and lists of plain values in flow style (``{...}``, ``[...]``),
+    then its body. Only a card whose numbers are in its metrics file is written: ``CardError`` for one whose numbers
+    are in its front matter (an earlier format) or whose metrics file has not been read (``load_evaluations``)."""
+    if card.evaluations and not card.evaluations_file:
+        raise CardError(f"card {card.name!r} holds its numbers in its front matter (an earlier format)", _REPUBLISH)
+    if card.evaluations_file and not card.evaluations:
+        raise CardError(f"card {card.name!r}: its {card.evaluations_file} has not been read (load_evaluations)")
     front = yaml.safe_dump(card.front_matter(), sort_keys=False, allow_unicode=True, default_flow_style=None, width=110)
     return f"---\n{front}---\n{card.body}"
 
 
 def read_card(path: Path) -> ModelCard:
-    """Parse ``path`` and check that the card's name matches its file name (``zoo/<name>.md``)."""
+    """Parse ``path`` and check that the card's name matches its file name (``zoo/<name>.md``); its evaluations are
+    not read (``ttompc.zoo.registry.load_card`` reads them too)."""
     try:
         card = parse_card(path.read_text(encoding="utf-8"))
     except CardError as err:

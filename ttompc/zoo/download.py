@@ -49,6 +49,19 @@ def download_bundle(
     return assemble_bundle(root, card.name, card.files)
 
 
+def read_published(entry: FileEntry, base_dir: Path) -> bytes:
+    """The bytes of a small published file (a card's metrics file): read where it lies for a relative path (against
+    ``base_dir``) or a ``file://`` URL, unchecked (the card checks them: ``load_evaluations``); from any other source
+    fetched into the cache first (``fetch``: verified, and fetched once)."""
+    if urllib.parse.urlsplit(entry.url).scheme.lower() in ("", "file"):
+        path = local_path(entry.url, base_dir)
+        try:
+            return path.read_bytes()
+        except OSError as err:
+            raise DownloadError(f"cannot read {entry.url}: {err}") from None
+    return fetch(entry, blob_path(cache_root(), entry.sha256), base_dir, progress=False).read_bytes()
+
+
 def fetch(entry: FileEntry, dest: Path, base_dir: Path | None = None, progress: bool = True) -> Path:
     """Download ``entry`` to ``dest`` unless a copy with the published sha256 is already there; only verified
     bytes ever appear at ``dest``. A cached file whose bytes changed (same size or not) is downloaded again."""

@@ -1,5 +1,6 @@
-"""Errors of fetching and publishing zoo files, shared by the URL downloads (``download``), the Hugging Face Hub
-(``hub``) and publishing (``publish``). All are ``UserError``s: one line, exit code 2 on the command line."""
+"""Errors of reading cards and of fetching and publishing zoo files, shared by the cards (``cards``, ``evaluations``),
+the URL downloads (``download``), the Hugging Face Hub (``hub``) and publishing (``publish``). All are
+``UserError``s: one line, exit code 2 on the command line."""
 
 from __future__ import annotations
 
@@ -16,3 +17,7 @@ class ChecksumError(DownloadError):
 
 class PublishError(UserError, RuntimeError):
     """A publish request that cannot be carried out as asked."""
+
+
+class CardError(UserError, ValueError):
+    """A model card, its metrics file or a name in one that does not match the format."""

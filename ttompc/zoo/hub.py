@@ -7,10 +7,11 @@ cache and offline mode are the client's own settings (``HF_ENDPOINT``, ``HF_TOKE
 ``HF_HOME``/``HF_HUB_CACHE``, ``HF_HUB_OFFLINE``). Every failure of the client becomes one ``DownloadError`` or
 ``PublishError`` line naming the reference.
 
-A model repository holds a bundle at its top level plus the model card as ``README.md``; ``download_model`` reads
-the card at the requested revision, fetches each file the card lists at that same commit and checks it against the
-card's sha256 and size before anyone reads it. A file that does not match is removed from the Hugging Face cache
-(blob and snapshot link), so a later run downloads it again instead of trusting it.
+A model repository holds a bundle and the card's metrics file at its top level plus the model card as
+``README.md``; ``download_model`` reads the card at the requested revision, fetches each file the card lists at that
+same commit and checks it against the card's sha256 and size before anyone reads it. A file that does not match is
+removed from the Hugging Face cache (blob and snapshot link), so a later run downloads it again instead of trusting
+it.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from ttompc.zoo.cache import check_bundle, sha256_file
-from ttompc.zoo.cards import CardError, ModelCard, parse_card
+from ttompc.zoo.cards import CardError, ModelCard, load_evaluations, parse_card
 from ttompc.zoo.errors import ChecksumError, DownloadError, PublishError
 
 SCHEME = "hf://"
@@ -136,7 +137,9 @@ def _progress_bars(hf: Any, progress: bool) -> Iterator[None]:
 def download_model(url: str, progress: bool = True) -> tuple[Path, dict[str, Any]]:
     """The bundle dir of the model repository ``url`` (``hf://ORG/NAME[@REVISION]``) in the Hugging Face cache and
     its parsed ``config.json``; every file the card lists is fetched at the card's commit and verified against its
-    sha256 and size, then the bundle is checked like a local one (``check_bundle``) before anyone loads it.
+    sha256 and size, the card's model-index checked against its metrics file (a card of an earlier format, with its
+    numbers in the front matter, against those), then the bundle is checked like a local one (``check_bundle``)
+    before anyone loads it.
 
     Raises ``DownloadError`` (unknown repository, revision or file, offline without a cached copy), ``CardError``
     (a README.md that is no ttompc card), ``ChecksumError`` (bytes that are not the card's; they are removed) or
@@ -155,6 +158,11 @@ def download_model(url: str, progress: bool = True) -> tuple[Path, dict[str, Any
             )
         verify(hub_file(pinned, entry.filename, progress), entry.sha256, entry.size, f"{ref}: {entry.filename}")
     snapshot = card_path.parent
+    if card.evaluations_file:  # its model-index must be its metrics file's numbers
+        try:
+            load_evaluations(card, (snapshot / card.evaluations_file).read_bytes())
+        except CardError as err:
+            raise CardError(f"{ref}: {err}") from None
     return snapshot, check_bundle(snapshot, within=snapshot.parents[1])  # <repo folder>/snapshots/<commit>
 
 

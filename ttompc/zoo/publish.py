@@ -1,15 +1,16 @@
-"""Publishing a model bundle: hash its two files, write the card, and put both where users fetch them: a local
-directory plus the zoo's card and index (``publish``), or a Hugging Face Hub repository with the card as its
-``README.md`` in one commit (``publish_to_hub``). Datasets made by ``ttompc generate`` go to a Hub dataset
-repository the same way (``publish_dataset``).
+"""Publishing a model bundle: hash its two files, write its evaluations to a metrics file beside them, write the card,
+and put them where users fetch them: a local directory plus the zoo's card and index (``publish``), or a Hugging
+Face Hub repository with the card as its ``README.md`` in one commit (``publish_to_hub``). Datasets made by
+``ttompc generate`` go to a Hub dataset repository the same way (``publish_dataset``).
 
 The zoo stores bundles and never builds a model (``ttompc.policy`` imports the zoo to load names, not the reverse):
-a Lightning checkpoint is converted by the caller (``ttompc zoo publish`` does). Only ``model.safetensors`` and
-``config.json`` are published. Card fields come from the bundle's ``config.json``
-(``scenario: {name, version}``, ``model`` = architecture, optionally ``kind``, ``recipe``, ``data_card``,
-``code_version``, and ``extra``: ``rtg_scale`` for the inference settings, ``finetuned_from`` for ``base_model``)
-over an existing card's hand-edited fields (body, licence, tags, recipe, ...), and explicit ``card_fields`` over
-both.
+a Lightning checkpoint is converted by the caller (``ttompc zoo publish`` does). Published are ``model.safetensors``
+and ``config.json`` of the bundle and the card's ``metrics.json`` (the evaluations at full precision; none for a card
+without evaluations), each listed in the card with its sha256 and size. Card fields come from the bundle's
+``config.json`` (``scenario: {name, version}``, ``model`` = architecture, optionally ``kind``, ``recipe``,
+``data_card``, ``code_version``, and ``extra``: ``rtg_scale`` for the inference settings, ``finetuned_from`` for
+``base_model``) over an existing card's hand-edited fields (body, licence, tags, recipe, ...), and explicit
+``card_fields`` over both.
 """
 
 from __future__ import annotations
@@ -25,20 +26,12 @@ from typing import Any
 
 from ttompc.version import code_version
 from ttompc.zoo.cache import check_bundle, inside, sha256_file
-from ttompc.zoo.cards import (
-    REQUIRED_FILES,
-    FileEntry,
-    ModelCard,
-    evaluations_from_metrics,
-    read_card,
-    render_card,
-    validate_evaluations,
-    validate_name,
-)
+from ttompc.zoo.cards import REQUIRED_FILES, FileEntry, ModelCard, read_card, render_card, validate_name
 from ttompc.zoo.download import local_path
 from ttompc.zoo.errors import DownloadError, PublishError
+from ttompc.zoo.evaluations import METRICS_FILE, encode_evaluations, validate_evaluations
 from ttompc.zoo.hub import CARD_FILE, HubRef, is_hub_ref, parse_hf_url, upload
-from ttompc.zoo.registry import write_index, zoo_path
+from ttompc.zoo.registry import read_evaluations, write_index, zoo_path
 
 DEFAULT_TAGS = ("ttompc", "trajectory-optimization", "mpc")
 MANIFEST_FILE = "manifest.json"  # a dataset folder's file list with sha256 (``ttompc.data.generate``)
@@ -57,7 +50,8 @@ def publish(
     base_url: str | None = None,
     card_fields: dict[str, Any] | None = None,
 ) -> ModelCard:
-    """Publish the bundle dir ``source`` as ``name`` into ``to``; returns the new card.
+    """Publish the bundle dir ``source`` as ``name`` into ``to``: its two files and the card's metrics file
+    (``metrics.json``, removed from ``to`` when the card has no evaluations); returns the new card.
 
     ``to`` is a local directory or ``file://`` URL. Card URLs are relative when ``to`` lies inside the zoo dir
     (models shipped with the repository), ``base_url + filename`` when the files will be uploaded there by hand,
@@ -74,10 +68,17 @@ def publish(
         for f in REQUIRED_FILES
     ]
     card = _card(bundle, config, name, files, card_path, metrics, skip_eval, evaluate, card_fields, name)
+    evaluations = _add_metrics_file(card, _url_for(dest / METRICS_FILE, zoo, base_url))
     dest.mkdir(parents=True, exist_ok=True)
     for entry in files:
         if _copy_hashed(bundle / entry.filename, dest / entry.filename) != (entry.sha256, entry.size):
             raise PublishError(f"{bundle / entry.filename} changed while it was being published; publish again")
+    if evaluations is None:
+        (dest / METRICS_FILE).unlink(missing_ok=True)  # a previous card's numbers, not this one's
+    else:
+        staged = dest / f".{METRICS_FILE}.tmp"
+        staged.write_bytes(evaluations)
+        os.replace(staged, dest / METRICS_FILE)
     zoo.mkdir(parents=True, exist_ok=True)
     tmp = card_path.with_name(f".{card_path.name}.tmp")
     tmp.write_text(render_card(card), encoding="utf-8")
@@ -99,7 +100,7 @@ def publish_to_hub(
     card_fields: dict[str, Any] | None = None,
 ) -> tuple[ModelCard, str]:
     """Publish the bundle dir ``source`` to the Hub model repository ``to`` (``hf://ORG/NAME[@BRANCH]``): its two
-    files and the card as ``README.md``, in one commit; returns the card and the commit id.
+    files, the card's metrics file and the card as ``README.md``, in one commit; returns the card and the commit id.
 
     The card is named ``name`` (default: the repository's NAME) and lists the files by name (the repository's top
     level); a zoo card of that name supplies the hand-edited fields as for ``publish``. Nothing is written locally.
@@ -114,10 +115,14 @@ def publish_to_hub(
     card_path = zoo_path(zoo_dir) / f"{name}.md"
     load_as = str(HubRef(ref.repo_id))
     card = _card(bundle, config, name, files, card_path, metrics, skip_eval, evaluate, card_fields, load_as)
+    evaluations = _add_metrics_file(card, METRICS_FILE)
     with tempfile.TemporaryDirectory(prefix="ttompc-card-") as tmp:
         readme = Path(tmp) / CARD_FILE
         readme.write_text(render_card(card), encoding="utf-8")
         uploads = {**{f: bundle / f for f in REQUIRED_FILES}, CARD_FILE: readme}
+        if evaluations is not None:
+            uploads[METRICS_FILE] = Path(tmp) / METRICS_FILE
+            uploads[METRICS_FILE].write_bytes(evaluations)
         commit = upload(ref, uploads, f"Publish {name} ({card.kind}, {card.scenario})", private=private)
     return card, commit
 
@@ -166,16 +171,16 @@ def _card(
     same name or with a metric in common; else ``metrics``, or ``evaluate(bundle)`` (the standard evaluation hook)
     when not given. A card never silently claims metrics it was not given."""
     previous = read_card(card_path) if card_path.is_file() else None
-    same_files = previous is not None and {(f.filename, f.sha256) for f in previous.files} == {
-        (f.filename, f.sha256) for f in files
-    }
+    same_files = previous is not None and {
+        (f.filename, f.sha256) for f in previous.files if f.filename in REQUIRED_FILES
+    } == {(f.filename, f.sha256) for f in files}
     if metrics is None and not skip_eval and not same_files:
         if evaluate is None:
             raise PublishError(f"no metrics for the card of {name}", _metrics_hint(config, card_fields))
         metrics = evaluate(bundle)
     evaluations = validate_evaluations(metrics or {})
-    if previous is not None and same_files and not skip_eval:
-        evaluations = _updated(previous.evaluations, evaluations)
+    if previous is not None and same_files and not skip_eval:  # measured on these bytes: read from its metrics file
+        evaluations = _updated(read_evaluations(previous, card_path.parent).evaluations, evaluations)
     fields: dict[str, Any] = {"name": name, "kind": "TTO", "license": "mit", "tags": list(DEFAULT_TAGS)}
     if previous is not None:  # keep what a maintainer edited by hand; evaluations and files are replaced
         fields.update(
@@ -193,6 +198,17 @@ def _card(
     card = ModelCard.from_dict(fields, body=previous.body if previous else "")
     card.body = card.body or _default_body(card, load_as)
     return card
+
+
+def _add_metrics_file(card: ModelCard, url: str) -> bytes | None:
+    """Add the card's metrics file (``METRICS_FILE``: its evaluations, fetched from ``url``) to its files and name
+    it in the card; returns the file's bytes, None for a card without evaluations (it has no metrics file)."""
+    if not card.evaluations:
+        return None
+    data = encode_evaluations(card.evaluations)
+    card.files.append(FileEntry(METRICS_FILE, url, hashlib.sha256(data).hexdigest(), len(data)))
+    card.evaluations_file = METRICS_FILE
+    return data
 
 
 def _updated(evaluations: dict[str, dict[str, Any]], new: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -325,12 +341,3 @@ def _default_body(card: ModelCard, load_as: str) -> str:
         f'planner = Planner.from_pretrained("{load_as}")\n```\n\n'
         f"Card format, metric definitions and download details: {where}.\n"
     )
-
-
-def load_metrics(path: str | Path) -> dict[str, dict[str, Any]]:
-    """The evaluations in a JSON file (``--card-metrics``): ``{name: {command, what, metrics}}`` as ``ttompc zoo
-    metrics`` writes it, or the first format's ``{key: {value, how}}``."""
-    with open(path, encoding="utf-8") as fh:
-        data = json.load(fh)
-    first_format = isinstance(data, dict) and any(isinstance(m, dict) and "how" in m for m in data.values())
-    return validate_evaluations(evaluations_from_metrics(data) if first_format else data)

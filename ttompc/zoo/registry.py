@@ -1,4 +1,5 @@
-"""The zoo directory: model cards (``<name>.md``, the source of truth) and the generated ``index.json``.
+"""The zoo directory: model cards (``<name>.md``, the source of truth, each with the metrics file its ``files`` lists;
+shipped models keep theirs beside their bundles in ``models/<name>/``) and the generated ``index.json``.
 
 The default zoo is the repository's ``zoo/``; ``$TTOMPC_ZOO`` or an explicit ``zoo_dir`` points elsewhere (an
 installed wheel does not ship the cards, a fork may keep its own).
@@ -12,10 +13,11 @@ from pathlib import Path
 from typing import Any
 
 from ttompc.errors import UserError
-from ttompc.zoo.cards import ModelCard, read_card, validate_name
+from ttompc.zoo.cards import CardError, ModelCard, load_evaluations, read_card, validate_name
+from ttompc.zoo.download import read_published
 
 INDEX_FILE = "index.json"
-INDEX_FORMAT = 2  # 2: evaluations {name: {command, what, metrics}} in place of metrics {key: {value, how}}
+INDEX_FORMAT = 3  # 3: evaluations names the metrics file; 2: evaluations {name: {command, what, metrics}} inline
 _NOT_CARDS = {"readme.md"}
 
 
@@ -36,11 +38,30 @@ def zoo_path(zoo_dir: str | Path | None) -> Path:
     return default_zoo_dir() if zoo_dir is None else Path(zoo_dir)
 
 
+def read_evaluations(card: ModelCard, zoo: Path) -> ModelCard:
+    """``card``, of the zoo at ``zoo``, with its evaluations read from its metrics file (a relative URL resolves
+    against ``zoo``, a remote one is fetched into the cache first) and checked against the card
+    (``load_evaluations``); a card without a metrics file as it is."""
+    entry = card.evaluations_entry
+    return card if entry is None else load_evaluations(card, read_published(entry, zoo))
+
+
+def load_card(path: Path) -> ModelCard:
+    """The zoo card at ``path`` (``<zoo>/<name>.md``) with its evaluations (``read_evaluations``)."""
+    card = read_card(path)
+    try:
+        return read_evaluations(card, path.parent)
+    except CardError as err:
+        raise CardError(f"{path}: {err}") from None
+
+
+def _card_paths(zoo_dir: str | Path | None) -> list[Path]:
+    return sorted(p for p in zoo_path(zoo_dir).glob("*.md") if p.name.lower() not in _NOT_CARDS)
+
+
 def load_cards(zoo_dir: str | Path | None = None) -> dict[str, ModelCard]:
-    """All cards of the zoo, by name (sorted)."""
-    root = zoo_path(zoo_dir)
-    paths = sorted(p for p in root.glob("*.md") if p.name.lower() not in _NOT_CARDS)
-    return {card.name: card for card in map(read_card, paths)}
+    """All cards of the zoo with their evaluations, by name (sorted)."""
+    return {card.name: card for card in map(load_card, _card_paths(zoo_dir))}
 
 
 def get_card(name: str, zoo_dir: str | Path | None = None) -> ModelCard:
@@ -49,7 +70,7 @@ def get_card(name: str, zoo_dir: str | Path | None = None) -> ModelCard:
     if not path.is_file():
         available = ", ".join(load_cards(zoo_dir)) or "none"
         raise UnknownModelError(f"no model {name!r} in the zoo at {zoo_path(zoo_dir)} (available: {available})")
-    return read_card(path)
+    return load_card(path)
 
 
 def build_index(cards: dict[str, ModelCard]) -> dict[str, Any]:
@@ -57,7 +78,10 @@ def build_index(cards: dict[str, ModelCard]) -> dict[str, Any]:
 
 
 def render_index(zoo_dir: str | Path | None = None) -> str:
-    return json.dumps(build_index(load_cards(zoo_dir)), indent=2, ensure_ascii=False) + "\n"
+    """``index.json``'s text: the cards' front matter, which names their metrics files (not read here: a card
+    published with ``--base-url`` is indexed before its files are uploaded)."""
+    cards = {card.name: card for card in map(read_card, _card_paths(zoo_dir))}
+    return json.dumps(build_index(cards), indent=2, ensure_ascii=False) + "\n"
 
 
 def write_index(zoo_dir: str | Path | None = None) -> Path:

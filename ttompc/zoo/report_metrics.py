@@ -4,14 +4,15 @@ its evaluation's ``command`` is the command line that produced it (re-run it to 
 ``card_metrics("TTO", warmstart=..., mpc=...)`` reads the open-loop report (``warmstart.json``) and the closed-loop
 report (``mpc.json``) of the evaluation protocol (docs/evaluation.md) and returns the card's evaluations
 ``{"warmstart": {command, what, metrics}, "mpc": {...}}`` (``ttompc zoo metrics``, ``ttompc zoo publish
---card-metrics``). The metric keys are defined in zoo/README.md.
+--card-metrics``: the card's metrics file). Every mean comes with its standard error (``<key>_se``), which sets the
+precision the card shows it at (``ttompc.zoo.rounding``). The metric keys are defined in zoo/README.md.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from ttompc.zoo.cards import is_metric_value
+from ttompc.zoo.evaluations import is_metric_value
 
 # config keys that are part of the protocol's command line (others are defaults or output locations)
 _WS_KEYS = ("problems", "seed", "nonconvex_only", "rtg_scale", "oracle_detours")
@@ -43,11 +44,16 @@ def _put(out: dict[str, float], name: str, value: Any) -> None:
         out[name] = float(value)
 
 
+def _put_mean(out: dict[str, float], name: str, interval: dict[str, Any]) -> None:
+    """A mean (``name``) and its standard error (``name_se``), each when the report has a finite number for it."""
+    _put(out, name, interval["mean"])
+    _put(out, f"{name}_se", interval.get("se"))
+
+
 def _put_paired(out: dict[str, float], name: str, interval: dict[str, Any]) -> None:
     """A paired difference: its mean (``name``), standard error (``name_se``) and how many problems it pairs
     (``name_n``)."""
-    _put(out, name, interval["mean"])
-    _put(out, f"{name}_se", interval["se"])
+    _put_mean(out, name, interval)
     out[f"{name}_n"] = int(interval["n"])
 
 
@@ -61,9 +67,8 @@ def warmstart_metrics(report: dict[str, Any], method: str) -> dict[str, float]:
         row = rows.get(name)
         if row is None:
             continue
-        _put(out, f"ws_suboptimality{tag}", row["suboptimality"]["mean"])
-        _put(out, f"ws_suboptimality{tag}_se", row["suboptimality"]["se"])
-        _put(out, f"ws_iterations{tag}", row["iterations"]["mean"])
+        _put_mean(out, f"ws_suboptimality{tag}", row["suboptimality"])
+        _put_mean(out, f"ws_iterations{tag}", row["iterations"])
         _put(out, f"ws_failures{tag}", row["failures"])
     for key in ("suboptimality", "iterations"):
         d = rows[method].get("vs_rel", {}).get(key)
@@ -71,7 +76,7 @@ def warmstart_metrics(report: dict[str, Any], method: str) -> dict[str, float]:
             _put_paired(out, f"ws_{key}_vs_rel", d)
     share = rows[method].get("gain_share")
     if share is not None:  # an undefined share (null: the reachable gain is within noise) is no metric
-        _put(out, "ws_gain_share", share["mean"])
+        _put_mean(out, "ws_gain_share", share)
     return out
 
 
@@ -98,9 +103,9 @@ def mpc_metrics(report: dict[str, Any], method: str, horizon: int = 10) -> dict[
             continue
         key = f"mpc{row['horizon']}_{row['plant']}_{tag}"
         _put(out, f"{key}_feasible_rate", row["feasible"] / row["runs"])
-        _put(out, f"{key}_rel_increment", row["rel_increment"]["mean"])
+        _put_mean(out, f"{key}_rel_increment", row["rel_increment"])
         if "paper_norm" in row:
-            _put(out, f"{key}_paper_norm", row["paper_norm"]["mean"])
+            _put_mean(out, f"{key}_paper_norm", row["paper_norm"])
         vs = row.get("vs_rel_mpc")  # every method but REL-MPC itself
         if vs and vs["n"]:
             _put_paired(out, f"{key}_vs_rel_mpc", vs)
