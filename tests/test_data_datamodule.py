@@ -100,10 +100,13 @@ def test_batch_contract_windows_and_values(data: dict[str, Path]) -> None:
         "target_actions": (B, L, m),
         "target_next_states": (B, L, n),
         "mask": (B, L),
+        "value_grad": (B, L, n),
+        "grad_mask": (B, L),
         "source": (B,),
         "problem_id": (B,),
     }
     assert {k: tuple(v.shape) for k, v in batch.items()} == shapes
+    assert not batch["grad_mask"].any() and not batch["value_grad"].any()  # rows without costates: no target
     for k, v in batch.items():
         assert v.dtype == (torch.int64 if k in ("timesteps", "source", "problem_id") else torch.float32), k
     t = batch["timesteps"].numpy()

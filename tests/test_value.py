@@ -13,7 +13,8 @@ from test_training import ToyDataModule, tiny_config
 from ttompc.config import ConfigError, to_container
 from ttompc.data.schema import SOURCE_CODES
 from ttompc.mpc.providers import RemainingOptimum
-from ttompc.mpc.tto import TTOProvider, effective_rtg_mode
+from ttompc.mpc.rtg import rtg_feed
+from ttompc.mpc.tto import TTOProvider
 from ttompc.policy import Planner
 from ttompc.policy.config import ModelConfig
 from ttompc.policy.gpt import TrajectoryGPT
@@ -131,17 +132,26 @@ def test_init_from_weights_must_fit_but_for_a_new_value_head() -> None:
 
 
 def test_models_without_a_value_output_keep_the_ledger(toy, toy_stats: NormStats) -> None:
+    """One rule wherever a mode is resolved (``rtg_feed``: evaluate, the metrics, DAgger, the demo, a provider):
+    ``value`` declares the ledger as its fallback, so a model without a value output runs ``running`` and is named
+    so; the zoo's cards run such a parent beside its value model under ``protocol=recommended``."""
+    from ttompc.mpc.methods import METHODS
+    from ttompc.mpc.rtg import RTG_MODES, ValueRTG
+    from ttompc.mpc.settings import MPCSettings
+
     cfg = ModelConfig(state_dim=6, control_dim=3, n_embd=16, n_layer=1, n_head=2, max_steps=12, layout="stacked")
     planner = Planner(TrajectoryGPT(cfg), toy, toy_stats)
     assert not planner.has_value
-    assert effective_rtg_mode("value", planner) == "running"
-    assert effective_rtg_mode("oracle", planner) == "oracle"
-    with pytest.raises(ValueError, match="value output"):
-        TTOProvider(planner, rtg_mode="value")
+    assert rtg_feed("value", planner).name == "running" and ValueRTG.fallback == "running"
+    assert rtg_feed("oracle", planner).name == "oracle"
+    assert TTOProvider(planner, rtg_mode="value").rtg_mode == "running"
+    assert METHODS["R-FT-TTO-MPC"].label(MPCSettings(rtg_mode="value"), planner) == "R-FT-TTO-MPC"
+    assert [m for m, c in RTG_MODES.items() if c.needs_value] == ["value"]
     with pytest.raises(ValueError, match="no value output"):
         planner.cost_to_go([toy.sample(np.random.default_rng(0))], np.zeros((1, 6)), 0)
     valued = Planner(TrajectoryGPT(ModelConfig(**{**cfg.__dict__, "value_width": 8})), toy, toy_stats)
-    assert effective_rtg_mode("value", valued) == "value"
+    assert rtg_feed("value", valued).name == "value"
+    assert METHODS["R-FT-TTO-MPC"].label(MPCSettings(rtg_mode="value"), valued) == "R-FT-TTO-MPC[rtg=value]"
 
 
 def test_remaining_optimum_is_the_tail_of_the_optimum_on_its_own_path() -> None:
@@ -221,4 +231,70 @@ def test_shipped_value_models_plan_as_their_parents(model: str, parent: str) -> 
     assert new.rtg_scale == old.rtg_scale and new.extra["value_added_to"] == parent
     want, got = old.model.state_dict(), new.model.state_dict()
     assert all(torch.equal(got[k], want[k]) for k in want)
-    assert effective_rtg_mode("value", new) == "value" and effective_rtg_mode("value", old) == "running"
+    assert rtg_feed("value", new).name == "value" and rtg_feed("value", old).name == "running"
+
+
+@pytest.mark.parametrize(("form", "activation"), [("gauss_newton", "silu"), ("gauss_newton", "gelu"), ("mlp", "relu")])
+def test_the_value_models_expansion_is_the_heads_value_and_gradient(form: str, activation: str) -> None:
+    """``ValueModel`` (numpy, the per-SCP-iteration expansion of a terminal cost) gives the torch head's cost-to-go
+    J = −rtg at a state in the optimisation representation (through a linear map M to the model's), its gradient
+    against central differences of the torch head, and a PSD Hessian: the Gauss–Newton σ·J_rᵀJ_r of that form,
+    which is the Hessian of J where r is linear (checked against differences of the gradient with the head's
+    pre-activations scaled into the activation's linear range), 0 for the piecewise-linear ReLU MLP."""
+    from ttompc.policy.value import ValueModel
+
+    torch.manual_seed(0)
+    n = 6
+    cfg = ModelConfig(n_embd=16, n_layer=1, n_head=2, max_steps=40, value_width=16, value_form=form,
+                      value_activation=activation)  # fmt: skip
+    model = TrajectoryGPT(cfg).double()
+    stats = NormStats(
+        mean={"states": np.full(n, 0.1), "actions": np.zeros(3), "goals": np.full(n, 0.2), "rtg": [-0.3], "ctg": [5.0]},
+        std={"states": np.full(n, 2.0), "actions": np.full(3, 3e-3), "goals": np.ones(n), "rtg": [0.2], "ctg": [5.0]},
+    )
+    rng = np.random.default_rng(0)
+    goal, x, M, t = rng.normal(size=n), rng.normal(size=n), rng.normal(size=(n, n)), 7
+
+    def cost_to_go(x: np.ndarray) -> float:
+        as_t = lambda a, key: torch.as_tensor(stats.normalize(key, a))[None, None]  # noqa: E731
+        v = model.value(as_t(goal, "goals"), as_t(M @ x, "states"), torch.tensor([[t]]))
+        return -float(stats.denormalize("rtg", v.detach().numpy()[0, 0])[0])
+
+    e = ValueModel(model.value_head, cfg, stats).expand(goal, M @ x, t, M)
+    assert e.value == pytest.approx(cost_to_go(x), rel=1e-12, abs=1e-12)
+    fd = np.array([(cost_to_go(x + 1e-6 * d) - cost_to_go(x - 1e-6 * d)) / 2e-6 for d in np.eye(n)])
+    np.testing.assert_allclose(e.gradient, fd, rtol=1e-6, atol=1e-8)
+    assert np.linalg.eigvalsh(e.hessian).min() >= -1e-12
+    if form == "mlp":
+        assert not e.hessian.any()
+        return
+    with torch.no_grad():  # r nearly linear in the state: J = σ·½‖r‖² + const nearly quadratic
+        model.value_head.net[0].weight.mul_(1e-3)
+        model.value_head.net[4].weight.mul_(1e3)
+    vm = ValueModel(model.value_head, cfg, stats)
+    lin = vm.expand(goal, M @ x, t, M)
+    hess_fd = np.stack([(vm.expand(goal, M @ (x + 1e-4 * d), t, M).gradient - lin.gradient) / 1e-4 for d in np.eye(n)])
+    assert np.abs(hess_fd - lin.hessian).max() <= 1e-2 * np.abs(lin.hessian).max()
+
+
+def test_the_value_loss_weighs_the_last_steps_as_set() -> None:
+    """``optim.value_tail_steps``/``value_tail_weight``: an error on the last steps costs that much more."""
+    torch.manual_seed(0)
+    plain, batch = _module()
+    tail, _ = _module("optim.value_tail_steps=3", "optim.value_tail_weight=5.0")
+    tail.model.load_state_dict(plain.model.state_dict())
+    late = batch["timesteps"] >= tail.model.cfg.max_steps - 3
+    assert late.any() and (~late).any()
+    moved = dict(batch, rtg=batch["rtg"] + 1.0 * late[..., None] * (batch["mask"] > 0)[..., None])
+    ratio = (tail.value_loss(moved) - tail.value_loss(batch)) / (plain.value_loss(moved) - plain.value_loss(batch))
+    assert ratio.item() > 1.5  # the late errors weigh 5x among the rows' weights
+
+
+def test_a_new_value_form_trains_on_the_policy_of_its_source() -> None:
+    """init_from a model whose value output has another form: the policy's weights load, the head starts fresh."""
+    cfg = ModelConfig(state_dim=6, control_dim=3, n_embd=16, n_layer=1, n_head=2, max_steps=12, layout="stacked",
+                      value_width=8)  # fmt: skip
+    source = TrajectoryGPT(cfg)
+    gn = TrajectoryGPT(ModelConfig(**{**cfg.__dict__, "value_form": "gauss_newton", "value_activation": "silu"}))
+    load_source_weights(gn, source.state_dict())
+    assert all(torch.equal(gn.state_dict()[k], v) for k, v in source.state_dict().items() if "value_head" not in k)

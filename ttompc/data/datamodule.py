@@ -15,6 +15,8 @@ Batch contract (float32 unless stated, normalised with the open-loop dataset's t
     target_actions (B, L, m)    normalised like actions
     target_next_states (B, L, n) normalised like states
     mask (B, L)                 1 for steps with a target (DAgger rows: NaN targets mark unlabelled steps, 0 here)
+    value_grad (B, L, n)        the value output's target gradient d rtg/d s in normalised units, from the costates
+    grad_mask (B, L)            1 where the row has a costate (0: none, value_grad 0)
     source (B,) int64           0 rel, 1 scp, 2 dagger (``schema.SOURCE_CODES``)
     problem_id (B,) int64
 """
@@ -43,6 +45,7 @@ from ttompc.policy.stats import NormStats
 from ttompc.scenarios import find_scenario
 
 COLUMNS = ("problem_id", "source", "states", "actions", "goal", "rtg", "ctg", "target_actions", "target_next_states")
+OPTIONAL = ("costates",)  # read where a shard has them, NaN (no target) where it was written before them
 Chunk = dict[str, np.ndarray]
 _OPENED: dict[tuple[str, bool], Any] = {}  # streaming datasets per (shard path, open-loop columns)
 
@@ -53,10 +56,13 @@ def _read_file(path: str, read_batch: int, allowed: frozenset[str]) -> Iterator[
     Open-loop rows have targets = (actions, states[1:]) by construction, so for them the two target columns are
     derived instead of read (less decoding)."""
     import datasets
+    import pyarrow.parquet as pq
 
     open_loop = "dagger" not in allowed
     columns = [c for c in COLUMNS if not (open_loop and c.startswith("target_"))]
     try:
+        present = set(pq.read_schema(path).names)
+        columns += [c for c in OPTIONAL if c in present]
         ds = _OPENED.get((path, open_loop))
         if ds is None:  # the parquet reader decodes only ``columns``; opened once per process and reused
             ds = datasets.load_dataset("parquet", data_files=[path], split="train", streaming=True, columns=columns)
@@ -74,6 +80,8 @@ def _read_file(path: str, read_batch: int, allowed: frozenset[str]) -> Iterator[
         keep = np.isin(chunk["source"], list(allowed))
         if keep.any():
             chunk = {k: v[keep] for k, v in chunk.items()}
+            if "costates" not in chunk:
+                chunk["costates"] = np.full_like(chunk["states"], np.nan)
             if open_loop:
                 chunk["target_actions"], chunk["target_next_states"] = chunk["actions"], chunk["states"][:, 1:]
             yield chunk
@@ -179,6 +187,10 @@ class _Batcher:
         # DAgger rows mark unlabelled steps with NaN targets: no loss there (mask 0, target 0)
         target_a, target_s = win(rows["target_actions"]).astype(f32), win(rows["target_next_states"]).astype(f32)
         labelled = np.isfinite(target_a).all(axis=-1) & np.isfinite(target_s).all(axis=-1)  # (B, L)
+        # the value's target gradient d v/d s in normalised units: −(σ_s/σ_rtg)·λ_t (v: the normalised rtg)
+        lam = win(rows["costates"]).astype(f32)
+        known = np.isfinite(lam).all(axis=-1)  # (B, L)
+        sd_s, sd_r = st.mean_std("states", lam)[1], st.mean_std("rtg", lam[..., :1])[1]
         out = {
             "states": st.normalize("states", win(rows["states"]).astype(f32)),
             "actions": st.normalize("actions", win(rows["actions"]).astype(f32)),
@@ -189,6 +201,8 @@ class _Batcher:
             "target_actions": np.nan_to_num(st.normalize("actions", target_a), nan=0.0),
             "target_next_states": np.nan_to_num(st.normalize("states", target_s), nan=0.0),
             "mask": labelled.astype(f32),
+            "value_grad": np.nan_to_num(-lam * sd_s / sd_r, nan=0.0),
+            "grad_mask": known.astype(f32),
             "source": np.array([SOURCE_CODES[s] for s in rows["source"]], dtype=np.int64),
             "problem_id": rows["problem_id"].astype(np.int64),
         }

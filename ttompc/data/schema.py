@@ -7,6 +7,9 @@ fixed shapes, N = ``scenario.n_steps`` controls and N+1 states x_0..x_N:
     rtg (N,) f32            rtg_t = −Σ_{τ≥t} c(u_τ)  (scenario stage cost)
     ctg (N,) f32            ctg_t = Σ_{τ≥t} viol(x_τ) over states 0..N−1 (violated keep-out constraints)
     target_actions (N, m), target_next_states (N, n)   open loop: actions and states[1:]; DAgger: expert labels
+    costates (N+1, n) f32   λ_t = ∂J*_t/∂s_t, the gradient of the cost-to-go from step t (−∂rtg_t/∂s_t) at the
+                            row's states, in the model representation; NaN where unknown (REL rows, steps without
+                            a converged expert solve, shards written before the column: read as NaN)
 
 plus the problem in the *optimisation* representation (``states_opt``, ``x0``, ``goal_opt``, ``dt`` and one
 ``feat_<name>`` column per ``scenario.problem_features`` entry, enough for ``problem_from_features``) and the
@@ -59,6 +62,7 @@ def trajectory_features(scenario: Scenario) -> Features:
         "ctg": _array((N,), "float32"),
         "target_actions": Array2D(shape=(N, m), dtype="float32"),
         "target_next_states": Array2D(shape=(N, n), dtype="float32"),
+        "costates": Array2D(shape=(N + 1, n), dtype="float32"),
         "states_opt": Array2D(shape=(N + 1, n), dtype="float32"),
         "x0": _array((n,), "float64"),
         "goal_opt": _array((n,), "float64"),
@@ -103,6 +107,7 @@ def make_row(
     ctg: np.ndarray | None = None,
     target_actions: np.ndarray | None = None,
     target_next_states: np.ndarray | None = None,
+    costates: np.ndarray | None = None,
     cost: float = float("nan"),
     iterations: int = -1,
     status: str = "",
@@ -111,7 +116,8 @@ def make_row(
     violation: float = float("nan"),
 ) -> dict[str, Any]:
     """One row. ``states`` (N+1, n) are in the model representation; rtg/ctg default to the recomputation from
-    the scenario (DAgger passes the learner's contexts), targets default to the open-loop ones."""
+    the scenario (DAgger passes the learner's contexts), targets default to the open-loop ones, costates (model
+    representation) to NaN."""
     if source not in SOURCES:
         raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
     N, n, m = scenario.n_steps, scenario.state_dim, scenario.control_dim
@@ -135,6 +141,7 @@ def make_row(
         "target_next_states": states[1:]
         if target_next_states is None
         else np.asarray(target_next_states).reshape(N, n),
+        "costates": np.full((N + 1, n), np.nan) if costates is None else np.asarray(costates).reshape(N + 1, n),
         "states_opt": np.asarray(states_opt, dtype=np.float64),
         "x0": problem.x0,
         "goal_opt": problem.goal,

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 Activation = Literal["relu", "gelu", "silu"]
+ValueForm = Literal["mlp", "gauss_newton"]
 Layout = Literal["interleaved", "stacked"]
 
 # interleaved: goal, rtg, ctg, state, action tokens per step (the paper's); stacked: one token per step
@@ -35,6 +36,11 @@ class ModelConfig:
     # width of the value output V(goal, s_t, t) -> rtg_t (two hidden layers); 0: none (bundles from before it).
     # TTO-MPC's rtg_mode=value feeds it instead of the paper's ledger (ttompc.mpc.tto)
     value_width: int = 0
+    # the value output's form (ttompc.policy.value): "mlp" (one output) or "gauss_newton" (v = β − ½‖r‖², r of
+    # value_rank outputs, 0: state_dim), whose cost-to-go has a PSD Hessian: a window's terminal cost
+    value_form: ValueForm = "mlp"
+    value_rank: int = 0
+    value_activation: Activation | None = None  # None: ``activation``
 
     def __post_init__(self) -> None:
         if self.n_embd % self.n_head != 0:
@@ -43,6 +49,8 @@ class ModelConfig:
             raise ValueError(f"model dimensions must be positive: {self}")
         if self.value_width < 0:
             raise ValueError(f"value_width must be >= 0 (0: no value output), got {self.value_width}")
+        if self.value_form not in ("mlp", "gauss_newton") or self.value_rank < 0:
+            raise ValueError(f"value_form must be 'mlp' or 'gauss_newton' and value_rank >= 0, got {self}")
         if self.layout not in TOKENS_PER_STEP:
             raise ValueError(f"layout must be one of {sorted(TOKENS_PER_STEP)}, got {self.layout!r}")
         for name, p in (("dropout", self.dropout), ("attn_dropout", self.attn_dropout)):

@@ -18,7 +18,8 @@ instead of 500 tokens makes a training step, the KV cache and MPC re-plans cheap
 
 An optional value output (``value_width`` > 0, a departure: the paper feeds a ledger) predicts the reward-to-go
 of step t from (goal, s_t, t) alone, an MLP beside the trunk: the optimal cost-to-go is a function of the state and
-the time left, not of the history, and a Markov estimate cannot feed on its own earlier outputs.
+the time left, not of the history, and a Markov estimate cannot feed on its own earlier outputs. Its forms and its
+local model for an MPC window's terminal cost: ``ttompc.policy.value``.
 
 In both layouts a learned timestep embedding (the only positional signal) is added to every token; a LayerNorm
 (``embed_ln``) and dropout follow; then pre-LN transformer blocks with causal ``scaled_dot_product_attention`` and a
@@ -43,8 +44,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ttompc.policy.config import ModelConfig
+from ttompc.policy.value import ACTIVATIONS as _ACTIVATIONS
+from ttompc.policy.value import build_value_head
 
-_ACTIVATIONS = {"relu": nn.ReLU, "gelu": nn.GELU, "silu": nn.SiLU}
 # the same, as functions (``Decoder``)
 _ACTIVATION_FNS: dict[str, Callable[[Tensor], Tensor]] = {"relu": F.relu, "gelu": F.gelu, "silu": F.silu}
 
@@ -212,10 +214,7 @@ class TrajectoryGPT(nn.Module):
             self.state_head = nn.Linear(d, n)
         else:  # the step's token has not seen a_t: the head reads it beside the hidden state
             self.state_head = nn.Sequential(nn.Linear(d + m, d), _ACTIVATIONS[cfg.activation](), nn.Linear(d, n))
-        self.value_head: nn.Module | None = None
-        if cfg.value_width > 0:
-            w, act = cfg.value_width, _ACTIVATIONS[cfg.activation]
-            self.value_head = nn.Sequential(nn.Linear(2 * n + 1, w), act(), nn.Linear(w, w), act(), nn.Linear(w, 1))
+        self.value_head = build_value_head(cfg)  # ttompc.policy.value; None without a value output
         self.apply(self._init_weights)
         # GPT-2 scaled init of residual projections keeps the residual stream's variance independent of depth.
         for name, p in self.named_parameters():

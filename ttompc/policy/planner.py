@@ -46,6 +46,7 @@ from ttompc.policy.config import ModelConfig
 from ttompc.policy.gpt import TrajectoryGPT
 from ttompc.policy.rollout import RolloutContext, RolloutResult
 from ttompc.policy.stats import NormStats
+from ttompc.policy.value import ValueModel
 from ttompc.scenarios import Problem, Scenario, find_scenario, scenario_spec
 from ttompc.version import code_version
 
@@ -85,6 +86,7 @@ class Planner:
         self.recipe = dict(recipe or {})
         self.trained_code_version = trained_code_version or code_version()
         self.extra = dict(extra or {})
+        self._value_model: ValueModel | None = None
 
     @property
     def rtg_scale(self) -> float:
@@ -97,6 +99,15 @@ class Planner:
     def has_value(self) -> bool:
         """Whether the model has a value output (``ModelConfig.value_width`` > 0)."""
         return self.model.value_head is not None
+
+    def value_model(self) -> ValueModel:
+        """The value output in numpy (``ttompc.policy.value.ValueModel``: J and its local model per state), built
+        once per planner from the current weights; raises ``ValueError`` for a model without a value output."""
+        if self.model.value_head is None:
+            raise ValueError("this model has no value output (model.value_width = 0)")
+        if self._value_model is None:
+            self._value_model = ValueModel(self.model.value_head, self.model.cfg, self.stats)
+        return self._value_model
 
     @torch.no_grad()
     def cost_to_go(self, problems: Sequence[Problem], X: np.ndarray, t: int) -> np.ndarray:

@@ -45,6 +45,12 @@ class OptimConfig:
     # "all", or "value": train the value output alone on a frozen policy (adds a value to a published model without
     # changing its plans; the transformer is not run)
     trainable: Literal["all", "value"] = "all"
+    # the value loss weighs steps with at most ``value_tail_steps`` steps to go (N = model.max_steps) by
+    # ``value_tail_weight``: where a short MPC window's terminal cost reads the value (0: every step alike)
+    value_tail_steps: int = 0
+    value_tail_weight: float = 1.0
+    # a Sobolev term: the weight of the value's gradient error against the rows' costates (0: the value alone)
+    value_grad_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if self.trainable not in ("all", "value"):
@@ -53,6 +59,8 @@ class OptimConfig:
             raise ValueError(f"optim.betas needs two values, got {self.betas}")
         if self.lr <= 0 or self.warmup_steps < 0 or self.accumulate < 1:
             raise ValueError("optim.lr must be > 0, optim.warmup_steps >= 0 and optim.accumulate >= 1")
+        if self.value_tail_steps < 0 or not self.value_tail_weight > 0 or self.value_grad_weight < 0:
+            raise ValueError("optim.value_tail_steps and value_grad_weight must be >= 0, value_tail_weight > 0")
         if self.huber_delta is not None and not self.huber_delta > 0:
             raise ValueError(f"optim.huber_delta must be > 0 or null, got {self.huber_delta}")
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import lightning as L
+import numpy as np
 import torch
 from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from torch import Tensor
@@ -31,6 +32,7 @@ from ttompc.data.schema import SOURCE_CODES
 from ttompc.policy.config import ModelConfig
 from ttompc.policy.gpt import TrajectoryGPT
 from ttompc.policy.stats import NormStats
+from ttompc.policy.value import GaussNewtonValue
 from ttompc.training.config import OptimConfig
 from ttompc.training.loggers import log_figure, trajectory_figure
 
@@ -73,6 +75,9 @@ class TrajectoryTransformerModule(L.LightningModule):
         self.model = TrajectoryGPT(from_container(ModelConfig, model_config))
         self.optim_cfg = from_container(OptimConfig, optim)
         self.stats = NormStats.from_dict(norm_stats)
+        if isinstance(self.model.value_head, GaussNewtonValue):  # J = σ·½‖r‖² ≥ 0 (ttompc.policy.value)
+            mu, sd = self.stats.mean_std("rtg", np.zeros(1))
+            self.model.value_head.set_floor(float(mu[0]), float(sd[0]))
         if self.optim_cfg.trainable == "value":
             if self.model.value_head is None:
                 raise ValueError("optim.trainable=value needs a value output (model.value_width > 0)")
@@ -87,11 +92,31 @@ class TrajectoryTransformerModule(L.LightningModule):
 
     def value_loss(self, batch: dict[str, Tensor]) -> Tensor:
         """Masked MSE of the value output against the normalised rtg, over the valid steps of ``VALUE_SOURCES``
-        rows (0 when the batch has none)."""
-        v = self.model.value(batch["goals"], batch["states"], batch["timesteps"])  # (B, L, 1)
+        rows (0 when the batch has none); steps within ``optim.value_tail_steps`` of the end weigh
+        ``optim.value_tail_weight``. With ``optim.value_grad_weight`` > 0 it adds that times the masked MSE of the
+        value's gradient in the state against the rows' costates (``value_grad``, where ``grad_mask``): a Sobolev
+        loss (in training; validation, under inference mode, reports the value term)."""
+        states, known = batch["states"], batch.get("grad_mask")
+        sobolev = self.optim_cfg.value_grad_weight > 0 and known is not None and bool(known.any())
+        sobolev = sobolev and not torch.is_inference_mode_enabled()
+        if sobolev:
+            states = states.detach().requires_grad_(True)
+        with torch.enable_grad():
+            v = self.model.value(batch["goals"], states, batch["timesteps"])  # (B, L, 1)
+            # v_t reads s_t alone: the gradient of the sum is each step's own (B, L, n)
+            grad = torch.autograd.grad(v.sum(), states, create_graph=True)[0] if sobolev else None
         rows = torch.isin(batch["source"], torch.as_tensor(VALUE_SOURCES, device=v.device))  # (B,)
         mask = batch.get("mask", torch.ones_like(batch["timesteps"], dtype=v.dtype))
-        return masked_mse(v, batch["rtg"], mask * rows[:, None].to(mask.dtype))
+        mask = mask * rows[:, None].to(mask.dtype)  # (B, L)
+        cfg = self.optim_cfg
+        if cfg.value_tail_steps > 0:
+            tail = (self.model.cfg.max_steps - batch["timesteps"]) <= cfg.value_tail_steps  # (B, L)
+            mask = mask * torch.where(tail, cfg.value_tail_weight, 1.0).to(mask.dtype)
+        loss = masked_mse(v, batch["rtg"], mask)
+        if grad is not None:
+            assert known is not None
+            loss = loss + cfg.value_grad_weight * masked_mse(grad, batch["value_grad"], mask * known)
+        return loss
 
     def _losses(self, batch: dict[str, Tensor], delta: float | None = None) -> dict[str, Tensor]:
         """The training loss ("loss") and its terms; "pred" holds the teacher-forced next states (not with

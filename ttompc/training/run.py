@@ -191,9 +191,14 @@ def value_lineage(source: Any, name: str) -> dict[str, Any]:
 
 def load_source_weights(model: Any, state: dict[str, Any]) -> None:
     """``init_from``'s weights into ``model``; a value output the source lacks (``model.value_width`` added to a
-    published model) keeps its fresh initialisation, any other mismatch raises ``ConfigError``."""
+    published model) or has in another shape (``value_form``/``value_width``/``value_rank`` changed: a new value
+    output for the same policy) keeps its fresh initialisation, any other mismatch raises ``ConfigError``."""
     if model.value_head is None and any(k.startswith("value_head.") for k in state):
         raise ConfigError("init_from has a value output: keep model.value_width as in its bundle")
+    mine = {k: v.shape for k, v in model.state_dict().items() if k.startswith("value_head.")}
+    theirs = {k: v.shape for k, v in state.items() if k.startswith("value_head.")}
+    if mine != theirs:  # another value output: the policy's weights only
+        state = {k: v for k, v in state.items() if not k.startswith("value_head.")}
     missing, unexpected = model.load_state_dict(state, strict=False)
     if unexpected or any(not k.startswith("value_head.") for k in missing):
         raise ConfigError(f"init_from's weights do not fit the model: missing {missing}, unexpected {unexpected}")
