@@ -26,7 +26,8 @@ RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
 def test_recipes_load_at_a_scale_that_can_work() -> None:
-    paths = sorted(RECIPES.glob("*/*finetune.yaml")) + sorted(RECIPES.glob("zoo/*-ft-*.yaml"))
+    zoo_ft = [p for p in sorted(RECIPES.glob("zoo/*-ft-*.yaml")) if "dagger:" in p.read_text()]  # not value legs
+    paths = sorted(RECIPES.glob("*/*finetune.yaml")) + zoo_ft
     assert {p.parent.name for p in paths if p.name == "finetune.yaml"} == {"freeflyer", "quadrotor", "rpod", "generic"}
     for path in paths:
         cfg = load_finetune_config(path)
@@ -36,11 +37,11 @@ def test_recipes_load_at_a_scale_that_can_work() -> None:
         # recipes/<scenario>/paper-finetune.yaml: the paper's own settings)
         if path.parent.name != "zoo" and path.stem != "paper-finetune":
             d = cfg.dagger
-            assert d.collect.rollouts >= 1000 and d.eval.problems >= 100, path
+            assert d.collect.rollouts >= 1000 and d.eval.problems >= 50, path
             assert cfg.data.open_loop_fraction == 0.9, path
-        # the keep/reject decision under the protocol the FT results are reported in (the paper's)
+        # one process per core on these CPUs
         if path.name == "finetune.yaml" and path.parent.name != "generic":
-            assert cfg.dagger.eval.protocol == "paper" and cfg.dagger.collect.workers == 1, path
+            assert cfg.dagger.collect.workers == 1, path
         # one protocol per recipe: the training callback measures under dagger.eval's
         e, m = cfg.callbacks.eval_mpc, cfg.dagger.eval
         assert (e.protocol, e.mpc, e.settings) == (m.protocol, m.mpc, m.settings), path
@@ -83,6 +84,7 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
     not only the measurement): both controllers get them whole, the learner's windows follow the end
     horizon; real-time iteration, which they cannot run, is refused in one line before anything runs."""
     import ttompc.finetune.collect as collect
+    import ttompc.mpc.loop as loop_module
     from ttompc.cli import main
 
     sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
@@ -93,12 +95,13 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
         seen.append((horizon, settings))
         return real(scenario, problem, provider, horizon, settings)
 
-    monkeypatch.setattr(collect, "MPCController", spy)
+    monkeypatch.setattr(collect, "MPCController", spy)  # the expert's
+    monkeypatch.setattr(loop_module, "MPCController", spy)  # the learner's, an episode of run_mpc_batch
     overrides = ["dagger.eval.mpc.end_horizon=30", "dagger.eval.mpc.track=2.5"]
     settings = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", overrides).dagger.eval.settings
     explore = ExplorationConfig(horizons=[5], windows=[0, 0])
     collect.collect_rollout(sc, planner, 0, 1, 5, explore, LabelConfig(kind="step", per_rollout=1), settings=settings)
-    assert [(h, s) for h, s in seen] == [(5, settings), (sc.n_steps, settings)]  # the learner, the expert
+    assert sorted(seen, key=lambda hs: hs[0]) == [(5, settings), (sc.n_steps, settings)]  # the learner, the expert
     learner = real(sc, sc.sample(np.random.default_rng(0)), object(), 5, settings)  # type: ignore[arg-type]
     assert learner.window(sc.n_steps - 30).length == 30 and learner.window(0).length == 5
     with pytest.raises(ConfigError, match="rti=true"):
@@ -316,6 +319,20 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     logs = "".join(p.read_text() for p in sorted((run / "logs").glob("session-*/metrics.csv")))
     assert "dagger/kept" in logs and "dagger/cost_increment" in logs
     assert "mpc/cost_increment" in logs  # callbacks.eval_mpc: the closed loop during each iteration's training
+    # its iterations' records carry the compute each phase took
+    assert all(set(r["seconds"]) == {"collect", "train", "measure"} for r in state["completed"])
+
+    # the learning curve: every model measured on both plants, paired against the pretrained one; resumable
+    from ttompc.finetune.curve import curve_figure, measure_curve
+
+    curve = measure_curve(run, [str(dataset)], problems=1, horizon=5, max_steps=3)
+    assert [r["iteration"] for r in curve] == [-1, 0, 1]
+    assert curve[0]["nominal"]["vs_pretrained"]["mean"] == 0.0 and curve[0]["labels"] == 0
+    assert curve[2]["rollouts"] == 2 * cfg.dagger.collect.rollouts and curve[2]["labels"] >= curve[1]["labels"] > 0
+    assert all(r["perturbed"]["feasible_rate"] >= 0 for r in curve)
+    again = measure_curve(run, [str(dataset)], problems=1, horizon=5, max_steps=3)  # nothing re-measured
+    assert json.dumps(again, sort_keys=True) == json.dumps(curve, sort_keys=True)
+    assert curve_figure([run], tmp_path / "curve.png").stat().st_size > 0
 
     # a finished run re-run does nothing new
     before = _mtimes(run / "dagger") | _mtimes(run / "checkpoints")
@@ -684,9 +701,9 @@ def test_a_share_of_rollouts_runs_on_the_perturbed_plant() -> None:
 
 
 def test_the_paper_scale_recipe_loads_at_the_authors_scale() -> None:
-    """recipes/quadrotor/dagger-scale.yaml: 8 iterations of 4,000 rollouts, aggregated (every iteration's folder is
+    """recipes/quadrotor/finetune.yaml: 8 iterations of 4,000 rollouts, aggregated (every iteration's folder is
     trained on), the expert finishing each episode, a share on the perturbed plant, under protocol=recommended."""
-    cfg = load_finetune_config(RECIPES / "quadrotor" / "dagger-scale.yaml")
+    cfg = load_finetune_config(RECIPES / "quadrotor" / "finetune.yaml")
     d = cfg.dagger
     assert (d.iterations, d.collect.rollouts) == (8, 4000) and d.exploration.end_window
     assert 0 < d.collect.perturbed < 1 and d.eval.protocol == "recommended" and d.eval.problems >= 50

@@ -1,0 +1,197 @@
+"""The learning curve of a DAgger run: per iteration, the closed loop on fixed selection problems (nominal and
+perturbed plants, paired against the pretrained model), the imitation loss on held-out closed-loop rows, the labels
+aggregated so far and the compute spent; and its figure.
+
+``measure_curve`` reads ``<run>/dagger_state.json`` and each iteration's planner (``<run>/iter-<i>/planner``), and
+appends one record per model to ``<run>/curve.json`` (resumable: measured models are skipped), so a curve can be
+measured while the run goes on. ``curve_figure`` draws one or more runs' curves.
+
+    python -m ttompc.finetune.curve measure RUN --data DATA [--problems 50 --seed 1001 --protocol recommended]
+    python -m ttompc.finetune.curve figure RUN [RUN ...] --out docs/figures/dagger_curve.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ttompc.data.shards import atomic_write_json
+
+if TYPE_CHECKING:
+    from ttompc.policy import Planner
+
+CURVE_FILE = "curve.json"
+PLANTS = ("nominal", "perturbed")
+
+
+def _models(run: Path) -> list[tuple[int, Path]]:
+    """(iteration, planner dir) of the pretrained model (−1) and of every finished iteration."""
+    state = json.loads((run / "dagger_state.json").read_text())
+    return [(-1, run / "source-planner")] + [(r["iteration"], Path(r["planner"])) for r in state["completed"]]
+
+
+def _labels(run: Path, iteration: int) -> dict[str, int]:
+    """Rollouts and label rows collected in iterations 0..``iteration`` (their shard records)."""
+    rollouts = rows = 0
+    for i in range(iteration + 1):
+        for meta in sorted((run / "dagger" / f"iter-{i:03d}" / "meta").glob("shard-*.json")):
+            m = json.loads(meta.read_text())
+            rollouts, rows = rollouts + int(m.get("rollouts", 0)), rows + int(m.get("rows", 0))
+    return {"rollouts": rollouts, "labels": rows}
+
+
+def imitation_loss(planner: Planner, data: Sequence[str], dagger_dirs: Sequence[str], batches: int = 20) -> float:
+    """The teacher-forced training loss (action + next state, MSE) of ``planner`` on the held-out closed-loop rows
+    (the DAgger folders' val split; ``data``: the run's open-loop dataset, whose manifest the loader reads), over at
+    most ``batches`` batches of 32."""
+    import torch
+
+    from ttompc.data.config import DataConfig
+    from ttompc.data.datamodule import TrajectoryDataModule
+    from ttompc.data.shards import ShardError
+    from ttompc.training.module import masked_mse
+
+    cfg = DataConfig(paths=list(data), dagger_dirs=list(dagger_dirs), batch_size=32, verify_checksums=False)
+    dm = TrajectoryDataModule(cfg)
+    dm.setup("validate")
+    dm.use_stats(planner.stats)
+    try:
+        loader = dm.dagger_val_dataloader()
+    except ShardError:  # no held-out closed-loop rows (collect.val_fraction = 0)
+        return float("nan")
+    model = planner.model.eval()
+    losses = []
+    with torch.no_grad():
+        for k, b in enumerate(loader):
+            if k >= batches:
+                break
+            a, s = model(b["goals"], b["rtg"], b["ctg"], b["states"], b["actions"], b["timesteps"])
+            mask = b.get("mask")
+            loss = masked_mse(a, b["target_actions"], mask) + masked_mse(
+                s, b["target_next_states"], b.get("state_mask", mask)
+            )
+            losses.append(float(loss))
+    return float(np.mean(losses)) if losses else float("nan")
+
+
+def _closed_loop(planner: Planner, measurement: Any, problems: list[Any]) -> tuple[dict[str, float], np.ndarray]:
+    """Closed-loop metrics and the per-problem (J − J_REL)/J_REL (nan where infeasible) of TTO-MPC."""
+    from ttompc.evaluation.episodes import closed_loop_metrics
+    from ttompc.parallel import single_torch_thread
+
+    with single_torch_thread():
+        metrics, episodes = closed_loop_metrics(planner, measurement, problems)
+    inc = np.array([(e.cost - e.rel_cost) / e.rel_cost if e.feasible else np.nan for e in episodes])
+    return metrics, inc
+
+
+def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed: int = 1001,
+                  protocol: str = "recommended", horizon: int = 10,
+                  max_steps: int | None = None) -> list[dict[str, Any]]:  # fmt: skip
+    """Measure every model of ``run`` not yet in ``<run>/curve.json`` (see the module doc; ``data``: the run's
+    open-loop dataset folders, for the imitation loss, nan without them or without held-out closed-loop rows;
+    ``max_steps``: shorter episodes, for smoke runs); returns the records."""
+    from ttompc.evaluation.measurement import Measurement
+    from ttompc.policy import Planner
+
+    path = run / CURVE_FILE
+    records: list[dict[str, Any]] = json.loads(path.read_text()) if path.is_file() else []
+    done = {r["iteration"] for r in records}
+    state = json.loads((run / "dagger_state.json").read_text())
+    seconds = {r["iteration"]: r.get("seconds", {}) for r in state["completed"]}
+    baseline: dict[str, np.ndarray] = {p: np.array(r["increments"][p], float) for r in records if r["iteration"] == -1
+                                       for p in PLANTS}  # fmt: skip
+    sets: dict[str, tuple[Measurement, list[Any]]] = {}
+    for iteration, planner_dir in _models(run):
+        if iteration in done:
+            continue
+        planner = Planner.from_pretrained(planner_dir)
+        record: dict[str, Any] = {"iteration": iteration, "planner": str(planner_dir), "increments": {},
+                                  "seconds": seconds.get(iteration, {}), **_labels(run, iteration)}  # fmt: skip
+        for plant in PLANTS:
+            if plant not in sets:
+                m = Measurement(protocol=protocol, problems=problems, seed=seed, horizons=[horizon], plants=[plant],
+                                max_steps=max_steps)  # fmt: skip
+                sets[plant] = (m, m.problem_set(planner.scenario))
+            m, probs = sets[plant]
+            metrics, inc = _closed_loop(planner, m, probs)
+            record[plant] = {k: metrics[k] for k in ("feasible_rate", "cost_increment", "cost_increment_se")}
+            record["increments"][plant] = [None if math.isnan(v) else float(v) for v in inc]
+            if iteration == -1:
+                baseline[plant] = inc
+            both = ~np.isnan(inc) & ~np.isnan(baseline[plant])
+            d = inc[both] - baseline[plant][both]
+            se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+            record[plant]["vs_pretrained"] = {"mean": float(d.mean()) if len(d) else float("nan"), "se": se,
+                                              "n": len(d)}  # fmt: skip
+        dirs = [str(run / "dagger" / f"iter-{r['iteration']:03d}") for r in state["completed"]]
+        record["imitation_loss"] = imitation_loss(planner, data, dirs) if dirs and data else float("nan")
+        records.append(record)
+        records.sort(key=lambda r: r["iteration"])
+        atomic_write_json(path, records)
+    return records
+
+
+def curve_figure(runs: Sequence[Path], out: Path) -> Path:
+    """Closed-loop cost (paired against the pretrained model, ± one standard error) and goals per iteration on both
+    plants, and the imitation loss on held-out closed-loop rows, for each run (a scenario per run)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for run in runs:
+        recs = json.loads((run / CURVE_FILE).read_text())
+        label = json.loads((run / "source-planner" / "config.json").read_text())["scenario"]["name"]
+        it = np.array([r["iteration"] for r in recs]) + 1  # 0: the pretrained model
+        for plant, style in zip(PLANTS, ("-", "--"), strict=True):
+            mean = np.array([r[plant]["vs_pretrained"]["mean"] for r in recs]) * 100
+            se = np.array([r[plant]["vs_pretrained"]["se"] for r in recs]) * 100
+            axes[0].errorbar(it, mean, yerr=np.nan_to_num(se), ls=style, marker="o", capsize=3,
+                             label=f"{label}, {plant}")  # fmt: skip
+            axes[1].plot(it, [r[plant]["feasible_rate"] for r in recs], ls=style, marker="o", label=f"{label}, {plant}")
+        axes[2].plot(it, [r["imitation_loss"] for r in recs], marker="o", label=label)
+    axes[0].axhline(0, color="k", lw=0.5)
+    titles = ("closed-loop cost vs pretrained (points of J_REL)", "goals reached", "imitation loss, held-out CL rows")
+    for ax, title in zip(axes, titles, strict=True):
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("DAgger iteration (0: pretrained)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m ttompc.finetune.curve", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="action", required=True)
+    m = sub.add_parser("measure", help="measure a run's models not yet in <run>/curve.json")
+    m.add_argument("run", type=Path)
+    m.add_argument("--data", nargs="*", default=[], help="the run's open-loop dataset folders (imitation loss)")
+    m.add_argument("--problems", type=int, default=50)
+    m.add_argument("--seed", type=int, default=1001, help="root seed of the selection problems (default 1001)")
+    m.add_argument("--protocol", default="recommended")
+    m.add_argument("--horizon", type=int, default=10)
+    f = sub.add_parser("figure", help="draw the curves of measured runs")
+    f.add_argument("runs", type=Path, nargs="+")
+    f.add_argument("--out", type=Path, default=Path("docs/figures/dagger_curve.png"))
+    a = p.parse_args(argv)
+    if a.action == "measure":
+        for r in measure_curve(a.run, a.data, a.problems, a.seed, a.protocol, a.horizon):
+            print(json.dumps({k: r[k] for k in ("iteration", "nominal", "perturbed", "imitation_loss", "labels")}))
+    else:
+        print(curve_figure(a.runs, a.out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
