@@ -205,6 +205,50 @@ def test_mpc_window_with_terminal_cost(ff) -> None:
     assert np.linalg.norm(res.X[-1] - rel.X[20]) < 0.05  # pulled to the REL state at t+H
 
 
+class _Quadratic:
+    """An exact quadratic cost-to-go J(x) = ½ k‖x − c‖² + gᵀx (a ``TerminalValue``), recording its expansions."""
+
+    def __init__(self, k: float, c: np.ndarray, g: np.ndarray) -> None:
+        self.k, self.c, self.g, self.at = k, c, g, []
+
+    def __call__(self, x: np.ndarray) -> float:
+        return float(0.5 * self.k * np.sum((x - self.c) ** 2) + self.g @ x)
+
+    def expand(self, x: np.ndarray) -> object:
+        from ttompc.policy.value import ValueExpansion
+
+        self.at.append(np.array(x))
+        n = len(x)
+        return ValueExpansion(self(x), self.k * (x - self.c) + self.g, self.k * np.eye(n))
+
+
+def test_mpc_window_with_a_cost_to_go_pays_its_local_model(ff) -> None:
+    """A window whose terminal cost is a cost-to-go J alone (``TerminalCost.value``, no 2-norm term): each SCP
+    iteration pays J's local model about its reference end state (the expansion points are the previous iterates'
+    x_H), the accepted iterates' objectives read J itself, and the optimum moves with J: a steeper J pulls x_H to
+    its centre (the distance falling ~1/k), a linear term moves x_H against it."""
+    p = ff.sample(np.random.default_rng(5))
+    rel = solve_rel(ff, p)
+    w = Window(0, 20, 100)
+    X0, U0 = rel.X[:21], rel.U[:20]
+    c, n = rel.X[20] + np.array([0.05, -0.05, 0.0, 0.0, 0.0, 0.0]), ff.state_dim
+    gaps = []
+    for k in (1.0, 10.0, 100.0):
+        J = _Quadratic(k, c, np.zeros(n))
+        res = solve_scp(SCPProblem(ff, p, w, TerminalCost(c, 0.0, value=J)), X0, U0)
+        assert res.success
+        np.testing.assert_allclose(J.at[0], X0[-1])  # the first model is about the warm start's end state
+        assert len(J.at) == len(res.history)  # one expansion per iteration
+        last = res.history[res.best_iteration]
+        assert last.objective == pytest.approx(ff.cost(res.U) * 1.0 + J(res.X[-1]), rel=1e-6, abs=1e-9)
+        gaps.append(float(np.linalg.norm(res.X[-1] - c)))
+    assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 0.2 * gaps[0]
+    pushed = solve_scp(SCPProblem(ff, p, w, TerminalCost(c, 0.0, value=_Quadratic(100.0, c, np.eye(n)[0]))), X0, U0)
+    assert pushed.X[-1][0] < c[0] - 1e-3  # gᵀx with g = e_0 pays for x_0: the end moves toward −e_0
+    with pytest.raises(ValueError, match="weights > 0 or a value"):
+        TerminalCost(c, 0.0)
+
+
 def test_bad_inputs_raise_clear_errors(ff) -> None:
     p = ff.sample(np.random.default_rng(6))
     X, U = ff.initial_guess(p)
