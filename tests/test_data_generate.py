@@ -335,3 +335,28 @@ def test_regenerated_shard_has_the_rows_of_an_uninterrupted_run(tmp_path: Path) 
         assert row.keys() == ref.keys()
         for key in row.keys() - timings:
             np.testing.assert_array_equal(row[key], ref[key], err_msg=f"problem {row['problem_id']} {key}")
+
+
+def test_scp_rows_carry_costates_and_shards_without_them_still_load(tmp_path: Path) -> None:
+    """With the default solver path SCP rows store the optimum's costates (∂J*/∂s_k, k ≥ 1; the fixed start NaN),
+    REL rows none; a shard written before the column reads back with no gradient target."""
+    import pyarrow.parquet as pq
+    import torch
+
+    from ttompc.data.config import DataConfig
+    from ttompc.data.datamodule import TrajectoryDataModule
+
+    out = tmp_path / "q"
+    cfg = GenerateConfig(scenario="quadrotor", problems=2, out=str(out), shard_size=2, workers=1, seed=5,
+                         splits=SplitConfig(train=1.0, val=0.0, test=0.0), card_dir=None)  # fmt: skip
+    assert generate(cfg, progress=False) is not None
+    (path,) = sorted((out / "train").glob("*.parquet"))
+    rows = read_shard(path)
+    lam = {s: np.asarray(c) for s, c in zip(rows["source"], rows["costates"], strict=True)}
+    assert np.isfinite(lam["scp"][1:]).all() and np.isnan(lam["scp"][0]).all() and np.isnan(lam["rel"]).all()
+    table = pq.read_table(path)
+    pq.write_table(table.drop_columns(["costates"]), path)  # as written before the column
+    dm = TrajectoryDataModule(DataConfig(paths=[str(out)], batch_size=2, verify_checksums=False))
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert not batch["grad_mask"].any() and bool(torch.isfinite(batch["value_grad"]).all())

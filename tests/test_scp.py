@@ -290,3 +290,39 @@ def test_rel_from_a_guess(ff) -> None:
     assert again.cost == pytest.approx(rel.cost, rel=1e-6)
     with pytest.raises(ValueError, match="REL guess must have shapes"):
         solve_rel(ff, p, guess=(rel.X[:-1], rel.U))
+
+
+def test_costates_are_the_gradient_of_the_optimal_cost_to_go() -> None:
+    """``SCPResult.costates`` (the kernel's dynamics multipliers of the returned iterate's subproblem) are
+    ∂J*/∂x_k: against central differences of the optimal cost-to-go re-solved from a perturbed x_k."""
+    sc = get_scenario("quadrotor")
+    p = sc.sample(np.random.default_rng(3))
+    _, full = solve_problem(sc, p)
+    assert full is not None and full.costates is not None and np.isnan(full.costates[0]).all()
+    N, k = p.n_steps, 88
+    res = solve_scp(SCPProblem(sc, p, Window(k - 1, N - k + 1, N)), full.X[k - 1 :], full.U[k - 1 :])
+    assert res.costates is not None and res.costates.shape == (N - k + 2, sc.state_dim)
+
+    def cost_to_go(x: np.ndarray) -> float:
+        X0 = full.X[k:].copy()
+        X0[0] = x
+        return sc.cost(solve_scp(SCPProblem(sc, p, Window(k, N - k, N)), X0, full.U[k:]).U)
+
+    units = sc.state_units()
+    fd = np.array([(cost_to_go(full.X[k] + 1e-4 * u * e) - cost_to_go(full.X[k] - 1e-4 * u * e)) / (2e-4 * u)
+                   for e, u in zip(np.eye(sc.state_dim), units, strict=True)])  # fmt: skip
+    np.testing.assert_allclose(res.costates[1], fd, rtol=0.02, atol=1e-3 * np.abs(fd).max())
+
+
+def test_costates_map_to_the_models_representation() -> None:
+    """``model_costates``: ∂J/∂s = (∂x/∂s)ᵀ ∂J/∂x for RPOD's ROE -> RTN map: a first-order change of J along δs is
+    the same in both representations."""
+    from ttompc.data.schema import model_costates
+
+    sc = get_scenario("rpod")
+    p = sc.sample(np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    lam_x, ds = rng.normal(size=(5, 6)), rng.normal(size=(5, 6))
+    lam_s = model_costates(sc, p, lam_x)
+    dx = sc.from_model_states(p, ds)
+    np.testing.assert_allclose(np.sum(lam_s * ds, axis=1), np.sum(lam_x * dx, axis=1), rtol=1e-10)

@@ -34,7 +34,7 @@ from ttompc.config import ConfigError, to_container
 from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
 from ttompc.data.distributed import RankInfo, rank_info
 from ttompc.data.resumable import META_DIR, ShardedFolder
-from ttompc.data.schema import SCHEMA_VERSION, make_row, trajectory_features
+from ttompc.data.schema import SCHEMA_VERSION, make_row, model_costates, trajectory_features
 from ttompc.data.shards import SPLITS, ShardError, atomic_write_json
 from ttompc.parallel import pool_map
 from ttompc.policy.stats import KEYS, NormStats
@@ -138,6 +138,10 @@ def _solve_one(task: tuple[int, int]) -> dict[str, Any]:
                 states=scenario.to_model_states(problem, res.X),
                 states_opt=res.X,
                 actions=res.U,
+                # the SCP optimum's cost-to-go gradients (the value output's Sobolev targets); REL's are not J*'s
+                costates=None
+                if source != "scp" or res.costates is None
+                else model_costates(scenario, problem, res.costates),
                 cost=res.cost,
                 iterations=res.iterations,
                 status=res.status.value,

@@ -92,6 +92,15 @@ def constraints_to_go(scenario: Scenario, problem: Problem, X_opt: np.ndarray) -
     return np.cumsum(v[::-1])[::-1]
 
 
+def model_costates(scenario: Scenario, problem: Problem, costates: np.ndarray) -> np.ndarray:
+    """Costates λ_k = ∂J/∂x_k (T, n) of optimisation states x_0.. -> ∂J/∂s_k in the model representation s_k = M_k x_k
+    (a linear map per step): λ_s = (∂x/∂s)ᵀ λ_x, the columns of ∂x_k/∂s_k from ``from_model_states``."""
+    lam = np.asarray(costates, dtype=np.float64)
+    T, n = lam.shape
+    cols = [scenario.from_model_states(problem, np.tile(e, (T, 1))) for e in np.eye(n)]  # each (T, n): F_k e_j
+    return np.stack([np.einsum("ki,ki->k", c, lam) for c in cols], axis=1)
+
+
 def make_row(
     scenario: Scenario,
     problem: Problem,

@@ -38,6 +38,7 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
     status: SCPStatus | None = None  # None: the iteration cap
     solver: SubproblemSolver | None = None
     shapes: tuple = ()
+    duals: dict[int, np.ndarray] = {}  # iteration -> its subproblem's costates, where the backend gives them
 
     for it in range(settings.max_iters):
         model, blocks = _linearise(scp, X_ref, U_ref, penalized)
@@ -62,6 +63,8 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
         violation = _violation(scp, X, U, blocks)
         step = float(np.max(np.linalg.norm(X - X_ref, axis=1)))
         iterates.add(IterateRecord(it, cost, merit, violation, step, float(delta), sol.solve_time, sol.status), X, U)
+        if sol.costates is not None:
+            duals[it] = sol.costates
         # a fixed point: the step from this iteration's linearisation point and the merit change from that point
         # are both below tolerance. The first iteration compares with the warm start, so a converged warm start
         # costs one subproblem, not two.
@@ -86,7 +89,16 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
         window=scp.window,
         history=iterates.history,
         best_iteration=best_it,
+        costates=_costates(duals.get(best_it), scp.scenario.state_dim),
     )
+
+
+def _costates(duals: np.ndarray | None, n: int) -> np.ndarray | None:
+    """The returned iterate's costates (H+1, n): its subproblem's dynamics multipliers for x_1..x_H (row 0, the
+    fixed start, NaN); None where the backend gave none."""
+    if duals is None:
+        return None
+    return np.concatenate([np.full((1, n), np.nan), duals])
 
 
 @dataclass

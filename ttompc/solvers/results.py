@@ -46,6 +46,9 @@ class SCPResult:
     window: Window
     history: list[IterateRecord] = field(default_factory=list)
     best_iteration: int = -1
+    # (H+1, n): λ_k = ∂J*/∂x_k of the returned iterate's convex subproblem, the gradient of the window's optimal
+    # cost-to-go from x_k (k ≥ 1; row 0 NaN), where the backend gives multipliers (the riccati kernel); else None
+    costates: np.ndarray | None = None
 
     @property
     def success(self) -> bool:

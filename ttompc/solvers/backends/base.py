@@ -21,6 +21,9 @@ class BackendSolution:
     infeasible: bool  # the solver certified primal infeasibility
     status: str
     solve_time: float
+    # (H, n): the dynamics multipliers, ∂(subproblem optimum)/∂x_k for k = 1..H in the state's units, where the
+    # backend gives them (the riccati kernel); None elsewhere
+    costates: np.ndarray | None = None
 
 
 class SubproblemSolver(Protocol):

@@ -283,6 +283,7 @@ class RiccatiSolver:
         sol = BackendSolution(None, st.objective(y, qp, data) if ok else np.nan, ok, False, status,
                               time.perf_counter() - t0)  # fmt: skip
         if ok:
+            sol.costates = pi / st.sx  # multipliers of the scaled dynamics rows x̃_{k+1} = ...: per unit of x_{k+1}
             return y[:, : spec.n] * st.sx, y[: spec.H, spec.n : spec.n + spec.m] * st.su, sol
         if data.terminal_cost is not None:  # the fallback's solvers would drop the terminal cost-to-go model
             return None, None, sol
