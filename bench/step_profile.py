@@ -33,7 +33,8 @@ parts sum to the step:
 * ``rollout``: ``RolloutContext.rollout``, the transformer rollout (the shared batched one, charged 1/B per episode,
   or the lone one at ``--batch 1``);
 * ``conditioning``: ``TTOProvider.conditioning``, the reward-to-go fed at the step (``rtg_mode=value``: the model's
-  value output, ``Planner.cost_to_go``; ``running``: nothing to compute);
+  value output, ``Planner.cost_to_go``, one batched call per step for the group, charged 1/B, or the lone one at
+  ``--batch 1``; ``running``: nothing to compute);
 * ``terminal``: terminal design, the target construction (``TargetFilter`` for TTO-MPC, ``providers._terminal`` for
   REL-MPC);
 * ``rel_warm_start``: REL-MPC's remaining-horizon REL (``RemainingREL``: itself an SCP or one convex solve);
@@ -52,11 +53,18 @@ Reported per method: ``mean_step_ms`` (plan + observe; ``plan_ms`` without obser
 window SCP iterations per step (and per solved step, with their histogram), the time per subproblem call and per
 linearisation, steps served by plan reuse, and the share of window subproblems the Riccati kernel solved
 (``kernel_share``; the rest went to the conic chain behind it). Ratio: REL-MPC@30's mean step over each TTO method's
-(``ratio_rel30_over``).
+(``ratio_rel30_over``). The model's time: the step's calls of the model, the rollout, the value output and the
+KV-cache advance (``model_ms``, ``model_share``), and the step without them (``step_without_model_ms``): the ceiling
+of every lever that cuts the model's time, as a ratio ``ratio_rel30_over_without_model``.
+
+Model calls (``model_calls``, ``bench/model_calls.py``): the same model's rollout at H = ``--horizon`` from
+mid-episode, at each batch of ``--model-batches`` (1, 10, 40), against its arithmetic floor (its matmul FLOPs at
+the measured throughput of one ``torch.mm`` at the step's largest matmul shape), with the value output and the
+advance at that batch, and the fit of a generated step's time against the batch (its fixed per-call part).
 
 Ends with one JSON line, also written to bench/results/step_profile.json (not with ``--quick``: 1 problem, 4 steps,
-2 warm-up steps), with the machine record (``bench/record.py``). Absolute times need a quiet machine; the ratios and
-shares are the figures to compare.
+2 warm-up steps, 3 repetitions of each model call), with the machine record (``bench/record.py``). Absolute times
+need a quiet machine; the ratios and shares are the figures to compare.
 """
 
 from __future__ import annotations
@@ -64,7 +72,6 @@ from __future__ import annotations
 import argparse
 import functools
 import time
-from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict
@@ -74,7 +81,9 @@ from typing import Any
 import numpy as np
 import torch
 import yaml
+from model_calls import model_calls, print_calls
 from record import Machine, result_path, write_result
+from timed_regions import Profiler
 
 import ttompc.mpc.providers as providers_mod
 import ttompc.solvers.engine as engine_mod
@@ -95,6 +104,7 @@ MODELS = {"freeflyer": "freeflyer-ft-tto-v5", "quadrotor": "quadrotor-ft-tto-v6"
 BASELINE = "REL-MPC"
 PARTS = ("rollout", "conditioning", "terminal", "rel_warm_start", "scp_setup", "scp_solve", "scp_bookkeeping",
          "overhead", "observe")  # fmt: skip
+MODEL_REGIONS = ("rollout", "value", "advance")  # the model's calls in a step (none nests in another)
 
 
 def role(source: str) -> str:
@@ -104,57 +114,6 @@ def role(source: str) -> str:
 
 
 # --------------------------------------------------------------------------------------------------- instrumentation
-class Profiler:
-    """Nested ``perf_counter`` regions: inclusive seconds and calls per path of region names (``step/scp/...``),
-    plus counters. Off unless ``on``: warm-up and verification runs pass through untimed."""
-
-    def __init__(self, cuda: bool = False) -> None:
-        self.cuda, self.on = cuda, False
-        self.reset()
-
-    def reset(self) -> None:
-        self.stack: list[str] = []
-        self.incl: defaultdict[str, float] = defaultdict(float)
-        self.calls: Counter[str] = Counter()
-        self.count: defaultdict[str, float] = defaultdict(float)  # iterations, reused steps, backend-reported time
-        self.iterations: Counter[int] = Counter()  # window subproblems per step (histogram over steps)
-
-    def region(
-        self, name: str, fn: Callable[..., Any], after: Callable[[Any, str], None] | None = None, sync: bool = False
-    ) -> Callable[..., Any]:
-        """``fn`` timed as region ``name``; ``after(result, path)`` records what the result says."""
-
-        @functools.wraps(fn)
-        def timed(*args: Any, **kwargs: Any) -> Any:
-            if not self.on:
-                return fn(*args, **kwargs)
-            self.stack.append(name)
-            path = "/".join(self.stack)
-            t0 = time.perf_counter()
-            try:
-                out = fn(*args, **kwargs)
-                if sync and self.cuda:
-                    torch.cuda.synchronize()
-            finally:
-                self.incl[path] += time.perf_counter() - t0
-                self.calls[path] += 1
-                self.stack.pop()
-            if after is not None:
-                after(out, path)
-            return out
-
-        return timed
-
-    def self_times(self) -> dict[str, float]:
-        """Per path, its inclusive time less its direct children's."""
-        out = dict(self.incl)
-        for path, t in self.incl.items():
-            parent = path.rpartition("/")[0]
-            if parent:
-                out[parent] = out.get(parent, 0.0) - t
-        return out
-
-
 def part_of(path: str) -> str | None:
     """The part (``PARTS``) a step's region counts in, by its path: the plan's regions (``step/...``) and the observe
     after it (``observe/...``); None for a path outside both."""
@@ -164,8 +123,9 @@ def part_of(path: str) -> str | None:
     if names[0] != "step":
         return None
     inner = names[1:]
-    for part in ("rollout", "conditioning", "terminal"):
-        if part in inner:
+    for name, part in (("rollout", "rollout"), ("conditioning", "conditioning"), ("value", "conditioning"),
+                       ("terminal", "terminal")):  # fmt: skip
+        if name in inner:
             return part
     if inner[:1] == ["warm_start"] and "rel" in inner:
         return "rel_warm_start"
@@ -286,6 +246,7 @@ def profile_row(prof: Profiler, episodes: list[Episode], horizon: int, protocol:
             raise RuntimeError(f"timed {prof.calls[region]} calls of {region}, the episodes ran {steps} steps")
     ms = lambda seconds: 1e3 * seconds / steps  # noqa: E731  per episode-step
     step = prof.incl["step"] + prof.incl["observe"]
+    model = sum(t for path, t in prof.incl.items() if path.rpartition("/")[2] in MODEL_REGIONS)
     selfs = prof.self_times()
     parts = dict.fromkeys(PARTS, 0.0)
     for path, t in selfs.items():
@@ -323,6 +284,9 @@ def profile_row(prof: Profiler, episodes: list[Episode], horizon: int, protocol:
         "kernel_share": prof.count["step/scp:kernel"] / scp_iters if scp_iters else float("nan"),
         "fallbacks": prof.count["fallbacks"],
         "advance_ms": ms(prof.incl.get("observe/advance", 0.0)),
+        "model_ms": ms(model),
+        "model_share": model / step,
+        "step_without_model_ms": ms(step - model),
         "cost": float(np.mean([e.cost for e in episodes])),
         "feasible": float(np.mean([e.feasible for e in episodes])),
         "tree": tree,
@@ -376,9 +340,13 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
                 row["verify_max_control_difference"] = diff
                 row["untimed_loop_step_ms"] = 1e3 * float(np.mean(np.concatenate([e.step_times for e in plain])))
             rows[f"{method}@{H}"] = row
-    base = rows[f"{BASELINE}@{args.rel_horizon}"]
-    ratios = {k: base["mean_step_ms"] / r["mean_step_ms"] for k, r in rows.items() if not k.startswith(BASELINE + "@")}
-    print_table(name, rows, ratios)
+    base = rows[f"{BASELINE}@{args.rel_horizon}"]["mean_step_ms"]
+    learned = {k: r for k, r in rows.items() if not k.startswith(BASELINE + "@")}
+    ratios = {k: base / r["mean_step_ms"] for k, r in learned.items()}
+    ceilings = {k: base / r["step_without_model_ms"] for k, r in learned.items()}
+    print_table(name, rows, ratios, ceilings)
+    calls = model_calls(planner, [ep.problem for ep in eps], args.model_batches, args.horizon, args.model_reps)
+    print_calls(name, calls)
     return {
         "model": source,
         "role": role(source),
@@ -390,21 +358,26 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
         "settings": {"tto": asdict(tto_cfg.settings), "rel": asdict(rel_cfg.settings)},
         "methods": rows,
         f"ratio_rel{args.rel_horizon}_over": ratios,
+        f"ratio_rel{args.rel_horizon}_over_without_model": ceilings,
+        "model_calls": calls,
     }
 
 
-def print_table(name: str, rows: dict[str, dict[str, Any]], ratios: dict[str, float]) -> None:
+def print_table(
+    name: str, rows: dict[str, dict[str, Any]], ratios: dict[str, float], ceilings: dict[str, float]
+) -> None:
     short = {"rollout": "roll", "conditioning": "cond", "terminal": "term", "rel_warm_start": "REL",
              "scp_setup": "setup", "scp_solve": "solve", "scp_bookkeeping": "scp-py", "overhead": "py",
              "observe": "obs"}  # fmt: skip
     head = " ".join(f"{short[p]:>6}" for p in PARTS)
-    print(f"{'method':>28} {'step ms':>8} {head} {'it/step':>7} {'sub ms':>6} {'ratio':>6}")
+    print(f"{'method':>28} {'step ms':>8} {head} {'model':>6} {'it/step':>7} {'sub ms':>6} {'ratio':>6} {'ceil':>6}")
     for key, r in rows.items():
         shares = " ".join(f"{100 * r['shares'][p]:>5.1f}%" for p in PARTS)
-        ratio = f"{ratios[key]:>5.2f}x" if key in ratios else f"{'':>6}"
-        print(f"{key:>28} {r['mean_step_ms']:>8.2f} {shares} {r['scp_iterations_per_step']:>7.2f} "
-              f"{r['subproblem_ms_per_call']:>6.2f} {ratio}")  # fmt: skip
-    print(f"  ({name}: shares of the mean step; ratio = {BASELINE}@30 mean step / the method's)")
+        ratio, ceil = (f"{x[key]:>5.2f}x" if key in x else f"{'':>6}" for x in (ratios, ceilings))
+        print(f"{key:>28} {r['mean_step_ms']:>8.2f} {shares} {100 * r['model_share']:>5.1f}% "
+              f"{r['scp_iterations_per_step']:>7.2f} {r['subproblem_ms_per_call']:>6.2f} {ratio} {ceil}")  # fmt: skip
+    print(f"  ({name}: shares of the mean step, the model's calls among them; ratio = {BASELINE}@30 mean step / the "
+          "method's; ceil = the same over the method's step without its model time)")  # fmt: skip
 
 
 def main() -> None:
@@ -425,11 +398,14 @@ def main() -> None:
     ap.add_argument("--verify", action="store_true", help="rerun untimed and check the controls are identical")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
-    ap.add_argument("--quick", action="store_true", help="smoke run: 1 problem, 4 steps, --verify, no result file")
+    ap.add_argument("--model-batches", type=int, nargs="+", default=[1, 10, 40], help="batches of the model calls")
+    ap.add_argument("--model-reps", type=int, default=20, help="timed repetitions of each model call")
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke run: 1 problem, 4 steps, --verify, 3 model-call reps, no result file")  # fmt: skip
     ap.add_argument("--out", default=str(result_path("step_profile")))
     args = ap.parse_args()
     if args.quick:
-        args.problems, args.max_steps, args.warmup_steps, args.verify = 1, 4, 2, True
+        args.problems, args.max_steps, args.warmup_steps, args.verify, args.model_reps = 1, 4, 2, True, 3
     scenarios = args.scenario or list(SCENARIOS)
     sources = dict(MODELS)
     for item in args.model:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from collections.abc import Iterator
+from typing import Any
 
 import mpc_fakes
 import numpy as np
@@ -884,3 +885,85 @@ def test_iterations_are_the_window_solves_per_step(setup: tuple, monkeypatch: py
     summary = e.summary()
     assert summary["mean_iterations"] == pytest.approx(sum(expected) / T)
     assert summary["mean_iterations_solved"] == pytest.approx(sum(expected) / (T - 1))
+
+
+def _valued_planner(scenario_name: str) -> Any:
+    """``mpc_fakes.tiny_planner`` of ``scenario_name`` with a value output whose cost-to-go varies with the state."""
+    import torch
+
+    from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
+
+    tiny = mpc_fakes.tiny_planner(scenario_name)
+    torch.manual_seed(0)
+    planner = Planner(TrajectoryGPT(ModelConfig(**{**tiny.model.cfg.__dict__, "value_width": 8})), tiny.scenario,
+                      tiny.stats)  # fmt: skip
+    for layer in planner.model.value_head:  # torch's default initialisation, not the model's small one
+        if isinstance(layer, torch.nn.Linear):
+            layer.reset_parameters()
+    return planner
+
+
+def test_value_rtg_prices_a_groups_members_in_one_call_and_the_episodes_are_the_lone_pricings(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """rtg_mode=value in a RolloutGroup: one batched value call per step prices every member's measured state
+    (``ValueRTG.prepare``), and the closed loop is the one each member priced alone (batch 1, a call per member per
+    step) gives: the fed rtg within 1e-6 relative, the episodes' states within 1e-6 (the quadrotor: each window
+    has one optimum)."""
+    from ttompc.mpc.rtg import ValueRTG
+    from ttompc.policy import Planner
+
+    sc = get_scenario("quadrotor")
+    planner = _valued_planner("quadrotor")
+    problems = [sc.sample(np.random.default_rng(k)) for k in (1, 2, 3)]
+    starts = [EpisodeStart(p, solve_rel(sc, p).cost, seed) for p, seed in zip(problems, (3, 4, 5), strict=True)]
+    run, T = MPCRun(5, max_steps=3, plant=PlantNoise.perturbed(sc)), 3
+    batches: list[int] = []  # the batch of every value call
+    cost_to_go = Planner.cost_to_go
+
+    def counted(self, ps, X, t):
+        batches.append(len(ps))
+        return cost_to_go(self, ps, X, t)
+
+    monkeypatch.setattr(Planner, "cost_to_go", counted)
+
+    def closed_loop() -> tuple[list, np.ndarray]:
+        group = RolloutGroup(planner)
+        provs = [TTOProvider(planner, rtg_mode="value", group=group) for _ in problems]
+        episodes = run_mpc_batch(sc, starts, provs, run)
+        return episodes, group.context.rtg[:, :T].double().numpy()
+
+    batched, fed = closed_loop()
+    assert batches == [len(problems)] * T
+    batches.clear()
+    monkeypatch.setattr(ValueRTG, "prepare", classmethod(lambda cls, members, t: None))  # each member priced alone
+    lone, fed_lone = closed_loop()
+    assert batches == [1] * (len(problems) * T)
+    np.testing.assert_allclose(fed, fed_lone, rtol=1e-6, atol=0)
+    assert np.ptp(fed[:, 1:]) > 1e-3  # fed values that depend on the state, inside the training range
+    for e, a in zip(batched, lone, strict=True):
+        np.testing.assert_allclose(e.X, a.X, rtol=0, atol=1e-6)
+
+
+def test_tto_steps_are_charged_their_share_of_the_batched_value(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """rtg_mode=value in lockstep: the step's one value call runs in the first member's warm start; each episode's
+    warm start holds half of it (two episodes), not the first one all of it."""
+    import time
+
+    from ttompc.policy import Planner
+
+    sc, problem, rel, _ = setup
+    planner = _valued_planner(sc.name)
+    cost_to_go = Planner.cost_to_go
+    pause = 0.1
+
+    def slow(self, *args):
+        time.sleep(pause)
+        return cost_to_go(self, *args)
+
+    monkeypatch.setattr(Planner, "cost_to_go", slow)
+    group = RolloutGroup(planner)
+    starts = [EpisodeStart(problem, rel.cost), EpisodeStart(sc.sample(np.random.default_rng(2)), rel.cost)]
+    provs = [TTOProvider(planner, rtg_mode="value", group=group) for _ in starts]
+    for e in run_mpc_batch(sc, starts, provs, MPCRun(5, max_steps=3)):
+        assert np.all(e.warm_times >= pause / 2) and np.all(e.warm_times < 0.75 * pause), e.warm_times

@@ -219,6 +219,39 @@ def test_value_mode_feeds_the_models_cost_to_go_from_the_measured_state(toy, toy
     assert lo <= -mid <= hi and value.conditioning(4) == pytest.approx(-mid, rel=1e-5)
 
 
+def test_a_batched_value_call_prices_each_state_as_a_lone_one(toy, toy_stats: NormStats) -> None:
+    """``Planner.cost_to_go`` of B states in one call is each state's batch-1 value up to float rounding (1e-6
+    relative); ``ValueRTG.prepare`` prices a group's members with it, and each member's feed reads its row once
+    (a later call prices its state alone)."""
+    from ttompc.mpc.rtg import ValueRTG
+    from ttompc.mpc.tto import RolloutGroup
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(state_dim=6, control_dim=3, n_embd=16, n_layer=1, n_head=2, max_steps=12, value_width=8)
+    planner = Planner(TrajectoryGPT(cfg), toy, toy_stats)
+    for layer in planner.model.value_head:  # torch's default initialisation: a cost-to-go that varies with the state
+        if isinstance(layer, torch.nn.Linear):
+            layer.reset_parameters()
+    rng = np.random.default_rng(0)
+    problems = [toy.sample(rng) for _ in range(10)]
+    X = np.stack([p.x0 + rng.normal(scale=0.3, size=6) for p in problems])
+    batched = planner.cost_to_go(problems, X, 4)
+    lone = np.array([planner.cost_to_go([p], x[None], 4)[0] for p, x in zip(problems, X, strict=True)])
+    np.testing.assert_allclose(batched, lone, rtol=1e-6, atol=0)
+    assert np.ptp(lone) > 1e-3 * np.abs(lone).max()  # the states are priced apart
+    group = RolloutGroup(planner)
+    provs = [TTOProvider(planner, rtg_mode="value", group=group) for _ in problems]
+    for prov, p, x in zip(provs, problems, X, strict=True):
+        prov.reset(toy, p, rel_cost=2.0)
+        prov.x = x
+    ValueRTG.prepare(provs, 4)
+    assert all(isinstance(prov.rtg, ValueRTG) and prov.rtg.priced is not None for prov in provs)
+    fed = np.array([prov.rtg(prov, 4) for prov in provs])
+    np.testing.assert_array_equal(fed, -batched)
+    assert all(isinstance(prov.rtg, ValueRTG) and prov.rtg.priced is None for prov in provs)  # read once
+    np.testing.assert_allclose([prov.rtg(prov, 4) for prov in provs], -lone, rtol=1e-6, atol=0)
+
+
 @pytest.mark.parametrize(
     ("model", "parent"),
     [("freeflyer-ft-tto-v5", "freeflyer-ft-tto-v4"), ("quadrotor-ft-tto-v6", "quadrotor-ft-tto-v5")],

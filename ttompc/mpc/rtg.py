@@ -11,8 +11,10 @@ A mode declares, as class attributes, what the layers above need of it:
 
 and an instance, one per episode (its ``TTOProvider``'s), is reset at the episode's start (``reset``) and gives the
 value to feed at step t (``__call__``; None: the context's running value). The provider clips every value to the range
-training rows' rtg lie in (``TTOProvider.conditioning``). Adding a mode is a class here, its entry in ``RTG_MODES``
-and the presets that name it.
+training rows' rtg lie in (``TTOProvider.conditioning``). The episodes of a ``RolloutGroup`` run in lockstep, and a
+mode may do the work its members share at a step once for all of them before each member's call (``prepare``:
+``value`` prices every member's state in one batched call of the value output). Adding a mode is a class here, its
+entry in ``RTG_MODES`` and the presets that name it.
 
 Training rows hold rtg_t = −Σ_(τ≥t) c(u_τ), never above 0. The modes:
 
@@ -33,6 +35,7 @@ Training rows hold rtg_t = −Σ_(τ≥t) c(u_τ), never above 0. The modes:
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
@@ -89,6 +92,12 @@ class RTGFeed(ABC):
     def reset(self, scenario: Scenario, problem: Problem) -> None:  # noqa: B027 (most modes keep no state)
         """Start an episode of ``problem``."""
 
+    @classmethod  # noqa: B027 (most modes share no work)
+    def prepare(cls, members: Sequence[TTOProvider], t: int) -> None:
+        """Do at once the work that the feeds of ``members`` (episodes in lockstep running this mode, sharing one
+        planner: a ``RolloutGroup``'s) share at step t, before each member's call at step t from its measured state
+        ``tto.x``; a call without it gives the same value, up to float rounding."""
+
     @abstractmethod
     def __call__(self, tto: TTOProvider, t: int) -> float | None:
         """The rtg to feed ``tto``'s model at step t from its measured state ``tto.x`` (unclipped; None: the
@@ -125,11 +134,31 @@ class ReanchorRTG(RTGFeed):
 
 
 class ValueRTG(RTGFeed):
-    """``value``: −V(x_t, t), the model's value output; the ledger for a model without one (module doc)."""
+    """``value``: −V(x_t, t), the model's value output; the ledger for a model without one (module doc). The
+    members of a lockstep step are priced in one batched call (``prepare``); a call at a state ``prepare`` did not
+    price is priced alone (batch 1)."""
 
     name, needs_value, fallback = "value", True, "running"
 
+    def __init__(self, backend: str = "auto", plan: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        super().__init__(backend, plan)
+        self.priced: tuple[int, np.ndarray, float] | None = None  # (t, x_t, V(x_t, t)) from ``prepare``, unread
+
+    @classmethod
+    def prepare(cls, members: Sequence[TTOProvider], t: int) -> None:
+        """V(x_t, t) of every member's measured state (B >= 1 members) in one ``Planner.cost_to_go`` call of batch
+        B, kept for the member's next call (its row of the batch; a feed reads a priced value once)."""
+        feeds = [m.rtg for m in members if isinstance(m.rtg, ValueRTG)]
+        if len(feeds) != len(members):
+            raise TypeError(f"rtg_mode=value prices the members that run it, not {[m.rtg_mode for m in members]}")
+        V = members[0].planner.cost_to_go([m.problem for m in members], np.stack([m.x for m in members]), t)
+        for m, feed, v in zip(members, feeds, V, strict=True):
+            feed.priced = (t, np.array(m.x), float(v))
+
     def __call__(self, tto: TTOProvider, t: int) -> float | None:
+        priced, self.priced = self.priced, None
+        if priced is not None and priced[0] == t and np.array_equal(priced[1], tto.x):
+            return -priced[2]
         return -float(tto.planner.cost_to_go([tto.problem], tto.x[None], t)[0])
 
 

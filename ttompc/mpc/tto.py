@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ttompc.mpc.providers import WarmStart
-from ttompc.mpc.rtg import rtg_feed
+from ttompc.mpc.rtg import RTGFeed, rtg_feed
 from ttompc.mpc.terminal import TargetFilter, TerminalTerm
 from ttompc.scenarios.base import Problem, Scenario, Window
 
@@ -134,10 +134,13 @@ class RolloutGroup:
     ``TTOProvider`` made without a group has one of its own.
 
     Members may ask windows of different lengths at one step (DAgger draws H per rollout). Each member's
-    conditioning is computed once per step, and a window is the prefix of the step's longest rollout: exactly the
-    rollout of its own length, since step k of the autoregressive rollout reads the context and the steps before
-    it, never how many follow (``RolloutContext.rollout``: no time-to-go, no terminal step). The rollout runs as far
-    as the first request or the step's ``expect``, whichever is longer; a request beyond it runs a longer one.
+    conditioning is computed once per step, the work its mode shares across members once for all of them
+    (``RTGFeed.prepare``: under ``rtg_mode=value`` one batched call of the value output prices every member's
+    measured state, each episode charged its share), and a window is the prefix of the step's longest rollout:
+    exactly the rollout of its own length, since step k of the autoregressive rollout reads the context and the
+    steps before it, never how many follow (``RolloutContext.rollout``: no time-to-go, no terminal step). The
+    rollout runs as far as the first request or the step's ``expect``, whichever is longer; a request beyond it runs
+    a longer one.
 
     Lifecycle: providers join at construction (``add``: their slot is their row), the context is built when all of
     them have been ``reset`` for an episode, and every member observes once per step (planning before it or not)."""
@@ -148,9 +151,9 @@ class RolloutGroup:
         self.context: RolloutContext | None = None
         self._joined: set[int] = set()
         self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        # the current step's shared work: each member's time computing its conditioning ([] before the step's
-        # first request), the longest window expected (``expect``), and the longest rollout so far: states
-        # (B, L+1, n), actions (B, L, m) and 1/B of its time
+        # the current step's shared work: each member's time computing its conditioning, its share of its mode's
+        # shared work included ([] before the step's first request), the longest window expected (``expect``), and
+        # the longest rollout so far: states (B, L+1, n), actions (B, L, m) and 1/B of its time
         self._own: list[float] = []
         self._expected = 0
         self._plan: tuple[np.ndarray, np.ndarray, float] | None = None
@@ -194,21 +197,16 @@ class RolloutGroup:
 
     def rollout(self, slot: int, window: Window) -> tuple[np.ndarray, np.ndarray, float, float]:
         """Row ``slot`` of this step's batched rollout, cut to the window: its states (H+1, n) and actions (H, m) in
-        the model representation (copies), the member's share of the time (its own conditioning plus 1/B of the
-        rollout that serves it) and the time this call spent on the shared work (the members' conditioning and the
-        rollout; 0 for a call served by an earlier one's work)."""
+        the model representation (copies), the member's share of the time (its own conditioning with its share of
+        its mode's batched work, plus 1/B of the rollout that serves it) and the time this call spent on the shared
+        work (the members' conditioning and the rollout; 0 for a call served by an earlier one's work)."""
         ctx = self.context
         if ctx is None or ctx.t != window.start:
             raise RuntimeError(f"rollout context is at step {getattr(ctx, 't', None)}, not {window.start}")
         t0 = time.perf_counter()
         ran = False
         if not self._own:  # the step's first request: every member's conditioning, once
-            for m in self.members:
-                t1 = time.perf_counter()
-                value = m.conditioning(window.start)
-                if value is not None:
-                    ctx.rtg[m.slot, -1] = value
-                self._own.append(time.perf_counter() - t1)
+            self._condition(ctx, window.start)
             ran = True
         if self._plan is None or self._plan[1].shape[1] < window.length:
             t1 = time.perf_counter()
@@ -239,6 +237,28 @@ class RolloutGroup:
         self._new_step()
         self._sync()
         return time.perf_counter() - t0
+
+    def _condition(self, ctx: RolloutContext, t: int) -> None:
+        """Feed every member's conditioning at step t into ``ctx``'s rtg: each mode's shared work for its members in
+        one call (``RTGFeed.prepare``), then each member's value. ``_own`` becomes each member's time: its own call
+        plus an equal share of its mode's shared work."""
+        own = [0.0] * len(self.members)
+        modes: dict[type[RTGFeed], list[TTOProvider]] = {}
+        for m in self.members:
+            modes.setdefault(type(m.rtg), []).append(m)
+        for mode, members in modes.items():
+            t0 = time.perf_counter()
+            mode.prepare(members, t)
+            share = (time.perf_counter() - t0) / len(members)
+            for m in members:
+                own[m.slot] += share
+        for m in self.members:
+            t0 = time.perf_counter()
+            value = m.conditioning(t)
+            if value is not None:
+                ctx.rtg[m.slot, -1] = value
+            own[m.slot] += time.perf_counter() - t0
+        self._own = own
 
     def _new_step(self) -> None:
         """Forget the previous step's conditioning, rollout and hint."""

@@ -1,0 +1,124 @@
+"""The model's calls in a TTO-MPC step, timed alone against their arithmetic (``bench/step_profile.py``'s
+``model_calls``): how much of the model's time is fixed per call (dispatch) and how much is arithmetic.
+
+From a mid-episode context (B episodes advanced ``t`` steps along the model's own plan, a KV cache of t steps), at
+each batch B:
+
+* ``rollout_ms``: ``RolloutContext.rollout(H)``, the median of ``reps`` calls, and ``ms_per_generated_step``;
+* ``mflop_per_generated_step``: the rollout's matmul FLOPs per generated step (``torch.utils.flop_counter``; the
+  attention over the cache is not counted, under 5% of a step at these sizes);
+* ``mm_gflops``: the throughput of one ``torch.mm`` at the step's largest matmul, (B·T, d) × (d, hidden) of the MLP
+  (T tokens per step, d the width), the median of ``reps``·20 calls; ``floor_ms``: the rollout's FLOPs at that
+  throughput, the arithmetic floor of the call, and ``arithmetic_share`` = floor / measured;
+* ``value_ms``: the value output of B states (``Planner.cost_to_go``, one call; None without a value output) and
+  ``advance_ms``: the KV-cache extension by one executed step (``RolloutContext.advance``, the median of ``reps``
+  successive extensions, so the cache grows by ``reps`` steps after the rollouts are timed).
+
+``fit``: the least-squares line through (B, ms per generated step): ``fixed_ms`` is the part of a generated step
+that does not grow with the batch (the per-call overhead), ``ms_per_row`` what each episode adds.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from ttompc.policy import Planner, RolloutContext
+from ttompc.scenarios import Problem
+
+
+def median_ms(fn: Callable[[], Any], reps: int) -> float:
+    """The median wall time of ``reps`` calls of ``fn`` (ms), after one untimed call."""
+    fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)
+
+
+def mid_context(planner: Planner, problems: Sequence[Problem], t: int) -> RolloutContext:
+    """The episodes of ``problems`` at step ``t``: conditioned on the data's mean rtg and advanced along the model's
+    own t-step plan, so the KV cache holds t executed steps."""
+    ctx = planner.context(problems, rtg0=float(planner.stats.mean["rtg"][0]))
+    plan = ctx.rollout(t)
+    for k in range(t):
+        ctx.advance(plan.actions[:, k], plan.states[:, k + 1])
+    return ctx
+
+
+def mm_gflops(rows: int, width: int, hidden: int, dtype: torch.dtype, reps: int) -> float:
+    """GFLOP/s of one ``torch.mm`` of (rows, width) × (width, hidden), the median of ``reps`` calls."""
+    a, b = torch.randn(rows, width, dtype=dtype), torch.randn(width, hidden, dtype=dtype)
+    return 2.0 * rows * width * hidden / (1e6 * median_ms(lambda: torch.mm(a, b), reps))
+
+
+def batch_calls(planner: Planner, problems: Sequence[Problem], t: int, horizon: int, reps: int) -> dict[str, Any]:
+    """The model's calls at the batch of ``problems`` from step ``t`` (module doc)."""
+    model = planner.model
+    ctx = mid_context(planner, problems, t)
+    rollout_ms = median_ms(lambda: ctx.rollout(horizon), reps)
+    with FlopCounterMode(display=False) as counter:
+        ctx.rollout(horizon)
+    flops = float(counter.get_total_flops())
+    hidden, width = model.blocks[0].mlp[0].weight.shape
+    rows = len(problems) * model.cfg.tokens_per_step
+    gflops = mm_gflops(rows, width, hidden, next(model.parameters()).dtype, 20 * reps)
+    floor_ms = flops / (1e6 * gflops)
+    X = np.stack([p.x0 for p in problems])
+    value_ms = median_ms(lambda: planner.cost_to_go(problems, X, t), reps) if planner.has_value else None
+    plan = ctx.rollout(reps + 1)
+    steps = iter(range(reps + 1))
+
+    def advance() -> None:
+        k = next(steps)
+        ctx.advance(plan.actions[:, k], plan.states[:, k + 1])
+
+    return {
+        "rollout_ms": rollout_ms,
+        "ms_per_generated_step": rollout_ms / horizon,
+        "mflop_per_generated_step": flops / horizon / 1e6,
+        "mm_gflops": gflops,
+        "floor_ms": floor_ms,
+        "arithmetic_share": floor_ms / rollout_ms,
+        "value_ms": value_ms,
+        "advance_ms": median_ms(advance, reps),
+    }
+
+
+def model_calls(
+    planner: Planner, problems: Sequence[Problem], batches: Sequence[int], horizon: int, reps: int
+) -> dict[str, Any]:
+    """The model's calls at each batch in ``batches`` (the problems cycled to fill it) from mid-episode, H =
+    ``horizon``, and the fit of a generated step's time against the batch (module doc)."""
+    N = problems[0].n_steps
+    t = min(N // 2, planner.model.cfg.max_steps - horizon - reps - 1)
+    cycled = lambda B: [problems[i % len(problems)] for i in range(B)]  # noqa: E731
+    rows = {str(B): batch_calls(planner, cycled(B), t, horizon, reps) for B in batches}
+    out: dict[str, Any] = {"t": t, "horizon": horizon, "reps": reps, "batches": rows}
+    if len(batches) > 1:
+        slope, fixed = np.polyfit(np.asarray(batches, dtype=float), [r["ms_per_generated_step"] for r in rows.values()],
+                                  1)  # fmt: skip
+        out["fit"] = {"fixed_ms": float(fixed), "ms_per_row": float(slope)}
+    return out
+
+
+def print_calls(name: str, calls: dict[str, Any]) -> None:
+    """One line per batch: the rollout, per generated step, its arithmetic floor, the value and the advance."""
+    print(f"  {name} model calls from t = {calls['t']}, H = {calls['horizon']}:")
+    for B, r in calls["batches"].items():
+        value = "-" if r["value_ms"] is None else f"{r['value_ms']:.3f}"
+        print(f"    B={B:>3}: rollout {r['rollout_ms']:7.3f} ms ({r['ms_per_generated_step']:.3f} ms per step), "
+              f"arithmetic floor {r['floor_ms']:.3f} ms ({r['mflop_per_generated_step']:.1f} MFLOP per step at "
+              f"{r['mm_gflops']:.1f} GFLOP/s: {100 * r['arithmetic_share']:.0f}% of it); value {value} ms; advance "
+              f"{r['advance_ms']:.3f} ms")  # fmt: skip
+    if "fit" in calls:
+        fit = calls["fit"]
+        print(f"    per generated step = {fit['fixed_ms']:.3f} ms fixed + {fit['ms_per_row']:.4f} ms per episode")
