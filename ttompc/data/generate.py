@@ -6,16 +6,13 @@ Reproducibility by construction (``docs/design.md`` lists the research code's du
   same problem whatever the number of workers or ranks, never a shared RNG state;
 * shard k always covers problem ids [k·K, (k+1)·K) and is written by ``ShardedFolder`` (atomic files, then
   metadata ``meta/shard-<k>.json``); an interrupted run resumes by skipping done shards;
-* a problem's rows depend only on (seed, problem id): the solvers cached in a worker are restarted for every solve
-  (``engine.run_scp``), so whichever worker, worker count or resumed run solves a problem, every column of its rows
-  is bit-identical to an uninterrupted run's except the wall-clock ``solve_time`` and ``solver_time`` (tested in
-  ``tests/test_data_generate.py``; 1 and 2 BLAS threads gave the same bits);
+* a problem's rows depend only on (seed, problem id): cached solvers restart for every solve, so whichever worker
+  or resumed run solves it, its rows are bit-identical but for the wall-clock times (tested; 1 or 2 BLAS threads);
 * splits are a hash of the problem id, so REL and SCP rows of a problem share a split.
 
 Under torchrun/SLURM each rank generates every world_size-th shard; rank 0 (or ``ttompc generate --finalize``)
-writes ``manifest.json`` and the dataset card (``README.md`` inside the output folder, nowhere else unless
-``card_dir`` asks for a copy) once every shard exists. A split configuration that would leave a split with a
-positive fraction empty is refused before anything is solved.
+writes ``manifest.json`` and the dataset card (``README.md`` in the output folder; ``card_dir``: a copy) once every
+shard exists. A split configuration that would leave a split with a positive fraction empty is refused at once.
 """
 
 from __future__ import annotations
@@ -128,6 +125,7 @@ def _solve_one(task: tuple[int, int]) -> dict[str, Any]:
             status = "skipped (REL failed)" if res is None else res.status.value
             out["failure"] = out["failure"] or {"problem_id": pid, "seed": seed, "stage": source, "status": status}
             continue
+        lam = res.costates if source == "scp" else None  # the value's Sobolev targets; REL's are not J*'s
         out["rows"].append(
             make_row(
                 scenario,
@@ -138,10 +136,7 @@ def _solve_one(task: tuple[int, int]) -> dict[str, Any]:
                 states=scenario.to_model_states(problem, res.X),
                 states_opt=res.X,
                 actions=res.U,
-                # the SCP optimum's cost-to-go gradients (the value output's Sobolev targets); REL's are not J*'s
-                costates=None
-                if source != "scp" or res.costates is None
-                else model_costates(scenario, problem, res.costates),
+                costates=None if lam is None else model_costates(scenario, problem, lam),
                 cost=res.cost,
                 iterations=res.iterations,
                 status=res.status.value,

@@ -133,10 +133,23 @@ class AssembledSubproblem:
         sx, su = spec.units()
         self.ix = self._var((H + 1) * n, np.tile(sx, H + 1)).reshape(H + 1, n)
         self.iu = self._var(H * m, np.tile(su, H)).reshape(H, m)
-        q_parts: list[tuple[np.ndarray, float]] = []
+        q_parts: list[tuple[np.ndarray, float]] = []  # (variables, linear cost weight)
         zero, nonneg = _Group(), _Group()
         self.soc_groups: list[_Group] = []
+        # in this order: it fixes the variables' and rows' indices
+        self._dynamics(zero, nonneg, q_parts)
+        self._terminal(zero, nonneg, q_parts)
+        self._stage_cost(nonneg, q_parts)
+        for bi, sig in enumerate(spec.blocks):
+            self._block(bi, sig, zero, nonneg, q_parts)
+        self._trust_region(nonneg)
+        self._finalise(zero, nonneg, q_parts)
 
+    # ------------------------------------------------------------------------------------------------- sections
+    def _dynamics(self, zero: _Group, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]) -> None:
+        """x_0 = x_start and the dynamics rows (with the virtual control where the spec has one)."""
+        spec, sx = self.spec, self.spec.units()[0]
+        H, n, m = spec.H, spec.n, spec.m
         # x_0 = x_start
         r = zero.add_rows(n)
         self._entries(zero, r, self.ix[0], ("const", np.ones(n)))
@@ -162,6 +175,10 @@ class AssembledSubproblem:
             self._nonneg_vars(nonneg, np.concatenate([nu_p, nu_m]))
             q_parts.append((np.concatenate([nu_p, nu_m]), spec.penalty))
 
+    def _terminal(self, zero: _Group, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]) -> None:
+        """x_H = goal (penalised in that formulation), or the soft terminal term's cone."""
+        spec = self.spec
+        H, n = spec.H, spec.n
         # terminal condition
         if spec.terminal == "hard":
             r = zero.add_rows(n)
@@ -183,6 +200,10 @@ class AssembledSubproblem:
             g.b.append((np.arange(1, n + 1), ("weighted_target", np.arange(n), -1.0)))
             q_parts.append((tau, 1.0))
 
+    def _stage_cost(self, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]) -> None:
+        """The stage cost's epigraph (L1, L2); a quadratic one has none (it is in P)."""
+        spec, su = self.spec, self.spec.units()[1]
+        H, m = spec.H, spec.m
         # stage cost
         if spec.cost_norm == "l1":  # t ≥ |u| elementwise
             t = self._var(H * m, np.tile(su, H)).reshape(H, m)
@@ -201,58 +222,64 @@ class AssembledSubproblem:
         elif spec.cost_norm != "quad":
             raise ValueError(f"unknown cost norm {spec.cost_norm!r}")
 
-        # scenario constraint blocks
-        for bi, sig in enumerate(spec.blocks):
-            _, kind, steps, M, has_u, soft, weight, two_sided = sig[:8]
-            steps = np.asarray(steps, dtype=int)
-            K = len(steps)
-            if has_u and K and steps.max() >= H:
-                raise ValueError(f"block {sig[0]!r} puts control rows on step {steps.max()} >= window length {H}")
-            kind = BlockKind(kind)
-            if kind is BlockKind.SOC:
-                for kk in range(K):
-                    g = self._soc(M)
-                    rows = np.arange(M)
-                    self._block_entries(g, rows, bi, kk, steps[kk], has_u, sign=-1.0)
-                    g.b.append((rows, (f"h{bi}", kk * M + rows, -1.0)))
-                continue
-            if kind is BlockKind.EQ and spec.soft_equalities:  # weight·τ, τ ≥ ‖G z − h‖₂ (MPC soft mode)
-                tau = self._var(K)
-                for kk in range(K):
-                    g = self._soc(1 + M)
-                    self._entries(g, np.array([0]), tau[kk : kk + 1], ("const", -np.ones(1)))
-                    rows = np.arange(1, M + 1)
-                    self._block_entries(g, rows, bi, kk, steps[kk], has_u, sign=-1.0)
-                    g.b.append((rows, (f"h{bi}", kk * M + np.arange(M), -1.0)))
-                q_parts.append((tau, weight))
-                continue
-            group = zero if kind is BlockKind.EQ else nonneg
-            r = group.add_rows(K * M).reshape(K, M)
+    def _block(
+        self, bi: int, sig: tuple, zero: _Group, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]
+    ) -> None:
+        """The rows of scenario constraint block ``bi`` (signature ``sig``), with their slacks where penalised."""
+        spec, H = self.spec, self.spec.H
+        _, kind, steps, M, has_u, soft, weight, two_sided = sig[:8]
+        steps = np.asarray(steps, dtype=int)
+        K = len(steps)
+        if has_u and K and steps.max() >= H:
+            raise ValueError(f"block {sig[0]!r} puts control rows on step {steps.max()} >= window length {H}")
+        kind = BlockKind(kind)
+        if kind is BlockKind.SOC:
             for kk in range(K):
-                self._block_entries(group, r[kk], bi, kk, steps[kk], has_u, sign=1.0)
-            group.b.append((r.ravel(), (f"h{bi}", None, 1.0)))
-            row_sets = [r]
-            if two_sided:  # −(G z) ≤ −lower
-                r_low = nonneg.add_rows(K * M).reshape(K, M)
-                for kk in range(K):
-                    self._block_entries(nonneg, r_low[kk], bi, kk, steps[kk], has_u, sign=-1.0)
-                nonneg.b.append((r_low.ravel(), (f"l{bi}", None, -1.0)))
-                row_sets.append(r_low)
-            if not spec.penalized:
-                continue
-            if kind is BlockKind.INEQ and soft:  # one slack shared by both sides of a two-sided row
-                s = self._var(K * M)
-                for rows in row_sets:
-                    self._entries(nonneg, rows.ravel(), s, ("const", -np.ones(K * M)))
-                self._nonneg_vars(nonneg, s)
-                q_parts.append((s, spec.penalty))
-            elif kind is BlockKind.EQ:
-                sp_, sm_ = self._var(K * M), self._var(K * M)
-                self._entries(group, r.ravel(), sp_, ("const", -np.ones(K * M)))
-                self._entries(group, r.ravel(), sm_, ("const", np.ones(K * M)))
-                self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
-                q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
+                g = self._soc(M)
+                rows = np.arange(M)
+                self._block_entries(g, rows, bi, kk, steps[kk], has_u, sign=-1.0)
+                g.b.append((rows, (f"h{bi}", kk * M + rows, -1.0)))
+            return
+        if kind is BlockKind.EQ and spec.soft_equalities:  # weight·τ, τ ≥ ‖G z − h‖₂ (MPC soft mode)
+            tau = self._var(K)
+            for kk in range(K):
+                g = self._soc(1 + M)
+                self._entries(g, np.array([0]), tau[kk : kk + 1], ("const", -np.ones(1)))
+                rows = np.arange(1, M + 1)
+                self._block_entries(g, rows, bi, kk, steps[kk], has_u, sign=-1.0)
+                g.b.append((rows, (f"h{bi}", kk * M + np.arange(M), -1.0)))
+            q_parts.append((tau, weight))
+            return
+        group = zero if kind is BlockKind.EQ else nonneg
+        r = group.add_rows(K * M).reshape(K, M)
+        for kk in range(K):
+            self._block_entries(group, r[kk], bi, kk, steps[kk], has_u, sign=1.0)
+        group.b.append((r.ravel(), (f"h{bi}", None, 1.0)))
+        row_sets = [r]
+        if two_sided:  # −(G z) ≤ −lower
+            r_low = nonneg.add_rows(K * M).reshape(K, M)
+            for kk in range(K):
+                self._block_entries(nonneg, r_low[kk], bi, kk, steps[kk], has_u, sign=-1.0)
+            nonneg.b.append((r_low.ravel(), (f"l{bi}", None, -1.0)))
+            row_sets.append(r_low)
+        if not spec.penalized:
+            return
+        if kind is BlockKind.INEQ and soft:  # one slack shared by both sides of a two-sided row
+            s = self._var(K * M)
+            for rows in row_sets:
+                self._entries(nonneg, rows.ravel(), s, ("const", -np.ones(K * M)))
+            self._nonneg_vars(nonneg, s)
+            q_parts.append((s, spec.penalty))
+        elif kind is BlockKind.EQ:
+            sp_, sm_ = self._var(K * M), self._var(K * M)
+            self._entries(group, r.ravel(), sp_, ("const", -np.ones(K * M)))
+            self._entries(group, r.ravel(), sm_, ("const", np.ones(K * M)))
+            self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
+            q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
 
+    def _trust_region(self, nonneg: _Group) -> None:
+        """The trust region about the reference on the spec's steps (2-norm cones or ∞-norm boxes)."""
+        spec, n = self.spec, self.spec.n
         tr_states = np.asarray(spec.tr_states, dtype=int)
         if spec.trust == "l2":
             for j in tr_states:
@@ -269,8 +296,6 @@ class AssembledSubproblem:
                 nonneg.b.append((r, ("X_ref", idx, sign)))
         elif spec.trust != "none":
             raise ValueError(f"unknown trust-region norm {spec.trust!r}")
-
-        self._finalise(zero, nonneg, q_parts)
 
     # ------------------------------------------------------------------------------------------------- building
     def _var(self, count: int, scale: np.ndarray | None = None) -> np.ndarray:
