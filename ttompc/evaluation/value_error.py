@@ -4,7 +4,8 @@ whose rtg is an optimum's cost-to-go (SCP rows), the error of J = −rtg predict
     python -m ttompc.evaluation.value_error --model NAME [NAME ...] --data DATA [--split test --rows 500]
 
 prints one JSON line per model: per bucket of steps to go, the rows' mean |J*|, the mean absolute error and its
-ratio to the mean |J*| (the value's relative error where it matters to a window's terminal cost: its last steps).
+ratio to the mean |J*| (the value's relative error where it matters to a window's terminal cost: its last steps),
+and where the rows carry costates the gradient's relative error Σ‖∇V − λ‖ / Σ‖λ‖ (normalised units).
 """
 
 from __future__ import annotations
@@ -39,28 +40,39 @@ def value_errors(model: str, data: Sequence[str], split: str = "test", rows: int
     err: list[np.ndarray] = []
     true: list[np.ndarray] = []
     togo: list[np.ndarray] = []
+    gerr: list[np.ndarray] = []  # per step: (‖∇V − λ‖, ‖λ‖, steps to go) where the row has costates
     seen = 0
-    with torch.no_grad():
-        for b in loader:
-            keep = (b["source"] == SOURCE_CODES["scp"]) & (seen + torch.arange(len(b["source"])) < rows)
-            if not keep.any():
-                break
-            v = planner.model.value(b["goals"], b["states"], b["timesteps"])
-            J_hat = -st.denormalize("rtg", v.double())[..., 0].numpy()  # (B, L)
-            J = -st.denormalize("rtg", b["rtg"].double())[..., 0].numpy()
-            valid = (b.get("mask", torch.ones_like(b["timesteps"], dtype=torch.float32)) > 0).numpy()
-            valid &= keep.numpy()[:, None]
-            err.append(np.abs(J_hat - J)[valid])
-            true.append(np.abs(J)[valid])
-            togo.append((N - b["timesteps"].numpy())[valid])
-            seen += int(keep.sum())
+    for b in loader:
+        keep = (b["source"] == SOURCE_CODES["scp"]) & (seen + torch.arange(len(b["source"])) < rows)
+        if not keep.any():
+            break
+        states = b["states"].clone().requires_grad_(True)
+        v = planner.model.value(b["goals"], states, b["timesteps"])
+        grad = torch.autograd.grad(v.sum(), states)[0]  # (B, L, n), normalised units
+        known = (b["grad_mask"] > 0) & keep[:, None]
+        if known.any():
+            g, t = b["value_grad"][known], (N - b["timesteps"])[known]
+            gerr.append(np.stack([(grad[known] - g).norm(dim=-1).numpy(), g.norm(dim=-1).numpy(), t.numpy()], 1))
+        with torch.no_grad():
+            J_hat = -st.denormalize("rtg", v.detach().double())[..., 0].numpy()  # (B, L)
+        J = -st.denormalize("rtg", b["rtg"].double())[..., 0].numpy()
+        valid = (b.get("mask", torch.ones_like(b["timesteps"], dtype=torch.float32)) > 0).numpy()
+        valid &= keep.numpy()[:, None]
+        err.append(np.abs(J_hat - J)[valid])
+        true.append(np.abs(J)[valid])
+        togo.append((N - b["timesteps"].numpy())[valid])
+        seen += int(keep.sum())
     e, j, g = np.concatenate(err), np.concatenate(true), np.concatenate(togo)
+    ge = np.concatenate(gerr) if gerr else np.zeros((0, 3))
     out: dict[str, Any] = {"model": model, "rows": seen, "buckets": {}}
     for lo, hi in BUCKETS:
         m = (g >= lo) & (g <= hi)
         if m.any():
             out["buckets"][f"{lo}-{hi}"] = {"mean_abs_J": float(j[m].mean()), "mae": float(e[m].mean()),
                                             "relative": float(e[m].mean() / j[m].mean())}  # fmt: skip
+        mg = (ge[:, 2] >= lo) & (ge[:, 2] <= hi)
+        if mg.any():
+            out["buckets"].setdefault(f"{lo}-{hi}", {})["gradient_relative"] = float(ge[mg, 0].sum() / ge[mg, 1].sum())
     return out
 
 

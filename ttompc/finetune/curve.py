@@ -1,6 +1,7 @@
 """The learning curve of a DAgger run: per iteration, the closed loop on fixed selection problems (nominal and
-perturbed plants, paired against the pretrained model), the imitation loss on held-out closed-loop rows, the labels
-aggregated so far and the compute spent; and its figure.
+perturbed plants, paired against the pretrained model), the imitation loss on held-out closed-loop rows (the first
+iteration's validation rows, one set for every model), the labels aggregated so far and the compute spent; and its
+figure.
 
 ``measure_curve`` reads ``<run>/dagger_state.json`` and each iteration's planner (``<run>/iter-<i>/planner``), and
 appends one record per model to ``<run>/curve.json`` (resumable: measured models are skipped), so a curve can be
@@ -130,7 +131,8 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
             se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
             record[plant]["vs_pretrained"] = {"mean": float(d.mean()) if len(d) else float("nan"), "se": se,
                                               "n": len(d)}  # fmt: skip
-        dirs = [str(run / "dagger" / f"iter-{r['iteration']:03d}") for r in state["completed"]]
+        # one fixed held-out set for every model: the first iteration's val rows (never trained on)
+        dirs = [str(run / "dagger" / "iter-000")] if state["completed"] else []
         record["imitation_loss"] = imitation_loss(planner, data, dirs) if dirs and data else float("nan")
         records.append(record)
         records.sort(key=lambda r: r["iteration"])
