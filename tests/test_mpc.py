@@ -835,25 +835,31 @@ def test_a_step_time_includes_the_observe_of_the_previous_outcome(
         np.testing.assert_array_equal(e.step_times, e.observe_times + e.warm_times + e.solve_times)
 
 
+def _slowed(monkeypatch: pytest.MonkeyPatch, cls: type, name: str, pause: float) -> None:
+    """Make ``cls.name`` take ``pause`` seconds longer (the charged-share tests' known cost)."""
+    import time
+
+    method = getattr(cls, name)
+
+    def slow(self: object, *args: object) -> object:
+        time.sleep(pause)
+        return method(self, *args)
+
+    monkeypatch.setattr(cls, name, slow)
+
+
 def test_tto_steps_are_charged_their_share_of_the_batched_context_advance(
     setup: tuple, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """TTO-MPC in lockstep: the context advances once per step in the last member's observe; each episode's next
     step holds half of it (two episodes), not the last one all of it."""
-    import time
 
     from ttompc.policy.rollout import RolloutContext
 
     sc, problem, rel, _ = setup
     planner = mpc_fakes.tiny_planner()
-    advance = RolloutContext.advance
     pause = 0.05
-
-    def slow(self, *args):
-        time.sleep(pause)
-        return advance(self, *args)
-
-    monkeypatch.setattr(RolloutContext, "advance", slow)
+    _slowed(monkeypatch, RolloutContext, "advance", pause)
     group = RolloutGroup(planner)
     starts = [EpisodeStart(problem, rel.cost), EpisodeStart(sc.sample(np.random.default_rng(2)), rel.cost)]
     episodes = run_mpc_batch(sc, starts, [TTOProvider(planner, group=group) for _ in starts], MPCRun(5, max_steps=3))
@@ -948,20 +954,13 @@ def test_value_rtg_prices_a_groups_members_in_one_call_and_the_episodes_are_the_
 def test_tto_steps_are_charged_their_share_of_the_batched_value(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
     """rtg_mode=value in lockstep: the step's one value call runs in the first member's warm start; each episode's
     warm start holds half of it (two episodes), not the first one all of it."""
-    import time
 
     from ttompc.policy import Planner
 
     sc, problem, rel, _ = setup
     planner = _valued_planner(sc.name)
-    cost_to_go = Planner.cost_to_go
     pause = 0.1
-
-    def slow(self, *args):
-        time.sleep(pause)
-        return cost_to_go(self, *args)
-
-    monkeypatch.setattr(Planner, "cost_to_go", slow)
+    _slowed(monkeypatch, Planner, "cost_to_go", pause)
     group = RolloutGroup(planner)
     starts = [EpisodeStart(problem, rel.cost), EpisodeStart(sc.sample(np.random.default_rng(2)), rel.cost)]
     provs = [TTOProvider(planner, rtg_mode="value", group=group) for _ in starts]

@@ -161,17 +161,23 @@ def _with_cone(cost: StageCost, seed: int, n: int) -> tuple[StageCost, TerminalC
     return StageCost(Qd, q), TerminalCone(w=rng.uniform(0.5, 3.0, n), center=rng.normal(size=n))
 
 
+def _boxed_qp(seed: int, cone: bool, n: int, nu: int, N: int) -> tuple[StageQPData, TerminalCone | None]:
+    """A random stage QP with hard and soft boxes and soft rows (seeds ``seed``..``seed + 2``), with the terminal
+    cone or without; returns it and its cone."""
+    dyn, cost = _random_stage_qp(seed, N, n, nu)
+    qp = StageQPData(dyn, cost, *_constraints(seed + 1, N, n))
+    if not cone:
+        return qp, None
+    cost, tc = _with_cone(cost, seed + 2, n)
+    return qp._replace(cost=cost, cone=tc), tc
+
+
 @pytest.mark.parametrize("cone", [False, True])
 def test_kernel_dense_terminal_block_matches_cvxpy(cone) -> None:
     """A dense PSD terminal block QN with the linear term q[N], under hard and soft boxes and soft rows, with and
     without the terminal cone: the kernel's optimum is the independent cvxpy model's (objective and solution)."""
     n, nu, N = 3, 2, 6
-    dyn, cost = _random_stage_qp(3, N, n, nu)
-    boxes, rows = _constraints(4, N, n)
-    qp = StageQPData(dyn, cost, boxes, rows)
-    if cone:
-        cost, tc = _with_cone(cost, 5, n)
-        qp = qp._replace(cost=cost, cone=tc)
+    qp, tc = _boxed_qp(3, cone, n, nu, N)
     qp = qp._replace(cost=StageCost(qp.cost.Qd, qp.cost.q, 4.0 * _terminal_block(6, n)))
     options = ENGINE if cone else TIGHT
     out, y, _ = _kernel(qp, options)
@@ -182,7 +188,7 @@ def test_kernel_dense_terminal_block_matches_cvxpy(cone) -> None:
     # the block matters: without it the optimum moves
     _, y0, _ = _kernel(qp._replace(cost=StageCost(qp.cost.Qd, qp.cost.q)), options)
     assert np.max(np.abs(y0[-1, :n] - y[-1, :n])) > 1e-2
-    if cone:  # the cone binds: τ is the norm, not 0
+    if tc is not None:  # the cone binds: τ is the norm, not 0
         assert y[-1, n] == pytest.approx(np.linalg.norm(tc.w * (y[-1, :n] - tc.center)), abs=1e-7)
         assert y[-1, n] > 1e-2
 
@@ -191,12 +197,7 @@ def test_kernel_dense_terminal_block_matches_cvxpy(cone) -> None:
 def test_kernel_zero_terminal_block_is_no_block(cone) -> None:
     """QN = 0 (n, n) is the kernel without a terminal block (QN empty, the default) to the last bit."""
     n, nu, N = 3, 2, 6
-    dyn, cost = _random_stage_qp(7, N, n, nu)
-    boxes, rows = _constraints(8, N, n)
-    qp = StageQPData(dyn, cost, boxes, rows)
-    if cone:
-        cost, tc = _with_cone(cost, 9, n)
-        qp = qp._replace(cost=cost, cone=tc)
+    qp, _ = _boxed_qp(7, cone, n, nu, N)
     options = ENGINE if cone else TIGHT
     out, y, pi = _kernel(qp, options)
     out0, y0, pi0 = _kernel(qp._replace(cost=StageCost(qp.cost.Qd, qp.cost.q, np.zeros((n, n)))), options)
