@@ -582,6 +582,43 @@ def test_subsampled_and_plan_labels_match_the_expert_from_scratch() -> None:
         assert label == pytest.approx(sc.cost(_expert_from_scratch(sc, problem, t, X[t])), rel=1e-6)
 
 
+def test_robust_blend_reaches_rollouts_measurement_and_callback(monkeypatch: pytest.MonkeyPatch) -> None:
+    """dagger.eval.robust_blend > 0 makes the learner of every rollout and the keep/reject measurement R-TTO-MPC
+    (their terminal targets blended by it), and the training callback's measurement too; 0 keeps TTO-MPC."""
+    import ttompc.mpc.methods as methods
+    from ttompc.evaluation.episodes import closed_loop_metrics
+    from ttompc.evaluation.measurement import Measurement
+    from ttompc.finetune.collect import collect_rollouts
+
+    blends: list[float] = []
+    real = methods.terminal_term
+
+    def spy(settings, blend=0.0, planner=None):  # type: ignore[no-untyped-def]
+        blends.append(blend)
+        return real(settings, blend, planner)
+
+    monkeypatch.setattr(methods, "terminal_term", spy)
+    sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
+    explore = ExplorationConfig(horizons=[5], windows=[0, 0], window_length=[4, 6])
+    labels = LabelConfig(kind="step", per_rollout=2)
+    for blend in (0.0, 0.9):
+        blends.clear()
+        collect_rollouts(sc, planner, 0, [0, 1], 5, explore, labels, robust_blend=blend)
+        assert blends == [blend, blend]
+    m = Measurement(problems=1, robust_blend=0.9, max_steps=2)
+    blends.clear()
+    closed_loop_metrics(planner, m, m.problem_set(sc))
+    assert blends == [0.9]
+    cfg = load_finetune_config(RECIPES / "quadrotor" / "finetune.yaml")
+    assert cfg.dagger.eval.robust_blend == cfg.callbacks.eval_mpc.robust_blend == 0.95
+    cfg = load_finetune_config(RECIPES / "quadrotor" / "finetune.yaml", ["dagger.eval.robust_blend=0"])
+    assert cfg.callbacks.eval_mpc.robust_blend == 0.0
+    with pytest.raises(ConfigError, match=r"names its MPC settings once"):
+        load_finetune_config(RECIPES / "quadrotor" / "finetune.yaml", ["callbacks.eval_mpc.robust_blend=0.5"])
+    with pytest.raises(ValueError, match="robust_blend"):
+        Measurement(robust_blend=1.0)
+
+
 def test_rollouts_feed_the_learners_rtg_mode() -> None:
     """Under rtg_mode=value the learner of a rollout is fed its model's cost-to-go, so its row's rtg is no ledger
     (rtg_(t+1) − rtg_t = c(u_t)); a model without a value output runs the ledger under the same settings."""

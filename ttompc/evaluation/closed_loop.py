@@ -39,7 +39,6 @@ from ttompc.evaluation.warmstart import default_workers
 from ttompc.mpc.loop import run_mpc_batch
 from ttompc.mpc.methods import MODEL_SLOTS, ROBUST_BLEND, MethodInputs, methods_for
 from ttompc.mpc.providers import full_horizon_plan
-from ttompc.mpc.terminal import TerminalDesign
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
@@ -69,7 +68,6 @@ class ClosedLoopConfig(Measurement):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        TerminalDesign(self.robust_blend)  # validates the blend
         if self.rtg_scale is not None:
             check_rtg_scale(self.rtg_scale)
         if self.batch < 1:

@@ -18,7 +18,7 @@ from ttompc.evaluation.problems import EvalProblem
 from ttompc.evaluation.stats import interval
 from ttompc.mpc.episode import Episode
 from ttompc.mpc.loop import run_mpc_batch
-from ttompc.mpc.methods import METHODS, MethodInputs
+from ttompc.mpc.methods import MethodInputs, model_method
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -64,7 +64,8 @@ def closed_loop_metrics(
     *,
     progress: str = "",
 ) -> tuple[dict[str, float], list[Episode]]:
-    """TTO-MPC (``METHODS``) with ``planner`` (conditioned at its own ``rtg_scale``) on fixed ``problems``
+    """TTO-MPC, or R-TTO-MPC when ``measurement.robust_blend`` > 0 (``METHODS``), with ``planner`` (conditioned at
+    its own ``rtg_scale``) on fixed ``problems``
     (``measurement.problem_set``) as the single-horizon, single-plant ``measurement`` says (its settings, horizon,
     plant and max_steps; the perturbed plant seeded per problem), all episodes in lockstep with one batched rollout
     per step: flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count),
@@ -77,7 +78,8 @@ def closed_loop_metrics(
     sc = planner.scenario
     measurement.check_single("closed_loop_metrics")
     [(_, run)] = measurement.runs(sc)
-    provs = METHODS["TTO-MPC"].providers(MethodInputs(run.settings, [None] * len(problems), planner))
+    blend = measurement.robust_blend
+    provs = model_method("TTO", blend > 0).providers(MethodInputs(run.settings, [None] * len(problems), planner, blend))
     steps = min(run.max_steps or sc.n_steps, sc.n_steps)
     with Bar(len(problems), progress, "episode", show=bool(progress)) as bar:
         episodes = run_mpc_batch(sc, [ep.start for ep in problems], provs, run,

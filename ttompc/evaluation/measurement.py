@@ -40,10 +40,16 @@ class Measurement:
     # the perturbed plant's disturbances; None: the scenario's own (Scenario.perturbation)
     plant: PlantNoise = field(default_factory=lambda: PlantNoise(None, None, None))
     max_steps: int | None = None  # MPC steps per episode (None: whole episodes; fewer: smoke runs)
+    # the target blend of the one model method that the callback and DAgger run (rollouts and keep/reject): 0 runs
+    # TTO-MPC (the paper's target), > 0 R-TTO-MPC (the robust target that the zoo's headlines report); ``ttompc
+    # evaluate mpc`` runs both, the robust ones with this blend
+    robust_blend: float = 0.0
 
     def __post_init__(self) -> None:
         if self.problems < 1 or not self.horizons or min(self.horizons) < 1:
             raise ValueError(f"problems and horizons must be positive, got {self.problems}, {self.horizons}")
+        if not 0.0 <= self.robust_blend < 1.0:
+            raise ValueError(f"robust_blend must be in [0, 1), got {self.robust_blend}")
         bad = [p for p in self.plants if p not in PLANTS]
         if bad or not self.plants:
             raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")

@@ -54,7 +54,7 @@ from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig,
 from ttompc.finetune.rows import plan_row, trajectory_row
 from ttompc.mpc.episode import Episode
 from ttompc.mpc.loop import EpisodeStart, MPCController, MPCRun, StepPlan, run_mpc_batch
-from ttompc.mpc.methods import METHODS, MethodInputs
+from ttompc.mpc.methods import MethodInputs, model_method
 from ttompc.mpc.plant import PLANT_STREAM, Plant, PlantNoise
 from ttompc.mpc.providers import Provider, ShiftProvider
 from ttompc.mpc.settings import MPCSettings
@@ -187,10 +187,20 @@ def collect_rollout(
     *,
     settings: MPCSettings | None = None,
     perturbed: float = 0.0,
+    robust_blend: float = 0.0,
 ) -> list[dict[str, Any]]:
     """One DAgger rollout -> its schema rows: ``collect_rollouts`` for one index."""
     return collect_rollouts(
-        scenario, planner, iteration, [index], root_seed, exploration, labels, settings=settings, perturbed=perturbed
+        scenario,
+        planner,
+        iteration,
+        [index],
+        root_seed,
+        exploration,
+        labels,
+        settings=settings,
+        perturbed=perturbed,
+        robust_blend=robust_blend,
     )[0]
 
 
@@ -215,10 +225,12 @@ def collect_rollouts(
     *,
     settings: MPCSettings | None = None,
     perturbed: float = 0.0,
+    robust_blend: float = 0.0,
 ) -> list[list[dict[str, Any]]]:
     """The DAgger rollouts ``indices`` of ``iteration``, run in lockstep -> each one's schema rows (see the module
     docstring for the labels): one row with ``kind="step"`` labels, one row per labelled step with ``kind="plan"``.
-    The learners are TTO-MPC (``METHODS``) at each rollout's H, the episodes of ``run_mpc_batch``, and share one
+    The learners are TTO-MPC (``METHODS``; R-TTO-MPC with the target blend ``robust_blend`` > 0) at each rollout's H,
+    the episodes of ``run_mpc_batch``, and share one
     batched transformer context (``RolloutGroup``: one batched rollout per step), so a rollout's learner plans equal
     its lone run's up to the rounding of the batch; the expert acts beside them (``_Expert``). Both controllers run
     under ``settings`` (default: the paper's), which ``check_rollout_settings`` refuses where the rollouts cannot
@@ -233,7 +245,8 @@ def collect_rollouts(
     check_rollout_settings(s)
     if not indices:
         return []
-    learners = _tto(METHODS["TTO-MPC"].providers(MethodInputs(s, [None] * len(indices), planner)))
+    method = model_method("TTO", robust_blend > 0)
+    learners = _tto(method.providers(MethodInputs(s, [None] * len(indices), planner, robust_blend)))
     rollouts, starts = [], []
     for index in indices:
         seed = rollout_seed(root_seed, iteration, index)
@@ -349,6 +362,7 @@ def _collect_chunk(task: tuple[int, list[int]]) -> list[list[dict[str, Any]]]:
         cfg.labels,
         settings=cfg.eval.settings,
         perturbed=cfg.collect.perturbed,
+        robust_blend=cfg.eval.robust_blend,
     )
 
 

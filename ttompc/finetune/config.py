@@ -32,7 +32,8 @@ from ttompc.mpc.terminal import TERMINALS
 from ttompc.training.config import CallbacksConfig, LoggerConfig, OptimConfig, TrainerConfig
 
 DAGGER_OWNED = ("max_steps", "max_epochs", "keep_checkpoints", "resume", "export_planner")  # trainer keys DAgger sets
-MEASURED_ONCE = ("callbacks.eval_mpc.protocol", "callbacks.eval_mpc.mpc")  # keys dagger.eval sets for the callback
+# keys dagger.eval sets for the callback
+MEASURED_ONCE = ("callbacks.eval_mpc.protocol", "callbacks.eval_mpc.robust_blend", "callbacks.eval_mpc.mpc")
 
 
 @dataclass
@@ -172,7 +173,9 @@ class FinetuneConfig:
                 f"fine-tuning recipe, got {list(self.data.dagger_dirs)}"
             )
         m = self.dagger.eval
-        self.callbacks.eval_mpc = replace(self.callbacks.eval_mpc, protocol=m.protocol, mpc=dict(m.mpc))
+        self.callbacks.eval_mpc = replace(
+            self.callbacks.eval_mpc, protocol=m.protocol, mpc=dict(m.mpc), robust_blend=m.robust_blend
+        )
 
 
 def load_finetune_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> FinetuneConfig:
@@ -190,7 +193,7 @@ def load_finetune_config(path: str | Path | None = None, overrides: Sequence[str
         raise ConfigError(
             f"{', '.join(owned)}: set by DAgger itself", "size iterations with dagger.steps_per_iteration instead"
         )
-    shared = sorted(k for k in given if k in MEASURED_ONCE or k.startswith(f"{MEASURED_ONCE[1]}."))
+    shared = sorted(k for k in given if k in MEASURED_ONCE or k.startswith(f"{MEASURED_ONCE[-1]}."))
     if shared:
         raise ConfigError(
             f"{', '.join(shared)}: a fine-tuning names its MPC settings once, in dagger.eval",

@@ -131,7 +131,7 @@ def protocol_record(cfg: FinetuneConfig, scenario: Scenario) -> dict[str, Any]:
 
     m = cfg.dagger.eval
     return {"name": m.protocol, "overrides": dict(m.mpc), "settings": asdict(m.settings),
-            "solver": solver_path(m.settings.backend, scenario)}  # fmt: skip
+            "solver": solver_path(m.settings.backend, scenario), "robust_blend": m.robust_blend}  # fmt: skip
 
 
 def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) -> dict[str, float]:
