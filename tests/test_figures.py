@@ -19,6 +19,7 @@ from ttompc.evaluation import figures
 from ttompc.evaluation.closed_loop import ClosedLoopConfig
 from ttompc.evaluation.closed_loop_report import summarize
 from ttompc.evaluation.metrics import improvement_by_threshold, write_json
+from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.warmstart import WarmStartConfig, method_summary
 
 METHODS = ("REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC", "FT-TTO-MPC[rtg=value]")
@@ -43,8 +44,8 @@ def mpc_report() -> dict[str, Any]:
                     "mean_iterations_solved": 1.0,
                 })  # fmt: skip
     config = asdict(ClosedLoopConfig(model="tto-x", ft_model="ft-y", horizons=[10, 20], problems=3, seed=7, workers=1))
-    return {"config": config, "scenario": {"name": "freeflyer"}, "protocol": {"name": "paper"},
-            "summary": summarize(runs), "runs": runs}  # fmt: skip
+    return {"config": config, "command": report_command("mpc", config), "scenario": {"name": "freeflyer"},
+            "protocol": {"name": "paper"}, "summary": summarize(runs), "runs": runs}  # fmt: skip
 
 
 def warmstart_report() -> dict[str, Any]:
@@ -56,8 +57,10 @@ def warmstart_report() -> dict[str, Any]:
             row |= {f"{m}_success": True, f"{m}_cost": 1.0 + gap + 0.1 * k, f"{m}_iterations": iterations + k,
                     f"{m}_suboptimality": gap + 0.1 * k, f"{m}_time": 0.1}  # fmt: skip
         problems.append(row)
+    config = asdict(WarmStartConfig(model="tto-x", ft_model="ft-y", problems=4, seed=7, workers=1))
     return {
-        "config": asdict(WarmStartConfig(model="tto-x", ft_model="ft-y", problems=4, seed=7, workers=1)),
+        "config": config,
+        "command": report_command("warmstart", config),
         "scenario": {"name": "freeflyer"},
         "methods": method_summary(problems, ["REL", "TTO", "FT-TTO", "ORACLE"]),
         "thresholds": improvement_by_threshold(problems, ["TTO", "FT-TTO", "ORACLE"], "REL", [0.0, 0.5, 0.9]),
@@ -108,7 +111,7 @@ def test_the_footer_command_reproduces_the_reports_settings(kind: str) -> None:
     if kind == "mpc":
         config["mpc"] = {"end_horizon": 20}
         config["plant"] = {**config["plant"], "process_std": 0.005}  # a nested setting, as a dotted key
-    line = figures.report_command(kind, config)
+    line = report_command(kind, config)
     assert line.startswith(f"ttompc evaluate {kind} --model tto-x --ft-model ft-y problems=")
     assert "workers" not in line and "out=" not in line and "seed=7" in line
     argv = shlex.split(line)[1:]
@@ -132,7 +135,7 @@ def test_the_figures_plot_the_reports_numbers(tmp_path: Path, monkeypatch: pytes
     figures.cost_figure(report, tmp_path / "cost.png")
     figures.step_time_figure(report, tmp_path / "step.png")
     (left, right), text = drawn["cost.png"]
-    assert text == f"From `{figures.report_command('mpc', report['config'])}`."
+    assert text == f"From `{report_command('mpc', report['config'])}`."
 
     def line(ax: Any, label: str) -> np.ndarray:  # the y data of the error bars labelled ``label``
         (found,) = [c.lines[0] for c in ax.containers if c.get_label() == label]
@@ -169,3 +172,39 @@ def test_make_figures_writes_four_images(tmp_path: Path, capsys: pytest.CaptureF
 def test_a_missing_report_is_one_line_naming_the_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = figures.main(["--mpc", str(tmp_path / "none.json"), "--warmstart", str(tmp_path / "none.json")])
     assert rc == 2 and "no report at" in capsys.readouterr().err
+
+
+def test_a_report_without_its_command_is_refused_naming_the_fix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A report written before reports recorded their ``command`` (the footer's) is one line: the file, and the
+    command to re-run."""
+    old = {k: v for k, v in mpc_report().items() if k != "command"}
+    write_json(tmp_path / "mpc.json", old)
+    write_json(tmp_path / "warmstart.json", warmstart_report())
+    rc = figures.main(["--mpc", str(tmp_path / "mpc.json"), "--warmstart", str(tmp_path / "warmstart.json")])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert f"{tmp_path / 'mpc.json'} records no command" in err
+    assert "re-run `ttompc evaluate mpc ...` to write a report with its command" in err
+
+
+@pytest.mark.parametrize("kind", ["mpc", "warmstart"])
+def test_the_written_report_records_the_command_of_its_config(kind: str, tmp_path: Path) -> None:
+    """``ttompc evaluate``'s reports carry their ``command``: ``report_command`` of the config they record."""
+    import time
+
+    from ttompc.evaluation.closed_loop_report import write_report
+    from ttompc.evaluation.warmstart import run_warmstart
+    from ttompc.scenarios import get_scenario
+
+    if kind == "mpc":
+        cfg = ClosedLoopConfig(model="tto-x", ft_model="ft-y", scenario="freeflyer", horizons=[10, 20], problems=3)
+        write_report(cfg, get_scenario("freeflyer"), mpc_report()["runs"], tmp_path, 1, time.perf_counter())
+    else:
+        bundle = mpc_fakes.tiny_planner().save(tmp_path / "bundle")
+        run_warmstart(WarmStartConfig(model=str(bundle), scenario=mpc_fakes.FreeFlyerShort.name, problems=1,
+                                      workers=1, oracle_detours=0, out=str(tmp_path)))  # fmt: skip
+    report = figures.load_report(tmp_path / f"{kind}.json", kind)
+    assert report["command"] == report_command(kind, report["config"])
+    assert report["command"].startswith(f"ttompc evaluate {kind} --model ")

@@ -62,7 +62,8 @@ def test_cards_print_reproduce_commands_that_name_only_zoo_models() -> None:
 
 def test_cards_print_the_command_the_reports_settings_give() -> None:
     """Each card command is the one reproduce command (``ttompc.evaluation.reproduce.report_command``) of the
-    settings it sets, as the report records them (the scenario resolved from the model, inert settings set)."""
+    settings it sets, as the report records them (the scenario resolved from the model, inert settings set): the
+    ``command`` that ``ttompc evaluate`` writes into its report and ``ttompc zoo metrics`` copies onto the card."""
     from ttompc.cli import build_parser
     from ttompc.commands.evaluate import _FLAGS
     from ttompc.config import command_config, to_container

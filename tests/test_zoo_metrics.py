@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
+from ttompc.errors import UserError
 from ttompc.zoo.evaluations import headline_metrics, validate_evaluations
-from ttompc.zoo.report_metrics import card_metrics, command_line
+from ttompc.zoo.report_metrics import card_metrics
 from ttompc.zoo.rounding import format_with_se, round_to_se, shown
 
 
@@ -23,6 +24,7 @@ def _iv(mean: float, se: float = 0.01) -> dict[str, float]:
 
 WS = {
     "config": {"model": "m-tto", "ft_model": "m-ft", "problems": 10, "seed": 4242, "nonconvex_only": True},
+    "command": "ttompc evaluate warmstart --model m-tto --ft-model m-ft problems=10 seed=4242 nonconvex_only=True",
     "methods": [
         {"method": "REL", "runs": 10, "failures": 0, "suboptimality": _iv(0.40), "iterations": _iv(5.8)},
         {"method": "TTO", "runs": 10, "failures": 1, "suboptimality": _iv(0.35), "iterations": _iv(5.0),
@@ -50,6 +52,8 @@ MPC = {
         "protocol": "zoo",
         "mpc": {"track": 2.5},
     },
+    "command": "ttompc evaluate mpc --model m-tto problems=4 seed=4242 horizons=[10] plants=[nominal,perturbed] "
+    "protocol=zoo mpc.track=2.5",
     "summary": [
         _row("nominal", "REL-MPC", 4, 0.9, paper_norm=_iv(0.7)),
         _row("nominal", "TTO-MPC", 2, 0.5),
@@ -88,16 +92,9 @@ def test_metrics_are_the_reports_numbers_with_their_command() -> None:
     assert m["mpc10_nominal_robust_feasible_rate"] == 0
     assert "DIST" not in json.dumps(list(m))  # only the model, its robust variant, REL, oracle and plan-once
     assert all(math.isfinite(v) for v in m.values())
-    assert (
-        ws["command"]
-        == "ttompc evaluate warmstart --model m-tto --ft-model m-ft problems=10 seed=4242 nonconvex_only=True"
-    )
+    assert ws["command"] == WS["command"]  # the command the report records (``ttompc evaluate`` writes it)
     assert ws["what"] == "10 held-out non-convex problems, full-horizon SCP from the TTO, REL and oracle warm starts"
-    # the preset and its override; rtg_scale=None is the model's own, not on the command line
-    assert mpc["command"] == (
-        "ttompc evaluate mpc --model m-tto problems=4 seed=4242 horizons=[10] plants=[nominal,perturbed] protocol=zoo "
-        "mpc.track=2.5"
-    )
+    assert mpc["command"] == MPC["command"]
     assert mpc["what"] == "4 held-out non-convex problems, closed-loop MPC on the nominal and perturbed plants"
 
 
@@ -107,6 +104,8 @@ def test_metrics_read_rtg_labelled_rows_and_the_headline() -> None:
     model-index headline is the better variant at H = 10 beside REL-MPC at both horizons."""
     report = {
         "config": {**MPC["config"], "ft_model": "m-ft", "horizons": [10, 30], "protocol": "recommended", "mpc": {}},
+        "command": "ttompc evaluate mpc --model m-tto --ft-model m-ft problems=4 seed=4242 horizons=[10,30] "
+        "plants=[nominal,perturbed] protocol=recommended",
         "summary": [_row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.3), _row("nominal", "REL-MPC", 4, 0.9),
                     _row("nominal", "R-FT-TTO-MPC[rtg=value]", 2, 0.1), _row("nominal", "REL-MPC", 4, 0.2, horizon=30),
                     _row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.25, horizon=30)],
@@ -126,7 +125,7 @@ def test_metrics_read_rtg_labelled_rows_and_the_headline() -> None:
     assert m["mpc10_nominal_robust_vs_rel30_step_ratio"] == pytest.approx(3.5)
     assert m["mpc30_nominal_rel_rel_increment"] == pytest.approx(0.2)  # the baseline of the headline
     assert "mpc10_nominal_rel_vs_rel30" not in m and "mpc30_nominal_model_feasible_rate" not in m
-    assert "horizons=[10,30] plants=[nominal,perturbed] protocol=recommended" in evaluation["command"]
+    assert evaluation["command"] == report["command"]
     task, keys = headline_metrics(m, "FT-TTO") or ({}, [])
     assert task["type"] == "model-predictive-control" and dict(keys) == {
         "mpc10_nominal_model_feasible_rate": "FT-TTO-MPC@10: goals reached, nominal plant",  # 4/4 goals beat 2/4
@@ -153,9 +152,24 @@ def test_ft_metrics_pick_the_ft_rows() -> None:
 def test_missing_method_is_named() -> None:
     with pytest.raises(KeyError, match="FT-TTO-MPC"):
         card_metrics("FT-TTO", mpc=MPC)
-    assert (
-        command_line("mpc", {"problems": 2, "horizons": [10, 30]}) == "ttompc evaluate mpc problems=2 horizons=[10,30]"
-    )
+
+
+def test_a_report_without_its_command_is_one_line_naming_the_fix(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A report written before ``ttompc evaluate`` recorded its ``command`` is refused (the card would print no
+    command to reproduce it): a ``UserError``, on the command line one line and exit code 2."""
+    from ttompc.cli import main
+
+    old = {k: v for k, v in MPC.items() if k != "command"}
+    with pytest.raises(UserError, match=r"closed-loop report \(mpc.json\) records no command"):
+        card_metrics("TTO", mpc=old)
+    (tmp_path / "mpc.json").write_text(json.dumps(old))
+    monkeypatch.delenv("TTOMPC_DEBUG", raising=False)
+    assert main(["zoo", "metrics", "--method", "TTO", "--mpc", str(tmp_path / "mpc.json")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("ttompc zoo: error: the closed-loop report (mpc.json) records no command")
+    assert line.endswith("; re-run `ttompc evaluate mpc ...` to write a report with its command")
 
 
 def test_cli_writes_publishable_metrics(tmp_path) -> None:

@@ -8,7 +8,8 @@ REL-MPC on the problems both ran feasibly (fair where the feasible sets differ),
 REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between steps), step times and SCP
 iterations per solved step (``summarize``, ``format_table``); with more than one horizon, every method at the
 shortest against REL-MPC at the longest (``headline``). The report names its protocol (``protocol_label``) and
-records the resolved settings; the settings that depart from the paper preset (``ttompc.mpc.settings.departures``)
+records the resolved settings and the command line that reproduces it (``command``,
+``ttompc.evaluation.reproduce``); the settings that depart from the paper preset (``ttompc.mpc.settings.departures``)
 are listed under the table (``write_report``). Every paired difference is ``stats.paired``'s.
 """
 
@@ -24,6 +25,7 @@ import numpy as np
 from ttompc.evaluation.episodes import summarize_episodes
 from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
+from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import Outcome, format_interval, paired
 from ttompc.mpc.methods import BASELINE, CEILING, REFERENCE
 from ttompc.mpc.settings import departures
@@ -165,7 +167,8 @@ def write_report(
 ) -> dict[str, Any]:
     """The report of the episode ``records`` of the measurement ``cfg`` (a ``ClosedLoopConfig``) on ``sc``: writes
     ``mpc.json``, ``mpc.md`` (the table), ``mpc_runs.csv`` and plots into ``out`` and returns the report; ``workers``
-    is recorded in its config and ``started`` (``time.perf_counter()`` at the start) gives its wall time."""
+    is recorded in its config, the config's ``report_command`` as its ``command``, and ``started``
+    (``time.perf_counter()`` at the start) gives its wall time."""
     from ttompc.evaluation.plots import plot_horizon
 
     summary = summarize(records, cfg.seed)
@@ -176,8 +179,10 @@ def write_report(
     if notes:
         table += "\nDepartures from the paper: " + "; ".join(notes) + "."
     table += format_headline(head)
+    config = {**asdict(cfg), "out": str(out), "workers": workers}
     report = {
-        "config": {**asdict(cfg), "out": str(out), "workers": workers},
+        "config": config,
+        "command": report_command("mpc", config),  # the line that reproduces the report (``reproduce``)
         "protocol": {"name": protocol_label(cfg), "settings": asdict(settings)},
         "solver": solver_path(settings.backend, sc),
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},

@@ -1,6 +1,6 @@
 """The README's figures (``make figures``): a planned trajectory and the paper's Fig. 4–6 as we measure them, each
 drawn from a report that a stated ``ttompc evaluate`` command writes, and each carrying that command in its footer
-(``ttompc.evaluation.reproduce.report_command``, rebuilt from the settings the report records).
+(the report's ``command``: ``ttompc.evaluation.reproduce.report_command`` of the settings it records).
 
 * ``planned_trajectory.png``: held-out non-convex problems (``--problems`` of the evaluation stream of ``--seed``),
   computed here with the evaluation protocol's per-problem step (``warmstart.evaluate_problem``): keep-out zones,
@@ -38,7 +38,6 @@ import numpy as np
 
 from ttompc.errors import UserError
 from ttompc.evaluation.plots import Panel, horizon_axis, horizon_cost_panel, line_style, trajectory_figure
-from ttompc.evaluation.reproduce import report_command
 
 PAPER_METHODS = ("REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC")
 WARMSTART_METHODS = ("TTO", "FT-TTO", "ORACLE")
@@ -53,7 +52,7 @@ PROBLEMS = (0, 7)
 def load_report(path: str | Path, kind: str) -> dict[str, Any]:
     """The report at ``path``: ``kind`` "mpc" (``mpc.json``, with ``summary`` and ``runs``) or "warmstart"
     (``warmstart.json``, with ``methods`` and ``thresholds``), the nulls of those sections read as nan; raises
-    ``UserError`` for a missing file or another kind of report."""
+    ``UserError`` for a missing file, another kind of report or a report without its ``command`` (the footer's)."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"no report at {path}", f"run `ttompc evaluate {kind} ...` first (see `make figures`)")
@@ -61,6 +60,12 @@ def load_report(path: str | Path, kind: str) -> dict[str, Any]:
     need = ("summary", "runs") if kind == "mpc" else ("methods", "thresholds")
     if any(key not in report for key in need):
         raise UserError(f"{path} is not a `ttompc evaluate {kind}` report (it lacks {' and '.join(need)})")
+    if not report.get("command"):
+        raise UserError(
+            f"{path} records no command (it was written by an older ttompc)",
+            f"re-run `ttompc evaluate {kind} ...` to write a report with its command (`make figures` runs it when "
+            "the report is missing)",
+        )
     return {**report, **{key: _nan(report[key]) for key in need}}
 
 
@@ -183,7 +188,7 @@ def warmstart_figure(report: dict[str, Any], path: Path) -> Path:
     )
     axes[1].set_xticks(x, [f"≥ {c:.1f}\n({n})" for c, n in zip(bars["thresholds"], bars["counts"], strict=True)])
     axes[1].set_xlabel("non-convexity factor (problems)")
-    return _save_with_footer(fig, path, f"From `{report_command('warmstart', config)}`.")
+    return _save_with_footer(fig, path, f"From `{report['command']}`.")
 
 
 def cost_figure(report: dict[str, Any], path: Path, plant: str = "nominal") -> Path:
@@ -222,7 +227,7 @@ def cost_figure(report: dict[str, Any], path: Path, plant: str = "nominal") -> P
         f"Closed-loop cost vs planning horizon, {report['scenario']['name']} (protocol {report['protocol']['name']})",
         fontsize=10,
     )
-    return _save_with_footer(fig, path, f"From `{report_command('mpc', config)}`.")
+    return _save_with_footer(fig, path, f"From `{report['command']}`.")
 
 
 def step_time_figure(report: dict[str, Any], path: Path, plant: str = "nominal") -> Path:
@@ -256,7 +261,7 @@ def step_time_figure(report: dict[str, Any], path: Path, plant: str = "nominal")
         f"CPU, workers={config.get('workers', '?')}",
         fontsize=10,
     )
-    return _save_with_footer(fig, path, f"From `{report_command('mpc', config)}`.")
+    return _save_with_footer(fig, path, f"From `{report['command']}`.")
 
 
 def planned_trajectory(model: str, seed: int, indices: Sequence[int], path: Path) -> Path:

@@ -33,6 +33,7 @@ from ttompc.evaluation.metrics import (
     write_json,
 )
 from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import format_interval, interval
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
@@ -229,7 +230,8 @@ def format_table(summary: list[dict[str, Any]]) -> str:
 
 def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     """Run the evaluation; writes ``warmstart.json``, ``warmstart.md`` (the table), ``warmstart_problems.csv``,
-    ``warmstart_thresholds.csv``, ``warmstart_bins.csv`` and ``warmstart_improvement.png`` into ``cfg.out``."""
+    ``warmstart_thresholds.csv``, ``warmstart_bins.csv`` and ``warmstart_improvement.png`` into ``cfg.out``; the
+    report records its config and the command line that reproduces it (``command``, ``reproduce.report_command``)."""
     from ttompc.evaluation.plots import plot_warmstart
 
     if cfg.scenario is None:
@@ -253,8 +255,10 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     bins = aggregate(rows, ("bin",), fields)
     thresholds = improvement_by_threshold(rows, [*models, ORACLE], BASELINE, cfg.thresholds)
     table = format_table(summary)
+    config = {**asdict(cfg), "out": str(out), "workers": workers}
     report = {
-        "config": {**asdict(cfg), "out": str(out), "workers": workers},
+        "config": config,
+        "command": report_command("warmstart", config),  # the line that reproduces the report (``reproduce``)
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
         "solver": solver_path(cfg.backend, sc),
         "wall_time_s": time.perf_counter() - t0,

@@ -1,5 +1,6 @@
 """Model-card evaluations taken from ``ttompc evaluate`` reports, so every number on a card is a report's number and
-its evaluation's ``command`` is the command line that produced it (re-run it to check the card).
+its evaluation's ``command`` is the command line that produced it, as the report records it (re-run it to check the
+card).
 
 ``card_metrics("TTO", warmstart=..., mpc=...)`` reads the open-loop report (``warmstart.json``) and the closed-loop
 report (``mpc.json``) of the evaluation protocol (docs/evaluation.md) and returns the card's evaluations
@@ -12,30 +13,23 @@ from __future__ import annotations
 
 from typing import Any
 
+from ttompc.errors import UserError
 from ttompc.zoo.evaluations import is_metric_value
 
-# config keys that are part of the protocol's command line (others are defaults or output locations)
-_WS_KEYS = ("problems", "seed", "nonconvex_only", "rtg_scale", "oracle_detours")
-_MPC_KEYS = (
-    "problems", "seed", "horizons", "plants", "robust_blend", "rtg_scale", "protocol",
-)  # fmt: skip
+_REPORTS = {"warmstart": "warm-start", "mpc": "closed-loop"}  # a report's kind -> its name in messages
 
 
-def command_line(kind: str, config: dict[str, Any]) -> str:
-    """The ``ttompc evaluate KIND`` command that reproduces a report with ``config`` (its ``config`` section)."""
-    parts = ["ttompc evaluate", kind]
-    for flag, key in (("--model", "model"), ("--ft-model", "ft_model")):
-        if config.get(key):
-            parts.append(f"{flag} {config[key]}")
-    for key in _WS_KEYS if kind == "warmstart" else _MPC_KEYS:
-        if config.get(key) is not None:  # None: the model's own default (e.g. rtg_scale), nothing to pass
-            value = config[key]
-            if isinstance(value, list):
-                value = "[" + ",".join(str(v) for v in value) + "]"
-            parts.append(f"{key}={value}")
-    if kind == "mpc":  # the protocol's overridden settings
-        parts += [f"mpc.{key}={value}" for key, value in (config.get("mpc") or {}).items()]
-    return " ".join(parts)
+def recorded_command(report: dict[str, Any], kind: str) -> str:
+    """The ``command`` a ``ttompc evaluate KIND`` report records (the line that reproduces it); raises
+    ``UserError`` (one line, what to do) for a report without one (written by a ttompc before reports recorded
+    it)."""
+    command = report.get("command")
+    if not isinstance(command, str) or not command:
+        raise UserError(
+            f"the {_REPORTS[kind]} report ({kind}.json) records no command (it was written by an older ttompc)",
+            f"re-run `ttompc evaluate {kind} ...` to write a report with its command",
+        )
+    return command
 
 
 def _put(out: dict[str, float], name: str, value: Any) -> None:
@@ -130,12 +124,13 @@ def card_metrics(
     method: str, *, warmstart: dict[str, Any] | None = None, mpc: dict[str, Any] | None = None, horizon: int = 10
 ) -> dict[str, dict[str, Any]]:
     """The card's evaluations of ``method`` from the given reports (either may be missing): ``warmstart`` and
-    ``mpc``, each ``{command, what, metrics}`` with the command that reproduces the report."""
+    ``mpc``, each ``{command, what, metrics}`` with the command that reproduces the report (``recorded_command``:
+    a report without one is a ``UserError``)."""
     out: dict[str, dict[str, Any]] = {}
     if warmstart is not None:
         config = warmstart["config"]
         out["warmstart"] = {
-            "command": command_line("warmstart", config),
+            "command": recorded_command(warmstart, "warmstart"),
             "what": f"{config.get('problems')} held-out non-convex problems, full-horizon SCP from the {method}, REL "
             "and oracle warm starts",
             "metrics": warmstart_metrics(warmstart, method),
@@ -144,7 +139,7 @@ def card_metrics(
         config = mpc["config"]
         plants = config.get("plants") or ["nominal"]
         out["mpc"] = {
-            "command": command_line("mpc", config),
+            "command": recorded_command(mpc, "mpc"),
             "what": f"{config.get('problems')} held-out non-convex problems, closed-loop MPC on the "
             f"{' and '.join(plants)} plant{'s' if len(plants) > 1 else ''}",
             "metrics": mpc_metrics(mpc, method, horizon),
