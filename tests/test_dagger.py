@@ -92,12 +92,15 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
     seen: list[tuple[int, MPCSettings]] = []
     real = collect.MPCController
 
-    def spy(scenario, problem, provider, horizon, settings):  # type: ignore[no-untyped-def]
-        seen.append((horizon, settings))
-        return real(scenario, problem, provider, horizon, settings)
+    def spy(cls):  # type: ignore[no-untyped-def]
+        def make(scenario, problem, provider, horizon, settings):  # type: ignore[no-untyped-def]
+            seen.append((horizon, settings))
+            return cls(scenario, problem, provider, horizon, settings)
 
-    monkeypatch.setattr(collect, "MPCController", spy)  # the expert's
-    monkeypatch.setattr(loop_module, "MPCController", spy)  # the learner's, an episode of run_mpc_batch
+        return make
+
+    monkeypatch.setattr(collect, "_ExpertController", spy(collect._ExpertController))  # the expert's
+    monkeypatch.setattr(loop_module, "MPCController", spy(real))  # the learner's, an episode of run_mpc_batch
     overrides = ["dagger.eval.mpc.end_horizon=30", "dagger.eval.mpc.track=2.5"]
     settings = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", overrides).dagger.eval.settings
     explore = ExplorationConfig(horizons=[5], windows=[0, 0])
@@ -706,6 +709,114 @@ def test_datamodule_masks_unlabelled_steps(tmp_path: Path, dataset: Path) -> Non
         t = int(np.argmax(m))
         assert not m[:t].any() and m[t:].all()
     assert torch_finite(batch["target_actions"]) and torch_finite(batch["target_next_states"])
+
+
+def test_plan_rows_carry_the_costates_of_the_expert_solve(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A plan row from step t carries the costates of the expert's solve from x_t (``_Expert.plan_costates``), in the
+    model representation (``model_costates``) at steps t+1..N and NaN up to t: a solved plan's are its solve's, a
+    reused plan's (plan reuse in an expert window) those of the solve that produced it, shifted; they are ∂J*/∂x of
+    the plan's cost-to-go (central differences of re-solves; the quadrotor's cost is quadratic). NaN throughout where
+    the plan misses the goal (λ would be the gradient of the priced miss) and where the backend gives no multipliers."""
+    from ttompc.data.schema import model_costates, problem_from_row
+    from ttompc.finetune import collect
+    from ttompc.mpc.loop import MPCController
+    from ttompc.mpc.providers import ShiftProvider
+    from ttompc.scenarios.base import Window
+
+    sc, planner = get_scenario("quadrotor"), mpc_fakes.tiny_planner("quadrotor")
+    solved, reused = {}, set()
+    real_solve, real_plan = collect._ExpertController.solve, collect._ExpertController.plan
+
+    def solve(self, window, *args, **kw):  # type: ignore[no-untyped-def]
+        res = solved[window.start] = real_solve(self, window, *args, **kw)
+        return res
+
+    def plan(self, t, x):  # type: ignore[no-untyped-def]
+        e = real_plan(self, t, x)
+        if e.reused:
+            reused.add(t)
+        return e
+
+    monkeypatch.setattr(collect._ExpertController, "solve", solve)
+    monkeypatch.setattr(collect._ExpertController, "plan", plan)
+    explore = ExplorationConfig(horizons=[5], windows=[1, 1], window_length=[3, 4], end_window=False)
+    rows = collect.collect_rollout(sc, planner, 0, 2, 5, explore, LabelConfig(kind="plan", per_rollout=2))
+    p = problem_from_row(sc, rows[0])
+    N, by_start, kinds = p.n_steps, {}, {}
+    for row in rows:
+        t = int(row["status"].rsplit("plan_from=", 1)[1])
+        lam = by_start[t] = np.asarray(row["costates"])
+        assert lam.shape == (N + 1, sc.state_dim) and np.isnan(lam[: t + 1]).all()
+        if np.max(np.abs(np.asarray(row["states_opt"])[-1] - p.goal)) > sc.scp.feas_tol:
+            assert np.isnan(lam).all()
+            kinds[t] = "miss"
+            continue
+        assert np.isfinite(lam[t + 1 :]).all()
+        if t in reused:
+            np.testing.assert_array_equal(lam[t + 1 :], by_start[t - 1][t + 1 :])
+            kinds[t] = "reused"
+        else:
+            ref = np.full((N + 1, sc.state_dim), np.nan)
+            ref[t:] = solved[t].costates / sc.mpc.fuel
+            np.testing.assert_allclose(lam, model_costates(sc, p, ref), rtol=1e-12, atol=0)
+            kinds[t] = "solved"
+    assert set(kinds.values()) == {"solved", "reused", "miss"}
+    t = min(s for s, kind in kinds.items() if kind == "solved")
+    row = next(r for r in rows if r["status"].endswith(f"plan_from={t}"))
+    k, X, U = t + 1, np.asarray(row["states_opt"], np.float64), np.asarray(row["actions"], np.float64)
+    expert = MPCController(sc, p, ShiftProvider(), N)
+
+    def cost_to_go(x: np.ndarray) -> float:
+        X0 = X[k:].copy()
+        X0[0] = x
+        res = expert.solve(Window(k, N - k, N), X0, U[k:], None)
+        return sc.cost(res.U)
+
+    units = sc.state_units()
+    fd = np.array([(cost_to_go(X[k] + 1e-4 * u * e) - cost_to_go(X[k] - 1e-4 * u * e)) / (2e-4 * u)
+                   for e, u in zip(np.eye(sc.state_dim), units, strict=True)])  # fmt: skip
+    np.testing.assert_allclose(row["costates"][k], fd, rtol=0.02, atol=1e-3 * np.abs(fd).max())
+    monkeypatch.undo()
+    conic = collect.collect_rollout(sc, planner, 0, 2, 5, explore, LabelConfig(kind="plan", per_rollout=2),
+                                    settings=MPCSettings(backend="conic"))  # fmt: skip
+    assert len(conic) >= 2 and all(np.isnan(np.asarray(r["costates"])).all() for r in conic)
+
+
+def test_dagger_shards_with_and_without_costates_load(tmp_path: Path, dataset: Path) -> None:
+    """Plan rows written with their costates and shards written before the column (read as NaN) load through the
+    DataModule together; ``grad_mask`` is 1 exactly at the steps whose costates are finite (none in the old shards)
+    and ``value_grad`` is finite, 0 elsewhere."""
+    import pyarrow.parquet as pq
+
+    from ttompc.data.datamodule import TrajectoryDataModule
+    from ttompc.finetune.collect import collect_rollouts
+
+    sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
+    explore = ExplorationConfig(horizons=[5], windows=[0, 0])
+    new, old = collect_rollouts(sc, planner, 0, [0, 1], 2, explore, LabelConfig(kind="plan", per_rollout=3))
+    dirs = [tmp_path / "iter-000", tmp_path / "iter-001"]
+    for d, rows in zip(dirs, (new, old), strict=True):
+        rollout_folder(d, sc, 1, 1).write(0, {"train": rows, "val": rows})
+    for f in dirs[1].glob("*/*.parquet"):
+        pq.write_table(pq.read_table(f).drop_columns(["costates"]), f)  # as written before the column
+    N = sc.n_steps
+    expected = {(r["problem_id"], int(r["status"].rsplit("plan_from=", 1)[1])): np.isfinite(r["costates"][:N]).all(1)
+                for r in new}  # fmt: skip
+    expected |= {(r["problem_id"], int(r["status"].rsplit("plan_from=", 1)[1])): np.zeros(N, bool) for r in old}
+    assert any(m.any() for m in expected.values()) and any(np.isfinite(r["costates"]).any() for r in old)
+    data = DataConfig(paths=[str(dataset)], dagger_dirs=[str(d) for d in dirs], batch_size=3, shuffle_pool=3,
+                      context_length=N, open_loop_fraction=0.0)  # fmt: skip
+    dm = TrajectoryDataModule(data)
+    dm.setup("fit")
+    seen = set()
+    for batch in dm.dagger_val_dataloader():
+        for pid, mask, grad_mask, grad in zip(*(batch[k].numpy() for k in ("problem_id", "mask", "grad_mask",
+                                                                             "value_grad")), strict=True):  # fmt: skip
+            key = (int(pid), int(np.argmax(mask)))
+            seen.add(key)
+            np.testing.assert_array_equal(grad_mask.astype(bool), expected[key])
+            assert np.isfinite(grad).all() and not grad[~expected[key]].any()
+    assert seen == set(expected)
 
 
 def torch_finite(x: object) -> bool:

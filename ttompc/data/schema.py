@@ -9,7 +9,8 @@ fixed shapes, N = ``scenario.n_steps`` controls and N+1 states x_0..x_N:
     target_actions (N, m), target_next_states (N, n)   open loop: actions and states[1:]; DAgger: expert labels
     costates (N+1, n) f32   λ_t = ∂J*_t/∂s_t, the gradient of the cost-to-go from step t (−∂rtg_t/∂s_t) at the
                             row's states, in the model representation; NaN where unknown (REL rows, steps without
-                            a converged expert solve, shards written before the column: read as NaN)
+                            a converged expert solve, DAgger plan rows up to their start and where the expert's plan
+                            misses the goal, shards written before the column: read as NaN)
 
 plus the problem in the *optimisation* representation (``states_opt``, ``x0``, ``goal_opt``, ``dt`` and one
 ``feat_<name>`` column per ``scenario.problem_features`` entry, enough for ``problem_from_features``) and the

@@ -17,7 +17,10 @@ Labels (``labels.kind``):
   states, executed actions and the learner's running conditioning, NaN targets at unlabelled steps (no loss).
 * ``plan`` (a departure): one row per labelled step t whose expert solve converged: the visited prefix, then the
   expert's plan from x_t, with targets from t on (``rows.plan_row``). TTO-MPC's terminal target is the model's H-step
-  rollout from the visited history; these rows supervise exactly that rollout.
+  rollout from the visited history; these rows supervise exactly that rollout. Their costates (the value's gradient
+  targets) are those of the expert's solve from x_t at steps t+1..N (a reused plan's: those of the solve that
+  produced it, shifted; ``_Expert.plan_costates``), NaN before, where the backend gives none and where the plan
+  misses the goal (``_ExpertController``).
 The solver columns hold the row's cost, the learner's/expert's compute time (solve_time/solver_time), the keep-out
 violations of the row's trajectory (violation) and "H=..;expert_steps=..;fallbacks=..;plant=..;labels=.." (status;
 plan rows add ";plan_from=t"). Rollouts are kept whether or not they end feasible: their visited states are where
@@ -57,15 +60,15 @@ from ttompc.mpc.loop import EpisodeStart, MPCController, MPCRun, StepPlan, run_m
 from ttompc.mpc.methods import MethodInputs, model_method
 from ttompc.mpc.plant import PLANT_STREAM, Plant, PlantNoise
 from ttompc.mpc.providers import Provider, ShiftProvider
-from ttompc.mpc.settings import MPCSettings
+from ttompc.mpc.settings import Mode, MPCSettings
 from ttompc.mpc.tto import RolloutGroup, TTOProvider
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
-from ttompc.scenarios.base import Problem, Scenario, Window
+from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
 from ttompc.seeding import rng as seeded_rng
 from ttompc.seeding import rollout_seed
-from ttompc.solvers.scp import solve_rel
+from ttompc.solvers.scp import SCPResult, TerminalCost, solve_rel
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner, RolloutContext
@@ -120,6 +123,30 @@ def label_schedule(rng: np.random.Generator, n_steps: int, per_rollout: int, lat
     return mask
 
 
+class _ExpertController(MPCController):
+    """The expert's ``MPCController``; ``costates``: its latest solve's ``SCPResult.costates`` (row 0 NaN) over the
+    stage cost's weight in it (``SCPProblem.fuel_weight``) where its plan meets the goal (‖x_N − goal‖∞ <= the SCP's
+    feas_tol: the soft end term is then an exact penalty, and λ the gradient of the cost the rtg counts, as in
+    open-loop rows); None where it misses it (λ is then the gradient of the priced miss) or gave no multipliers."""
+
+    costates: np.ndarray | None = None
+
+    def solve(
+        self,
+        window: Window,
+        X: np.ndarray,
+        U: np.ndarray,
+        terminal: TerminalCost | None,
+        mode: Mode | None = None,
+        settings: SCPSettings | None = None,
+    ) -> SCPResult:
+        res = super().solve(window, X, U, terminal, mode, settings)
+        fuel = self.scenario.mpc.fuel if (mode or self.settings.mode) == "soft" else 1.0
+        meets = float(np.max(np.abs(res.X[-1] - self.problem.goal))) <= self.scenario.scp.feas_tol
+        self.costates = res.costates / fuel if res.costates is not None and meets else None
+        return res
+
+
 @dataclass
 class _Rollout:
     """One rollout's draws (``rollout_seed``: problem, horizon H, expert windows, labelled steps, plant) and its
@@ -134,8 +161,9 @@ class _Rollout:
     labelled: np.ndarray
     plant: PlantNoise
     shift: ShiftProvider
-    expert: MPCController
+    expert: _ExpertController
     plans: dict[int, StepPlan] = field(default_factory=dict)  # the expert's plan at each labelled step
+    costates: dict[int, np.ndarray | None] = field(default_factory=dict)  # ... their _Expert.plan_costates
     expert_time: float = 0.0
 
 
@@ -167,8 +195,23 @@ class _Expert:
         r.shift.reset_plan(start.X, start.U)
         r.expert_time += time.perf_counter() - t0
         e = r.plans[t] = r.expert.plan(t, x)
+        r.costates[t] = self.plan_costates(r, t, e)
         r.expert_time += e.warm_time + e.solve_time
         return e
+
+    @staticmethod
+    def plan_costates(r: _Rollout, t: int, e: StepPlan) -> np.ndarray | None:
+        """The costates (N − t + 1, n) of the expert's plan ``e`` at step t over its steps t..N (optimisation
+        representation, ``_ExpertController.costates``): a solved plan's are its solve's; a reused plan's (plan reuse:
+        the tail of the plan at t − 1, so recursively of the plan solved last) are those of the solve that produced
+        it, shifted to steps t..N. Row 0 (step t, the solve's fixed start) is NaN in both, so reuse does not change
+        which steps are labelled. None for a fallback plan and where the producing solve gave no costates."""
+        lam = None if e.fallback else r.costates.get(t - 1) if e.reused else r.expert.costates
+        if lam is None:
+            return None
+        lam = np.array(lam[1:] if e.reused else lam, dtype=np.float64)
+        lam[0] = np.nan
+        return lam
 
     def after(self, t: int, plans: Sequence[StepPlan], xs: Sequence[np.ndarray]) -> None:
         for r, plan, x_next in zip(self.rollouts, plans, xs, strict=True):
@@ -257,7 +300,7 @@ def collect_rollouts(
         expert_steps = expert_schedule(rng, N, exploration)
         labelled = label_schedule(rng, N, labels.per_rollout, labels.late) | expert_steps
         shift = ShiftProvider()
-        expert = MPCController(scenario, problem, shift, N, s)
+        expert = _ExpertController(scenario, problem, shift, N, s)
         plant = rollout_plant(scenario, seed, perturbed).noise
         rollouts.append(_Rollout(index, seed, problem, rel, H, expert_steps, labelled, plant, shift, expert))
         starts.append(EpisodeStart(problem, rel.cost, seed, horizon=H, plant=plant))
@@ -307,7 +350,7 @@ def _rows(
     status = f"H={r.H};expert_steps={n_expert};fallbacks={fallbacks};plant={plant};labels={n_labels}"
     if labels.kind == "plan":
         return [
-            plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, status, common, labels.rtg)
+            plan_row(scenario, problem, Xa, Ua, rtg, ctg, t, e, r.costates[t], status, common, labels.rtg)
             for t, e in sorted(r.plans.items())
             if not e.fallback
         ]
