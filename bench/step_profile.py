@@ -8,6 +8,7 @@ Usage::
     .venv/bin/python bench/step_profile.py --scenario quadrotor --problems 20 --batch 1
     .venv/bin/python bench/step_profile.py --quick                                    # smoke run, no result file
     .venv/bin/python bench/step_profile.py --mpc rti=true --out bench/results/step_profile_rti.json  # a lever
+    .venv/bin/python bench/step_profile.py --mpc decode_every=5 --out bench/results/step_profile_decode5.json
 
 Models: ``freeflyer-ft-tto-v5``, ``quadrotor-ft-tto-v6`` and ``rpod-ft-tto-v4``, fine-tuned with a value output, run
 as ``ttompc evaluate mpc --ft-model`` runs them (``rtg_mode=value`` under ``protocol=recommended``:
@@ -47,7 +48,8 @@ parts sum to the step:
   group's tensor-to-array copies, the loop's shape checks);
 * ``observe``: ``MPCController.observe`` after the step's control is executed (TTO: ``TTOProvider.observe``, the
   KV-cache extension ``RolloutContext.advance``, reported alone as ``advance_ms``, once per lockstep step for the
-  group, charged 1/B per episode).
+  group, charged 1/B per episode; with ``--mpc decode_every=K`` > 1 the advance only records the step and the next
+  decode's ``rollout`` extends the cache over the K steps in one pass).
 
 Reported per method: ``mean_step_ms`` (plan + observe; ``plan_ms`` without observe) and the share of each part,
 window SCP iterations per step (and per solved step, with their histogram), the time per subproblem call and per

@@ -107,16 +107,22 @@ class CollectConfig:
             raise ValueError(f"dagger.collect.perturbed must be in [0, 1], got {self.perturbed}")
 
 
-# MPCSettings values DAgger's rollouts cannot run (``check_rollout_settings``): they solve every window to
-# convergence, the expert's for labels that are optima (measure real-time iteration with `ttompc evaluate mpc`)
-ROLLOUT_FIXED: dict[str, Any] = {"rti": False}
+# MPCSettings values DAgger's rollouts cannot run (``check_rollout_settings``), each with why: the value they run
+# and the reason (measure the others with `ttompc evaluate mpc`)
+ROLLOUT_FIXED: dict[str, tuple[Any, str]] = {
+    # the expert's labels are optima
+    "rti": (False, "they solve every window to convergence"),
+    # the learners, asking windows of their own H, share one decode schedule: a rollout's plans would depend on the
+    # other rollouts of its batch, not be its lone run's
+    "decode_every": (1, "their learners decode at every step"),
+}
 
 
 def check_rollout_settings(settings: MPCSettings) -> None:
     """Refuse, in one line naming the keys, the settings DAgger's rollouts cannot honour: ``ROLLOUT_FIXED``'s, and a
     terminal term or rtg mode that declares it cannot run in them (``TerminalTerm.rollouts``, ``RTGFeed.rollouts``);
     they take every other key (``ttompc.finetune.collect.collect_rollouts``). Raises ``ConfigError``."""
-    fixed = [k for k, v in ROLLOUT_FIXED.items() if getattr(settings, k) != v]
+    fixed = [k for k, (v, _) in ROLLOUT_FIXED.items() if getattr(settings, k) != v]
     runnable = {  # the terminal terms and rtg modes the rollouts run
         "terminal": [name for name, kind in TERMINALS.items() if kind.rollouts],
         "rtg_mode": [name for name, mode in RTG_MODES.items() if mode.rollouts],
@@ -124,10 +130,11 @@ def check_rollout_settings(settings: MPCSettings) -> None:
     refused = [k for k, names in runnable.items() if getattr(settings, k) not in names]
     if fixed or refused:
         given = " ".join(f"{k}={json.dumps(getattr(settings, k))}" for k in fixed + refused)
-        fix = [f"dagger.eval.mpc.{k}={json.dumps(ROLLOUT_FIXED[k])}" for k in fixed]
+        why = [ROLLOUT_FIXED[k][1] for k in fixed] + [f"the {k} declares they cannot run it" for k in refused]
+        fix = [f"dagger.eval.mpc.{k}={json.dumps(ROLLOUT_FIXED[k][0])}" for k in fixed]
         fix += [f"dagger.eval.mpc.{k} among {runnable[k]}" for k in refused]
         raise ConfigError(
-            f"dagger.eval: DAgger's rollouts cannot run {given} (they solve every window to convergence)",
+            f"dagger.eval: DAgger's rollouts cannot run {given} ({'; '.join(why)})",
             f"use {' '.join(fix)}, and measure it with `ttompc evaluate mpc`",
         )
 

@@ -44,7 +44,9 @@ class MPCSettings:
     plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``terminal``:
     the kind of their terminal term (``ttompc.mpc.terminal.TERMINALS``). ``rtg_mode``: the reward-to-go TTO-MPC feeds
     in closed loop (``ttompc.mpc.rtg.RTG_MODES``). ``reuse``: plan reuse in windows that reach the end (same
-    results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step. ``backend``: the
+    results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step.
+    ``decode_every``: TTO-MPC decodes a plan from its model every k steps and serves the windows in between from
+    slices of it (``ttompc.mpc.tto.RolloutGroup``; 1: the paper's, a decode at every step). ``backend``: the
     QP/cone backend of every solve (``ttompc.solvers.backends``)."""
 
     mode: Mode = "soft"
@@ -54,6 +56,7 @@ class MPCSettings:
     rtg_mode: str = "running"
     reuse: bool = True
     rti: bool = False
+    decode_every: int = 1
     backend: str = "auto"
 
     def __post_init__(self) -> None:
@@ -67,6 +70,11 @@ class MPCSettings:
             raise ValueError(f"terminal must be one of {list(TERMINALS)}, got {self.terminal!r}")
         if self.rtg_mode not in RTG_MODES:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
+        if self.decode_every < 1:
+            raise ValueError(
+                f"decode_every must be >= 1 (TTO-MPC decodes a plan every k MPC steps; 1: at every step), got "
+                f"{self.decode_every}"
+            )
 
     @property
     def reuse_tol(self) -> float | None:
@@ -90,6 +98,11 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
         out.append(
             "real-time iteration: one SCP subproblem per MPC step from the previous solution shifted (the paper "
             "solves every window to convergence)"
+        )
+    if settings.decode_every > 1:
+        out.append(
+            f"decode every {settings.decode_every} steps: TTO-MPC's windows in between are slices of the last decoded "
+            "plan (the paper decodes at every step)"
         )
     return out
 

@@ -3,7 +3,9 @@
 ``TTOProvider`` (TTO-MPC / FT-TTO-MPC): an H-step transformer rollout from the running ``RolloutContext``
 (conditioned on rtg_0 = −κ·J_REL, ctg_0 = 0); the context is advanced with every executed action and measured
 state, so its KV cache is extended, never recomputed. x̄ = the predicted state at t+H, through the provider's
-terminal term (``ttompc.mpc.terminal``). The reward-to-go fed at each step is its rtg mode's (``ttompc.mpc.rtg``).
+terminal term (``ttompc.mpc.terminal``). The reward-to-go fed at each decode is its rtg mode's (``ttompc.mpc.rtg``).
+A decode runs at every step (the paper's), or every k steps under ``MPCSettings.decode_every`` = k, the windows in
+between sliced from it (``RolloutGroup``).
 The TTO providers of B episodes run in lockstep (``run_mpc_batch``) share one batched context (``RolloutGroup``).
 A method's providers under ``MPCSettings`` are made by its entry in ``ttompc.mpc.methods``.
 """
@@ -142,21 +144,35 @@ class RolloutGroup:
     rollout runs as far as the first request or the step's ``expect``, whichever is longer; a request beyond it runs
     a longer one.
 
+    ``decode_every`` = k (``MPCSettings.decode_every``; 1, the paper's: a decode at every step): the group decodes
+    at the episode's first step, when k steps have passed since its last decode, or when a member asks a window
+    longer than what remains of it; a decode runs k − 1 steps past the longest window (never past N or the model's
+    ``max_steps``), so that the windows until the next decode are its slices: member b's window at step t is row b
+    of the last decode from step t − t_decode on. The conditioning is computed at decode steps only (in between the
+    context feeds its running value), and the context advances with every executed step, its KV cache extended at
+    the next decode in one pass (``RolloutContext.defer_cache``), so each decode conditions on the true history. A
+    step without a decode charges no model time to the windows it serves. The members share one schedule: each
+    episode is its lone run's when all members ask windows of one length at every step (an evaluation's lockstep
+    batch), not when they ask others (DAgger's rollouts, which run k = 1).
+
     Lifecycle: providers join at construction (``add``: their slot is their row), the context is built when all of
     them have been ``reset`` for an episode, and every member observes once per step (planning before it or not)."""
 
-    def __init__(self, planner: Planner, *, use_cache: bool = True) -> None:
-        self.planner, self.use_cache = planner, use_cache
+    def __init__(self, planner: Planner, *, use_cache: bool = True, decode_every: int = 1) -> None:
+        if decode_every < 1:
+            raise ValueError(f"decode_every must be >= 1 (a decode every k MPC steps), got {decode_every}")
+        self.planner, self.use_cache, self.decode_every = planner, use_cache, decode_every
         self.members: list[TTOProvider] = []
         self.context: RolloutContext | None = None
         self._joined: set[int] = set()
         self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         # the current step's shared work: each member's time computing its conditioning, its share of its mode's
-        # shared work included ([] before the step's first request), the longest window expected (``expect``), and
-        # the longest rollout so far: states (B, L+1, n), actions (B, L, m) and 1/B of its time
+        # shared work included ([] until the step decodes), and the longest window expected (``expect``)
         self._own: list[float] = []
         self._expected = 0
+        # the last decode: states (B, L+1, n), actions (B, L, m) and 1/B of its time, and the step it started at
         self._plan: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._decoded_at = 0
 
     @property
     def t(self) -> int:
@@ -179,16 +195,19 @@ class RolloutGroup:
         self._joined.clear()
         self._pending.clear()
         self._new_step()
+        self._plan = None
         rtg0 = [m.rtg0 for m in self.members]
         self.context = self.planner.context(
             [m.problem for m in self.members], rtg0=rtg0, ctg0=0.0, use_cache=self.use_cache
         )
+        self.context.defer_cache = self.decode_every > 1  # the cache catches up at the next decode
 
     def expect(self, start: int, length: int) -> None:
         """The members will ask windows of at most ``length`` steps at step ``start`` (the longest of the lockstep
-        windows; 0: no hint): that step's batched rollout runs that far at once, so members asking shorter windows
-        share it instead of each running a longer one. A hint only: it changes how many rollouts a step runs, never
-        what a window gets. Call it at step ``start``, before its first request."""
+        windows; 0: no hint): a decode at that step runs that far at once (plus ``decode_every`` − 1 steps), so
+        members asking shorter windows share it instead of each running a longer one. A hint only: it changes how
+        many rollouts a step runs (with ``decode_every`` > 1 also how far a decode reaches, and so when the next
+        one runs), never what a window of a decode gets. Call it at step ``start``, before its first request."""
         if self.context is None or self.context.t != start:
             raise RuntimeError(f"rollout context is at step {getattr(self.context, 't', None)}, not {start}")
         if length < 0:
@@ -196,34 +215,38 @@ class RolloutGroup:
         self._expected = length
 
     def rollout(self, slot: int, window: Window) -> tuple[np.ndarray, np.ndarray, float, float]:
-        """Row ``slot`` of this step's batched rollout, cut to the window: its states (H+1, n) and actions (H, m) in
-        the model representation (copies), the member's share of the time (its own conditioning with its share of
-        its mode's batched work, plus 1/B of the rollout that serves it) and the time this call spent on the shared
-        work (the members' conditioning and the rollout; 0 for a call served by an earlier one's work)."""
+        """Row ``slot`` of the last decode, cut to the window (decoding first when the window needs it, class doc):
+        its states (H+1, n) and actions (H, m) in the model representation (copies), the member's share of the time
+        (at a decode step its own conditioning with its share of its mode's batched work, plus 1/B of the rollout
+        that serves it; 0 between decodes) and the time this call spent on the shared work (the members'
+        conditioning and the rollout; 0 for a call served by an earlier one's work)."""
         ctx = self.context
         if ctx is None or ctx.t != window.start:
             raise RuntimeError(f"rollout context is at step {getattr(ctx, 't', None)}, not {window.start}")
         t0 = time.perf_counter()
-        ran = False
-        if not self._own:  # the step's first request: every member's conditioning, once
-            self._condition(ctx, window.start)
-            ran = True
-        if self._plan is None or self._plan[1].shape[1] < window.length:
+        decoding = self._stale(window)
+        if decoding:
+            if not self._own:  # the step's first decode: every member's conditioning, once
+                self._condition(ctx, window.start)
             t1 = time.perf_counter()
-            res = ctx.rollout(max(window.length, self._expected))
+            res = ctx.rollout(self._decode_length(ctx, window))
             self._sync()
             S, A = res.states.double().cpu().numpy(), res.actions.double().cpu().numpy()
             self._plan = (S, A, (time.perf_counter() - t1) / len(self.members))
-            ran = True
-        shared = time.perf_counter() - t0 if ran else 0.0
+            self._decoded_at = window.start
+        shared = time.perf_counter() - t0 if decoding else 0.0
+        assert self._plan is not None  # decoded above when there was none
         S, A, share = self._plan
-        # copies: a caller may write into its window (X[0] = x) and the rollout serves other windows of this row
-        return S[slot, : window.length + 1].copy(), A[slot, : window.length].copy(), self._own[slot] + share, shared
+        j = window.start - self._decoded_at  # the window's first step in the decode
+        charge = self._own[slot] + share if j == 0 else 0.0
+        # copies: a caller may write into its window (X[0] = x) and the decode serves other windows of this row
+        return S[slot, j : j + window.length + 1].copy(), A[slot, j : j + window.length].copy(), charge, shared
 
     def advance(self, slot: int, u: np.ndarray, s_next: np.ndarray) -> float:
         """Member ``slot`` executed ``u`` and measured ``s_next`` (model representation); the context advances
-        when all members have. Returns the seconds spent on that batched advance (0.0 for a call that only queued
-        its member's part), the work the members share (``Provider.observe``)."""
+        when all members have (its KV cache deferred to the next decode when ``decode_every`` > 1). Returns the
+        seconds spent on that batched advance (0.0 for a call that only queued its member's part), the work the
+        members share (``Provider.observe``)."""
         if self.context is None:
             raise RuntimeError("the rollout group's episodes have not all been reset")
         self._pending[slot] = (np.asarray(u), np.asarray(s_next))
@@ -237,6 +260,22 @@ class RolloutGroup:
         self._new_step()
         self._sync()
         return time.perf_counter() - t0
+
+    def _stale(self, window: Window) -> bool:
+        """Whether ``window`` needs a decode: none yet this episode, ``decode_every`` steps since the last, or the
+        window runs past what remains of it."""
+        if self._plan is None:
+            return True
+        j = window.start - self._decoded_at
+        return j >= self.decode_every or self._plan[1].shape[1] - j < window.length
+
+    def _decode_length(self, ctx: RolloutContext, window: Window) -> int:
+        """The steps a decode at ``window``'s step runs: the longest window asked (``expect``) and ``decode_every``
+        − 1 steps more, so that the windows until the next decode are its slices, but not past N or the model's
+        ``max_steps`` (the window itself is never cut: a window past ``max_steps`` is the rollout's error)."""
+        need = max(window.length, self._expected)
+        room = min(window.n_total, ctx.model.cfg.max_steps) - window.start
+        return max(need, min(need + self.decode_every - 1, room))
 
     def _condition(self, ctx: RolloutContext, t: int) -> None:
         """Feed every member's conditioning at step t into ``ctx``'s rtg: each mode's shared work for its members in
@@ -261,8 +300,8 @@ class RolloutGroup:
         self._own = own
 
     def _new_step(self) -> None:
-        """Forget the previous step's conditioning, rollout and hint."""
-        self._own, self._expected, self._plan = [], 0, None
+        """Forget the previous step's conditioning and hint (its decode serves the steps until the next one)."""
+        self._own, self._expected = [], 0
 
     def _sync(self) -> None:
         if self.planner.device.type == "cuda":

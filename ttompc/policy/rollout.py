@@ -66,6 +66,10 @@ class RolloutContext:
 
     Histories: states/goals (B, t+1, ·) (step t is the current, not yet acted-on step), actions (B, t, m),
     rtg/ctg (B, t+1). Build with ``start`` (step 0) or the constructor with a past context (any t0 = t).
+
+    ``defer_cache`` (False: the cache is extended at every ``advance``): ``advance`` only records the step, and the
+    next ``rollout`` extends the cache over every step recorded since in one pass, the same tokens (equal up to
+    float rounding, not bitwise), for a caller that rolls out every few steps (``RolloutGroup.decode_every``).
     """
 
     def __init__(
@@ -98,8 +102,10 @@ class RolloutContext:
             )
         if self.actions.shape != (B, T - 1, m):
             raise ValueError(f"actions must be (B, {T - 1}, {m}) for {T} states, got {tuple(self.actions.shape)}")
-        self._cache: KVCache | None = None  # tokens of the completed steps 0..t-1, built on first use
+        self._cache: KVCache | None = None  # tokens of the completed steps 0.._cached-1, built on first use
         self._decoder: Decoder | None = None  # the trunk over that cache
+        self._cached = 0  # the steps the cache holds: t, or fewer after deferred advances
+        self.defer_cache = False
 
     @classmethod
     def start(
@@ -164,18 +170,21 @@ class RolloutContext:
         return self.model.embed_steps(g, r, c, s, self.stats.normalize("actions", prev_actions), ts)
 
     def _history(self) -> Decoder:
-        """The decoder over the KV cache of the deciding tokens of steps 0..t-1 (built once, then extended by
-        ``advance``). Its parameter look-ups are made once per context, which lives for an episode: the model's
-        weights may change in place, not be replaced, while it lives."""
+        """The decoder over the KV cache of the deciding tokens of steps 0..t-1: built at first use, then extended
+        over the steps executed since (by ``advance``, or here in one pass for deferred ones). Its parameter look-ups
+        are made once per context, which lives for an episode: the model's weights may change in place, not be
+        replaced, while it lives."""
         if self._decoder is None:
             self._cache = self.model.new_cache(self.batch)
             self._decoder = Decoder(self.model, self._cache)
-            t = self.t
-            if t > 0:
-                tok = self._embed_steps(
-                    self.goals[:, :t], self.rtg[:, :t], self.ctg[:, :t], self.states[:, :t], self.actions[:, : t - 1], 0
-                )
-                self._decoder(tok)
+        c, t = self._cached, self.t
+        if c < t:
+            prev = self.actions[:, max(c - 1, 0) : t - 1]  # a_{c-1}..a_{t-2}; none before step 0
+            tok = self._embed_steps(
+                self.goals[:, c:t], self.rtg[:, c:t], self.ctg[:, c:t], self.states[:, c:t], prev, c
+            )
+            self._decoder(tok)
+            self._cached = t
         return self._decoder
 
     def _window_maps(self, horizon: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -293,18 +302,13 @@ class RolloutContext:
         tensors or arrays (converted to the model's dtype and device).
 
         Like the reference MPC context, rtg_{t+1} = rtg_t + c(a_t) and ctg_{t+1} = ctg_t − violations(s_{t+1}). The
-        cached history is extended by the deciding tokens of step t.
+        cached history is extended by the deciding tokens of step t (with ``defer_cache``, at the next rollout).
         """
         t = self.t
         p = self.states
         action = torch.as_tensor(action, dtype=p.dtype, device=p.device).reshape(self.batch, -1)
         next_state = torch.as_tensor(next_state, dtype=p.dtype, device=p.device).reshape(self.batch, -1)
         goal = self.goals[:, -1] if goal is None else torch.as_tensor(goal, dtype=p.dtype, device=p.device)
-        if self._decoder is not None:
-            tok = self._embed_steps(
-                self.goals[:, -1:], self.rtg[:, -1:], self.ctg[:, -1:], self.states[:, -1:], self.actions[:, -1:], t
-            )
-            self._decoder(tok)
         rtg = self.rtg[:, -1] + stage_cost_torch(action, self.cost_norm)
         ctg = self.ctg[:, -1] - self.dynamics.violations(next_state, t + 1).to(p.dtype)
         self.actions = torch.cat([self.actions, action[:, None]], dim=1)
@@ -312,6 +316,8 @@ class RolloutContext:
         self.goals = torch.cat([self.goals, goal[:, None]], dim=1)
         self.rtg = torch.cat([self.rtg, rtg[:, None]], dim=1)
         self.ctg = torch.cat([self.ctg, ctg[:, None]], dim=1)
+        if self._decoder is not None and not self.defer_cache:
+            self._history()
 
 
 def rollout(
