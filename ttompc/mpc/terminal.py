@@ -29,12 +29,6 @@ V(x_{t+H}, t+H) at the window's end state, alone or beside the target pull. The 
 iteration of a window pays the convex quadratic model of J about its reference end state (``StepValue.expand``; the
 engine re-expands it per iteration), and the merit that accepts or rejects an iterate reads J itself.
 
-``gramian`` keeps the paper's target and replaces its fixed weight by what a deviation from it costs to undo in
-the time left (a departure): ½ δᵀ Φᵀ W⁻¹ Φ δ, δ = x_{t+H} − x̄, with Φ and W the state transition and the
-controllability Gramian of the dynamics linearised about x̄ over the τ = N − t − H steps that remain
-(``finishing_metric``). For a quadratic stage cost ½‖u‖² and unconstrained linear dynamics that is exactly the extra
-cost of finishing from x_{t+H} rather than from x̄; it grows as τ shrinks, where the fixed weight stays the same.
-
 Terminal index: the term penalises x_{t+H}, the state *after* the last window control (the window has H+1 states).
 The reference penalised x_{t+H−1}, the last state *before* the last control, which leaves the last control of every
 window free of the terminal term.
@@ -237,85 +231,8 @@ class ValueOnlyTerminal(ValueTerminal):
     pull = False
 
 
-def finishing_metric(scenario: Scenario, problem: Problem, stop: int, x_ref: np.ndarray) -> np.ndarray:
-    """M (n, n), positive semidefinite: ½ δᵀ M δ is the least Σ ½‖u_j‖² that brings a deviation δ of the state at
-    ``stop`` back onto the zero-control path from ``x_ref`` by step N, under the dynamics linearised about ``x_ref``
-    with zero control: M = Φᵀ W⁻¹ Φ, Φ the transition over the τ = N − stop steps, W = Σ_j Φ_{j+1:τ} B_j B_jᵀ
-    Φ_{j+1:τ}ᵀ the controllability Gramian. Directions the τ steps cannot steer (W singular, e.g. a position error
-    with one step left) are priced through W + ε·I with ε = 1e-6·‖W‖₂."""
-    tau = problem.n_steps - stop
-    if tau <= 0:
-        raise ValueError(f"finishing_metric: step {stop} leaves no steps before N = {problem.n_steps}")
-    n, m = scenario.state_dim, scenario.control_dim
-    model = scenario.convex_model(
-        problem, Window(stop, tau, problem.n_steps), np.tile(x_ref, (tau + 1, 1)), np.zeros((tau, m))
-    )
-    phi, gram = np.eye(n), np.zeros((n, n))
-    for A, B in zip(model.A, model.B, strict=True):
-        phi, gram = A @ phi, A @ gram @ A.T + B @ B.T
-    gram += 1e-6 * np.linalg.norm(gram, 2) * np.eye(n)
-    M = phi.T @ np.linalg.solve(gram, phi)
-    return 0.5 * (M + M.T)
-
-
-class QuadraticValue:
-    """J(x) = ½ (x − center)ᵀ M (x − center), M positive semidefinite: a ``TerminalValue`` that is its own local
-    model."""
-
-    def __init__(self, center: np.ndarray, M: np.ndarray) -> None:
-        self.center, self.M = center, M
-
-    def expand(self, x: np.ndarray) -> ValueExpansion:
-        from ttompc.policy.value import ValueExpansion
-
-        g = self.M @ (np.asarray(x, dtype=np.float64) - self.center)
-        return ValueExpansion(0.5 * float(g @ (x - self.center)), g, self.M)
-
-    def __call__(self, x: np.ndarray) -> float:
-        return self.expand(x).value
-
-
-class GramianTerminal(TargetFilter):
-    """``gramian``: the paper's target, weighted by what undoing a deviation from it costs in the time left
-    (module doc, ``finishing_metric``)."""
-
-    name = "gramian"
-    pull = False
-
-    @classmethod
-    def refusal(cls, planner: Planner | None) -> str | None:
-        return None
-
-    @classmethod
-    def departures(cls, settings: MPCSettings, scenario: Scenario) -> list[str]:
-        return [
-            "terminal gramian: the target is weighted by the cost of undoing a deviation from it in the steps left "
-            "(linearised dynamics' controllability Gramian); the paper weighs it with a fixed weight"
-        ]
-
-    def reset(self, scenario: Scenario, problem: Problem) -> None:
-        super().reset(scenario, problem)
-        if scenario.cost_norm != "quad":
-            raise ValueError(
-                f"terminal=gramian prices a quadratic stage cost; {scenario.name} pays {scenario.cost_norm!r}"
-            )
-        self._problem = problem
-
-    def __call__(self, scenario: Scenario, window: Window, X: np.ndarray) -> TerminalCost | None:
-        pulled = super().__call__(scenario, window, X)
-        if pulled is None:
-            return None
-        M = finishing_metric(scenario, self._problem, window.stop, pulled.target)
-        return TerminalCost(pulled.target, pulled.weights if self.pull else 0.0, value=QuadraticValue(pulled.target, M))
-
-
-class GramianTargetTerminal(GramianTerminal):
-    name = "gramian+target"
-    pull = True
-
-
 TERMINALS: dict[str, type[TerminalTerm]] = {
-    kind.name: kind for kind in (TargetFilter, ValueTerminal, ValueOnlyTerminal, GramianTerminal, GramianTargetTerminal)
+    kind.name: kind for kind in (TargetFilter, ValueTerminal, ValueOnlyTerminal)
 }
 
 
