@@ -337,6 +337,10 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     again = measure_curve(run, [str(dataset)], problems=1, horizon=5, max_steps=3)  # nothing re-measured
     assert json.dumps(again, sort_keys=True) == json.dumps(curve, sort_keys=True)
     assert curve_figure([run], tmp_path / "curve.png").stat().st_size > 0
+    robust = measure_curve(run, [str(dataset)], problems=1, horizon=5, max_steps=3, robust_blend=0.9)
+    assert [r["iteration"] for r in robust] == [-1, 0, 1] and (run / "curve-robust.json").is_file()
+    assert json.loads((run / "curve.json").read_text()) == json.loads(json.dumps(curve))  # its own file
+    assert curve_figure([run], tmp_path / "both.png").stat().st_size > 0
 
     # a finished run re-run does nothing new
     before = _mtimes(run / "dagger") | _mtimes(run / "checkpoints")

@@ -4,10 +4,13 @@ iteration's validation rows, one set for every model), the labels aggregated so 
 figure.
 
 ``measure_curve`` reads ``<run>/dagger_state.json`` and each iteration's planner (``<run>/iter-<i>/planner``), and
-appends one record per model to ``<run>/curve.json`` (resumable: measured models are skipped), so a curve can be
-measured while the run goes on. ``curve_figure`` draws one or more runs' curves.
+appends one record per model to ``<run>/curve.json`` (TTO-MPC) or, with ``--robust-blend`` > 0, to
+``<run>/curve-robust.json`` (R-TTO-MPC, the method the headlines report) (resumable: measured models are skipped), so
+a curve can be measured while the run goes on. ``curve_figure`` draws one or more runs' curves, each method's that
+was measured.
 
     python -m ttompc.finetune.curve measure RUN --data DATA [--problems 50 --seed 1001 --protocol recommended]
+    python -m ttompc.finetune.curve measure RUN --data DATA --robust-blend 0.95
     python -m ttompc.finetune.curve figure RUN [RUN ...] --out docs/figures/dagger_curve.png
 """
 
@@ -27,7 +30,7 @@ from ttompc.data.shards import atomic_write_json
 if TYPE_CHECKING:
     from ttompc.policy import Planner
 
-CURVE_FILE = "curve.json"
+CURVE_FILES = {"TTO-MPC": "curve.json", "R-TTO-MPC": "curve-robust.json"}  # per method measured
 PLANTS = ("nominal", "perturbed")
 
 
@@ -82,7 +85,8 @@ def imitation_loss(planner: Planner, data: Sequence[str], dagger_dirs: Sequence[
 
 
 def _closed_loop(planner: Planner, measurement: Any, problems: list[Any]) -> tuple[dict[str, float], np.ndarray]:
-    """Closed-loop metrics and the per-problem (J − J_REL)/J_REL (nan where infeasible) of TTO-MPC."""
+    """Closed-loop metrics and the per-problem (J − J_REL)/J_REL (nan where infeasible) of the measurement's
+    method (TTO-MPC, or R-TTO-MPC with its ``robust_blend``)."""
     from ttompc.evaluation.episodes import closed_loop_metrics
     from ttompc.parallel import single_torch_thread
 
@@ -93,15 +97,16 @@ def _closed_loop(planner: Planner, measurement: Any, problems: list[Any]) -> tup
 
 
 def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed: int = 1001,
-                  protocol: str = "recommended", horizon: int = 10,
-                  max_steps: int | None = None) -> list[dict[str, Any]]:  # fmt: skip
-    """Measure every model of ``run`` not yet in ``<run>/curve.json`` (see the module doc; ``data``: the run's
+                  protocol: str = "recommended", horizon: int = 10, max_steps: int | None = None,
+                  robust_blend: float = 0.0) -> list[dict[str, Any]]:  # fmt: skip
+    """Measure every model of ``run`` not yet in its method's curve file (TTO-MPC, or R-TTO-MPC when
+    ``robust_blend`` > 0; see the module doc; ``data``: the run's
     open-loop dataset folders, for the imitation loss, nan without them or without held-out closed-loop rows;
     ``max_steps``: shorter episodes, for smoke runs); returns the records."""
     from ttompc.evaluation.measurement import Measurement
     from ttompc.policy import Planner
 
-    path = run / CURVE_FILE
+    path = run / CURVE_FILES["R-TTO-MPC" if robust_blend > 0 else "TTO-MPC"]
     records: list[dict[str, Any]] = json.loads(path.read_text()) if path.is_file() else []
     done = {r["iteration"] for r in records}
     state = json.loads((run / "dagger_state.json").read_text())
@@ -118,7 +123,7 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
         for plant in PLANTS:
             if plant not in sets:
                 m = Measurement(protocol=protocol, problems=problems, seed=seed, horizons=[horizon], plants=[plant],
-                                max_steps=max_steps)  # fmt: skip
+                                max_steps=max_steps, robust_blend=robust_blend)  # fmt: skip
                 sets[plant] = (m, m.problem_set(planner.scenario))
             m, probs = sets[plant]
             metrics, inc = _closed_loop(planner, m, probs)
@@ -142,7 +147,8 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
 
 def curve_figure(runs: Sequence[Path], out: Path) -> Path:
     """Closed-loop cost (paired against the pretrained model, ± one standard error) and goals per iteration on both
-    plants, and the imitation loss on held-out closed-loop rows, for each run (a scenario per run)."""
+    plants, for each method measured (``CURVE_FILES``), and the imitation loss on held-out closed-loop rows, for
+    each run (a scenario per run)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -151,16 +157,22 @@ def curve_figure(runs: Sequence[Path], out: Path) -> Path:
 
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     for run in runs:
-        recs = json.loads((run / CURVE_FILE).read_text())
-        label = json.loads((run / "source-planner" / "config.json").read_text())["scenario"]["name"]
-        it = np.array([r["iteration"] for r in recs]) + 1  # 0: the pretrained model
-        for plant, style in zip(PLANTS, ("-", "--"), strict=True):
-            mean = np.array([r[plant]["vs_pretrained"]["mean"] for r in recs]) * 100
-            se = np.array([r[plant]["vs_pretrained"]["se"] for r in recs]) * 100
-            axes[0].errorbar(it, mean, yerr=np.nan_to_num(se), ls=style, marker="o", capsize=3,
+        scenario = json.loads((run / "source-planner" / "config.json").read_text())["scenario"]["name"]
+        files = {method: run / name for method, name in CURVE_FILES.items() if (run / name).is_file()}
+        if not files:
+            raise FileNotFoundError(f"{run} has no measured curve ({', '.join(CURVE_FILES.values())})")
+        for (method, path), marker in zip(files.items(), ("o", "s"), strict=False):
+            recs = json.loads(path.read_text())
+            label = f"{scenario} {method}"
+            it = np.array([r["iteration"] for r in recs]) + 1  # 0: the pretrained model
+            for plant, style in zip(PLANTS, ("-", "--"), strict=True):
+                mean = np.array([r[plant]["vs_pretrained"]["mean"] for r in recs]) * 100
+                se = np.array([r[plant]["vs_pretrained"]["se"] for r in recs]) * 100
+                axes[0].errorbar(it, mean, yerr=np.nan_to_num(se), ls=style, marker=marker, capsize=3,
+                                 label=f"{label}, {plant}")  # fmt: skip
+                axes[1].plot(it, [r[plant]["feasible_rate"] for r in recs], ls=style, marker=marker,
                              label=f"{label}, {plant}")  # fmt: skip
-            axes[1].plot(it, [r[plant]["feasible_rate"] for r in recs], ls=style, marker="o", label=f"{label}, {plant}")
-        axes[2].plot(it, [r["imitation_loss"] for r in recs], marker="o", label=label)
+        axes[2].plot(it, [r["imitation_loss"] for r in recs], marker="o", label=scenario)
     axes[0].axhline(0, color="k", lw=0.5)
     titles = ("closed-loop cost vs pretrained (points of J_REL)", "goals reached", "imitation loss, held-out CL rows")
     for ax, title in zip(axes, titles, strict=True):
@@ -185,12 +197,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     m.add_argument("--seed", type=int, default=1001, help="root seed of the selection problems (default 1001)")
     m.add_argument("--protocol", default="recommended")
     m.add_argument("--horizon", type=int, default=10)
+    m.add_argument("--robust-blend", type=float, default=0.0, help="> 0: measure R-TTO-MPC with this target blend")
     f = sub.add_parser("figure", help="draw the curves of measured runs")
     f.add_argument("runs", type=Path, nargs="+")
     f.add_argument("--out", type=Path, default=Path("docs/figures/dagger_curve.png"))
     a = p.parse_args(argv)
     if a.action == "measure":
-        for r in measure_curve(a.run, a.data, a.problems, a.seed, a.protocol, a.horizon):
+        for r in measure_curve(a.run, a.data, a.problems, a.seed, a.protocol, a.horizon, robust_blend=a.robust_blend):
             print(json.dumps({k: r[k] for k in ("iteration", "nominal", "perturbed", "imitation_loss", "labels")}))
     else:
         print(curve_figure(a.runs, a.out))
