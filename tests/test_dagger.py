@@ -341,6 +341,10 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     assert [r["iteration"] for r in robust] == [-1, 0, 1] and (run / "curve-robust.json").is_file()
     assert json.loads((run / "curve.json").read_text()) == json.loads(json.dumps(curve))  # its own file
     assert curve_figure([run], tmp_path / "both.png").stat().st_size > 0
+    import matplotlib.image
+
+    two = matplotlib.image.imread(curve_figure([run, run], tmp_path / "two.png"))  # a row per run (scenario)
+    assert two.shape[0] == 2 * matplotlib.image.imread(tmp_path / "both.png").shape[0]
 
     # a finished run re-run does nothing new
     before = _mtimes(run / "dagger") | _mtimes(run / "checkpoints")
