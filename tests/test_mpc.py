@@ -615,7 +615,7 @@ def test_settings_name_self_describing_rtg_modes_and_terminal_terms() -> None:
 
     sc = get_scenario(mpc_fakes.FreeFlyerShort.name)
     assert list(RTG_MODES) == ["running", "reanchor", "value", "oracle"]
-    assert list(TERMINALS) == ["target", "value+target", "value", "sampled"]
+    assert list(TERMINALS) == ["target", "value+target", "value"]
     for path in PRESETS.glob("*.yaml"):
         preset = yaml.safe_load(path.read_text())
         assert preset["rtg_mode"] in RTG_MODES and preset["terminal"] in TERMINALS, path

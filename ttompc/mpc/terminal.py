@@ -29,18 +29,6 @@ V(x_{t+H}, t+H) at the window's end state, alone or beside the target pull. The 
 iteration of a window pays the convex quadratic model of J about its reference end state (``StepValue.expand``; the
 engine re-expands it per iteration), and the merit that accepts or rejects an iterate reads J itself.
 
-``sampled`` (``SampledTerminal``, a departure): the sampled terminal set of LMPC (Rosolia & Borrelli, "Learning
-Model Predictive Control for Iterative Tasks", 2018). A window ending at step k = t+H pays
-‖diag(w)(x_{t+H} − Zλ)‖₂ + cᵀλ over λ ≥ 0, 1ᵀλ = 1: its end state is measured from the convex hull of K sampled
-states z_i of this problem at step k, at their combined cost-to-go c (K extra variables λ in the window's convex
-subproblem, ``ttompc.solvers.subproblem_terminal``; the soft 2-norm, weighted as ``target``'s, keeps every window
-feasible). The samples, all made at or before step t: the problem's REL plan at k (its own remaining stage cost),
-the model's plan's end x̂_{t+H} (``target``'s target: the plan's state, blended as ``TerminalDesign.blend`` says)
-and the previous window's plan end moved on by the new plan's last step (as the blend does; only when the previous
-window ended at k − 1), the last two priced by the model's learned cost-to-go V(·, k) (either value form). Costs are
-in the window objective's units (the stage cost's weight, ``mpc.fuel`` in soft mode). With one sample of cost 0 it
-is ``target``'s term. The windows run on the conic solvers (the Riccati kernel takes no λ).
-
 Terminal index: the term penalises x_{t+H}, the state *after* the last window control (the window has H+1 states).
 The reference penalised x_{t+H−1}, the last state *before* the last control, which leaves the last control of every
 window free of the terminal term.
@@ -55,7 +43,7 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 
 from ttompc.scenarios.base import Problem, Scenario, Window
-from ttompc.solvers.scp import TerminalCost, solve_rel
+from ttompc.solvers.scp import TerminalCost
 
 if TYPE_CHECKING:
     from ttompc.mpc.settings import MPCSettings
@@ -186,27 +174,6 @@ def model_map(scenario: Scenario, problem: Problem, step: int) -> np.ndarray:
     return np.stack([scenario.to_model_states(problem, e[None], start=step)[0] for e in np.eye(n)], axis=1)
 
 
-class ProblemValue:
-    """The model's cost-to-go of one problem (``reset``) at each step (``at``: a ``StepValue``), the maps from the
-    optimisation states to the model's cached per step."""
-
-    def __init__(self, model: ValueModel) -> None:
-        self.model = model
-        self._goal = np.zeros(0)
-        self._maps: dict[int, np.ndarray] = {}
-
-    def reset(self, scenario: Scenario, problem: Problem) -> None:
-        """Price states of ``problem`` from now on."""
-        self._scenario, self._problem, self._maps = scenario, problem, {}
-        self._goal = scenario.model_goal(problem)
-
-    def at(self, step: int) -> StepValue:
-        """J(·) at ``step``."""
-        if step not in self._maps:
-            self._maps[step] = model_map(self._scenario, self._problem, step)
-        return StepValue(self.model, self._goal, self._maps[step], step)
-
-
 class ValueTerminal(TargetFilter):
     """``value+target``: the model's cost-to-go at the window's end plus the paper's target pull (module doc)."""
 
@@ -215,7 +182,9 @@ class ValueTerminal(TargetFilter):
 
     def __init__(self, planner: Planner, design: TerminalDesign | None = None) -> None:
         super().__init__(design)
-        self.values = ProblemValue(planner.value_model())
+        self.value_model = planner.value_model()
+        self._goal = np.zeros(0)
+        self._maps: dict[int, np.ndarray] = {}
 
     without_model = "target"  # PLAN-ONCE and ORACLE-MPC keep the paper's term
 
@@ -241,14 +210,18 @@ class ValueTerminal(TargetFilter):
 
     def reset(self, scenario: Scenario, problem: Problem) -> None:
         super().reset(scenario, problem)
-        self.values.reset(scenario, problem)
+        self._problem, self._maps = problem, {}
+        self._goal = scenario.model_goal(problem)
 
     def __call__(self, scenario: Scenario, window: Window, X: np.ndarray) -> TerminalCost | None:
         pulled = super().__call__(scenario, window, X)
         if pulled is None:
             return None
+        k = window.stop
+        if k not in self._maps:
+            self._maps[k] = model_map(scenario, self._problem, k)
         weights = pulled.weights if self.pull else 0.0
-        return TerminalCost(pulled.target, weights, value=self.values.at(window.stop))
+        return TerminalCost(pulled.target, weights, value=StepValue(self.value_model, self._goal, self._maps[k], k))
 
 
 class ValueOnlyTerminal(ValueTerminal):
@@ -258,87 +231,8 @@ class ValueOnlyTerminal(ValueTerminal):
     pull = False
 
 
-SAMPLES = 3  # the columns of a sampled terminal set: fewer samples repeat the first (same cost: the same term)
-
-
-class SampledTerminal(TargetFilter):
-    """``sampled``: LMPC's sampled terminal set (module doc), always ``SAMPLES`` columns so that a window length has
-    one subproblem structure. ``soft``: whether the windows weigh their stage cost by ``mpc.fuel`` (soft mode; hard
-    mode weighs it 1), the units of the samples' costs; ``backend`` solves the problem's REL plan at ``reset``."""
-
-    name = "sampled"
-    rollouts = False  # not run in DAgger's rollouts (each episode's reset solves a REL): `ttompc evaluate mpc`
-    without_model = "target"  # PLAN-ONCE and ORACLE-MPC keep the paper's term
-
-    def __init__(
-        self, planner: Planner, design: TerminalDesign | None = None, *, soft: bool = True, backend: str = "auto"
-    ) -> None:
-        super().__init__(design)
-        self.values = ProblemValue(planner.value_model())
-        self.soft, self.backend = soft, backend
-        self._rel: tuple[np.ndarray, np.ndarray] | None = None
-        self._end: np.ndarray | None = None
-        self._end_stop = -1
-
-    @classmethod
-    def refusal(cls, planner: Planner | None) -> str | None:
-        if planner is None:
-            return "a method without a model has no learned cost-to-go"
-        if not planner.has_value:
-            return "needs a model with a value output (model.value_width > 0) to price the samples"
-        return None
-
-    @classmethod
-    def departures(cls, settings: MPCSettings, scenario: Scenario) -> list[str]:
-        own = (
-            "terminal sampled: each window that stops early ends in the convex hull of sampled states at its end "
-            "step (the REL plan's, the model's plan's, the previous plan's end moved on) at their combined "
-            "cost-to-go (LMPC's sampled terminal set); the paper pulls toward the model's state with a fixed weight"
-        )
-        return [own, *TargetFilter.departures(settings, scenario)]
-
-    @classmethod
-    def build(cls, settings: MPCSettings, blend: float = 0.0, planner: Planner | None = None) -> SampledTerminal:
-        assert planner is not None  # refusal() names it
-        design = TerminalDesign(blend, None if settings.track is None else (settings.track,))
-        return cls(planner, design, soft=settings.mode == "soft", backend=settings.backend)
-
-    def reset(self, scenario: Scenario, problem: Problem) -> None:
-        """Forget the previous plan, price states of ``problem`` and solve its REL plan (its remaining stage cost
-        from every step: the REL samples' costs; no REL sample where the solve fails)."""
-        super().reset(scenario, problem)
-        self.values.reset(scenario, problem)
-        self._end, self._end_stop = None, -1
-        rel = solve_rel(scenario, problem, backend=self.backend)
-        togo = np.append(np.cumsum(scenario.stage_cost(rel.U)[::-1])[::-1], 0.0)  # Σ c(u_j), j >= k
-        self._rel = (rel.X, togo) if rel.success else None
-
-    def __call__(self, scenario: Scenario, window: Window, X: np.ndarray) -> TerminalCost | None:
-        end, end_stop = self._end, self._end_stop
-        pulled = super().__call__(scenario, window, X)
-        if pulled is None:
-            self._end = None
-            return None
-        k, value = window.stop, self.values.at(window.stop)
-        self._end, self._end_stop = X[-1].copy(), k
-        states, costs = [pulled.target], [value(pulled.target)]
-        if self._rel is not None:
-            states.append(self._rel[0][k])
-            costs.append(float(self._rel[1][k]))
-        if end is not None and end_stop == k - 1 and len(X) >= 2:
-            moved = end + X[-1] - X[-2]
-            states.append(moved)
-            costs.append(value(moved))
-        fill = SAMPLES - len(states)
-        weight = scenario.mpc.fuel if self.soft else 1.0
-        samples = np.stack(states + [states[0]] * fill)
-        return TerminalCost(
-            pulled.target, pulled.weights, samples=samples, sample_costs=weight * np.array(costs + [costs[0]] * fill)
-        )
-
-
 TERMINALS: dict[str, type[TerminalTerm]] = {
-    kind.name: kind for kind in (TargetFilter, ValueTerminal, ValueOnlyTerminal, SampledTerminal)
+    kind.name: kind for kind in (TargetFilter, ValueTerminal, ValueOnlyTerminal)
 }
 
 

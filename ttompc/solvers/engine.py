@@ -221,7 +221,6 @@ def _subproblem_solver(
         state_scale=tuple(sc.state_scale),
         control_scale=tuple(sc.control_scale),
         model_masks=SubproblemSpec.model_signature(model),
-        samples=0 if terminal is None or terminal.samples is None else len(terminal.samples),
     )
     solver = get_solver(spec, backend, sc)
     solver.restart()
@@ -261,19 +260,14 @@ def _subproblem_data(
         terminal_target=None if norm is None else norm.target,
         terminal_weights=None if norm is None else norm.weights,
         terminal_cost=local,
-        terminal_samples=None if terminal is None else terminal.samples,
-        terminal_sample_costs=None if terminal is None else terminal.sample_costs,
     )
 
 
 def _terminal_kind(terminal: TerminalCost | None) -> str:
-    """The subproblem's terminal structure: "hard" (x_N = goal), "sampled" (the 2-norm term's cone measured from
-    the hull of the term's samples, ``subproblem_terminal``), "soft" (the 2-norm term's cone, with a cost-to-go model
-    where the term has a value) or "value" (the cost-to-go model alone)."""
+    """The subproblem's terminal structure: "hard" (x_N = goal), "soft" (the 2-norm term's cone, with a cost-to-go
+    model where the term has a value) or "value" (the cost-to-go model alone)."""
     if terminal is None:
         return "hard"
-    if terminal.samples is not None:
-        return "sampled"
     return "soft" if terminal.has_norm else "value"
 
 

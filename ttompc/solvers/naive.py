@@ -53,11 +53,6 @@ class NaiveCvxpySolver:
                 cons.append(x[H] - s == data.goal)
             else:
                 cons.append(x[H] == data.goal)
-        elif spec.terminal == "sampled":  # the end state measured from the samples' hull, at its combined cost
-            lam = cp.Variable(spec.samples, nonneg=True)
-            cons.append(cp.sum(lam) == 1)
-            hull = np.asarray(data.terminal_samples).T @ lam
-            cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - hull), 2) + data.terminal_sample_costs @ lam
         else:
             cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - data.terminal_target), 2)
         for block in data.blocks:

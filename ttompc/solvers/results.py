@@ -12,7 +12,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ttompc.scenarios.base import Window
-from ttompc.solvers.sample_hull import hull_cost
 
 
 class SCPStatus(str, enum.Enum):
@@ -99,46 +98,18 @@ class TerminalValue(Protocol):
 class TerminalCost:
     """Soft terminal term replacing the terminal equality (MPC): ‖diag(weights) (x_{t+H} − target)‖₂ (the paper's;
     all-zero weights: none) plus, where given, a cost-to-go ``value`` J(x_{t+H}) that each SCP iteration models by
-    its local quadratic about the iteration's reference (``TerminalValue``).
-
-    With ``samples`` Z (K, n) and their costs-to-go ``sample_costs`` c (K,), the sampled terminal set of LMPC: the
-    2-norm measures from the samples' convex hull instead of from the target, at the combined cost of the hull point,
-    min over λ ≥ 0, 1ᵀλ = 1 of ‖diag(weights)(x_{t+H} − Zᵀλ)‖₂ + cᵀλ (``sample_hull``; the window's subproblem
-    carries λ as variables). The target is then not part of the term; it stays what the provider planned to reach
-    (what reports read). A sampled term takes no ``value``."""
+    its local quadratic about the iteration's reference (``TerminalValue``)."""
 
     target: np.ndarray  # (n,)
     weights: np.ndarray  # (n,); a scalar given to the constructor weighs every state alike
     value: TerminalValue | None
-    samples: np.ndarray | None  # (K, n) the sampled terminal set's states; None: the target's term
-    sample_costs: np.ndarray | None  # (K,) their costs-to-go, in the window objective's units
 
-    def __init__(
-        self,
-        target: ArrayLike,
-        weights: ArrayLike,
-        value: TerminalValue | None = None,
-        samples: ArrayLike | None = None,
-        sample_costs: ArrayLike | None = None,
-    ) -> None:
+    def __init__(self, target: ArrayLike, weights: ArrayLike, value: TerminalValue | None = None) -> None:
         object.__setattr__(self, "target", np.asarray(target, dtype=np.float64))
         object.__setattr__(self, "weights", np.broadcast_to(np.asarray(weights, float), self.target.shape))
         object.__setattr__(self, "value", value)
         if value is None and not self.weights.any():
             raise ValueError("a terminal cost needs weights > 0 or a value")
-        if (samples is None) != (sample_costs is None):
-            raise ValueError("a sampled terminal set needs both its samples and their costs")
-        Z = None if samples is None else np.atleast_2d(np.asarray(samples, dtype=np.float64))
-        c = None if sample_costs is None else np.atleast_1d(np.asarray(sample_costs, dtype=np.float64))
-        if Z is not None and c is not None:
-            if Z.shape[1:] != self.target.shape or c.shape != (len(Z),) or not len(Z):
-                raise ValueError(
-                    f"samples {Z.shape} and costs {c.shape} do not fit a state of shape {self.target.shape}"
-                )
-            if value is not None:
-                raise ValueError("a sampled terminal set takes no cost-to-go value")
-        object.__setattr__(self, "samples", Z)
-        object.__setattr__(self, "sample_costs", c)
 
     @property
     def has_norm(self) -> bool:
@@ -147,7 +118,5 @@ class TerminalCost:
 
     def __call__(self, x: np.ndarray) -> float:
         """The term's value at the window's last state ``x``."""
-        if self.samples is not None and self.sample_costs is not None:
-            return hull_cost(np.asarray(x), self.weights, self.samples, self.sample_costs)
         norm = float(np.linalg.norm(self.weights * (np.asarray(x) - self.target)))
         return norm if self.value is None else norm + self.value(np.asarray(x))

@@ -2,10 +2,9 @@
 
     min  ½ zᵀPz + qᵀz   s.t.  A z + s = b,  s ∈ {0}ⁿᶻ × ℝ₊ⁿⁿ × Q^{d₁} × … × Q^{dₖ}      (Clarabel's standard form)
 
-z stacks the window states X (H+1, n), controls U (H, m), the cost epigraph variables, the slacks and the weights
-λ of a sampled terminal set. The matrix *structure* (sparsity, cone sizes) depends only on a key — window length,
-cost norm, formulation, trust-region norm, terminal mode (its section: ``subproblem_terminal``) and the
-shapes/steps of the scenario's constraint blocks — so it is built once per key and cached;
+z stacks the window states X (H+1, n), controls U (H, m), the cost epigraph variables and the slacks. The matrix
+*structure* (sparsity, cone sizes) depends only on a key — window length, cost norm, formulation, trust-region norm,
+terminal mode and the shapes/steps of the scenario's constraint blocks — so it is built once per key and cached;
 each SCP iteration only rewrites the numeric values (dynamics A_k/B_k/c_k, linearised rows, trust-region centre
 and radius, targets) through precomputed index maps. No modelling layer runs inside the loop.
 """
@@ -19,7 +18,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, units_of
-from ttompc.solvers.subproblem_terminal import terminal_rows, terminal_sources
 
 
 class QuadraticTerminalCost(NamedTuple):
@@ -45,9 +43,6 @@ class SubproblemData:
     terminal_weights: np.ndarray | None  # (n,) diagonal of P
     # added to the objective; read by the riccati backend only (``StageQP.build``): the other backends ignore it
     terminal_cost: QuadraticTerminalCost | None = None
-    # the sampled terminal set (terminal "sampled", ``subproblem_terminal``): its states (K, n), their costs (K,)
-    terminal_samples: np.ndarray | None = None
-    terminal_sample_costs: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -62,9 +57,7 @@ class SubproblemSpec:
     penalized: bool
     virtual_control: bool  # ν on the dynamics rows ``vc_rows`` (empty: all rows), with an exact L1 penalty
     trust: str  # "l2", "linf" or "none"
-    # "hard", "soft" (the 2-norm term's cone), "sampled" (LMPC's sampled set) or "value" (a cost-to-go model alone:
-    # riccati only); ``subproblem_terminal``
-    terminal: str
+    terminal: str  # "hard", "soft" (the 2-norm term's cone) or "value" (a cost-to-go model alone: riccati only)
     soft_equalities: bool
     penalty: float
     blocks: tuple[tuple[Any, ...], ...]
@@ -73,7 +66,6 @@ class SubproblemSpec:
     control_scale: tuple[float, ...] = ()
     model_masks: tuple[tuple[bool, ...], tuple[bool, ...]] | None = None  # flattened A/B masks (None: dense)
     vc_rows: tuple[int, ...] = ()
-    samples: int = 0  # K, the λ variables of a "sampled" terminal
 
     def units(self) -> tuple[np.ndarray, np.ndarray]:
         """The state and control units of the non-dimensionalised variables (ones where no scale is given)."""
@@ -146,7 +138,7 @@ class AssembledSubproblem:
         self.soc_groups: list[_Group] = []
         # in this order: it fixes the variables' and rows' indices
         self._dynamics(zero, nonneg, q_parts)
-        self.iterminal = terminal_rows(self, zero, nonneg, q_parts)  # τ, then λ of a sampled set
+        self._terminal(zero, nonneg, q_parts)
         self._stage_cost(nonneg, q_parts)
         for bi, sig in enumerate(spec.blocks):
             self._block(bi, sig, zero, nonneg, q_parts)
@@ -182,6 +174,31 @@ class AssembledSubproblem:
             self._entries(zero, rdyn[:, rows].ravel(), nu_m, ("const", np.ones(k)))
             self._nonneg_vars(nonneg, np.concatenate([nu_p, nu_m]))
             q_parts.append((np.concatenate([nu_p, nu_m]), spec.penalty))
+
+    def _terminal(self, zero: _Group, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]) -> None:
+        """x_H = goal (penalised in that formulation), or the soft terminal term's cone."""
+        spec = self.spec
+        H, n = spec.H, spec.n
+        # terminal condition
+        if spec.terminal == "hard":
+            r = zero.add_rows(n)
+            self._entries(zero, r, self.ix[H], ("const", np.ones(n)))
+            zero.b.append((r, ("goal", np.arange(n), 1.0)))
+            if spec.penalized:
+                sp_, sm_ = self._var(n), self._var(n)
+                self._entries(zero, r, sp_, ("const", -np.ones(n)))
+                self._entries(zero, r, sm_, ("const", np.ones(n)))
+                self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
+                q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
+        elif spec.terminal == "value":
+            raise ValueError("the conic path takes no terminal cost-to-go model yet: use backend='auto' (riccati)")
+        else:  # τ ≥ ‖W (x_H − x̄)‖₂
+            tau = self._var(1)
+            g = self._soc(1 + n)
+            self._entries(g, np.array([0]), tau, ("const", -np.ones(1)))
+            self._entries(g, np.arange(1, n + 1), self.ix[H], ("data", ("terminal_weights", np.arange(n), -1.0)))
+            g.b.append((np.arange(1, n + 1), ("weighted_target", np.arange(n), -1.0)))
+            q_parts.append((tau, 1.0))
 
     def _stage_cost(self, nonneg: _Group, q_parts: list[tuple[np.ndarray, float]]) -> None:
         """The stage cost's epigraph (L1, L2); a quadratic one has none (it is in P)."""
@@ -403,7 +420,9 @@ class AssembledSubproblem:
             "X_ref": np.ascontiguousarray(data.X_ref).ravel(),
             "delta": np.array([data.delta]),
         }
-        src.update(terminal_sources(data))
+        if data.terminal_weights is not None and data.terminal_target is not None:
+            src["terminal_weights"] = data.terminal_weights
+            src["weighted_target"] = data.terminal_weights * data.terminal_target
         for bi, block in enumerate(data.blocks):
             src[f"G{bi}x"] = np.ascontiguousarray(block.Gx).ravel()
             if block.Gu is not None:

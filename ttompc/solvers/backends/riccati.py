@@ -53,9 +53,7 @@ MAX_ITER = 100
 
 def supports(spec: SubproblemSpec) -> bool:
     """The stage-wise form needs soft (penalised) equalities and terminal condition: the kernel has no equality
-    rows besides the dynamics. Its one cone is an MPC window's soft terminal term ‖W(x_H − x̄)‖₂; not a sampled
-    terminal set's (terminal "sampled"), whose λ couple the last stage to variables outside the stages and to an
-    equality row, so the chain passes those windows to the conic solvers."""
+    rows besides the dynamics. Its one cone is an MPC window's soft terminal term ‖W(x_H − x̄)‖₂."""
     if not spec.penalized:
         return False
     soft_end = spec.terminal in ("soft", "value")  # the 2-norm term's cone, or a cost-to-go model alone
