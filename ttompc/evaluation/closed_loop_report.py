@@ -139,7 +139,7 @@ def format_table(summary: list[dict[str, Any]]) -> str:
             f"| {r['plant']} | {r['method']} | {r['horizon']} | {r['feasible']}/{r['runs']} "
             f"| {format_interval(r['rel_increment'], 100)} | {paired} | {paper} | {share} "
             f"| {format_interval(r['infeasible_terminal_error'], 1, 2)} | {r['target_change']['mean']:.3g} "
-            f"| {r['mean_step_time'] * 1e3:.0f} / {r['max_step_time'] * 1e3:.0f} "
+            f"| {r['mean_step_time'] * 1e3:.3g} / {r['max_step_time'] * 1e3:.3g} "
             f"| {r['mean_iterations_solved']:.2f} |"
         )
     for plant in dict.fromkeys(r["plant"] for r in summary):
