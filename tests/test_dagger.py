@@ -83,7 +83,7 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
 ) -> None:
     """DAgger's rollouts run under the resolved settings of dagger.eval (the end horizon must reach the rollouts,
     not only the measurement): both controllers get them whole, the learner's windows follow the end
-    horizon; real-time iteration, which they cannot run, is refused in one line before anything runs."""
+    horizon; a decode schedule, which they cannot run, is refused in one line before anything runs."""
     import ttompc.finetune.collect as collect
     import ttompc.mpc.loop as loop_module
     from ttompc.cli import main
@@ -108,13 +108,50 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
     assert sorted(seen, key=lambda hs: hs[0]) == [(5, settings), (sc.n_steps, settings)]  # the learner, the expert
     learner = real(sc, sc.sample(np.random.default_rng(0)), object(), 5, settings)  # type: ignore[arg-type]
     assert learner.window(sc.n_steps - 30).length == 30 and learner.window(0).length == 5
-    with pytest.raises(ConfigError, match="rti=true"):
-        collect.collect_rollouts(sc, planner, 0, [0], 5, explore, settings=MPCSettings(rti=True))
+    with pytest.raises(ConfigError, match="decode_every=2"):
+        collect.collect_rollouts(sc, planner, 0, [0], 5, explore, settings=MPCSettings(decode_every=2))
     recipe = str(RECIPES / "freeflyer" / "finetune.yaml")
     capsys.readouterr()  # what the rollout above printed (e.g. the solver kernel's status line) is not the command's
-    assert main(["finetune", recipe, "--model", "no-such-model", "dagger.eval.mpc.rti=true"]) == 2
+    assert main(["finetune", recipe, "--model", "no-such-model", "dagger.eval.mpc.decode_every=2"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "rti=true" in err and "dagger.eval.mpc.rti=false" in err, err
+    assert err.count("\n") == 1 and "decode_every=2" in err and "dagger.eval.mpc.decode_every=1" in err, err
+
+
+def test_rollouts_run_real_time_iteration_for_the_learner_and_converge_the_expert(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Under ``rti=true`` the learner's windows after its first step are one subproblem each (plan reuse aside),
+    while the expert, whose plans are the labels, still solves every plan to convergence."""
+    import ttompc.finetune.collect as collect
+    import ttompc.mpc.loop as loop_module
+
+    sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
+    settings: dict[str, MPCSettings] = {}
+    plans: dict[str, list[tuple[int, bool]]] = {"learner": [], "expert": []}
+
+    def spy(cls, who):  # type: ignore[no-untyped-def]
+        class Spy(cls):  # type: ignore[misc, valid-type]
+            def __init__(self, scenario, problem, provider, horizon, s):  # type: ignore[no-untyped-def]
+                super().__init__(scenario, problem, provider, horizon, s)
+                settings[who] = s
+
+            def plan(self, t, x):  # type: ignore[no-untyped-def]
+                p = super().plan(t, x)
+                plans[who].append((p.iterations, p.converged))
+                return p
+
+        return Spy
+
+    monkeypatch.setattr(collect, "_ExpertController", spy(collect._ExpertController, "expert"))
+    monkeypatch.setattr(loop_module, "MPCController", spy(loop_module.MPCController, "learner"))
+    explore = ExplorationConfig(horizons=[5], windows=[0, 0])
+    rows = collect.collect_rollout(
+        sc, planner, 0, 1, 5, explore, LabelConfig(kind="plan", per_rollout=3), settings=MPCSettings(rti=True)
+    )
+    assert settings["learner"].rti and not settings["expert"].rti
+    assert len(plans["learner"]) == sc.n_steps and len(plans["expert"]) == 3 and len(rows) == 3
+    assert plans["learner"][0][0] >= 1 and all(it <= 1 for it, _ in plans["learner"][1:]), plans["learner"]
+    assert all(converged for _, converged in plans["expert"]), plans["expert"]
 
 
 @pytest.mark.parametrize(

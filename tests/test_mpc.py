@@ -304,7 +304,7 @@ class _Windows:
     """A provider that records the windows it is asked for (wraps another)."""
 
     def __init__(self, inner) -> None:
-        self.inner, self.name, self.windows = inner, inner.name, []
+        self.inner, self.name, self.learned, self.windows = inner, inner.name, inner.learned, []
 
     def reset(self, scenario, problem, rel_cost) -> None:
         self.inner.reset(scenario, problem, rel_cost)
@@ -779,6 +779,31 @@ def test_rti_solves_one_subproblem_per_step_from_the_shifted_solution(
     np.testing.assert_allclose(sc.rollout(problem, rti.U), rti.X, atol=1e-9)  # the applied controls, executed
 
 
+def test_rti_model_scope_runs_the_learned_windows_only(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``rti="model"``: the controller of a learned provider (TTO-MPC) runs real-time iteration after its first
+    step, a baseline's (REL-MPC) solves every window to convergence, and each episode records which it ran; the
+    settings refuse any other scope."""
+    sc, problem, rel, _ = setup
+    limits: dict[str, list[int | None]] = {"REL-MPC": [], "TTO-MPC": []}
+    real = loop_module.solve_scp
+    name = ""
+
+    def spy(scp, X, U, options):
+        limits[name].append(None if options.settings is None else options.settings.max_iters)
+        return real(scp, X, U, options)
+
+    monkeypatch.setattr(loop_module, "solve_scp", spy)
+    s = MPCSettings(rti="model", reuse=False)
+    episodes = {}
+    for name, provider in (("REL-MPC", RELProvider()), ("TTO-MPC", TTOProvider(mpc_fakes.tiny_planner()))):
+        episodes[name] = run_mpc(sc, problem, provider, 10, rel_cost=rel.cost, settings=s, max_steps=6)
+    assert not episodes["REL-MPC"].rti and limits["REL-MPC"] == [None] * 6
+    assert episodes["TTO-MPC"].rti and limits["TTO-MPC"] == [None] + [1] * 5
+    assert s.rti_for(learned=True) and not s.rti_for(learned=False) and MPCSettings(rti=True).rti_for(False)
+    with pytest.raises(ValueError, match="rti must be one of"):
+        MPCSettings(rti="sometimes")
+
+
 class _Clock:
     """A fake ``perf_counter``: time moves only when a test provider says so."""
 
@@ -794,7 +819,7 @@ class _Timed:
     the fake clock, reporting ``shared`` as work shared with other episodes (None: it shares none)."""
 
     def __init__(self, inner, clock: _Clock, warm: float, own: float, shared: float | None) -> None:
-        self.inner, self.name, self.clock = inner, inner.name, clock
+        self.inner, self.name, self.learned, self.clock = inner, inner.name, inner.learned, clock
         self.warm, self.own, self.shared = warm, own, shared
 
     def reset(self, scenario, problem, rel_cost) -> None:

@@ -38,6 +38,7 @@ rollout).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Sequence
@@ -277,10 +278,13 @@ def collect_rollouts(
     batched transformer context (``RolloutGroup``: one batched rollout per step), so a rollout's learner plans equal
     its lone run's up to the rounding of the batch; the expert acts beside them (``_Expert``). Both controllers run
     under ``settings`` (default: the paper's), which ``check_rollout_settings`` refuses where the rollouts cannot
-    honour them (real-time iteration, a terminal term or rtg mode they cannot run): mode, backend and plan reuse
+    honour them (a decode schedule, a terminal term or rtg mode they cannot run): mode, backend and plan reuse
     (without reuse the labels are the same) for both; for the learner (its H drawn by the exploration, Alg. 1) also
-    the end horizon, the terminal term with its tracking weight and the rtg mode (the one its model runs,
-    ``ttompc.mpc.rtg``). The expert's windows always reach the end, where those three do not apply. A share
+    the end horizon, the terminal term with its tracking weight, the rtg mode (the one its model runs,
+    ``ttompc.mpc.rtg``) and real-time iteration (one subproblem per step from its own previous solution; a full
+    solve after the expert acted, as after any step whose executed control was not its plan's). The expert's
+    windows always reach the end, where those three do not apply, and always solve to convergence (its labels are
+    optima, whatever ``rti`` says). A share
     ``perturbed`` of the rollouts runs on the perturbed plant (``rollout_plant``): both controllers plan from its
     measured states, the expert labels them."""
     labels = labels or LabelConfig()
@@ -288,6 +292,7 @@ def collect_rollouts(
     check_rollout_settings(s)
     if not indices:
         return []
+    expert_settings = dataclasses.replace(s, rti=False)  # the labels are optima: the expert's solves converge
     method = model_method("TTO", robust_blend > 0)
     learners = _tto(method.providers(MethodInputs(s, [None] * len(indices), planner, robust_blend)))
     rollouts, starts = [], []
@@ -300,7 +305,7 @@ def collect_rollouts(
         expert_steps = expert_schedule(rng, N, exploration)
         labelled = label_schedule(rng, N, labels.per_rollout, labels.late) | expert_steps
         shift = ShiftProvider()
-        expert = _ExpertController(scenario, problem, shift, N, s)
+        expert = _ExpertController(scenario, problem, shift, N, expert_settings)
         plant = rollout_plant(scenario, seed, perturbed).noise
         rollouts.append(_Rollout(index, seed, problem, rel, H, expert_steps, labelled, plant, shift, expert))
         starts.append(EpisodeStart(problem, rel.cost, seed, horizon=H, plant=plant))

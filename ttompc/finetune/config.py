@@ -110,8 +110,6 @@ class CollectConfig:
 # MPCSettings values DAgger's rollouts cannot run (``check_rollout_settings``), each with why: the value they run
 # and the reason (measure the others with `ttompc evaluate mpc`)
 ROLLOUT_FIXED: dict[str, tuple[Any, str]] = {
-    # the expert's labels are optima
-    "rti": (False, "they solve every window to convergence"),
     # the learners, asking windows of their own H, share one decode schedule: a rollout's plans would depend on the
     # other rollouts of its batch, not be its lone run's
     "decode_every": (1, "their learners decode at every step"),

@@ -35,12 +35,13 @@ Two ways a step does less than SCP to convergence from the provider's warm start
   subproblem), so the step applies it without calling the provider or the solver (``StepPlan.reused``). This
   happens on an exact plant in the last windows (all of them with ``end_horizon``) and for the DAgger expert after
   the steps it acted in.
-* *Real-time iteration* (``rti=True``, opt-in, a departure from the paper, which solves every window to
-  convergence): as acados' RTI, one SCP subproblem per step, linearised at this controller's previous solution
-  shifted by one step (its missing last step from the provider's warm start; X[0] = the measured state), with the
-  provider's terminal target. The first step is solved to convergence. The subproblem's solution is applied even
-  when its nonlinear violation exceeds the SCP's tolerance (the next step corrects it); only a solver failure falls
-  back. Measured against convergence in docs/evaluation.md.
+* *Real-time iteration* (``rti=True``, or ``"model"`` for the controllers of learned providers only,
+  ``Provider.learned``; a departure from the paper, which solves every window to convergence): as acados' RTI, one
+  SCP subproblem per step, linearised at this controller's previous solution shifted by one step (its missing last
+  step from the provider's warm start; X[0] = the measured state), with the provider's terminal target. The first
+  step is solved to convergence. The subproblem's solution is applied even when its nonlinear violation exceeds the
+  SCP's tolerance (the next step corrects it); only a solver failure falls back. Measured against convergence in
+  docs/evaluation.md.
 
 The plant is ``ttompc.mpc.plant.Plant``: the exact dynamics, optionally with seeded actuation error and process
 noise (``PlantNoise``). An episode's record and feasibility: ``ttompc.mpc.episode``.
@@ -97,6 +98,7 @@ class MPCController:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         self.scenario, self.problem, self.provider, self.horizon = scenario, problem, provider, horizon
         self.settings = settings or MPCSettings()
+        self.rti = self.settings.rti_for(provider.learned)  # real-time iteration in this controller's windows
         self._scale = scenario.state_units()
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
         self._last: StepPlan | None = None  # the plan this controller made at the previous step
@@ -171,7 +173,7 @@ class MPCController:
                 f"{self.provider.name}: warm start shapes {ws.X.shape}, {ws.U.shape} do not fit window {window}"
             )
         X0, U0, settings = ws.X, ws.U, None
-        rti = self.settings.rti and self._own is not None
+        rti = self.rti and self._own is not None
         if rti:
             X0, U0 = self._rti_start(window, ws.X, ws.U)
             settings = dataclasses.replace(self.scenario.scp, max_iters=1)
@@ -346,7 +348,8 @@ def run_mpc_batch(
                 trace.observed[t + 1] = charge
         if on_step is not None:
             on_step()
+    rows = zip(traces, starts, providers, horizons, noises, ctrls, strict=True)
     return [
-        trace.episode(scenario, start.problem, provider.name, horizon, start.rel_cost, noise, run.settings.rti)
-        for trace, start, provider, horizon, noise in zip(traces, starts, providers, horizons, noises, strict=True)
+        trace.episode(scenario, start.problem, provider.name, horizon, start.rel_cost, noise, ctrl.rti)
+        for trace, start, provider, horizon, noise, ctrl in rows
     ]

@@ -49,6 +49,7 @@ class Provider(Protocol):
     """What the MPC loop asks of a warm-start method."""
 
     name: str
+    learned: bool  # plans from a learned model (TTO-MPC): the windows ``MPCSettings.rti == "model"`` runs RTI in
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         """Start an episode; ``rel_cost`` is J_REL of the open-loop REL solution (TTO conditioning)."""
@@ -99,6 +100,7 @@ class RELProvider:
     (weight ``mpc.terminal``, the paper's)."""
 
     name = "REL-MPC"
+    learned = False
 
     def __init__(self, backend: str = "auto") -> None:
         self.backend = backend
@@ -126,6 +128,7 @@ class DISTProvider:
     """DIST-MPC: REL on the window only, terminal cost ‖diag(dist)(x_{t+H} − goal)‖₂ (no look-ahead)."""
 
     name = "DIST-MPC"
+    learned = False
 
     def __init__(self, backend: str = "auto") -> None:
         self.backend = backend
@@ -154,6 +157,7 @@ class ShiftProvider:
     """The previous plan shifted by one step (DAgger expert); the first plan comes from ``reset_plan``."""
 
     name = "SHIFT"
+    learned = False
 
     def __init__(self) -> None:
         self.X: np.ndarray | None = None
@@ -183,6 +187,8 @@ class PlanProvider:
     """PLAN-ONCE: a fixed full-horizon plan (given, or the open-loop SCP optimum solved at t = 0) as warm start and
     terminal target of every window through ``terminal`` (None: the paper's target). ``window_plan`` is the plan a
     window gets (``bench/tto_mpc_robustness.py`` perturbs it: the noisy oracle)."""
+
+    learned = False
 
     def __init__(
         self,
@@ -268,6 +274,7 @@ class OracleProvider:
     (None: the paper's target) — what a perfect model could give. ``replans`` counts its re-solves."""
 
     name = "ORACLE-MPC"
+    learned = False
 
     def __init__(
         self,

@@ -33,6 +33,8 @@ PRESETS = Path(__file__).with_name("presets")
 # plan reuse: the measured state is the own plan's prediction within this many state_scale units (∞-norm). On an
 # exact plant the two differ by the subproblem solver's residual of the dynamics rows (about 1e-9 here).
 REUSE_TOL = 1e-6
+# real-time iteration: in no window, in every controller's, or in the learned methods' only (MPCSettings.rti)
+RTI_SCOPES: tuple[bool | str, ...] = (False, True, "model")
 
 
 @dataclass
@@ -44,7 +46,10 @@ class MPCSettings:
     plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``terminal``:
     the kind of their terminal term (``ttompc.mpc.terminal.TERMINALS``). ``rtg_mode``: the reward-to-go TTO-MPC feeds
     in closed loop (``ttompc.mpc.rtg.RTG_MODES``). ``reuse``: plan reuse in windows that reach the end (same
-    results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step.
+    results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step: True in every
+    controller's windows, ``"model"`` in the windows of the methods that plan from a learned model only (TTO-MPC and
+    its variants, ``Provider.learned``; the baselines REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC then solve every
+    window to convergence, as the paper's), False in none.
     ``decode_every``: TTO-MPC decodes a plan from its model every k steps and serves the windows in between from
     slices of it (``ttompc.mpc.tto.RolloutGroup``; 1: the paper's, a decode at every step). ``backend``: the
     QP/cone backend of every solve (``ttompc.solvers.backends``)."""
@@ -55,7 +60,7 @@ class MPCSettings:
     terminal: str = "target"
     rtg_mode: str = "running"
     reuse: bool = True
-    rti: bool = False
+    rti: bool | str = False  # False, True or "model" (RTI_SCOPES)
     decode_every: int = 1
     backend: str = "auto"
 
@@ -70,11 +75,17 @@ class MPCSettings:
             raise ValueError(f"terminal must be one of {list(TERMINALS)}, got {self.terminal!r}")
         if self.rtg_mode not in RTG_MODES:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
+        if self.rti not in RTI_SCOPES:
+            raise ValueError(f"rti must be one of {RTI_SCOPES}, got {self.rti!r}")
         if self.decode_every < 1:
             raise ValueError(
                 f"decode_every must be >= 1 (TTO-MPC decodes a plan every k MPC steps; 1: at every step), got "
                 f"{self.decode_every}"
             )
+
+    def rti_for(self, learned: bool) -> bool:
+        """Whether a controller whose provider plans from a learned model (``learned``) runs real-time iteration."""
+        return self.rti is True or (self.rti == "model" and learned)
 
     @property
     def reuse_tol(self) -> float | None:
@@ -95,9 +106,10 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
     if settings.mode != "soft":
         out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
     if settings.rti:
+        whose = "the learned methods' windows (the baselines converge)" if settings.rti == "model" else "every window"
         out.append(
-            "real-time iteration: one SCP subproblem per MPC step from the previous solution shifted (the paper "
-            "solves every window to convergence)"
+            f"real-time iteration in {whose}: one SCP subproblem per MPC step from the previous solution shifted (the "
+            "paper solves every window to convergence)"
         )
     if settings.decode_every > 1:
         out.append(

@@ -56,6 +56,8 @@ class TTOProvider:
     Inside a window the rollout still adds the model's own planned costs to the fed value (the rollout's rule).
     ``use_cache`` configures the provider's own group; a given ``group`` has its own."""
 
+    learned = True
+
     def __init__(
         self,
         planner: Planner,
