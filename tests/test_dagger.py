@@ -16,6 +16,7 @@ from ttompc.data.distributed import RankInfo
 from ttompc.finetune import finetune, improves
 from ttompc.finetune.collect import collect_iteration, expert_schedule, rollout_folder
 from ttompc.finetune.config import ExplorationConfig, FinetuneConfig, LabelConfig, load_finetune_config
+from ttompc.mpc.providers import ShiftProvider
 from ttompc.mpc.settings import MPCSettings
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import get_scenario
@@ -106,7 +107,7 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
     explore = ExplorationConfig(horizons=[5], windows=[0, 0])
     collect.collect_rollout(sc, planner, 0, 1, 5, explore, LabelConfig(kind="step", per_rollout=1), settings=settings)
     assert sorted(seen, key=lambda hs: hs[0]) == [(5, settings), (sc.n_steps, settings)]  # the learner, the expert
-    learner = real(sc, sc.sample(np.random.default_rng(0)), object(), 5, settings)  # type: ignore[arg-type]
+    learner = real(sc, sc.sample(np.random.default_rng(0)), ShiftProvider(), 5, settings)
     assert learner.window(sc.n_steps - 30).length == 30 and learner.window(0).length == 5
     with pytest.raises(ConfigError, match="decode_every=2"):
         collect.collect_rollouts(sc, planner, 0, [0], 5, explore, settings=MPCSettings(decode_every=2))
