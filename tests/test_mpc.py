@@ -31,6 +31,7 @@ from ttompc.mpc import (
     run_mpc_batch,
 )
 from ttompc.mpc.episode import target_change
+from ttompc.mpc.settings import protocol_settings
 from ttompc.mpc.terminal import TargetFilter
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import Window
@@ -781,8 +782,8 @@ def test_rti_solves_one_subproblem_per_step_from_the_shifted_solution(
 
 def test_rti_model_scope_runs_the_learned_windows_only(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
     """``rti="model"``: the controller of a learned provider (TTO-MPC) runs real-time iteration after its first
-    step, a baseline's (REL-MPC) solves every window to convergence, and each episode records which it ran; the
-    settings refuse any other scope."""
+    step, a baseline's (REL-MPC) solves every window to convergence, and each episode records which it ran;
+    ``rti=None`` (the recommended preset) takes the scenario's measured scope; the settings refuse any other."""
     sc, problem, rel, _ = setup
     limits: dict[str, list[int | None]] = {"REL-MPC": [], "TTO-MPC": []}
     real = loop_module.solve_scp
@@ -799,7 +800,12 @@ def test_rti_model_scope_runs_the_learned_windows_only(setup: tuple, monkeypatch
         episodes[name] = run_mpc(sc, problem, provider, 10, rel_cost=rel.cost, settings=s, max_steps=6)
     assert not episodes["REL-MPC"].rti and limits["REL-MPC"] == [None] * 6
     assert episodes["TTO-MPC"].rti and limits["TTO-MPC"] == [None] + [1] * 5
-    assert s.rti_for(learned=True) and not s.rti_for(learned=False) and MPCSettings(rti=True).rti_for(False)
+    quad = get_scenario("quadrotor")
+    assert s.rti_for(True, quad) and not s.rti_for(False, quad) and MPCSettings(rti=True).rti_for(False, quad)
+    own = MPCSettings(rti=None)  # the scenario's measured scope (the recommended preset's)
+    assert own.rti_scope(sc) == sc.mpc.rti == "model" and own.rti_for(True, sc) and not own.rti_for(False, sc)
+    assert own.rti_scope(quad) is False and not own.rti_for(True, quad)
+    assert protocol_settings("recommended").rti is None and protocol_settings("paper").rti is False
     with pytest.raises(ValueError, match="rti must be one of"):
         MPCSettings(rti="sometimes")
 

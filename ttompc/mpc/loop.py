@@ -98,7 +98,7 @@ class MPCController:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         self.scenario, self.problem, self.provider, self.horizon = scenario, problem, provider, horizon
         self.settings = settings or MPCSettings()
-        self.rti = self.settings.rti_for(provider.learned)  # real-time iteration in this controller's windows
+        self.rti = self.settings.rti_for(provider.learned, scenario)  # real-time iteration in its windows
         self._scale = scenario.state_units()
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
         self._last: StepPlan | None = None  # the plan this controller made at the previous step

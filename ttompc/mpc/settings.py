@@ -49,7 +49,8 @@ class MPCSettings:
     results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step: True in every
     controller's windows, ``"model"`` in the windows of the methods that plan from a learned model only (TTO-MPC and
     its variants, ``Provider.learned``; the baselines REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC then solve every
-    window to convergence, as the paper's), False in none.
+    window to convergence, as the paper's), False in none; None: the scenario's own scope (``mpc.rti``, measured per
+    scenario, as ``track``).
     ``decode_every``: TTO-MPC decodes a plan from its model every k steps and serves the windows in between from
     slices of it (``ttompc.mpc.tto.RolloutGroup``; 1: the paper's, a decode at every step). ``backend``: the
     QP/cone backend of every solve (``ttompc.solvers.backends``)."""
@@ -60,7 +61,7 @@ class MPCSettings:
     terminal: str = "target"
     rtg_mode: str = "running"
     reuse: bool = True
-    rti: bool | str = False  # False, True or "model" (RTI_SCOPES)
+    rti: bool | str | None = False  # False, True or "model" (RTI_SCOPES); None: the scenario's mpc.rti
     decode_every: int = 1
     backend: str = "auto"
 
@@ -75,7 +76,7 @@ class MPCSettings:
             raise ValueError(f"terminal must be one of {list(TERMINALS)}, got {self.terminal!r}")
         if self.rtg_mode not in RTG_MODES:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
-        if self.rti not in RTI_SCOPES:
+        if self.rti is not None and self.rti not in RTI_SCOPES:
             raise ValueError(f"rti must be one of {RTI_SCOPES}, got {self.rti!r}")
         if self.decode_every < 1:
             raise ValueError(
@@ -83,9 +84,18 @@ class MPCSettings:
                 f"{self.decode_every}"
             )
 
-    def rti_for(self, learned: bool) -> bool:
-        """Whether a controller whose provider plans from a learned model (``learned``) runs real-time iteration."""
-        return self.rti is True or (self.rti == "model" and learned)
+    def rti_scope(self, scenario: Scenario) -> bool | str:
+        """The real-time-iteration scope on ``scenario``: ``rti``, or the scenario's ``mpc.rti`` where it is None."""
+        scope = scenario.mpc.rti if self.rti is None else self.rti
+        if scope not in RTI_SCOPES:
+            raise ValueError(f"{scenario.name}: mpc.rti must be one of {RTI_SCOPES}, got {scope!r}")
+        return scope
+
+    def rti_for(self, learned: bool, scenario: Scenario) -> bool:
+        """Whether a controller on ``scenario`` whose provider plans from a learned model (``learned``) runs
+        real-time iteration."""
+        scope = self.rti_scope(scenario)
+        return scope is True or (scope == "model" and learned)
 
     @property
     def reuse_tol(self) -> float | None:
@@ -105,8 +115,9 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
     out += RTG_MODES[settings.rtg_mode].departures()
     if settings.mode != "soft":
         out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
-    if settings.rti:
-        whose = "the learned methods' windows (the baselines converge)" if settings.rti == "model" else "every window"
+    rti = settings.rti_scope(scenario)
+    if rti:
+        whose = "the learned methods' windows (the baselines converge)" if rti == "model" else "every window"
         out.append(
             f"real-time iteration in {whose}: one SCP subproblem per MPC step from the previous solution shifted (the "
             "paper solves every window to convergence)"

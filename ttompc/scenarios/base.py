@@ -182,6 +182,10 @@ class MPCWeights:
     (the marginal cost of moving x̄); below it the window leaves an optimal plan it is given. Measure the
     multipliers along the scenario's open-loop optima with ``bench/tracking_weight.py`` and set ``track`` above
     the largest (docs/evaluation.md, "Tracking weight").
+
+    ``rti``: the real-time-iteration scope that ``MPCSettings.rti = None`` (the ``recommended`` preset) resolves to
+    on this scenario (False, True or "model", ``ttompc.mpc.settings.RTI_SCOPES``): "model" where one SCP subproblem
+    per step was measured to keep the learned methods' closed-loop cost (docs/evaluation.md, "Real-time iteration").
     """
 
     fuel: float
@@ -190,6 +194,7 @@ class MPCWeights:
     dist: tuple[float, ...]
     waypoint: float = 1.0
     track: float | None = None
+    rti: bool | str = False
 
     @property
     def tracking(self) -> float:
