@@ -17,6 +17,7 @@ from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import SCPOptions, SCPProblem, TerminalCost, solve_problem, solve_scp
 from ttompc.solvers.backends import backend_chain, get_solver
 from ttompc.solvers.backends import riccati as riccati_module
+from ttompc.solvers.backends.conic import AssembledSolver
 from ttompc.solvers.backends.qp import PIQPSolver
 from ttompc.solvers.backends.riccati import RiccatiSolver, StageQP, supports
 from ttompc.solvers.backends.riccati_qp import (
@@ -273,7 +274,6 @@ def test_mpc_windows_soft_terminal_cone_matches_clarabel(name) -> None:
     objective of the conic assembly solved by Clarabel and of the independent cvxpy model, for a target the window
     reaches (the term is 0: an exact penalty), one slightly off and one far off (the term is active); the returned
     trajectory keeps the trust region."""
-    from ttompc.solvers.backends.conic import AssembledSolver
     from ttompc.solvers.naive import NaiveCvxpySolver
 
     sc, spec, data = qp_subproblem(name, 5, Window(20, 10, 100), True, True, delta=0.3)
@@ -342,13 +342,17 @@ def test_terminal_cost_model_through_the_stage_form(name) -> None:
     assert abs(sol.objective - sol0.objective) > 1e-3  # the model moves the optimum
 
 
-def test_no_fallback_for_a_terminal_cost_model(monkeypatch) -> None:
-    """The solvers behind the kernel do not read ``SubproblemData.terminal_cost``: a kernel failure is returned."""
-    spec, data, _ = _window_with_terminal_cost("freeflyer", 13)
+def test_fallback_for_a_terminal_cost_model(monkeypatch) -> None:
+    """The conic solvers behind the kernel read ``SubproblemData.terminal_cost`` too: a kernel failure goes to them,
+    and they reach the kernel's optimum."""
+    spec, data, sx = _window_with_terminal_cost("freeflyer", 13)
+    spec = dataclasses.replace(spec, terminal_value=True)
+    X_ref, _, ref = RiccatiSolver(spec).solve(data)
     monkeypatch.setattr(riccati_module, "MAX_ITER", 3)
-    X, U, sol = RiccatiSolver(spec, fallback=lambda: PIQPSolver(spec)).solve(data)
-    assert X is None and U is None and not sol.ok
-    assert sol.status.startswith("RICCATI_MAX_ITER") and "->" not in sol.status
+    X, _, sol = RiccatiSolver(spec, fallback=lambda: AssembledSolver(spec, ["clarabel"])).solve(data)
+    assert sol.ok and sol.status.startswith("RICCATI_MAX_ITER") and sol.status.endswith("-> Solved"), sol.status
+    assert X is not None and sol.objective == pytest.approx(ref.objective, rel=1e-6, abs=1e-7)
+    np.testing.assert_allclose(X[-1] / sx, X_ref[-1] / sx, atol=1e-5)
 
 
 def test_kernel_cache_is_keyed_on_all_its_sources() -> None:

@@ -27,7 +27,10 @@ ceilings.
 V(x_{t+H}, t+H) at the window's end state, alone or beside the target pull. The value output's ``gauss_newton`` form
 (``ttompc.policy.value``) gives J(x) = σ·½‖r(x)‖² with a positive semidefinite Gauss–Newton Hessian, so every SCP
 iteration of a window pays the convex quadratic model of J about its reference end state (``StepValue.expand``; the
-engine re-expands it per iteration), and the merit that accepts or rejects an iterate reads J itself.
+engine re-expands it per iteration), and the merit that accepts or rejects an iterate reads J itself. Every window
+takes it: the Riccati kernel (free-flyer, quadrotor) as its dense terminal block, QOCO and Clarabel (RPOD's conic
+windows, and any window sent to them) as a dense block in P with its linear term in q (``ttompc.solvers.objective``).
+What remains refused is a model whose value output has no curvature (``refusal``).
 
 Terminal index: the term penalises x_{t+H}, the state *after* the last window control (the window has H+1 states).
 The reference penalised x_{t+H−1}, the last state *before* the last control, which leaves the last control of every

@@ -221,6 +221,7 @@ def _subproblem_solver(
         state_scale=tuple(sc.state_scale),
         control_scale=tuple(sc.control_scale),
         model_masks=SubproblemSpec.model_signature(model),
+        terminal_value=terminal is not None and terminal.value is not None,
     )
     solver = get_solver(spec, backend, sc)
     solver.restart()
@@ -247,9 +248,9 @@ def _subproblem_data(
     terminal = scp.terminal
     norm = terminal if terminal is not None and terminal.has_norm else None
     local = None
-    if terminal is not None and terminal.value is not None:  # the cost-to-go's local model about the reference
-        e = terminal.value.expand(X_ref[-1])
-        local = QuadraticTerminalCost(hessian=e.hessian, gradient=e.gradient, center=np.array(X_ref[-1]))
+    if terminal is not None and terminal.value is not None:  # the cost-to-go's local model about the reference,
+        e, w = terminal.value.expand(X_ref[-1]), scp.fuel_weight  # weighted as the stage cost (``TerminalCost``)
+        local = QuadraticTerminalCost(hessian=w * e.hessian, gradient=w * e.gradient, center=np.array(X_ref[-1]))
     return SubproblemData(
         x_start=x_start,
         model=model,
@@ -273,9 +274,8 @@ def _terminal_kind(terminal: TerminalCost | None) -> str:
 
 def _merit(scp: SCPProblem, X: np.ndarray, U: np.ndarray, blocks: list[ConstraintBlock]) -> float:
     """Weighted stage cost + soft terminal term + soft equality penalties of a window trajectory."""
-    return (
-        scp.fuel_weight * scp.scenario.cost(U) + _terminal_term(X, scp.terminal) + _soft_eq_term(blocks, X, U, scp.soft)
-    )
+    terminal = 0.0 if scp.terminal is None else scp.terminal(X[-1], scp.fuel_weight)
+    return scp.fuel_weight * scp.scenario.cost(U) + terminal + _soft_eq_term(blocks, X, U, scp.soft)
 
 
 def _violation(scp: SCPProblem, X: np.ndarray, U: np.ndarray, blocks: list[ConstraintBlock]) -> float:
@@ -295,10 +295,6 @@ def _shapes(blocks: list[ConstraintBlock]) -> tuple:
 
 def _hard(block: ConstraintBlock) -> ConstraintBlock:
     return dataclasses.replace(block, soft=False) if block.soft else block
-
-
-def _terminal_term(X: np.ndarray, terminal: TerminalCost | None) -> float:
-    return 0.0 if terminal is None else terminal(X[-1])
 
 
 def _eq_rows(block: ConstraintBlock, X: np.ndarray, U: np.ndarray) -> np.ndarray:

@@ -53,8 +53,12 @@ class NaiveCvxpySolver:
                 cons.append(x[H] - s == data.goal)
             else:
                 cons.append(x[H] == data.goal)
-        else:
+        elif spec.terminal == "soft":
             cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - data.terminal_target), 2)
+        if data.terminal_cost is not None:  # ½ eᵀPe + gᵀe, e = x_H − x̄ (P positive semidefinite)
+            tc = data.terminal_cost
+            e = x[H] - tc.center
+            cost += 0.5 * cp.quad_form(e, cp.psd_wrap(0.5 * (tc.hessian + tc.hessian.T))) + tc.gradient @ e
         for block in data.blocks:
             for kk, k in enumerate(block.steps):
                 expr = block.Gx[kk] @ x[k]

@@ -47,7 +47,8 @@ class SCPResult:
     history: list[IterateRecord] = field(default_factory=list)
     best_iteration: int = -1
     # (H+1, n): λ_k = ∂J*/∂x_k of the returned iterate's convex subproblem, the gradient of the window's optimal
-    # cost-to-go from x_k (k ≥ 1; row 0 NaN), where the backend gives multipliers (the riccati kernel); else None
+    # cost-to-go from x_k (k ≥ 1; row 0 NaN), where the backend gives multipliers (the riccati kernel, QOCO,
+    # Clarabel); else None
     costates: np.ndarray | None = None
 
     @property
@@ -98,7 +99,9 @@ class TerminalValue(Protocol):
 class TerminalCost:
     """Soft terminal term replacing the terminal equality (MPC): ‖diag(weights) (x_{t+H} − target)‖₂ (the paper's;
     all-zero weights: none) plus, where given, a cost-to-go ``value`` J(x_{t+H}) that each SCP iteration models by
-    its local quadratic about the iteration's reference (``TerminalValue``)."""
+    its local quadratic about the iteration's reference (``TerminalValue``). J is in the stage cost's units (an
+    optimum's cost-to-go): the window weighs it as it weighs its stage cost (``SCPProblem.fuel_weight``, ``mpc.fuel``
+    in soft mode), while the norm term's weights are the window's own."""
 
     target: np.ndarray  # (n,)
     weights: np.ndarray  # (n,); a scalar given to the constructor weighs every state alike
@@ -116,7 +119,8 @@ class TerminalCost:
         """Whether the 2-norm term is present (some weight > 0)."""
         return bool(self.weights.any())
 
-    def __call__(self, x: np.ndarray) -> float:
-        """The term's value at the window's last state ``x``."""
+    def __call__(self, x: np.ndarray, value_weight: float = 1.0) -> float:
+        """The term's value at the window's last state ``x``, its cost-to-go weighted by ``value_weight`` (the
+        window's stage-cost weight)."""
         norm = float(np.linalg.norm(self.weights * (np.asarray(x) - self.target)))
-        return norm if self.value is None else norm + self.value(np.asarray(x))
+        return norm if self.value is None else norm + value_weight * self.value(np.asarray(x))

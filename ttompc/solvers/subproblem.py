@@ -6,7 +6,9 @@ z stacks the window states X (H+1, n), controls U (H, m), the cost epigraph vari
 *structure* (sparsity, cone sizes) depends only on a key — window length, cost norm, formulation, trust-region norm,
 terminal mode and the shapes/steps of the scenario's constraint blocks — so it is built once per key and cached;
 each SCP iteration only rewrites the numeric values (dynamics A_k/B_k/c_k, linearised rows, trust-region centre
-and radius, targets) through precomputed index maps. No modelling layer runs inside the loop.
+and radius, targets, a terminal cost-to-go model in P and q: ``objective.py``) through precomputed index maps. No
+modelling layer runs inside the loop. The dynamics rows x_{j+1} − A_j x_j − B_j u_j − ν_j = c_j stay in the state's
+units (only columns are scaled): their multipliers y give λ_{j+1} = ∂(optimum)/∂c_j = −y_j (``costates``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, units_of
+from ttompc.solvers.objective import ConicObjective, ConicValues
 
 
 class QuadraticTerminalCost(NamedTuple):
@@ -41,7 +44,8 @@ class SubproblemData:
     goal: np.ndarray  # (n,) terminal state for a hard terminal condition
     terminal_target: np.ndarray | None  # (n,) x̄ for the soft terminal term
     terminal_weights: np.ndarray | None  # (n,) diagonal of P
-    # added to the objective; read by the riccati backend only (``StageQP.build``): the other backends ignore it
+    # added to the objective (the riccati kernel's dense block, the conic assembly's block in P where the spec has
+    # ``terminal_value``); PIQP solves no window with a terminal term
     terminal_cost: QuadraticTerminalCost | None = None
 
 
@@ -57,7 +61,7 @@ class SubproblemSpec:
     penalized: bool
     virtual_control: bool  # ν on the dynamics rows ``vc_rows`` (empty: all rows), with an exact L1 penalty
     trust: str  # "l2", "linf" or "none"
-    terminal: str  # "hard", "soft" (the 2-norm term's cone) or "value" (a cost-to-go model alone: riccati only)
+    terminal: str  # "hard", "soft" (the 2-norm term's cone) or "value" (a cost-to-go model alone)
     soft_equalities: bool
     penalty: float
     blocks: tuple[tuple[Any, ...], ...]
@@ -66,6 +70,9 @@ class SubproblemSpec:
     control_scale: tuple[float, ...] = ()
     model_masks: tuple[tuple[bool, ...], tuple[bool, ...]] | None = None  # flattened A/B masks (None: dense)
     vc_rows: tuple[int, ...] = ()
+    # every iteration's data has a terminal cost-to-go model (``SubproblemData.terminal_cost``; always with "value"):
+    # the conic assembly allocates its dense block in P
+    terminal_value: bool = False
 
     def units(self) -> tuple[np.ndarray, np.ndarray]:
         """The state and control units of the non-dimensionalised variables (ones where no scale is given)."""
@@ -157,6 +164,7 @@ class AssembledSubproblem:
 
         # dynamics: x_{j+1} − A_j x_j − B_j u_j − (ν⁺_j − ν⁻_j) = c_j
         rdyn = zero.add_rows(H * n).reshape(H, n)
+        self.dyn_rows = rdyn  # the zero cone comes first: these are the assembled rows too
         self._entries(zero, rdyn, self.ix[1:], ("const", np.ones((H, n))))
         # A_j, B_j entries: only the structural nonzeros (spec.model_masks), gathered from the flattened arrays
         a_mask, b_mask = (None, None) if spec.model_masks is None else spec.model_masks
@@ -190,8 +198,9 @@ class AssembledSubproblem:
                 self._entries(zero, r, sm_, ("const", np.ones(n)))
                 self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
                 q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
-        elif spec.terminal == "value":
-            raise ValueError("the conic path takes no terminal cost-to-go model yet: use backend='auto' (riccati)")
+        elif spec.terminal == "value":  # the cost-to-go model alone: x_H free, its block in P (``objective.py``)
+            if not spec.terminal_value:
+                raise ValueError("a spec with terminal 'value' needs terminal_value=True")
         else:  # τ ≥ ‖W (x_H − x̄)‖₂
             tau = self._var(1)
             g = self._soc(1 + n)
@@ -366,22 +375,18 @@ class AssembledSubproblem:
         # the solver sees z = S z̃ with S the characteristic magnitudes: columns of A, q and P are scaled once
         self.scale = np.concatenate(self._scales)
         self._entry_scale = self.scale[cols_a[self._perm]]
-        self.q = np.zeros(self.n_var)
+        q = np.zeros(self.n_var)
         for idx, w in q_parts:
-            self.q[idx] += w
-        self.q *= self.scale
-        P_diag = np.zeros(self.n_var)
-        if self.spec.cost_norm == "quad":
-            P_diag[self.iu.ravel()] = self.spec.fuel_weight
-        self.P = sp.diags(P_diag * self.scale**2, format="csc")
+            q[idx] += w
+        self.objective = ConicObjective(self.spec, self.scale, q * self.scale, self.ix[-1], self.iu)
         self._coo_vals = np.zeros(nnz)
         for slc, (kind, payload) in self._val_src:
             if kind == "const":
                 self._coo_vals[slc] = np.ravel(payload)
 
     # ------------------------------------------------------------------------------------------------- updating
-    def update(self, data: SubproblemData) -> tuple[np.ndarray, np.ndarray]:
-        """Values of the column-scaled A (in CSC data order) and b for one iteration."""
+    def update(self, data: SubproblemData) -> ConicValues:
+        """One iteration's numbers: the column-scaled A (in CSC data order), b, P's upper triangle and q."""
         src = self._sources(data)
         vals = self._coo_vals
         for slc, (kind, payload) in self._val_src:
@@ -393,7 +398,8 @@ class AssembledSubproblem:
         for rows, (key, idx, sign) in self._b_src:
             flat = src[key]
             b[rows] += sign * (flat if idx is None else flat[idx])
-        return vals[self._perm] * self._entry_scale, b
+        P, q, offset = self.objective.values(data.terminal_cost)
+        return ConicValues(vals[self._perm] * self._entry_scale, b, P, q, offset)
 
     def matrix(self, values: np.ndarray) -> sp.csc_matrix:
         return sp.csc_matrix((values, self._indices, self._indptr), shape=(self.n_con, self.n_var))
@@ -431,6 +437,11 @@ class AssembledSubproblem:
             if block.lower is not None:
                 src[f"l{bi}"] = np.ascontiguousarray(block.lower).ravel()
         return src
+
+    def costates(self, y: np.ndarray) -> np.ndarray:
+        """λ (H, n) for x_1..x_H, per unit of the state, from a solver's multipliers ``y`` (n_con,) of A z + s = b
+        (the dynamics rows are in the zero cone, first): −y on the dynamics rows (module doc)."""
+        return -np.asarray(y)[self.dyn_rows]
 
     def split(self, z_scaled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """States and controls from the solver's (scaled) solution vector."""

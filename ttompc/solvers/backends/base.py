@@ -21,8 +21,8 @@ class BackendSolution:
     infeasible: bool  # the solver certified primal infeasibility
     status: str
     solve_time: float
-    # (H, n): the dynamics multipliers, ∂(subproblem optimum)/∂x_k for k = 1..H in the state's units, where the
-    # backend gives them (the riccati kernel); None elsewhere
+    # (H, n): the dynamics multipliers, ∂(subproblem optimum)/∂x_k for k = 1..H per unit of the state, where the
+    # backend gives them (the riccati kernel, QOCO, Clarabel); None elsewhere (PIQP, cvxpy-naive)
     costates: np.ndarray | None = None
 
 

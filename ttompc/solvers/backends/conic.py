@@ -4,6 +4,10 @@
 * ``qoco``: interior-point conic solver, first in the conic chains (docs/design.md); set up afresh per solve (below).
 * ``clarabel``: interior-point conic solver shipped with cvxpy; handles the SOC trust region, the 2-norm costs
   (RPOD) and the approach cone. Data updates keep the KKT symbolic factorisation.
+
+Both return the multipliers of the dynamics rows as ``BackendSolution.costates`` (``AssembledSubproblem.costates``:
+the riccati kernel's convention, ∂(optimum)/∂x_k per unit of the state) and take a terminal cost-to-go model in P
+and q where the spec has one (``ttompc.solvers.objective``).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ttompc.solvers.backends.base import BackendSolution
+from ttompc.solvers.objective import ConicValues
 from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
 
 
@@ -49,20 +54,23 @@ class ClarabelBackend:
         optimum would depend (at solver tolerance) on what was solved before."""
         self.solver = None
 
-    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
+    def solve(self, v: ConicValues) -> BackendSolution:
         t0 = time.perf_counter()
         if self.solver is None:
             self.solver = self._clarabel.DefaultSolver(
-                self.sub.P, self.sub.q, self.sub.matrix(a_values), b, self.cones, self.settings
+                self.sub.objective.matrix(v.P), v.q, self.sub.matrix(v.A), v.b, self.cones, self.settings
             )
+        elif self.sub.spec.terminal_value:  # the terminal model's block and linear term change too
+            self.solver.update(P=v.P, q=v.q, A=v.A, b=v.b)
         else:
-            self.solver.update(A=a_values, b=b)
+            self.solver.update(A=v.A, b=v.b)
         sol = self.solver.solve()
         elapsed = time.perf_counter() - t0
         status = str(sol.status)
         ok = status in ("Solved", "AlmostSolved")
         infeasible = "PrimalInfeasible" in status
-        return BackendSolution(np.asarray(sol.x) if ok else None, float(sol.obj_val), ok, infeasible, status, elapsed)
+        return BackendSolution(np.asarray(sol.x) if ok else None, float(sol.obj_val), ok, infeasible, status, elapsed,
+                               self.sub.costates(sol.z) if ok else None)  # fmt: skip
 
 
 class QOCOBackend:
@@ -84,23 +92,22 @@ class QOCOBackend:
         cones = dict((k, d) for k, d in sub.cones if k != "soc")
         self.n_zero, self.n_nonneg = cones["zero"], cones["nonneg"]
         self.soc_dims = np.array([d for k, d in sub.cones if k == "soc"], dtype=np.int64)
-        self.P = sp.triu(sub.P, format="csc")
         self.blocks = sub.row_blocks(self.n_zero)  # QOCO's A (zero-cone rows) and G (the others)
 
     def restart(self) -> None:
         """Nothing to forget: QOCO is set up afresh for every solve."""
 
-    def solve(self, a_values: np.ndarray, b: np.ndarray) -> BackendSolution:
+    def solve(self, v: ConicValues) -> BackendSolution:
         t0 = time.perf_counter()
-        nz, sub = self.n_zero, self.sub
-        A, G = (sp.csc_matrix((a_values[take], rows, ptr), shape=(m, sub.n_var)) for take, rows, ptr, m in self.blocks)
+        nz, sub, b = self.n_zero, self.sub, v.b
+        A, G = (sp.csc_matrix((v.A[take], rows, ptr), shape=(m, sub.n_var)) for take, rows, ptr, m in self.blocks)
         solver = self._qoco.QOCO()
         solver.setup(
             sub.n_var,
             sub.n_con - nz,
             nz,
-            self.P,
-            sub.q,
+            sub.objective.matrix(v.P),
+            v.q,
             A,
             b[:nz],
             G,
@@ -114,9 +121,9 @@ class QOCOBackend:
         elapsed = time.perf_counter() - t0
         status = str(res.status)
         ok = status in ("QOCO_SOLVED", "QOCO_SOLVED_INACCURATE")
-        return BackendSolution(
-            np.asarray(res.x) if ok else None, float(res.obj), ok, "INFEAS" in status, status, elapsed
-        )
+        duals = np.concatenate([res.y, res.z]) if ok else None  # the rows' order: A's (zero cone), then G's
+        return BackendSolution(np.asarray(res.x) if ok else None, float(res.obj), ok, "INFEAS" in status, status,
+                               elapsed, None if duals is None else sub.costates(duals))  # fmt: skip
 
 
 BACKENDS: dict[str, type[ClarabelBackend | QOCOBackend]] = {"clarabel": ClarabelBackend, "qoco": QOCOBackend}
@@ -145,14 +152,17 @@ class AssembledSolver:
             backend.restart()
 
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
-        a_values, b = self.sub.update(data)
+        """The first backend's usable solution of ``data`` (objective with the terminal model's constant, as the
+        riccati backend's), else the last one's failure."""
+        values = self.sub.update(data)
         spent = 0.0
         for backend in self.backends:
-            sol = backend.solve(a_values, b)
+            sol = backend.solve(values)
             spent += sol.solve_time
             if sol.ok:
                 break
         sol.solve_time = spent
+        sol.objective += values.offset
         if sol.z is None:
             return None, None, sol
         X, U = self.sub.split(sol.z)

@@ -20,8 +20,8 @@ non-dimensionalised variables (x/state_scale, u/control_scale), so the two backe
   x_H with its linear term in the last stage's q.
 
 Where the kernel does not converge the same data goes to ``fallback`` (the PIQP chain; for a window, QOCO then
-Clarabel), so the backend never returns less than the chain behind it would; not data with a terminal cost-to-go
-model, which the solvers behind it do not read: that failure is returned as it is.
+Clarabel, which read a terminal cost-to-go model too), so the backend never returns less than the chain behind it
+would.
 """
 
 from __future__ import annotations
@@ -285,6 +285,4 @@ class RiccatiSolver:
         if ok:
             sol.costates = pi / st.sx  # multipliers of the scaled dynamics rows x̃_{k+1} = ...: per unit of x_{k+1}
             return y[:, : spec.n] * st.sx, y[: spec.H, spec.n : spec.n + spec.m] * st.su, sol
-        if data.terminal_cost is not None:  # the fallback's solvers would drop the terminal cost-to-go model
-            return None, None, sol
         return self.fallback.take(data, sol)
