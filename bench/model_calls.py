@@ -14,8 +14,16 @@ each batch B:
   ``advance_ms``: the KV-cache extension by one executed step (``RolloutContext.advance``, the median of ``reps``
   successive extensions, so the cache grows by ``reps`` steps after the rollouts are timed).
 
+The fused decode (``decoder="fused"``, ``ttompc.policy.fused``) from the same mid-episode context, where the model
+and scenario allow it (else ``fused`` is None and ``fused_reason`` says why): ``fused.rollout_ms`` and
+``ms_per_generated_step`` as above, ``call_ms`` its per-call part independent of H (the line through its H = 1 and
+H-step rollouts: what a rollout costs besides its generated steps: the torch window maps, the weight check, numba's
+dispatch), ``floor_share`` = the torch rollout's arithmetic floor / the fused rollout, ``speedup`` = torch rollout /
+fused rollout, and ``advance_ms`` (the fused KV-cache extension).
+
 ``fit``: the least-squares line through (B, ms per generated step): ``fixed_ms`` is the part of a generated step
-that does not grow with the batch (the per-call overhead), ``ms_per_row`` what each episode adds.
+that does not grow with the batch (the per-call overhead), ``ms_per_row`` what each episode adds; ``fused_fit`` the
+same for the fused decode.
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from ttompc.policy import Planner, RolloutContext
+from ttompc.policy.fused import fused_support
 from ttompc.scenarios import Problem
 
 
@@ -44,10 +53,10 @@ def median_ms(fn: Callable[[], Any], reps: int) -> float:
     return 1e3 * statistics.median(times)
 
 
-def mid_context(planner: Planner, problems: Sequence[Problem], t: int) -> RolloutContext:
+def mid_context(planner: Planner, problems: Sequence[Problem], t: int, decoder: str = "torch") -> RolloutContext:
     """The episodes of ``problems`` at step ``t``: conditioned on the data's mean rtg and advanced along the model's
-    own t-step plan, so the KV cache holds t executed steps."""
-    ctx = planner.context(problems, rtg0=float(planner.stats.mean["rtg"][0]))
+    own t-step plan, so the KV cache holds t executed steps (decoding with ``decoder``)."""
+    ctx = planner.context(problems, rtg0=float(planner.stats.mean["rtg"][0]), decoder=decoder)
     plan = ctx.rollout(t)
     for k in range(t):
         ctx.advance(plan.actions[:, k], plan.states[:, k + 1])
@@ -58,6 +67,37 @@ def mm_gflops(rows: int, width: int, hidden: int, dtype: torch.dtype, reps: int)
     """GFLOP/s of one ``torch.mm`` of (rows, width) × (width, hidden), the median of ``reps`` calls."""
     a, b = torch.randn(rows, width, dtype=dtype), torch.randn(width, hidden, dtype=dtype)
     return 2.0 * rows * width * hidden / (1e6 * median_ms(lambda: torch.mm(a, b), reps))
+
+
+def advance_ms(ctx: RolloutContext, reps: int) -> float:
+    """One KV-cache extension (``RolloutContext.advance`` along the model's plan), the median of ``reps``."""
+    plan = ctx.rollout(reps + 1)
+    steps = iter(range(reps + 1))
+
+    def advance() -> None:
+        k = next(steps)
+        ctx.advance(plan.actions[:, k], plan.states[:, k + 1])
+
+    return median_ms(advance, reps)
+
+
+def fused_calls(
+    planner: Planner, problems: Sequence[Problem], t: int, horizon: int, reps: int, torch_ms: float, floor_ms: float
+) -> dict[str, Any]:
+    """The fused decode's rollout and advance from step ``t`` (module doc), beside the torch rollout's time and
+    arithmetic floor."""
+    ctx = mid_context(planner, problems, t, decoder="fused")
+    rollout_ms = median_ms(lambda: ctx.rollout(horizon), reps)
+    one_ms = median_ms(lambda: ctx.rollout(1), reps)
+    step_ms = (rollout_ms - one_ms) / (horizon - 1) if horizon > 1 else rollout_ms
+    return {
+        "rollout_ms": rollout_ms,
+        "ms_per_generated_step": rollout_ms / horizon,
+        "call_ms": rollout_ms - horizon * step_ms,
+        "floor_share": floor_ms / rollout_ms,
+        "speedup": torch_ms / rollout_ms,
+        "advance_ms": advance_ms(ctx, reps),
+    }
 
 
 def batch_calls(planner: Planner, problems: Sequence[Problem], t: int, horizon: int, reps: int) -> dict[str, Any]:
@@ -74,13 +114,8 @@ def batch_calls(planner: Planner, problems: Sequence[Problem], t: int, horizon: 
     floor_ms = flops / (1e6 * gflops)
     X = np.stack([p.x0 for p in problems])
     value_ms = median_ms(lambda: planner.cost_to_go(problems, X, t), reps) if planner.has_value else None
-    plan = ctx.rollout(reps + 1)
-    steps = iter(range(reps + 1))
-
-    def advance() -> None:
-        k = next(steps)
-        ctx.advance(plan.actions[:, k], plan.states[:, k + 1])
-
+    can_fuse = fused_support(model, planner.scenario.batched_model(problems)) is None
+    fused = fused_calls(planner, problems, t, horizon, reps, rollout_ms, floor_ms) if can_fuse else None
     return {
         "rollout_ms": rollout_ms,
         "ms_per_generated_step": rollout_ms / horizon,
@@ -89,7 +124,8 @@ def batch_calls(planner: Planner, problems: Sequence[Problem], t: int, horizon: 
         "floor_ms": floor_ms,
         "arithmetic_share": floor_ms / rollout_ms,
         "value_ms": value_ms,
-        "advance_ms": median_ms(advance, reps),
+        "advance_ms": advance_ms(ctx, reps),
+        "fused": fused,
     }
 
 
@@ -102,12 +138,19 @@ def model_calls(
     t = min(N // 2, planner.model.cfg.max_steps - horizon - reps - 1)
     cycled = lambda B: [problems[i % len(problems)] for i in range(B)]  # noqa: E731
     rows = {str(B): batch_calls(planner, cycled(B), t, horizon, reps) for B in batches}
-    out: dict[str, Any] = {"t": t, "horizon": horizon, "reps": reps, "batches": rows}
+    reason = fused_support(planner.model, planner.scenario.batched_model(problems[:1]))
+    out: dict[str, Any] = {"t": t, "horizon": horizon, "reps": reps, "batches": rows, "fused_reason": reason}
     if len(batches) > 1:
-        slope, fixed = np.polyfit(np.asarray(batches, dtype=float), [r["ms_per_generated_step"] for r in rows.values()],
-                                  1)  # fmt: skip
-        out["fit"] = {"fixed_ms": float(fixed), "ms_per_row": float(slope)}
+        out["fit"] = fit(batches, [r["ms_per_generated_step"] for r in rows.values()])
+        if reason is None:
+            out["fused_fit"] = fit(batches, [r["fused"]["ms_per_generated_step"] for r in rows.values()])
     return out
+
+
+def fit(batches: Sequence[int], ms: Sequence[float]) -> dict[str, float]:
+    """The least-squares line of ms per generated step against the batch: its intercept and slope."""
+    slope, fixed = np.polyfit(np.asarray(batches, dtype=float), np.asarray(ms), 1)
+    return {"fixed_ms": float(fixed), "ms_per_row": float(slope)}
 
 
 def print_calls(name: str, calls: dict[str, Any]) -> None:
@@ -119,6 +162,15 @@ def print_calls(name: str, calls: dict[str, Any]) -> None:
               f"arithmetic floor {r['floor_ms']:.3f} ms ({r['mflop_per_generated_step']:.1f} MFLOP per step at "
               f"{r['mm_gflops']:.1f} GFLOP/s: {100 * r['arithmetic_share']:.0f}% of it); value {value} ms; advance "
               f"{r['advance_ms']:.3f} ms")  # fmt: skip
-    if "fit" in calls:
-        fit = calls["fit"]
-        print(f"    per generated step = {fit['fixed_ms']:.3f} ms fixed + {fit['ms_per_row']:.4f} ms per episode")
+        f = r["fused"]
+        if f is not None:
+            print(f"           fused: rollout {f['rollout_ms']:7.3f} ms ({f['ms_per_generated_step']:.3f} ms per step, "
+                  f"{f['call_ms']:.3f} ms per call; floor {100 * f['floor_share']:.0f}% of it; {f['speedup']:.2f}x "
+                  f"the torch rollout); advance {f['advance_ms']:.3f} ms")  # fmt: skip
+    if calls["fused_reason"] is not None:
+        print(f"    no fused decode: {calls['fused_reason']}")
+    for key, label in (("fit", "torch"), ("fused_fit", "fused")):
+        if key in calls:
+            line = calls[key]
+            print(f"    {label}: per generated step = {line['fixed_ms']:.3f} ms fixed + {line['ms_per_row']:.4f} ms "
+                  "per episode")  # fmt: skip

@@ -9,6 +9,7 @@ Usage::
     .venv/bin/python bench/step_profile.py --quick                                    # smoke run, no result file
     .venv/bin/python bench/step_profile.py --mpc rti=true --out bench/results/step_profile_rti.json  # a lever
     .venv/bin/python bench/step_profile.py --mpc decode_every=5 --out bench/results/step_profile_decode5.json
+    .venv/bin/python bench/step_profile.py --mpc decoder=fused --out bench/results/step_profile_fused.json
 
 Models: ``freeflyer-ft-tto-v5``, ``quadrotor-ft-tto-v6`` and ``rpod-ft-tto-v4``, fine-tuned with a value output, run
 as ``ttompc evaluate mpc --ft-model`` runs them (``rtg_mode=value`` under ``protocol=recommended``:
@@ -62,7 +63,11 @@ of every lever that cuts the model's time, as a ratio ``ratio_rel30_over_without
 Model calls (``model_calls``, ``bench/model_calls.py``): the same model's rollout at H = ``--horizon`` from
 mid-episode, at each batch of ``--model-batches`` (1, 10, 40), against its arithmetic floor (its matmul FLOPs at
 the measured throughput of one ``torch.mm`` at the step's largest matmul shape), with the value output and the
-advance at that batch, and the fit of a generated step's time against the batch (its fixed per-call part).
+advance at that batch, and the fit of a generated step's time against the batch (its fixed per-call part); beside
+them the fused decode's (``decoder="fused"``, ``ttompc.policy.fused``) rollout, per generated step, per call, its
+share of the same arithmetic floor and advance, whatever ``--mpc decoder`` the closed loop ran (``--mpc
+decoder=fused`` runs the TTO methods' rollouts and advances fused: the ``rollout`` and ``observe`` parts then time
+it).
 
 Ends with one JSON line, also written to bench/results/step_profile.json (not with ``--quick``: 1 problem, 4 steps,
 2 warm-up steps, 3 repetitions of each model call), with the machine record (``bench/record.py``). Absolute times

@@ -101,7 +101,7 @@ def _oracle(method: Method, x: MethodInputs) -> list[Provider]:
 def _tto(method: Method, x: MethodInputs) -> list[Provider]:
     planner, s = x.planner, x.settings
     assert planner is not None  # Method.providers checked it
-    group, name = RolloutGroup(planner, decode_every=s.decode_every), method.label(s, planner)
+    group, name = RolloutGroup(planner, decode_every=s.decode_every, decoder=s.decoder), method.label(s, planner)
     blend = x.robust_blend if method.robust else 0.0
     return [
         TTOProvider(planner, name, rtg_scale=x.rtg_scale, terminal=terminal_term(s, blend, planner),

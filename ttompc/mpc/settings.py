@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from ttompc.mpc.rtg import RTG_MODES
 from ttompc.mpc.terminal import TERMINALS
+from ttompc.policy.config import DECODERS
 
 if TYPE_CHECKING:
     from ttompc.scenarios.base import Scenario
@@ -53,7 +54,10 @@ class MPCSettings:
     scenario, as ``track``).
     ``decode_every``: TTO-MPC decodes a plan from its model every k steps and serves the windows in between from
     slices of it (``ttompc.mpc.tto.RolloutGroup``; 1: the paper's, a decode at every step). ``backend``: the
-    QP/cone backend of every solve (``ttompc.solvers.backends``)."""
+    QP/cone backend of every solve (``ttompc.solvers.backends``). ``decoder``: how TTO-MPC's rollouts decode
+    (``ttompc.policy.config.DECODERS``): "torch" (eager ops), "fused" (one compiled call per rollout,
+    ``ttompc.policy.fused``: the same plans up to float rounding; refused for a model or scenario it cannot run) or
+    "auto" (fused where it can, else torch with a warning)."""
 
     mode: Mode = "soft"
     end_horizon: int = 0
@@ -64,6 +68,7 @@ class MPCSettings:
     rti: bool | str | None = False  # False, True or "model" (RTI_SCOPES); None: the scenario's mpc.rti
     decode_every: int = 1
     backend: str = "auto"
+    decoder: str = "torch"
 
     def __post_init__(self) -> None:
         if self.mode not in ("soft", "hard"):
@@ -78,6 +83,8 @@ class MPCSettings:
             raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
         if self.rti is not None and self.rti not in RTI_SCOPES:
             raise ValueError(f"rti must be one of {RTI_SCOPES}, got {self.rti!r}")
+        if self.decoder not in DECODERS:
+            raise ValueError(f"decoder must be one of {list(DECODERS)}, got {self.decoder!r}")
         if self.decode_every < 1:
             raise ValueError(
                 f"decode_every must be >= 1 (TTO-MPC decodes a plan every k MPC steps; 1: at every step), got "

@@ -158,12 +158,22 @@ class RolloutGroup:
     batch), not when they ask others (DAgger's rollouts, which run k = 1).
 
     Lifecycle: providers join at construction (``add``: their slot is their row), the context is built when all of
-    them have been ``reset`` for an episode, and every member observes once per step (planning before it or not)."""
+    them have been ``reset`` for an episode, and every member observes once per step (planning before it or not).
 
-    def __init__(self, planner: Planner, *, use_cache: bool = True, decode_every: int = 1) -> None:
+    ``decoder`` (``MPCSettings.decoder``): how the context decodes (``RolloutContext``); "fused" is refused here
+    (``ValueError``) for a model it cannot run, and when the context is built for a scenario without the fused
+    dynamics."""
+
+    def __init__(
+        self, planner: Planner, *, use_cache: bool = True, decode_every: int = 1, decoder: str = "torch"
+    ) -> None:
+        from ttompc.policy.fused import resolve_decoder
+
         if decode_every < 1:
             raise ValueError(f"decode_every must be >= 1 (a decode every k MPC steps), got {decode_every}")
-        self.planner, self.use_cache, self.decode_every = planner, use_cache, decode_every
+        if decoder == "fused":  # the model's part now; the scenario's when the context is built
+            resolve_decoder(decoder, planner.model, use_cache=use_cache)
+        self.planner, self.use_cache, self.decode_every, self.decoder = planner, use_cache, decode_every, decoder
         self.members: list[TTOProvider] = []
         self.context: RolloutContext | None = None
         self._joined: set[int] = set()
@@ -200,7 +210,7 @@ class RolloutGroup:
         self._plan = None
         rtg0 = [m.rtg0 for m in self.members]
         self.context = self.planner.context(
-            [m.problem for m in self.members], rtg0=rtg0, ctg0=0.0, use_cache=self.use_cache
+            [m.problem for m in self.members], rtg0=rtg0, ctg0=0.0, use_cache=self.use_cache, decoder=self.decoder
         )
         self.context.defer_cache = self.decode_every > 1  # the cache catches up at the next decode
 

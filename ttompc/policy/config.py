@@ -12,6 +12,9 @@ Layout = Literal["interleaved", "stacked"]
 
 # interleaved: goal, rtg, ctg, state, action tokens per step (the paper's); stacked: one token per step
 TOKENS_PER_STEP: dict[str, int] = {"interleaved": 5, "stacked": 1}
+# how a cached rollout decodes (``ttompc.policy.rollout.RolloutContext``): "torch" (eager ops), "fused" (one numba
+# call per rollout, ``ttompc.policy.fused``; refused where it cannot run) or "auto" (fused where it can, else torch)
+DECODERS = ("torch", "fused", "auto")
 
 
 @dataclass

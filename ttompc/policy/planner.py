@@ -144,8 +144,10 @@ class Planner:
         ctg0: float | Sequence[float] | np.ndarray = 0.0,
         *,
         use_cache: bool = True,
+        decoder: str = "torch",
     ) -> RolloutContext:
-        """A step-0 rollout context for B problems, conditioned like the reference on rtg0 = −J_REL, ctg0 = 0.
+        """A step-0 rollout context for B problems, conditioned like the reference on rtg0 = −J_REL, ctg0 = 0
+        (``decoder``: how it decodes, ``RolloutContext``).
 
         MPC keeps it for the whole episode: at step t, ``ctx.rollout(H)`` plans [t, t+H) from the cached history;
         after executing a_t, ``ctx.advance(a_t, s_{t+1})`` with the measured state in the *model* representation
@@ -164,6 +166,7 @@ class Planner:
             _per_problem(rtg0, len(problems)),
             _per_problem(ctg0, len(problems)),
             use_cache=use_cache,
+            decoder=decoder,
         )
 
     def generate(

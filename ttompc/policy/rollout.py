@@ -10,7 +10,8 @@ One implementation serves open-loop warm starts (start at step 0) and MPC (start
 prefix). ``RolloutContext`` keeps the executed history of B episodes and, with ``use_cache=True``, the KV cache of
 that history: each receding-horizon rollout appends its new tokens after the cached history and truncates back to it
 at the end, so neither the prefix nor earlier generated steps are ever re-encoded. ``use_cache=False`` re-encodes the
-whole prefix at every step like the reference (for timing parity and tests).
+whole prefix at every step like the reference (for timing parity and tests). ``decoder="fused"`` runs the cached
+rollout and the cache's extension as one compiled call each (``ttompc.policy.fused``; ``"auto"``: where it can).
 
 The cached rollout is written for batch-1 latency (a 0.6M-parameter model's step is dispatch-bound, measured in
 ``bench/rollout_speed.py``): the normalisation is folded into the window's embedding and action head once per
@@ -30,6 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ttompc.policy.fused import FusedDecoder, resolve_decoder
 from ttompc.policy.gpt import Decoder, KVCache, TrajectoryGPT
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios.base import BatchedModel, CostNorm
@@ -70,6 +72,10 @@ class RolloutContext:
     ``defer_cache`` (False: the cache is extended at every ``advance``): ``advance`` only records the step, and the
     next ``rollout`` extends the cache over every step recorded since in one pass, the same tokens (equal up to
     float rounding, not bitwise), for a caller that rolls out every few steps (``RolloutGroup.decode_every``).
+
+    ``decoder`` (``ttompc.policy.config.DECODERS``): "torch" (the default), "fused" (``ttompc.policy.fused``;
+    ``ValueError`` where it cannot run) or "auto" (fused where it can). ``decoder`` holds the one that runs and
+    ``fallback`` why the torch path runs where "auto" asked for the fused one (None otherwise).
     """
 
     def __init__(
@@ -85,10 +91,12 @@ class RolloutContext:
         actions: Tensor | None = None,
         *,
         use_cache: bool = True,
+        decoder: str = "torch",
     ) -> None:
         p = next(model.parameters())
         self.model, self.stats, self.dynamics, self.cost_norm = model, stats, dynamics, cost_norm
         self.use_cache = use_cache
+        self.decoder, self.fallback = resolve_decoder(decoder, model, dynamics, use_cache=use_cache)
         as_t = lambda x: torch.as_tensor(x, dtype=p.dtype, device=p.device)  # noqa: E731
         self.states, self.goals = as_t(states), as_t(goals)
         self.rtg, self.ctg = as_t(rtg), as_t(ctg)
@@ -103,7 +111,7 @@ class RolloutContext:
         if self.actions.shape != (B, T - 1, m):
             raise ValueError(f"actions must be (B, {T - 1}, {m}) for {T} states, got {tuple(self.actions.shape)}")
         self._cache: KVCache | None = None  # tokens of the completed steps 0.._cached-1, built on first use
-        self._decoder: Decoder | None = None  # the trunk over that cache
+        self._decoder: Decoder | FusedDecoder | None = None  # the trunk over that cache
         self._cached = 0  # the steps the cache holds: t, or fewer after deferred advances
         self.defer_cache = False
 
@@ -120,6 +128,7 @@ class RolloutContext:
         ctg0: Tensor | float = 0.0,
         *,
         use_cache: bool = True,
+        decoder: str = "torch",
     ) -> RolloutContext:
         """Episode start at step 0: state0/goal (B, n), rtg0 (the reference uses −J_REL) and ctg0 (B,) or scalars."""
         state0 = torch.as_tensor(state0)
@@ -135,6 +144,7 @@ class RolloutContext:
             col(rtg0),
             col(ctg0),
             use_cache=use_cache,
+            decoder=decoder,
         )
 
     @property
@@ -169,14 +179,15 @@ class RolloutContext:
         g, r, c, s = self._norm_step(goals, rtg, ctg, states)
         return self.model.embed_steps(g, r, c, s, self.stats.normalize("actions", prev_actions), ts)
 
-    def _history(self) -> Decoder:
+    def _history(self) -> Decoder | FusedDecoder:
         """The decoder over the KV cache of the deciding tokens of steps 0..t-1: built at first use, then extended
         over the steps executed since (by ``advance``, or here in one pass for deferred ones). Its parameter look-ups
         are made once per context, which lives for an episode: the model's weights may change in place, not be
         replaced, while it lives."""
         if self._decoder is None:
-            self._cache = self.model.new_cache(self.batch)
-            self._decoder = Decoder(self.model, self._cache)
+            self._cache = cache = self.model.new_cache(self.batch)
+            fused = self.decoder == "fused"
+            self._decoder = FusedDecoder(self.model, cache, self.dynamics) if fused else Decoder(self.model, cache)
         c, t = self._cached, self.t
         if c < t:
             prev = self.actions[:, max(c - 1, 0) : t - 1]  # a_{c-1}..a_{t-2}; none before step 0
@@ -226,6 +237,11 @@ class RolloutContext:
         s, r = self.states[:, -1], self.rtg[:, -1:]  # (B, n), (B, 1)
         # a_{t0-1}; at the episode start the action's mean (a normalised zero, like ``embed_steps``)
         a = self.actions[:, -1] if t0 > 0 else self.stats.mean_std("actions", s)[0].expand(B, -1)
+        if isinstance(decode, FusedDecoder):
+            with torch.inference_mode():
+                maps = self._window_maps(horizon)
+            states, actions, rtg = decode.rollout(maps, s, r[:, 0], a, t0, self.cost_norm)
+            return RolloutResult(states, actions, rtg, self.ctg[:, -1:].repeat(1, horizon + 1), t0)
         S, A, R = [s], [], [r]
         try:
             with torch.inference_mode():  # the loop's temporaries only; the cache is written in place

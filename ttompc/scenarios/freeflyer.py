@@ -25,6 +25,7 @@ from ttompc.scenarios.base import (
     Scenario,
     SCPSettings,
     Window,
+    compile_fused_step,
 )
 from ttompc.scenarios.keepout import keepout_block, keepout_distance
 
@@ -190,7 +191,7 @@ class FreeFlyer(Scenario):
         return Problem(x0=x0, goal=goal, dt=float(dt), n_steps=N_STEPS)
 
     def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _FreeFlyerTorch:
-        return _FreeFlyerTorch(device)
+        return _FreeFlyerTorch(device, len(problems))
 
     def plot(self, ax: Any, problem: Problem, trajectories: dict[str, np.ndarray]) -> None:
         import matplotlib.patches as mpatches
@@ -212,11 +213,11 @@ class FreeFlyer(Scenario):
 class _FreeFlyerTorch:
     """Impulsive double integrator in torch, batched (the transformer's approximate model)."""
 
-    def __init__(self, device: Any) -> None:
+    def __init__(self, device: Any, batch: int) -> None:
         import torch
 
         self._torch = torch
-        self.device = device
+        self.device, self.batch = device, batch
         self._A = torch.as_tensor(A_STEP, device=device)
         self._B = torch.as_tensor(B_IMP, device=device)
         self._obs = torch.as_tensor(OBSTACLES, device=device)
@@ -228,3 +229,20 @@ class _FreeFlyerTorch:
     def violations(self, S: Any, k: int) -> Any:
         d = self._torch.linalg.norm(S[:, None, :2] - self._obs.to(S.dtype)[None], dim=-1)
         return (d < R_EFF - VIOLATION_TOL).sum(dim=1).to(S.dtype)
+
+    def fused_step(self) -> tuple[Any, np.ndarray]:
+        """``BatchedModel.fused_step``: ``_fused_step`` with A_STEP and B_IMP (float32, row-major) as every row."""
+        row = np.concatenate([A_STEP.ravel(), B_IMP.ravel()]).astype(np.float32)
+        return compile_fused_step(_fused_step), np.ascontiguousarray(np.broadcast_to(row, (self.batch, row.size)))
+
+
+def _fused_step(s: Any, a: Any, k: int, p: Any, out: Any) -> None:
+    """out = A (s + B a), p = [A (6×6), B (6×3)] row-major (a numba cfunc body: ``compile_fused_step``)."""
+    for i in range(6):
+        acc = 0.0
+        for j in range(6):
+            v = s[j]
+            for c in range(3):
+                v += p[36 + 3 * j + c] * a[c]
+            acc += p[6 * i + j] * v
+        out[i] = acc

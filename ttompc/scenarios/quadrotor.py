@@ -24,6 +24,7 @@ from ttompc.scenarios.base import (
     Scenario,
     SCPSettings,
     Window,
+    compile_fused_step,
 )
 from ttompc.scenarios.keepout import keepout_block, keepout_distance
 
@@ -218,3 +219,16 @@ class _QuadrotorTorch:
     def violations(self, S: Any, k: int) -> Any:
         d = self._torch.linalg.norm(S[:, None, :3] - self._obs.to(S.dtype)[None], dim=-1) - self._radii.to(S.dtype)
         return (d < -VIOLATION_TOL).sum(dim=1).to(S.dtype)
+
+    def fused_step(self) -> tuple[Any, np.ndarray]:
+        """``BatchedModel.fused_step``: ``_fused_step`` with each problem's dt as its row."""
+        return compile_fused_step(_fused_step), self._dt.to(self._torch.float32).cpu().numpy().copy()
+
+
+def _fused_step(s: Any, a: Any, k: int, p: Any, out: Any) -> None:
+    """``Quadrotor.step``'s Euler step with quadratic drag, p = [dt] (a numba cfunc body: ``compile_fused_step``)."""
+    dt = p[0]
+    speed = np.sqrt(s[3] * s[3] + s[4] * s[4] + s[5] * s[5])
+    for i in range(3):
+        out[i] = s[i] + dt * s[3 + i]
+        out[3 + i] = s[3 + i] + dt * (a[i] / MASS - (DRAG / MASS) * speed * s[3 + i])

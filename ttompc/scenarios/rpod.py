@@ -29,6 +29,7 @@ from ttompc.scenarios.base import (
     Scenario,
     SCPSettings,
     Window,
+    compile_fused_step,
 )
 from ttompc.scenarios.keepout import keepout_block
 from ttompc.scenarios.orbits import (
@@ -396,3 +397,21 @@ class _RpodTorch:
             return self._torch.zeros(S.shape[0], dtype=S.dtype, device=S.device)
         rho = self._torch.linalg.norm(S[:, :3] * self._scale.to(S.dtype), dim=-1)
         return (rho < 1.0 - KOZ_TOL).to(S.dtype)
+
+    def fused_step(self) -> tuple[Any, np.ndarray]:
+        """``BatchedModel.fused_step``: ``_fused_step`` with problem b's [M_k, N_k] for k = 0..N-1 as row b."""
+        rows = self._torch.cat([self._M.flatten(2), self._N.flatten(2)], dim=2).flatten(1)  # (B, N·54)
+        return compile_fused_step(_fused_step), rows.to(self._torch.float32).cpu().numpy().copy()
+
+
+def _fused_step(s: Any, a: Any, k: int, p: Any, out: Any) -> None:
+    """out = M_k s + N_k a, p = [M_k (6×6), N_k (6×3)] row-major for k = 0, 1, .. (a numba cfunc body:
+    ``compile_fused_step``)."""
+    o = 54 * k
+    for i in range(6):
+        acc = 0.0
+        for j in range(6):
+            acc += p[o + 6 * i + j] * s[j]
+        for c in range(3):
+            acc += p[o + 36 + 3 * i + c] * a[c]
+        out[i] = acc
