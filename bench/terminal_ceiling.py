@@ -114,19 +114,29 @@ class CostToGo:
         window = Window(k, p.n_steps - k, p.n_steps)
         A = sc.convex_model(p, window, opt.X[k:], opt.U[k:]).A[0]
 
-        def slope(x: np.ndarray) -> np.ndarray:
+        def slope(x: np.ndarray) -> np.ndarray | None:
             X0 = opt.X[k:].copy()
             X0[0] = x
             res = solve_scp(SCPProblem(sc, p, window), X0, opt.U[k:])
-            if not res.success or res.costates is None:
-                raise SystemExit(f"terminal_ceiling: the solve of [{k}, {p.n_steps}) gave no costates ({res})")
-            return A.T @ res.costates[1]
+            return None if not res.success or res.costates is None else A.T @ res.costates[1]
+
+        def column(center: np.ndarray, e: np.ndarray, h: float) -> np.ndarray:
+            """Central difference of the slope along e; one-sided where the goal is out of reach from one side (the
+            perturbed start's solve is infeasible near N), none where from both."""
+            plus, minus = slope(x + h * e), slope(x - h * e)
+            if plus is not None and minus is not None:
+                return (plus - minus) / (2 * h)
+            if plus is None and minus is None:
+                return np.zeros_like(center)
+            return (plus - center) / h if plus is not None else (center - minus) / h  # type: ignore[operator]
 
         x, steps = opt.X[k], 1e-3 * sc.state_units()
-        columns = [(slope(x + h * e) - slope(x - h * e)) / (2 * h) for e, h in zip(np.eye(len(x)), steps, strict=True)]
-        D = np.stack(columns, axis=1)
+        center = slope(x)
+        if center is None:
+            raise SystemExit(f"terminal_ceiling: the solve of [{k}, {p.n_steps}) from the optimum gave no costates")
+        D = np.stack([column(center, e, h) for e, h in zip(np.eye(len(x)), steps, strict=True)], axis=1)
         w, V = np.linalg.eigh(0.5 * (D + D.T))
-        return slope(x), (V * np.maximum(w, 0.0)) @ V.T
+        return center, (V * np.maximum(w, 0.0)) @ V.T
 
 
 class OracleValue(TargetFilter):
