@@ -160,7 +160,12 @@ def test_training_recipe_builds_the_model_it_describes(path: Path) -> None:
 
 
 LEGS = sorted(p for p in ALL if p.parent.name == "zoo" and re.search(r"-leg\d+$", p.stem))
-LAST_LEGS = [p for p in LEGS if p == max(q for q in LEGS if zoo_model(q) == zoo_model(p))]
+# a model's last leg: its highest -legN, unless recipes/zoo/<model>.yaml is (e.g. a fine-tuning after a leg-1 training)
+LAST_LEGS = [
+    p
+    for p in LEGS
+    if p == max(q for q in LEGS if zoo_model(q) == zoo_model(p)) and not p.with_name(f"{zoo_model(p)}.yaml").is_file()
+]
 
 
 @pytest.mark.parametrize("path", LAST_LEGS, ids=rel)
