@@ -4,9 +4,9 @@ A rollout runs one episode in which the exploration policy alternates between th
 model, H drawn per rollout from ``exploration.horizons``) and the expert (full-horizon SCP over [t, N) from the true
 state) in expert windows (``exploration``; by default 1–3 windows of 15–25 steps, one covering the end). The expert
 solves at the labelled steps (``labels``: every step, the paper, or ``labels.per_rollout`` drawn ones, tilted toward
-late steps by ``labels.late``) and wherever it
-acts, each time from REL over [t, N) from x_t, as a from-scratch solve does (REL at t = 0); where the expert acts on
-consecutive steps its own converged plan's tail is reused when the state is on it (plan reuse, ``ttompc.mpc.loop``).
+late steps by ``labels.late``) and wherever it acts, each time from REL over [t, N) from x_t, as a from-scratch solve
+does (REL at t = 0); where the expert acts on consecutive steps its own converged plan's tail is reused when the
+state is on it (plan reuse, ``ttompc.mpc.loop``).
 Warm-starting it from its previous plan shifted by one step instead (the reference's expert) lands in worse local
 optima (measured in docs/scaling.md, "Label cost").
 
@@ -30,10 +30,8 @@ Seeds: rollout (i, r) draws everything (problem, H, windows) from ``ttompc.seedi
 the wall clock. Rows go through the same resumable writer as open-loop generation (``ShardedFolder``, shard k =
 rollouts [k·S, (k+1)·S), ``source="dagger"``, ``iteration=i``) into ``<run>/dagger/iter-<i>/``, which the DataModule
 reads like an open-loop folder; each rank collects its own shards with the shared process pool. A worker runs
-``collect.batch`` rollouts of one shard in lockstep (``collect_rollouts``) through the MPC loop
-(``ttompc.mpc.loop.run_mpc_batch``: the learners are its episodes, the expert a ``StepHook`` beside them): their
-learners share one batched transformer context, one rollout per step for all (the expert's solves stay per
-rollout).
+``collect.batch`` rollouts of one shard in lockstep (``collect_rollouts``) through the MPC loop (``run_mpc_batch``:
+the learners are its episodes, sharing one batched transformer context; the expert is a ``StepHook`` beside them).
 """
 
 from __future__ import annotations
@@ -274,19 +272,17 @@ def collect_rollouts(
     """The DAgger rollouts ``indices`` of ``iteration``, run in lockstep -> each one's schema rows (see the module
     docstring for the labels): one row with ``kind="step"`` labels, one row per labelled step with ``kind="plan"``.
     The learners are TTO-MPC (``METHODS``; R-TTO-MPC with the target blend ``robust_blend`` > 0) at each rollout's H,
-    the episodes of ``run_mpc_batch``, and share one
-    batched transformer context (``RolloutGroup``: one batched rollout per step), so a rollout's learner plans equal
-    its lone run's up to the rounding of the batch; the expert acts beside them (``_Expert``). Both controllers run
-    under ``settings`` (default: the paper's), which ``check_rollout_settings`` refuses where the rollouts cannot
-    honour them (a decode schedule, a terminal term or rtg mode they cannot run): mode, backend and plan reuse
-    (without reuse the labels are the same) for both; for the learner (its H drawn by the exploration, Alg. 1) also
-    the end horizon, the terminal term with its tracking weight, the rtg mode (the one its model runs,
-    ``ttompc.mpc.rtg``) and real-time iteration (one subproblem per step from its own previous solution; a full
-    solve after the expert acted, as after any step whose executed control was not its plan's). The expert's
-    windows always reach the end, where those three do not apply, and always solve to convergence (its labels are
-    optima, whatever ``rti`` says). A share
-    ``perturbed`` of the rollouts runs on the perturbed plant (``rollout_plant``): both controllers plan from its
-    measured states, the expert labels them."""
+    the episodes of ``run_mpc_batch``, and share one batched transformer context (``RolloutGroup``: one batched
+    rollout per step), so a rollout's learner plans equal its lone run's up to the rounding of the batch; the expert
+    acts beside them (``_Expert``). Both controllers run under ``settings`` (default: the paper's), which
+    ``check_rollout_settings`` refuses where the rollouts cannot honour them (a decode schedule, a terminal term or
+    rtg mode they cannot run): mode, backend and plan reuse (without reuse the labels are the same) for both; for the
+    learner (its H drawn by the exploration, Alg. 1) also the end horizon, the terminal term with its tracking
+    weight, the rtg mode (the one its model runs, ``ttompc.mpc.rtg``) and real-time iteration (a full solve after the
+    expert acted, as after any step whose executed control was not its plan's). The expert's windows always reach
+    the end, where those three do not apply, and always converge (its labels are optima, whatever ``rti`` says). A
+    share ``perturbed`` of the rollouts runs on the perturbed plant (``rollout_plant``): both controllers plan from
+    its measured states, the expert labels them."""
     labels = labels or LabelConfig()
     s = settings or MPCSettings()
     check_rollout_settings(s)

@@ -18,8 +18,7 @@ from __future__ import annotations
 
 import abc
 import enum
-import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, Protocol
 
@@ -211,39 +210,15 @@ class BatchedModel(Protocol):
 
     Optional (the fused decode kernel, ``ttompc.policy.fused``; without it that kernel is refused and the torch
     rollout runs): ``fused_step()`` -> (step, params). ``step`` is a numba cfunc of ``fused_step_signature()``
-    (``compile_fused_step`` of a plain function): step(s, a, k, p, out) reads the float32 state s (n,) and control
-    a (m,) at absolute step k and the problem's parameter row p, and writes the next state into out (n,) (pointers;
-    out never aliases s or a). ``params`` (B, P) float32, C-contiguous: row b is problem b's p. It must equal
-    ``step`` on float32 tensors up to float rounding.
+    (``ttompc.scenarios.fused_step``: ``compile_fused_step`` of a plain function): step(s, a, k, p, out) reads the
+    float32 state s (n,) and control a (m,) at absolute step k and the problem's parameter row p, and writes the next
+    state into out (n,) (pointers; out never aliases s or a). ``params`` (B, P) float32, C-contiguous: row b is
+    problem b's p. It must equal ``step`` on float32 tensors up to float rounding.
     """
 
     def step(self, S: Any, A: Any, k: int) -> Any: ...
 
     def violations(self, S: Any, k: int) -> Any: ...
-
-
-def fused_step_signature() -> Any:
-    """The numba signature of a ``BatchedModel.fused_step`` step: void(float32* s, float32* a, intp k, float32* p,
-    float32* out). numba is imported here, on first use (the scenarios do not need it otherwise)."""
-    from numba import types
-
-    f32 = types.CPointer(types.float32)
-    return types.void(f32, f32, types.intp, f32, f32)
-
-
-@functools.cache
-def compile_fused_step(func: Callable[..., None]) -> Any:
-    """``func`` (a module-level function indexing its pointer arguments, ``BatchedModel.fused_step``) as a numba
-    cfunc of ``fused_step_signature()``, cached on disk by numba (keyed on ``func``'s file), compiled once per
-    process at most; where no cache folder is writable, compiled in every process."""
-    from numba import cfunc
-
-    try:
-        return cfunc(fused_step_signature(), cache=True)(func)
-    except RuntimeError as err:
-        if "no locator available" not in str(err):
-            raise
-        return cfunc(fused_step_signature())(func)
 
 
 class Scenario(abc.ABC):

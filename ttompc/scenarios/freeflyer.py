@@ -25,8 +25,8 @@ from ttompc.scenarios.base import (
     Scenario,
     SCPSettings,
     Window,
-    compile_fused_step,
 )
+from ttompc.scenarios.fused_step import compile_fused_step
 from ttompc.scenarios.keepout import keepout_block, keepout_distance
 
 MASS = 16.0  # kg

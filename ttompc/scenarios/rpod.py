@@ -29,8 +29,8 @@ from ttompc.scenarios.base import (
     Scenario,
     SCPSettings,
     Window,
-    compile_fused_step,
 )
+from ttompc.scenarios.fused_step import compile_fused_step
 from ttompc.scenarios.keepout import keepout_block
 from ttompc.scenarios.orbits import (
     ISS_OE,
