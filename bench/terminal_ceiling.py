@@ -120,21 +120,24 @@ class CostToGo:
             res = solve_scp(SCPProblem(sc, p, window), X0, opt.U[k:])
             return None if not res.success or res.costates is None else A.T @ res.costates[1]
 
-        def column(center: np.ndarray, e: np.ndarray, h: float) -> np.ndarray:
-            """Central difference of the slope along e; one-sided where the goal is out of reach from one side (the
-            perturbed start's solve is infeasible near N), none where from both."""
-            plus, minus = slope(x + h * e), slope(x - h * e)
-            if plus is not None and minus is not None:
-                return (plus - minus) / (2 * h)
-            if plus is None and minus is None:
-                return np.zeros_like(center)
-            return (plus - center) / h if plus is not None else (center - minus) / h  # type: ignore[operator]
-
         x, steps = opt.X[k], 1e-3 * sc.state_units()
         center = slope(x)
         if center is None:
             raise SystemExit(f"terminal_ceiling: the solve of [{k}, {p.n_steps}) from the optimum gave no costates")
-        D = np.stack([column(center, e, h) for e, h in zip(np.eye(len(x)), steps, strict=True)], axis=1)
+
+        def column(e: np.ndarray, h: float) -> np.ndarray:
+            """Central difference of the slope at x along e; one-sided where the goal is out of reach from one side
+            (the perturbed start's solve is infeasible near N), none where from both."""
+            plus, minus = slope(x + h * e), slope(x - h * e)
+            if plus is not None and minus is not None:
+                return (plus - minus) / (2 * h)
+            if plus is not None:
+                return (plus - center) / h
+            if minus is not None:
+                return (center - minus) / h
+            return np.zeros_like(center)
+
+        D = np.stack([column(e, h) for e, h in zip(np.eye(len(x)), steps, strict=True)], axis=1)
         w, V = np.linalg.eigh(0.5 * (D + D.T))
         return center, (V * np.maximum(w, 0.0)) @ V.T
 

@@ -11,7 +11,7 @@ from typing import Any
 
 def fused_step_signature() -> Any:
     """The numba signature of a ``BatchedModel.fused_step`` step: void(float32* s, float32* a, intp k, float32* p,
-    float32* out). numba is imported here, on first use (the scenarios do not need it otherwise)."""
+    float32* out)."""
     from numba import types
 
     f32 = types.CPointer(types.float32)
