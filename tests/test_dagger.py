@@ -87,12 +87,13 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
     not only the measurement): both controllers get them whole, the learner's windows follow the end
     horizon; a decode schedule, which they cannot run, is refused in one line before anything runs."""
     import ttompc.finetune.collect as collect
+    import ttompc.finetune.expert as expert
     import ttompc.mpc.loop as loop_module
     from ttompc.cli import main
 
     sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
     seen: list[tuple[int, MPCSettings]] = []
-    real = collect.MPCController
+    real = loop_module.MPCController
 
     def spy(cls):  # type: ignore[no-untyped-def]
         def make(scenario, problem, provider, horizon, settings):  # type: ignore[no-untyped-def]
@@ -101,7 +102,7 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
 
         return make
 
-    monkeypatch.setattr(collect, "_ExpertController", spy(collect._ExpertController))  # the expert's
+    monkeypatch.setattr(expert, "ExpertController", spy(expert.ExpertController))  # the expert's
     monkeypatch.setattr(loop_module, "MPCController", spy(real))  # the learner's, an episode of run_mpc_batch
     overrides = ["dagger.eval.mpc.end_horizon=30", "dagger.eval.mpc.track=2.5"]
     settings = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", overrides).dagger.eval.settings
@@ -126,6 +127,7 @@ def test_rollouts_run_real_time_iteration_for_the_learner_and_converge_the_exper
     """Under ``rti=true`` the learner's windows after its first step are one subproblem each (plan reuse aside),
     while the expert, whose plans are the labels, still solves every plan to convergence."""
     import ttompc.finetune.collect as collect
+    import ttompc.finetune.expert as expert
     import ttompc.mpc.loop as loop_module
 
     sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
@@ -145,7 +147,7 @@ def test_rollouts_run_real_time_iteration_for_the_learner_and_converge_the_exper
 
         return Spy
 
-    monkeypatch.setattr(collect, "_ExpertController", spy(collect._ExpertController, "expert"))
+    monkeypatch.setattr(expert, "ExpertController", spy(expert.ExpertController, "expert"))
     monkeypatch.setattr(loop_module, "MPCController", spy(loop_module.MPCController, "learner"))
     explore = ExplorationConfig(horizons=[5], windows=[0, 0])
     rows = collect.collect_rollout(
@@ -259,7 +261,7 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     import ttompc.finetune.collect as collect
     import ttompc.finetune.loop as loop
     from ttompc.data.datamodule import TrajectoryDataModule
-    from ttompc.data.generate import load_manifest
+    from ttompc.data.manifests import load_manifest
     from ttompc.policy import Planner
     from ttompc.training.module import SaveLastCheckpoint
 
@@ -456,7 +458,7 @@ def test_inputs_that_do_not_belong_together_are_refused_before_anything_is_writt
     import helpers
 
     import ttompc.finetune.loop as loop
-    from ttompc.data.generate import load_manifest
+    from ttompc.data.manifests import load_manifest
     from ttompc.evaluation.measurement import Measurement
     from ttompc.finetune import FinetuneError
     from ttompc.policy import Planner
@@ -760,7 +762,7 @@ def test_datamodule_masks_unlabelled_steps(tmp_path: Path, dataset: Path) -> Non
 
 
 def test_plan_rows_carry_the_costates_of_the_expert_solve(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A plan row from step t carries the costates of the expert's solve from x_t (``_Expert.plan_costates``), in the
+    """A plan row from step t carries the costates of the expert's solve from x_t (``Expert.plan_costates``), in the
     model representation (``model_costates``) at steps t+1..N and NaN up to t: a solved plan's are its solve's, a
     reused plan's (plan reuse in an expert window) those of the solve that produced it, shifted; they are ∂J*/∂x of
     the plan's cost-to-go (central differences of re-solves; the quadrotor's cost is quadratic). NaN throughout where
@@ -768,13 +770,14 @@ def test_plan_rows_carry_the_costates_of_the_expert_solve(monkeypatch: pytest.Mo
     as the Riccati kernel on the same rollouts."""
     from ttompc.data.schema import model_costates, problem_from_row
     from ttompc.finetune import collect
+    from ttompc.finetune.expert import ExpertController
     from ttompc.mpc.loop import MPCController
     from ttompc.mpc.providers import ShiftProvider
     from ttompc.scenarios.base import Window
 
     sc, planner = get_scenario("quadrotor"), mpc_fakes.tiny_planner("quadrotor")
     solved, reused = {}, set()
-    real_solve, real_plan = collect._ExpertController.solve, collect._ExpertController.plan
+    real_solve, real_plan = ExpertController.solve, ExpertController.plan
 
     def solve(self, window, *args, **kw):  # type: ignore[no-untyped-def]
         res = solved[window.start] = real_solve(self, window, *args, **kw)
@@ -786,8 +789,8 @@ def test_plan_rows_carry_the_costates_of_the_expert_solve(monkeypatch: pytest.Mo
             reused.add(t)
         return e
 
-    monkeypatch.setattr(collect._ExpertController, "solve", solve)
-    monkeypatch.setattr(collect._ExpertController, "plan", plan)
+    monkeypatch.setattr(ExpertController, "solve", solve)
+    monkeypatch.setattr(ExpertController, "plan", plan)
     explore = ExplorationConfig(horizons=[5], windows=[1, 1], window_length=[3, 4], end_window=False)
     rows = collect.collect_rollout(sc, planner, 0, 2, 5, explore, LabelConfig(kind="plan", per_rollout=2))
     p = problem_from_row(sc, rows[0])

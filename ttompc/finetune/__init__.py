@@ -1,6 +1,6 @@
-"""DAgger fine-tuning of a pretrained trajectory transformer for MPC (paper Alg. 1): ``collect`` (rollouts and expert
-labels), ``loop`` (iterations, state, ranks, keep/reject), ``config`` (the typed recipe). Importing this package does
-not import Lightning; ``finetune`` does when it trains."""
+"""DAgger fine-tuning of a pretrained trajectory transformer for MPC (paper Alg. 1): ``collect`` (rollouts and their
+labels), ``expert`` (the expert that labels them), ``loop`` (iterations, state, ranks, keep/reject), ``config`` (the
+typed recipe). Importing this package does not import Lightning; ``finetune`` does when it trains."""
 
 from ttompc.finetune.collect import collect_rollout, collect_rollouts, expert_schedule
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config

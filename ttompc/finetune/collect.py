@@ -19,8 +19,8 @@ Labels (``labels.kind``):
   expert's plan from x_t, with targets from t on (``rows.plan_row``). TTO-MPC's terminal target is the model's H-step
   rollout from the visited history; these rows supervise exactly that rollout. Their costates (the value's gradient
   targets) are those of the expert's solve from x_t at steps t+1..N (a reused plan's: those of the solve that
-  produced it, shifted; ``_Expert.plan_costates``), NaN before, where the backend gives none and where the plan
-  misses the goal (``_ExpertController``).
+  produced it, shifted; ``Expert.plan_costates``), NaN before, where the backend gives none and where the plan
+  misses the goal (``ExpertController``). The expert is ``ttompc.finetune.expert``.
 The solver columns hold the row's cost, the learner's/expert's compute time (solve_time/solver_time), the keep-out
 violations of the row's trajectory (violation) and "H=..;expert_steps=..;fallbacks=..;plant=..;labels=.." (status;
 plan rows add ";plan_from=t"). Rollouts are kept whether or not they end feasible: their visited states are where
@@ -36,11 +36,9 @@ the learners are its episodes, sharing one batched transformer context; the expe
 
 from __future__ import annotations
 
-import dataclasses
 import os
-import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -53,21 +51,21 @@ from ttompc.data.resumable import ShardedFolder
 from ttompc.data.schema import trajectory_features
 from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig, check_rollout_settings
+from ttompc.finetune.expert import Expert, ExpertRollout
 from ttompc.finetune.rows import plan_row, trajectory_row
 from ttompc.mpc.episode import Episode
-from ttompc.mpc.loop import EpisodeStart, MPCController, MPCRun, StepPlan, run_mpc_batch
+from ttompc.mpc.loop import EpisodeStart, MPCRun, run_mpc_batch
 from ttompc.mpc.methods import MethodInputs, model_method
 from ttompc.mpc.plant import PLANT_STREAM, Plant, PlantNoise
-from ttompc.mpc.providers import Provider, ShiftProvider
-from ttompc.mpc.settings import Mode, MPCSettings
-from ttompc.mpc.tto import RolloutGroup, TTOProvider
+from ttompc.mpc.providers import Provider
+from ttompc.mpc.settings import MPCSettings
+from ttompc.mpc.tto import TTOProvider
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
 from ttompc.scenarios import get_scenario, scenario_spec
-from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
+from ttompc.scenarios.base import Problem, Scenario
 from ttompc.seeding import rng as seeded_rng
 from ttompc.seeding import rollout_seed
-from ttompc.solvers.scp import SCPResult, TerminalCost, solve_rel
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner, RolloutContext
@@ -120,102 +118,6 @@ def label_schedule(rng: np.random.Generator, n_steps: int, per_rollout: int, lat
     mask = np.zeros(n_steps, dtype=bool)
     mask[rng.choice(n_steps, size=per_rollout, replace=False, p=weights)] = True
     return mask
-
-
-class _ExpertController(MPCController):
-    """The expert's ``MPCController``; ``costates``: its latest solve's ``SCPResult.costates`` (row 0 NaN) over the
-    stage cost's weight in it (``SCPProblem.fuel_weight``) where its plan meets the goal (‖x_N − goal‖∞ <= the SCP's
-    feas_tol: the soft end term is then an exact penalty, and λ the gradient of the cost the rtg counts, as in
-    open-loop rows); None where it misses it (λ is then the gradient of the priced miss) or gave no multipliers."""
-
-    costates: np.ndarray | None = None
-
-    def solve(
-        self,
-        window: Window,
-        X: np.ndarray,
-        U: np.ndarray,
-        terminal: TerminalCost | None,
-        mode: Mode | None = None,
-        settings: SCPSettings | None = None,
-    ) -> SCPResult:
-        res = super().solve(window, X, U, terminal, mode, settings)
-        fuel = self.scenario.mpc.fuel if (mode or self.settings.mode) == "soft" else 1.0
-        meets = float(np.max(np.abs(res.X[-1] - self.problem.goal))) <= self.scenario.scp.feas_tol
-        self.costates = res.costates / fuel if res.costates is not None and meets else None
-        return res
-
-
-@dataclass
-class _Rollout:
-    """One rollout's draws (``rollout_seed``: problem, horizon H, expert windows, labelled steps, plant) and its
-    expert (a full-horizon ``MPCController`` warm-started by ``shift``) with the plans it made at labelled steps."""
-
-    index: int
-    seed: int
-    problem: Problem
-    rel: Any
-    H: int
-    expert_steps: np.ndarray
-    labelled: np.ndarray
-    plant: PlantNoise
-    shift: ShiftProvider
-    expert: _ExpertController
-    plans: dict[int, StepPlan] = field(default_factory=dict)  # the expert's plan at each labelled step
-    costates: dict[int, np.ndarray | None] = field(default_factory=dict)  # ... their _Expert.plan_costates
-    expert_time: float = 0.0
-
-
-class _Expert:
-    """The expert beside the learners' lockstep loop (a ``StepHook`` of ``run_mpc_batch``): at each labelled step of
-    a rollout it plans [t, N) from the measured state, starting from REL over [t, N) from x_t as a from-scratch solve
-    does (REL from the straight line, not warm-started by an earlier step's REL, which can stop at another point, and
-    the label with it; REL at t = 0 is the rollout's own); in the rollout's expert windows its plan acts. Before each
-    step it tells the learners' ``RolloutGroup`` the longest window they will ask, so one batched rollout serves
-    them all."""
-
-    def __init__(self, scenario: Scenario, rollouts: Sequence[_Rollout], group: RolloutGroup, backend: str) -> None:
-        self.scenario, self.rollouts, self.group, self.backend = scenario, rollouts, group, backend
-
-    def before(self, t: int, controllers: Sequence[MPCController], xs: Sequence[np.ndarray]) -> list[StepPlan | None]:
-        windows = [c.window(t).length for r, c in zip(self.rollouts, controllers, strict=True) if not r.expert_steps[t]]
-        self.group.expect(t, max(windows, default=0))
-        acting: list[StepPlan | None] = []
-        for r, x in zip(self.rollouts, xs, strict=True):
-            e = self._label(r, t, x) if r.labelled[t] else None
-            acting.append(e if r.expert_steps[t] else None)
-        return acting
-
-    def _label(self, r: _Rollout, t: int, x: np.ndarray) -> StepPlan:
-        t0 = time.perf_counter()
-        N = r.problem.n_steps
-        start = r.rel if t == 0 else solve_rel(self.scenario, r.problem, window=Window(t, N - t, N), x_start=x,
-                                               backend=self.backend)  # fmt: skip
-        r.shift.reset_plan(start.X, start.U)
-        r.expert_time += time.perf_counter() - t0
-        e = r.plans[t] = r.expert.plan(t, x)
-        r.costates[t] = self.plan_costates(r, t, e)
-        r.expert_time += e.warm_time + e.solve_time
-        return e
-
-    @staticmethod
-    def plan_costates(r: _Rollout, t: int, e: StepPlan) -> np.ndarray | None:
-        """The costates (N − t + 1, n) of the expert's plan ``e`` at step t over its steps t..N (optimisation
-        representation, ``_ExpertController.costates``): a solved plan's are its solve's; a reused plan's (plan reuse:
-        the tail of the plan at t − 1, so recursively of the plan solved last) are those of the solve that produced
-        it, shifted to steps t..N. Row 0 (step t, the solve's fixed start) is NaN in both, so reuse does not change
-        which steps are labelled. None for a fallback plan and where the producing solve gave no costates."""
-        lam = None if e.fallback else r.costates.get(t - 1) if e.reused else r.expert.costates
-        if lam is None:
-            return None
-        lam = np.array(lam[1:] if e.reused else lam, dtype=np.float64)
-        lam[0] = np.nan
-        return lam
-
-    def after(self, t: int, plans: Sequence[StepPlan], xs: Sequence[np.ndarray]) -> None:
-        for r, plan, x_next in zip(self.rollouts, plans, xs, strict=True):
-            if r.labelled[t]:
-                r.expert.observe(r.plans[t], plan.u, x_next)
 
 
 def collect_rollout(
@@ -274,7 +176,7 @@ def collect_rollouts(
     The learners are TTO-MPC (``METHODS``; R-TTO-MPC with the target blend ``robust_blend`` > 0) at each rollout's H,
     the episodes of ``run_mpc_batch``, and share one batched transformer context (``RolloutGroup``: one batched
     rollout per step), so a rollout's learner plans equal its lone run's up to the rounding of the batch; the expert
-    acts beside them (``_Expert``). Both controllers run under ``settings`` (default: the paper's), which
+    acts beside them (``Expert``). Both controllers run under ``settings`` (default: the paper's), which
     ``check_rollout_settings`` refuses where the rollouts cannot honour them (a decode schedule, a terminal term or
     rtg mode they cannot run): mode, backend and plan reuse (without reuse the labels are the same) for both; for the
     learner (its H drawn by the exploration, Alg. 1) also the end horizon, the terminal term with its tracking
@@ -288,7 +190,6 @@ def collect_rollouts(
     check_rollout_settings(s)
     if not indices:
         return []
-    expert_settings = dataclasses.replace(s, rti=False)  # the labels are optima: the expert's solves converge
     method = model_method("TTO", robust_blend > 0)
     learners = _tto(method.providers(MethodInputs(s, [None] * len(indices), planner, robust_blend)))
     rollouts, starts = [], []
@@ -299,19 +200,15 @@ def collect_rollouts(
         N = problem.n_steps
         H = min(int(rng.choice(exploration.horizons)), N)
         expert_steps = expert_schedule(rng, N, exploration)
-        labelled = label_schedule(rng, N, labels.per_rollout, labels.late) | expert_steps
-        shift = ShiftProvider()
-        expert = _ExpertController(scenario, problem, shift, N, expert_settings)
+        labelled = label_schedule(rng, N, labels.per_rollout, labels.late)
         plant = rollout_plant(scenario, seed, perturbed).noise
-        rollouts.append(_Rollout(index, seed, problem, rel, H, expert_steps, labelled, plant, shift, expert))
+        rollouts.append(ExpertRollout.start(scenario, (index, seed, problem, rel, H), expert_steps, labelled, plant, s))
         starts.append(EpisodeStart(problem, rel.cost, seed, horizon=H, plant=plant))
     if len({r.problem.n_steps for r in rollouts}) > 1:
         raise ValueError("rollouts run in lockstep need problems of one length N")
-    for r in rollouts:
-        r.shift.reset(scenario, r.problem, r.rel.cost)
     group = learners[0].group  # the learners', made together (``Method.providers``)
     run = MPCRun(max(r.H for r in rollouts), s)  # each rollout plans at its own H (EpisodeStart.horizon)
-    episodes = run_mpc_batch(scenario, starts, learners, run, hook=_Expert(scenario, rollouts, group, s.backend))
+    episodes = run_mpc_batch(scenario, starts, learners, run, hook=Expert(scenario, rollouts, group, s.backend))
     return [
         _rows(scenario, r, e, learner.slot, iteration, labels, group.context)
         for r, e, learner in zip(rollouts, episodes, learners, strict=True)
@@ -328,7 +225,7 @@ def _tto(providers: Sequence[Provider]) -> list[TTOProvider]:
 
 def _rows(
     scenario: Scenario,
-    r: _Rollout,
+    r: ExpertRollout,
     episode: Episode,
     slot: int,
     iteration: int,

@@ -66,7 +66,7 @@ def plan_row(
     on, NaN (no loss) before. From t the rtg is, with ``rtg="learner"``, the learner's value run on as the context
     runs it (rtg_(s+1) = rtg_s + c(u*_s)); with ``rtg="expert"`` the plan's own cost-to-go −Σ_(k>=s) c(u*_k), as in
     open-loop rows. The ctg is held (the expert plan is feasible). ``costates`` (N − t + 1, n), the plan's λ over
-    steps t..N in the optimisation representation (``collect._Expert.plan_costates``), fill the row's costates from
+    steps t..N in the optimisation representation (``expert.Expert.plan_costates``), fill the row's costates from
     step t, converted as open-loop rows' are (``model_costates``); steps before t, and all of them when
     ``costates`` is None, are NaN (the DataModule masks them)."""
     N = problem.n_steps
