@@ -102,8 +102,8 @@ def test_fused_equals_torch_and_leaves_the_cache(scenario: str, activation: str)
 
 
 def test_deferred_extension_and_weight_updates() -> None:
-    """The fused extension of several deferred steps in one pass equals the torch one, and an in-place weight update
-    (an optimizer step, ``load_state_dict``) reaches the next fused rollout."""
+    """The fused extension of several deferred steps in one pass equals the torch one, and a context built after an
+    in-place weight update (an optimizer step, ``load_state_dict``) computes with the new weights."""
     pl, probs = planner("quadrotor"), problems("quadrotor", 2)
     ctxs = [pl.context(probs, rtg0=-1.0, decoder=d) for d in ("torch", "fused")]
     plan = ctxs[0].rollout(4)
@@ -112,10 +112,14 @@ def test_deferred_extension_and_weight_updates() -> None:
         for k in range(4):
             ctx.advance(plan.actions[:, k], plan.states[:, k + 1])
     assert_close(ctxs[1].rollout(5).actions, ctxs[0].rollout(5).actions, "after a deferred extension")
+    before = ctxs[1].rollout(5).actions
     with torch.no_grad():
         for p in pl.model.blocks[0].parameters():
             p.mul_(1.5)
-    assert_close(ctxs[1].rollout(5).actions, ctxs[0].rollout(5).actions, "after a weight update")
+    ctxs = [pl.context(probs, rtg0=-1.0, decoder=d) for d in ("torch", "fused")]
+    after = ctxs[1].rollout(5).actions
+    assert_close(after, ctxs[0].rollout(5).actions, "after a weight update")
+    assert float((after - before).abs().max()) > 1e-3 * float(before.abs().max())  # the update changed the plan
 
 
 def test_refusals_and_fallbacks() -> None:

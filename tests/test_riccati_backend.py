@@ -361,13 +361,13 @@ def test_kernel_cache_is_keyed_on_all_its_sources() -> None:
     from numba.core.registry import CPUDispatcher
 
     from ttompc.solvers.backends import riccati_cone, riccati_kernel, riccati_rows
-    from ttompc.solvers.backends.riccati_jit import KERNEL_SOURCES, kernel_stamp
+    from ttompc.solvers.backends.riccati_jit import KERNEL, KERNEL_SOURCES
 
     modules = (riccati_cone, riccati_kernel, riccati_rows)
     assert {Path(m.__file__).name for m in modules if m.__file__} < set(KERNEL_SOURCES)
     dispatchers = [f for m in modules for f in vars(m).values() if isinstance(f, CPUDispatcher)]
     assert len(dispatchers) >= 30
-    assert all(f._cache._cache_file._source_stamp == kernel_stamp() for f in dispatchers)
+    assert all(f._cache._cache_file._source_stamp == KERNEL.stamp for f in dispatchers)
 
 
 def test_where_the_chain_takes_it() -> None:

@@ -16,8 +16,10 @@ It runs the ``stacked`` layout with a relu, gelu or silu MLP, a float32 model on
 scenario whose batched model has ``fused_step`` (the three built-in ones). Elsewhere ``decoder="fused"`` raises
 ``ValueError`` naming the reason, and ``decoder="auto"`` runs the torch path, with the reason in
 ``RolloutContext.fallback`` and a ``RuntimeWarning`` (``resolve_decoder``). The weights are copied into the kernel's
-layout at the first call and again whenever a parameter changes in place (its version counter), so a context sees
-an optimizer step or ``load_state_dict`` like the torch ``Decoder`` does. The value output is not fused: it is one
+layout (``fused_kernel.TrunkWeights``) when the decoder is built, with its context: the rule of ``RolloutContext``,
+that the model's weights do not change while a context lives (its KV cache holds keys and values computed with
+them), makes watching them for changes unnecessary; a context built after an optimizer step or ``load_state_dict``
+computes with the new weights. The value output is not fused: it is one
 small MLP call per MPC step outside the rollout (``Planner.cost_to_go``, its numbers in ``bench/model_calls.py``).
 
 First use compiles the kernels and the scenario's dynamics step (about 12 s on the dev VM), cached on disk by numba
@@ -27,7 +29,7 @@ First use compiles the kernels and the scenario's dynamics step (about 12 s on t
 from __future__ import annotations
 
 import warnings
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -36,6 +38,9 @@ from torch import Tensor, nn
 from ttompc.policy.config import DECODERS
 from ttompc.policy.gpt import Block, KVCache, TrajectoryGPT
 from ttompc.scenarios.base import BatchedModel, CostNorm
+
+if TYPE_CHECKING:
+    from ttompc.policy.fused_kernel import TrunkWeights
 
 
 def fused_support(model: TrajectoryGPT, dynamics: BatchedModel | None = None, *, use_cache: bool = True) -> str | None:
@@ -81,11 +86,41 @@ def _numpy(t: Tensor) -> np.ndarray:
     return (t if t.dtype == torch.float32 and t.is_contiguous() else t.to(torch.float32).contiguous()).numpy()
 
 
+def trunk_weights(model: TrajectoryGPT) -> TrunkWeights:
+    """A copy of the trunk's parameters in the kernel's layout (``fused_kernel.TrunkWeights``; a float32 model on the
+    CPU): linear weights transposed, zeros for the biases a module has none of."""
+    from ttompc.policy.fused_kernel import LayerWeights, TrunkWeights
+
+    def bias(b: Tensor | None, size: int) -> np.ndarray:
+        return np.zeros(size, np.float32) if b is None else _numpy(b).copy()
+
+    def norm(mod: nn.LayerNorm) -> tuple[np.ndarray, np.ndarray]:
+        return _numpy(mod.weight).copy(), bias(mod.bias, mod.weight.shape[0])
+
+    def linear(mod: nn.Module) -> tuple[np.ndarray, np.ndarray]:
+        lin = cast(nn.Linear, mod)
+        return _numpy(lin.weight.T), bias(lin.bias, lin.out_features)
+
+    layers = tuple(
+        LayerWeights(
+            *norm(b.ln_1),
+            *linear(b.attn.qkv),
+            *linear(b.attn.proj),
+            *norm(b.ln_2),
+            *linear(b.mlp[0]),
+            *linear(b.mlp[2]),
+        )
+        for b in cast(list[Block], list(model.blocks))
+    )
+    return TrunkWeights(*norm(model.embed_ln), *norm(model.ln_f), layers)
+
+
 class FusedDecoder:
     """The trunk over a ``KVCache`` and the rollout, in one numba call each; ``decoder(tokens)`` has the contract of
     ``Decoder.__call__`` (what ``RolloutContext`` extends its history with), ``rollout`` generates a window.
 
-    ``dynamics`` is the context's batched model (B problems, the cache's batch); its ``fused_step`` is read once."""
+    ``dynamics`` is the context's batched model (B problems, the cache's batch); its ``fused_step`` is read once,
+    the model's weights copied once (``trunk_weights``)."""
 
     def __init__(self, model: TrajectoryGPT, cache: KVCache, dynamics: BatchedModel) -> None:
         from ttompc.policy.fused_kernel import ACT_CODES
@@ -93,50 +128,11 @@ class FusedDecoder:
         self.model, self.cache = model, cache
         cfg = model.cfg
         self.n_head, self.act = cfg.n_head, ACT_CODES[cfg.activation]
-        self._blocks = cast(list[Block], list(model.blocks))
-        self._params = [p for mod in (*self._blocks, model.embed_ln, model.ln_f) for p in mod.parameters()]
-        self._versions: tuple[int, ...] = ()
-        self._weights: tuple[np.ndarray, ...] = ()
+        self.weights = trunk_weights(model)
         self.K, self.V = cache.k.numpy(), cache.v.numpy()  # (L, B, heads, capacity, hd) views, written in place
         self.step, self.params = cast(Any, dynamics).fused_step()  # the cfunc and its rows (B, P)
         if self.params.shape[0] != self.K.shape[1] or self.params.dtype != np.float32:
             raise ValueError(f"fused_step params must be float32 (B={self.K.shape[1]}, P), got {self.params.shape}")
-
-    def weights(self) -> tuple[np.ndarray, ...]:
-        """The trunk's weights in the kernel's layout (``fused_kernel.rollout_kernel``), copied again when a
-        parameter has changed in place since the last copy."""
-        versions = tuple(p._version for p in self._params)
-        if versions != self._versions:
-            self._weights, self._versions = self._copy_weights(), versions
-        return self._weights
-
-    def _copy_weights(self) -> tuple[np.ndarray, ...]:
-        C = self.model.cfg.n_embd
-
-        def norm(mod: nn.LayerNorm) -> Tensor:  # (2, C): weight, bias (zeros without)
-            return torch.stack([mod.weight, mod.bias if mod.bias is not None else mod.weight.new_zeros(C)])
-
-        def bias(mod: nn.Linear) -> Tensor:
-            return mod.bias if mod.bias is not None else mod.weight.new_zeros(mod.out_features)
-
-        def stack(get: Any) -> np.ndarray:  # (L, ...) of ``get(block)``
-            return _numpy(torch.stack([get(b) for b in self._blocks]))
-
-        with torch.no_grad():
-            return (
-                _numpy(norm(self.model.embed_ln)),
-                _numpy(norm(self.model.ln_f)),
-                stack(lambda b: norm(b.ln_1)),
-                stack(lambda b: b.attn.qkv.weight.T),
-                stack(lambda b: bias(b.attn.qkv)),
-                stack(lambda b: b.attn.proj.weight.T),
-                stack(lambda b: bias(b.attn.proj)),
-                stack(lambda b: norm(b.ln_2)),
-                stack(lambda b: b.mlp[0].weight.T),
-                stack(lambda b: bias(b.mlp[0])),
-                stack(lambda b: b.mlp[2].weight.T),
-                stack(lambda b: bias(b.mlp[2])),
-            )
 
     def _room(self, tokens: int) -> int:
         start = self.cache.length
@@ -151,7 +147,7 @@ class FusedDecoder:
 
         start = self._room(tokens.shape[1])
         out = np.empty(tokens.shape, np.float32)
-        extend_kernel(self.n_head, self.act, self.weights(), self.K, self.V, start, _numpy(tokens), out)
+        extend_kernel(self.n_head, self.act, self.weights, self.K, self.V, start, _numpy(tokens), out)
         self.cache.length = start + tokens.shape[1]
         return torch.from_numpy(out)
 
@@ -167,7 +163,7 @@ class FusedDecoder:
         """The H = maps[0].shape[1] steps from step ``start`` after the cached history (whose length is left as it
         is; its free slots are scratch). ``maps``: ``RolloutContext._window_maps``; state (B, n), rtg (B,) and
         prev_action (B, m) = a_{start-1}, un-normalised. -> states (B, H+1, n), actions (B, H, m), rtg (B, H+1)."""
-        from ttompc.policy.fused_kernel import COST_CODES, rollout_kernel
+        from ttompc.policy.fused_kernel import COST_CODES, WindowMaps, rollout_kernel
 
         base, W, head_w, head_b = maps
         B, H = base.shape[:2]
@@ -176,7 +172,22 @@ class FusedDecoder:
         A = np.empty((B, H, head_w.shape[0]), np.float32)
         R = np.empty((B, H + 1), np.float32)
         S[:, 0], R[:, 0] = _numpy(state), _numpy(rtg)
-        rollout_kernel(self.step, self.params, COST_CODES[cost_norm], self.n_head, self.act, self.weights(),
-                       self.K, self.V, history, start, _numpy(base), _numpy(W), _numpy(head_w), _numpy(head_b),
-                       _numpy(prev_action), S, A, R)  # fmt: skip
+        window = WindowMaps(_numpy(base), _numpy(W), _numpy(head_w), _numpy(head_b))
+        rollout_kernel(
+            self.step,
+            self.params,
+            COST_CODES[cost_norm],
+            self.n_head,
+            self.act,
+            self.weights,
+            self.K,
+            self.V,
+            history,
+            start,
+            window,
+            _numpy(prev_action),
+            S,
+            A,
+            R,
+        )
         return torch.from_numpy(S), torch.from_numpy(A), torch.from_numpy(R)

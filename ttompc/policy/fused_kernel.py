@@ -12,56 +12,66 @@ Matmuls go through ``np.dot`` (numba's BLAS binding, single-threaded under ``OMP
 loops compiled with ``reassoc``/``contract`` fast-math, so the attention's and LayerNorm's reductions vectorise
 (no NaN/inf assumptions: a diverging plan stays visible).
 
-``jit``: ``njit`` with numba's on-disk cache keyed on this file's content (``source_stamp``), like the Riccati
-kernel's ``ttompc.solvers.backends.riccati_jit.jit`` keys on its own files. The first use compiles both kernels and
-a scenario's dynamics step in about 12 s on the (loaded) 2-core dev VM, once per machine and edit of this file; a
-later process loads them from the cache in about 0.4 s.
+The weights are a ``TrunkWeights``, the linear layers' weights transposed and contiguous (I, O): ``np.dot`` of a
+batch with torch's (O, I) layout read transposed was measured up to 2.6× slower (batch 8, 384×128).
+
+``KERNEL`` (``ttompc.compiled``) compiles this file's functions, cached on disk and keyed on its content. The first
+use compiles both kernels and a scenario's dynamics step in about 12 s on the (loaded) 2-core dev VM, once per
+machine, edit of this file and number of layers; a later process loads them from the cache in about 0.4 s.
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import math
-import warnings
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit
+
+from ttompc.compiled import Kernel
 
 COST_CODES = {"l1": 0, "l2": 1, "quad": 2}  # the stage cost c(u) of the rtg update
 ACT_CODES = {"relu": 0, "gelu": 1, "silu": 2}  # the MLP activation (gelu: torch's exact erf form)
 LN_EPS = 1e-5  # torch's LayerNorm default, what ``Decoder`` runs
-FASTMATH = {"reassoc", "contract"}
+KERNEL = Kernel("the fused decode kernel", [Path(__file__)], fastmath={"reassoc", "contract"})
+jit = KERNEL.jit
 
 
-@functools.cache
-def source_stamp() -> str:
-    """The hash of this file (read once per process): the cache key of every kernel function."""
-    return hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+class LayerWeights(NamedTuple):
+    """One decoder block: LayerNorm weights and biases (C,), linear weights transposed (in, out) and biases (out,)."""
+
+    ln1_w: np.ndarray
+    ln1_b: np.ndarray
+    qkv_wT: np.ndarray  # (C, 3C)
+    qkv_b: np.ndarray
+    proj_wT: np.ndarray  # (C, C)
+    proj_b: np.ndarray
+    ln2_w: np.ndarray
+    ln2_b: np.ndarray
+    fc_wT: np.ndarray  # (C, hidden)
+    fc_b: np.ndarray
+    out_wT: np.ndarray  # (hidden, C)
+    out_b: np.ndarray
 
 
-def jit(func: Callable) -> Any:  # a numba dispatcher
-    """``njit`` with numba's on-disk cache under ``source_stamp``; where no cache folder is writable the kernel
-    compiles in every process that uses it instead, with a warning (as ``riccati_jit.jit``)."""
-    try:
-        dispatcher = njit(cache=True, fastmath=FASTMATH)(func)
-    except RuntimeError as err:
-        if "no locator available" not in str(err):
-            raise
-        warnings.warn(
-            "the fused decode kernel cannot be cached (no writable numba cache folder): it compiles in every process "
-            "(~10 s); set NUMBA_CACHE_DIR to a writable folder to compile it once",
-            RuntimeWarning,
-            stacklevel=1,
-        )
-        return njit(fastmath=FASTMATH)(func)
-    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
-    if cache_file is not None and hasattr(cache_file, "_source_stamp"):
-        cache_file._source_stamp = source_stamp()
-    return dispatcher
+class TrunkWeights(NamedTuple):
+    """The trunk: the embedding's and the final LayerNorm's weights and biases (C,), and the blocks in order."""
+
+    embed_ln_w: np.ndarray
+    embed_ln_b: np.ndarray
+    final_ln_w: np.ndarray
+    final_ln_b: np.ndarray
+    layers: tuple[LayerWeights, ...]
+
+
+class WindowMaps(NamedTuple):
+    """A rollout window's embedding and action head (``RolloutContext._window_maps``): the tokens of step t0+j are
+    base[:, j] + [rtg, state, a_prev] @ Wz, and the un-normalised action of a hidden state h is head_w @ h + head_b."""
+
+    base: np.ndarray  # (B, H, C)
+    Wz: np.ndarray  # (1+n+m, C)
+    head_w: np.ndarray  # (m, C)
+    head_b: np.ndarray  # (m,)
 
 
 @jit
@@ -139,26 +149,29 @@ def _attend(qkv: Any, K: Any, V: Any, pos: int, n_head: int, p: Any, y: Any) -> 
 
 
 @jit
-def _trunk(x: Any, pos: int, n_head: int, act: int, weights: tuple, K: Any, V: Any, scratch: tuple, out: Any) -> None:
+def _trunk(
+    x: Any, pos: int, n_head: int, act: int, weights: TrunkWeights, K: Any, V: Any, scratch: tuple, out: Any
+) -> None:
     """The decoder over one new token per row at position ``pos``: embedded tokens x (R, C) -> final hidden states
-    out (R, C) (x is overwritten: the residual stream). ``weights`` as ``rollout_kernel``'s; K, V (L, R, heads,
-    capacity, hd); ``scratch`` = (h (R, C), qkv (R, 3C), y (R, C), u (R, 4C), p (capacity,))."""
-    ln_e, ln_f, ln1, qkvT, qkv_b, projT, proj_b, ln2, fcT, fc_b, outT, out_b = weights
+    out (R, C) (x is overwritten: the residual stream). K, V (L, R, heads, capacity, hd); ``scratch`` = (h (R, C),
+    qkv (R, 3C), y (R, C), u (R, hidden), p (capacity,))."""
     h, qkv, y, u, p = scratch
-    _layer_norm(x, ln_e[0], ln_e[1], h)
+    _layer_norm(x, weights.embed_ln_w, weights.embed_ln_b, h)
     x[:] = h
-    for layer in range(ln1.shape[0]):
-        _layer_norm(x, ln1[layer, 0], ln1[layer, 1], h)
-        _affine(h, qkvT[layer], qkv_b[layer], qkv)
-        _attend(qkv, K[layer], V[layer], pos, n_head, p, y)
-        _affine(y, projT[layer], proj_b[layer], h)
+    i = 0
+    for w in weights.layers:
+        _layer_norm(x, w.ln1_w, w.ln1_b, h)
+        _affine(h, w.qkv_wT, w.qkv_b, qkv)
+        _attend(qkv, K[i], V[i], pos, n_head, p, y)
+        _affine(y, w.proj_wT, w.proj_b, h)
         x += h
-        _layer_norm(x, ln2[layer, 0], ln2[layer, 1], h)
-        _affine(h, fcT[layer], fc_b[layer], u)
+        _layer_norm(x, w.ln2_w, w.ln2_b, h)
+        _affine(h, w.fc_wT, w.fc_b, u)
         _activate(u, act)
-        _affine(u, outT[layer], out_b[layer], h)
+        _affine(u, w.out_wT, w.out_b, h)
         x += h
-    _layer_norm(x, ln_f[0], ln_f[1], out)
+        i += 1
+    _layer_norm(x, weights.final_ln_w, weights.final_ln_b, out)
 
 
 @jit
@@ -180,15 +193,12 @@ def rollout_kernel(
     cost: int,
     n_head: int,
     act: int,
-    weights: tuple,
+    weights: TrunkWeights,
     K: Any,
     V: Any,
     history: int,
     t0: int,
-    base: Any,
-    Wz: Any,
-    head_w: Any,
-    head_b: Any,
+    maps: WindowMaps,
     a_prev: Any,
     S: Any,
     A: Any,
@@ -197,18 +207,15 @@ def rollout_kernel(
     """The H = A.shape[1] generated steps of a rollout from step t0 after ``history`` cached tokens.
 
     ``step``: the dynamics cfunc, called as step(s, a, k, params[b], s_next) (pointers); ``params`` (B, P) its
-    per-problem rows. ``cost``: ``COST_CODES``; ``act``: ``ACT_CODES``. ``weights`` = (ln_e (2, C), ln_f (2, C), ln1
-    (L, 2, C), qkvT (L, C, 3C), qkv_b (L, 3C), projT (L, C, C), proj_b (L, C), ln2 (L, 2, C), fcT (L, C, 4C), fc_b
-    (L, 4C), outT (L, 4C, C), out_b (L, C)): LayerNorm weight/bias pairs and transposed linear weights. K, V
-    (L, B, heads, capacity, hd): the cache; positions history..history+H-1 are written, nothing before.
-    ``base`` (B, H, C), ``Wz`` (1+n+m, C), ``head_w`` (m, C), ``head_b`` (m,): the window maps (tokens of step t0+j
-    = base[:, j] + [rtg, state, a_prev] @ Wz; the un-normalised action = head_w @ hidden + head_b).
-    In: a_prev (B, m) = a_{t0-1}, S[:, 0] (B, n) and R[:, 0] (B,). Out: S[:, 1:] (B, H, n), A (B, H, m), R[:, 1:]."""
+    per-problem rows. ``cost``: ``COST_CODES``; ``act``: ``ACT_CODES``. K, V (L, B, heads, capacity, hd): the
+    cache; positions history..history+H-1 are written, nothing before. In: a_prev (B, m) = a_{t0-1}, S[:, 0]
+    (B, n) and R[:, 0] (B,). Out: S[:, 1:] (B, H, n), A (B, H, m), R[:, 1:]."""
     B, H, m = A.shape
+    base, Wz, head_w, head_b = maps
     n, C = S.shape[2], Wz.shape[1]
     x = np.empty((B, C), np.float32)
     hid = np.empty((B, C), np.float32)
-    scratch = _scratch(B, C, weights[8].shape[2], K.shape[3])
+    scratch = _scratch(B, C, weights.layers[0].fc_wT.shape[1], K.shape[3])
     z = np.empty((B, 1 + n + m), np.float32)
     for b in range(B):
         z[b, 1 + n :] = a_prev[b]
@@ -233,14 +240,16 @@ def rollout_kernel(
 
 
 @jit
-def extend_kernel(n_head: int, act: int, weights: tuple, K: Any, V: Any, start: int, tokens: Any, out: Any) -> None:
+def extend_kernel(
+    n_head: int, act: int, weights: TrunkWeights, K: Any, V: Any, start: int, tokens: Any, out: Any
+) -> None:
     """The trunk over T new tokens (B, T, C) after ``start`` cached ones, in order (token i at position start+i
     sees positions 0..start+i): their keys/values are written at start..start+T-1 and out (B, T, C) gets their
     final hidden states. Arguments as ``rollout_kernel``'s."""
     B, T, C = tokens.shape
     x = np.empty((B, C), np.float32)
     hid = np.empty((B, C), np.float32)
-    scratch = _scratch(B, C, weights[8].shape[2], K.shape[3])
+    scratch = _scratch(B, C, weights.layers[0].fc_wT.shape[1], K.shape[3])
     for i in range(T):
         x[:] = tokens[:, i]
         _trunk(x, start + i, n_head, act, weights, K, V, scratch, hid)

@@ -182,8 +182,8 @@ class RolloutContext:
     def _history(self) -> Decoder | FusedDecoder:
         """The decoder over the KV cache of the deciding tokens of steps 0..t-1: built at first use, then extended
         over the steps executed since (by ``advance``, or here in one pass for deferred ones). Its parameter look-ups
-        are made once per context, which lives for an episode: the model's weights may change in place, not be
-        replaced, while it lives."""
+        are made once per context, which lives for an episode: the model's weights must not change while it lives (the
+        cache holds keys and values computed with them; the fused decoder copies them here)."""
         if self._decoder is None:
             self._cache = cache = self.model.new_cache(self.batch)
             fused = self.decoder == "fused"

@@ -8,6 +8,8 @@ import functools
 from collections.abc import Callable
 from typing import Any
 
+from ttompc.compiled import own_file_kernel
+
 
 def fused_step_signature() -> Any:
     """The numba signature of a ``BatchedModel.fused_step`` step: void(float32* s, float32* a, intp k, float32* p,
@@ -21,13 +23,7 @@ def fused_step_signature() -> Any:
 @functools.cache
 def compile_fused_step(func: Callable[..., None]) -> Any:
     """``func`` (a module-level function indexing its pointer arguments, ``BatchedModel.fused_step``) as a numba
-    cfunc of ``fused_step_signature()``, cached on disk by numba (keyed on ``func``'s file), compiled once per
-    process at most; where no cache folder is writable, compiled in every process."""
-    from numba import cfunc
-
-    try:
-        return cfunc(fused_step_signature(), cache=True)(func)
-    except RuntimeError as err:
-        if "no locator available" not in str(err):
-            raise
-        return cfunc(fused_step_signature())(func)
+    cfunc of ``fused_step_signature()``, compiled once per process at most and cached on disk keyed on ``func``'s
+    file (``ttompc.compiled``: it may call no compiled code from other files)."""
+    kernel = own_file_kernel(f"the fused step {func.__module__}.{func.__qualname__}", func)
+    return kernel.cfunc(func, fused_step_signature())
