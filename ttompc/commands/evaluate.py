@@ -1,4 +1,4 @@
-"""``ttompc evaluate warmstart|mpc [RECIPE.yaml] key=value ...``: the evaluation protocol (docs/evaluation.md);
+"""``ttompc evaluate warmstart|mpc|target [RECIPE.yaml] key=value ...``: the evaluation protocol (docs/evaluation.md);
 ``ttompc evaluate compare BASE OTHER ...``: pair closed-loop reports made on the same problems.
 
 * ``warmstart``: open-loop SCP warm starts, REL vs the model(s) vs the oracle (best of several warm starts), on
@@ -7,6 +7,9 @@
   the perturbed plant, ``problems`` (default 20) held-out non-convex problems (``ClosedLoopConfig`` keys), under
   ``protocol=paper|recommended|zoo|FILE.yaml`` with single settings overridden as ``mpc.KEY=VALUE``
   (``ttompc.mpc.settings``);
+* ``target``: along the closed-loop episodes of one method, the distance of its terminal target and first control
+  from the expert's re-solved from the measured state, by steps to go and plant, and its correlation with the
+  closed-loop cost (``TargetErrorConfig`` keys; ``ttompc.evaluation.target_error``);
 * ``compare``: pairs ``mpc`` reports on their common problems (``ttompc.evaluation.compare``), prints a table and
   with ``--json FILE`` writes its rows.
 
@@ -52,6 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _shortcuts(ws, "problems=100 seed=2027 rtg_scale=1.3", 100)
     mpc = sub.add_parser("mpc", help="closed loop: REL/DIST/plan-once/oracle/TTO-MPC, nominal and perturbed plant")
     _shortcuts(mpc, "protocol=zoo horizons=[10,30] plants=[perturbed] plant.process_std=0.005", 20)
+    target = sub.add_parser("target", help="closed loop: a method's target and first control vs the expert's")
+    _shortcuts(target, "method=R-FT-TTO-MPC horizons=[10] every=2 plot=true", 20)
     cmp = sub.add_parser(
         "compare",
         help="pair closed-loop reports made on the same held-out problems: goals lost/won, paired cost, step time",
@@ -132,6 +137,24 @@ def _compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _target(args: argparse.Namespace) -> int:
+    """``evaluate target``: checked as ``evaluate mpc`` is (models, scenario, settings, output folder)."""
+    from ttompc.evaluation.measurement import with_settings
+    from ttompc.evaluation.target_error import TargetErrorConfig, run_target_error
+
+    cfg = command_config(TargetErrorConfig, args, _FLAGS)
+    if args.print_config:
+        print(json.dumps(with_settings(cfg), indent=2))
+        return 0
+    _announce("target", cfg)
+    _resolve_scenario(cfg)
+    _check_output("target", cfg)
+    report = run_target_error(cfg)
+    print(report["table"])
+    print(f"report: {report['out']}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     if args.evaluation == "compare":
         return _compare(args)
@@ -150,6 +173,8 @@ def run(args: argparse.Namespace) -> int:
         _resolve_scenario(cfg)
         _check_output("warmstart", cfg)
         report = run_warmstart(cfg)
+    elif args.evaluation == "target":
+        return _target(args)
     else:
         from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
         from ttompc.evaluation.measurement import with_settings
