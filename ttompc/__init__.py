@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 if TYPE_CHECKING:
+    from ttompc.mpc.controller import Controller
     from ttompc.policy import Planner
     from ttompc.scenarios import get_scenario, list_scenarios
     from ttompc.solvers import solve_problem
@@ -18,6 +19,7 @@ if TYPE_CHECKING:
 
 # name -> (module, dotted attribute); ``load_pretrained`` is ``Planner.from_pretrained`` itself, not a copy
 _LAZY = {
+    "Controller": ("ttompc.mpc.controller", "Controller"),
     "get_scenario": ("ttompc.scenarios", "get_scenario"),
     "list_scenarios": ("ttompc.scenarios", "list_scenarios"),
     "load_pretrained": ("ttompc.policy.planner", "Planner.from_pretrained"),
@@ -38,4 +40,4 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module 'ttompc' has no attribute {name!r}")
 
 
-__all__ = ["Planner", "__version__", "get_scenario", "list_scenarios", "load_pretrained", "solve_problem"]
+__all__ = ["Controller", "Planner", "__version__", "get_scenario", "list_scenarios", "load_pretrained", "solve_problem"]

@@ -43,6 +43,12 @@ Two ways a step does less than SCP to convergence from the provider's warm start
   SCP's tolerance (the next step corrects it); only a solver failure falls back. Measured against convergence in
   docs/evaluation.md.
 
+Every episode starts with ``start_controller`` and steps with two calls of its ``MPCController``: ``plan`` from the
+measured state, then, once the control has acted, ``observe`` of its outcome. ``ttompc.mpc.controller.Controller``
+(one episode, stepped by the caller) makes the same calls in the same order, so it runs the episodes of
+``run_mpc_batch`` (and so of ``evaluate mpc``, the training callback, DAgger and the demo) exactly. Before its first
+step ``run_mpc_batch`` compiles what the steps run (``ttompc.mpc.warmup``): no step pays a numba compilation.
+
 The plant is ``ttompc.mpc.plant.Plant``: the exact dynamics, optionally with seeded actuation error and process
 noise (``PlantNoise``). An episode's record and feasibility: ``ttompc.mpc.episode``.
 """
@@ -61,6 +67,7 @@ from ttompc.mpc.episode import Episode, EpisodeTrace
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
 from ttompc.mpc.settings import Mode, MPCSettings
+from ttompc.mpc.warmup import warm_up
 from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
 from ttompc.solvers.scp import SCPOptions, SCPProblem, SCPResult, SCPStatus, TerminalCost, solve_scp
 
@@ -218,6 +225,15 @@ class MPCController:
         return time.perf_counter() - t0, shared
 
 
+def start_controller(
+    scenario: Scenario, start: EpisodeStart, provider: Provider, horizon: int, settings: MPCSettings
+) -> MPCController:
+    """An episode's controller at step 0: ``provider`` reset for ``start`` (its problem and J_REL) and the
+    controller over it; ``run_mpc_batch`` and ``ttompc.mpc.controller.Controller`` start every episode with it."""
+    provider.reset(scenario, start.problem, start.rel_cost)
+    return MPCController(scenario, start.problem, provider, horizon, settings)
+
+
 def observe_charges(seconds: np.ndarray, shared: Sequence[float | None]) -> np.ndarray:
     """The observe time charged to each of B lockstep episodes for one step: its call's ``seconds`` less the shared
     work its provider reports (``Provider.observe``), plus an even share of all the shared work reported at the step
@@ -323,10 +339,10 @@ def run_mpc_batch(
     # each episode's plant, None components the scenario's own; None: the exact dynamics
     noises = [None if n is None else n.resolve(scenario) for n in (run.plant if s.plant is None else s.plant
                                                                     for s in starts)]  # fmt: skip
+    warm_up(scenario, problems[0], providers, max(horizons), run.settings)  # no compilation inside a step
     ctrls, sims = [], []
     for start, provider, horizon, noise in zip(starts, providers, horizons, noises, strict=True):
-        provider.reset(scenario, start.problem, start.rel_cost)
-        ctrls.append(MPCController(scenario, start.problem, provider, horizon, run.settings))
+        ctrls.append(start_controller(scenario, start, provider, horizon, run.settings))
         sim = Plant(scenario, noise)
         sim.reset(start.plant_seed)
         sims.append(sim)
