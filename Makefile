@@ -40,14 +40,23 @@ bench: $(VENV)/.installed
 	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done
 
 # The README's figures in docs/figures/ (ttompc.evaluation.figures), each drawn from the report of the command below,
-# which runs only when its report is missing: the warm-start report in about 1.5 CPU-minutes, the closed-loop one in
-# about 15-25 on one core. Other reports: make figures FIG_MPC=path/mpc.json FIG_WARMSTART=path/warmstart.json
-FIG_MPC ?= outputs/figures/mpc-freeflyer/mpc.json
+# which runs only when its report is missing: the warm-start report in about 1.5 CPU-minutes; the closed-loop sweeps
+# (Fig. 5 and 6: H = 10, 20, ..., 100, both plants, 100 problems per scenario) take hours on all cores, store each
+# episode as it finishes and resume where they stopped when run again (docs/evaluation.md, "Sweeps").
+# Other reports: make figures FIG_MPC="a/mpc.json b/mpc.json" FIG_WARMSTART=path/warmstart.json
+SWEEP := horizons=[10,20,30,40,50,60,70,80,90,100] problems=100 seed=4242 protocol=recommended
+FIG_MPC ?= outputs/figures/mpc-freeflyer/mpc.json outputs/figures/mpc-quadrotor/mpc.json \
+	outputs/figures/mpc-rpod/mpc.json
 FIG_WARMSTART ?= outputs/figures/warmstart-freeflyer/warmstart.json
 
 outputs/figures/mpc-freeflyer/mpc.json: | $(VENV)/.installed
-	$(BIN)/ttompc evaluate mpc --model freeflyer-tto-v3 --ft-model freeflyer-ft-tto-v5 protocol=recommended \
-		horizons=[10,20,30,50] plants=[nominal] problems=20 seed=4242 robust_blend=0 workers=1 out=$(@D)
+	$(BIN)/ttompc evaluate mpc --model freeflyer-tto-v3 --ft-model freeflyer-ft-tto-v5 $(SWEEP) out=$(@D)
+
+outputs/figures/mpc-quadrotor/mpc.json: | $(VENV)/.installed
+	$(BIN)/ttompc evaluate mpc --model quadrotor-tto-v3 --ft-model quadrotor-ft-tto-v6 $(SWEEP) out=$(@D)
+
+outputs/figures/mpc-rpod/mpc.json: | $(VENV)/.installed
+	$(BIN)/ttompc evaluate mpc --model rpod-tto-v3 --ft-model rpod-ft-tto-v4 $(SWEEP) out=$(@D)
 
 outputs/figures/warmstart-freeflyer/warmstart.json: | $(VENV)/.installed
 	$(BIN)/ttompc evaluate warmstart --model freeflyer-tto-v3 --ft-model freeflyer-ft-tto-v5 problems=100 seed=4242 \

@@ -18,7 +18,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ttompc.evaluation.machine import cpu_model, load_average
 from ttompc.evaluation.metrics import write_json
+
+__all__ = ["Machine", "load_average", "read_result", "result_path", "write_result"]
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -26,22 +29,6 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def result_path(name: str) -> Path:
     """``bench/results/NAME.json``: where a script writes its result unless told otherwise (``--out``)."""
     return RESULTS / f"{name}.json"
-
-
-def load_average() -> list[float]:
-    """The 1-, 5- and 15-minute load averages now, to two decimals."""
-    return [round(x, 2) for x in os.getloadavg()]
-
-
-def cpu_model() -> str:
-    """The CPU's model name (/proc/cpuinfo), else the machine type."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def git_commit() -> str | None:

@@ -1,5 +1,5 @@
 """The evaluation protocol: seeded non-convex problems, intervals, infeasible runs counted apart, the
-paper normalisation, the oracle, the open-loop and closed-loop reports, the commands and the training callback."""
+paper's normalised cost, the oracle, the open-loop and closed-loop reports, the commands and the training callback."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from ttompc.errors import UserError
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
 from ttompc.evaluation.episodes import summarize_episodes
 from ttompc.evaluation.measurement import Measurement
-from ttompc.evaluation.metrics import gain_share, improvement_by_threshold, paper_normalized
+from ttompc.evaluation.metrics import gain_share, improvement_by_threshold, normalized_cost
 from ttompc.evaluation.problems import eval_problem, first_solvable
 from ttompc.evaluation.stats import interval
 from ttompc.evaluation.warmstart import ORACLE, evaluate_problem
@@ -70,20 +70,24 @@ def _rec(problem: int, method: str, cost: float, feasible: bool = True, horizon:
             "feasible": feasible}  # fmt: skip
 
 
-def test_paper_normalisation_uses_problems_feasible_for_every_method() -> None:
+def test_the_papers_normalised_cost_rests_on_every_feasible_run() -> None:
+    """(J − LB)/(maxcost − LB) per feasible run, LB = J_REL and maxcost its problem's worst feasible cost over every
+    method and H (an infeasible run's cost is not a maxcost); runs that failed are left out, not their problems."""
     recs = [
-        _rec(0, "DIST-MPC", 3.0), _rec(0, "REL-MPC", 2.0), _rec(0, "TTO-MPC", 1.5),
-        _rec(1, "DIST-MPC", 5.0), _rec(1, "REL-MPC", 2.0), _rec(1, "TTO-MPC", 9.0, feasible=False),
-        _rec(2, "DIST-MPC", 2.0), _rec(2, "REL-MPC", 1.5), _rec(2, "TTO-MPC", 1.25),
-        _rec(0, "DIST-MPC", 4.0, horizon=20), _rec(0, "REL-MPC", 1.5, horizon=20), _rec(0, "TTO-MPC", 1.5, horizon=20),
-        _rec(2, "DIST-MPC", 3.0, horizon=20), _rec(2, "REL-MPC", 1.5, horizon=20), _rec(2, "TTO-MPC", 1.5, horizon=20),
+        _rec(0, "A", 1.5), _rec(0, "A", 1.2, horizon=20), _rec(0, "B", 3.0), _rec(0, "B", 5.0, False, horizon=20),
+        _rec(1, "A", 2.5), _rec(1, "A", 9.0, False, horizon=20), _rec(1, "B", 2.2), _rec(1, "B", 4.0, horizon=20),
+        _rec(2, "A", 3.0, False), _rec(2, "B", 3.0, False),  # no feasible run: no value, no maxcost
     ]  # fmt: skip
-    rows = {(r["method"], r["horizon"]): r for r in paper_normalized(recs, ["DIST-MPC", "REL-MPC", "TTO-MPC"])}
-    # problem 1 is dropped (TTO infeasible there); DIST's worst horizon (H = 20: mean gap 2.5) is the unit
-    assert rows[("DIST-MPC", 20)]["paper_norm"]["mean"] == pytest.approx(1.0)
-    assert rows[("DIST-MPC", 10)]["paper_norm"]["mean"] == pytest.approx(1.5 / 2.5)
-    assert rows[("TTO-MPC", 10)]["paper_norm"]["mean"] == pytest.approx(0.375 / 2.5)
-    assert rows[("REL-MPC", 10)]["problems"] == 2 and rows[("REL-MPC", 10)]["paper_norm"]["n"] == 2
+    for r in recs:
+        r["rel_cost"] = 2.0 if r["problem"] == 1 else 1.0
+    rows = {(r["method"], r["horizon"]): r["paper_norm"] for r in normalized_cost(recs)}
+    # problem 0: maxcost 3 (B@10), span 2: A@10 0.25, A@20 0.1, B@10 1; problem 1: maxcost 4 (B@20), span 2:
+    # A@10 0.25, B@10 0.1, B@20 1
+    assert rows[("A", 10)]["mean"] == pytest.approx(0.25) and rows[("A", 10)]["n"] == 2
+    assert rows[("A", 20)]["mean"] == pytest.approx(0.1) and rows[("A", 20)]["n"] == 1
+    assert rows[("B", 10)]["mean"] == pytest.approx(0.55) and rows[("B", 10)]["n"] == 2
+    assert rows[("B", 20)]["mean"] == pytest.approx(1.0) and rows[("B", 20)]["n"] == 1
+    assert list(rows) == [("A", 10), ("A", 20), ("B", 10), ("B", 20)]
 
 
 def test_closed_loop_rows_pair_each_method_with_rel_mpc_on_the_problems_both_ran_feasibly() -> None:

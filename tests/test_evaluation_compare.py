@@ -26,7 +26,8 @@ PROBLEMS = 6
 
 
 def write_report(folder: Path, runs: list[dict[str, Any]], config: dict[str, Any] | None = None) -> Path:
-    """A report folder as ``ttompc evaluate mpc`` writes it: mpc_runs.csv (nan increment when infeasible), mpc.json."""
+    """A report folder as ``ttompc evaluate mpc`` writes it: mpc_runs.csv (nan increment when infeasible), mpc.json
+    (marked complete)."""
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / "mpc_runs.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
@@ -39,8 +40,8 @@ def write_report(folder: Path, runs: list[dict[str, Any]], config: dict[str, Any
                 "mean_step_time": r["mean_step_time"], "terminal_error": 0.0, "feasible": r["feasible"],
                 "rel_increment": inc,
             })  # fmt: skip
-    if config is not None:
-        (folder / "mpc.json").write_text(json.dumps({"config": config, "summary": []}))
+    report = {"summary": [], "complete": True} | ({"config": config} if config is not None else {})
+    (folder / "mpc.json").write_text(json.dumps(report))
     return folder
 
 
@@ -195,3 +196,22 @@ def test_the_report_and_compare_pair_alike(
     assert 100 * row["vs_rel_mpc"]["mean"] == pytest.approx(pair["paired"]["mean"], rel=1e-12)
     assert (pair["problems"], pair["base_goals"], pair["other_goals"], pair["lost"], pair["won"]) == (6, 6, 5, 1, 0)
     assert paired({**rel, 99: rel[0]}, tto)["problems"] == 6 and paired(rel, {})["paired"]["n"] == 0
+
+
+@pytest.mark.parametrize("damage", ["no mpc.json", "not complete"])
+def test_an_incomplete_report_is_never_paired(
+    reports: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str], damage: str
+) -> None:
+    """A folder whose run stopped before its mpc.json was written, or whose mpc.json is not marked complete (an
+    older ttompc), is refused in one line, whether named by its folder or its mpc_runs.csv."""
+    base, other, _, _ = reports
+    if damage == "no mpc.json":
+        (other / "mpc.json").unlink()
+    else:
+        (other / "mpc.json").write_text(json.dumps({"config": {"scenario": "freeflyer", "seed": 4242}}))
+    for given in (other, other / "mpc_runs.csv"):
+        with pytest.raises(UserError, match=r"mpc\.json"):
+            compare_reports(base, [given])
+    assert main(["evaluate", "compare", str(base), str(other)]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("ttompc evaluate: error: ") and "run `ttompc evaluate mpc" in line

@@ -15,19 +15,20 @@ import pytest
 
 from ttompc.config import command_config, to_container
 from ttompc.errors import UserError
-from ttompc.evaluation import figures
+from ttompc.evaluation import figures, horizon_figures
 from ttompc.evaluation.closed_loop import ClosedLoopConfig
 from ttompc.evaluation.closed_loop_report import summarize
 from ttompc.evaluation.metrics import improvement_by_threshold, write_json
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.warmstart import WarmStartConfig, method_summary
 
-METHODS = ("REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC", "FT-TTO-MPC[rtg=value]")
+METHODS = ("REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC")
+METHODS += ("FT-TTO-MPC[rtg=value]", "R-FT-TTO-MPC[rtg=value]")
 
 
-def mpc_report() -> dict[str, Any]:
+def mpc_report(scenario: str = "freeflyer") -> dict[str, Any]:
     """Three problems at H = 10 and 20 on the nominal plant, every method of a model run; TTO-MPC misses the goal
-    on problems 0 and 1 at H = 10 (so one problem is feasible for every method: standard errors are nan)."""
+    on problems 0 and 1 at H = 10. Marked complete, as ``ttompc evaluate mpc`` writes it."""
     rng = np.random.default_rng(0)
     runs = []
     for problem in range(3):
@@ -44,8 +45,8 @@ def mpc_report() -> dict[str, Any]:
                     "mean_iterations_solved": 1.0,
                 })  # fmt: skip
     config = asdict(ClosedLoopConfig(model="tto-x", ft_model="ft-y", horizons=[10, 20], problems=3, seed=7, workers=1))
-    return {"config": config, "command": report_command("mpc", config), "scenario": {"name": "freeflyer"},
-            "protocol": {"name": "paper"}, "summary": summarize(runs), "runs": runs}  # fmt: skip
+    return {"config": config, "command": report_command("mpc", config), "scenario": {"name": scenario},
+            "protocol": {"name": "paper"}, "summary": summarize(runs), "runs": runs, "complete": True}  # fmt: skip
 
 
 def warmstart_report() -> dict[str, Any]:
@@ -65,21 +66,23 @@ def warmstart_report() -> dict[str, Any]:
         "methods": method_summary(problems, ["REL", "TTO", "FT-TTO", "ORACLE"]),
         "thresholds": improvement_by_threshold(problems, ["TTO", "FT-TTO", "ORACLE"], "REL", [0.0, 0.5, 0.9]),
         "problems": problems,
+        "complete": True,
     }
 
 
 def test_the_paper_methods_are_picked_in_the_papers_order() -> None:
-    rows = figures.paper_rows(mpc_report())
+    rows = horizon_figures.paper_rows(mpc_report())
     names = [r["method"] for r in rows]
-    assert list(dict.fromkeys(names)) == ["REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC[rtg=value]"]
-    assert [r["horizon"] for r in rows] == [10, 20] * 4
+    assert list(dict.fromkeys(names)) == ["REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC[rtg=value]",
+                                          "R-FT-TTO-MPC[rtg=value]", "ORACLE-MPC"]  # fmt: skip
+    assert [r["horizon"] for r in rows] == [10, 20] * 6
     with pytest.raises(UserError, match="perturbed plant"):
-        figures.paper_rows(mpc_report(), "perturbed")
+        horizon_figures.paper_rows(mpc_report(), "perturbed")
 
 
 def test_step_times_average_each_episodes_largest_and_mean_step() -> None:
     report = mpc_report()
-    for point in figures.step_times(report):
+    for point in horizon_figures.step_times(report):
         assert point["runs"] == 3
         for key in ("max_step_time", "mean_step_time"):
             times = [r[key] for r in report["runs"]
@@ -123,47 +126,53 @@ def test_the_footer_command_reproduces_the_reports_settings(kind: str) -> None:
 
 
 def test_the_figures_plot_the_reports_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    drawn: dict[str, Any] = {}
-    save = figures._save_with_footer
-
-    def keep(fig: Any, path: Path, text: str) -> Path:
-        drawn[path.name] = (fig.axes, text)
-        return save(fig, path, text)
-
-    monkeypatch.setattr(figures, "_save_with_footer", keep)
-    report = mpc_report()
-    figures.cost_figure(report, tmp_path / "cost.png")
-    figures.step_time_figure(report, tmp_path / "step.png")
-    (left, right), text = drawn["cost.png"]
-    assert text == f"From `{report_command('mpc', report['config'])}`."
+    """One column per scenario's report; rows: the paper's normalised cost, (J − J_REL)/J_REL, the failure rate and
+    the largest and mean step; the footer names every report's command."""
+    reports = [mpc_report("freeflyer"), mpc_report("quadrotor")]
+    fig, text = horizon_figures.horizon_figure(reports, "nominal")
+    axes = np.array(fig.axes[:10]).reshape(5, 2)  # subplots first, in row order
+    assert text == "From " + "; ".join(f"{r['scenario']['name']}: `{r['command']}`" for r in reports) + "."
 
     def line(ax: Any, label: str) -> np.ndarray:  # the y data of the error bars labelled ``label``
         (found,) = [c.lines[0] for c in ax.containers if c.get_label() == label]
         return np.asarray(found.get_ydata(), dtype=float)
 
-    ft = "FT-TTO-MPC[rtg=value] (ft-y)"
-    norm = [r["paper_norm"]["mean"] for r in figures.paper_rows(report) if r["method"] == "FT-TTO-MPC[rtg=value]"]
-    np.testing.assert_allclose(line(left, ft), norm)
-    increments = [100 * r["rel_increment"]["mean"] for r in figures.paper_rows(report) if r["method"] == "TTO-MPC"]
-    np.testing.assert_allclose(line(right, "TTO-MPC (tto-x)"), increments)
-    (largest, mean), _ = drawn["step.png"]
-    for ax, key in ((largest, "max_step_time"), (mean, "mean_step_time")):
-        steps = [1e3 * p[key]["mean"] for p in figures.step_times(report) if p["method"] == "REL-MPC"]
-        np.testing.assert_allclose(line(ax, "REL-MPC"), steps)
+    for col, report in zip(axes.T, reports, strict=True):
+        rows = horizon_figures.paper_rows(report)
+        ft = "FT-TTO-MPC[rtg=value] (ft-y)"
+        norm = [r["paper_norm"]["mean"] for r in rows if r["method"] == "FT-TTO-MPC[rtg=value]"]
+        np.testing.assert_allclose(line(col[0], ft), norm)
+        increments = [100 * r["rel_increment"]["mean"] for r in rows if r["method"] == "TTO-MPC"]
+        np.testing.assert_allclose(line(col[1], "TTO-MPC (tto-x)"), increments)
+        np.testing.assert_allclose(line(col[2], "TTO-MPC (tto-x)"), [100 * 2 / 3, 0.0])  # 2 of 3 missed at H = 10
+        for ax, key in ((col[3], "max_step_time"), (col[4], "mean_step_time")):
+            steps = [1e3 * p[key]["mean"] for p in horizon_figures.step_times(report) if p["method"] == "REL-MPC"]
+            np.testing.assert_allclose(line(ax, "REL-MPC"), steps)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
 
 
-def test_make_figures_writes_four_images(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """As the reports are written (``write_json``: nan as null), through the command line."""
+def test_make_figures_writes_the_images_and_the_equal_cost_table(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """As the reports are written (``write_json``: nan as null), through the command line: one closed-loop figure
+    per plant the reports share, from two scenarios' reports, then the speedup at equal cost of both."""
     import matplotlib.image
 
     bundle = mpc_fakes.tiny_planner().save(tmp_path / "bundle")
-    write_json(tmp_path / "mpc.json", mpc_report())
+    write_json(tmp_path / "ff.json", mpc_report("freeflyer"))
+    write_json(tmp_path / "quad.json", mpc_report("quadrotor"))
     write_json(tmp_path / "warmstart.json", warmstart_report())
-    args = ["--mpc", str(tmp_path / "mpc.json"), "--warmstart", str(tmp_path / "warmstart.json")]
+    mpc = [str(tmp_path / "ff.json"), str(tmp_path / "quad.json")]
+    args = ["--mpc", *mpc, "--warmstart", str(tmp_path / "warmstart.json")]
     out = tmp_path / "figures"
     assert figures.main([*args, "--out", str(out), "--model", str(bundle), "--seed", "3", "--problems", "0"]) == 0
-    assert capsys.readouterr().out.split() == [str(out / name) for name in figures.FILES]
-    for name in figures.FILES:
+    printed = capsys.readouterr().out
+    names = [*figures.FILES, figures.horizon_file("nominal")]
+    assert printed.split("\n")[:3] == [str(out / name) for name in names]
+    assert "Speedup at equal cost" in printed and "| freeflyer | nominal | REL-MPC |" in printed
+    for name in names:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         height, width, _ = matplotlib.image.imread(out / name).shape
         assert height > 200 and width > 200
@@ -172,6 +181,16 @@ def test_make_figures_writes_four_images(tmp_path: Path, capsys: pytest.CaptureF
 def test_a_missing_report_is_one_line_naming_the_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = figures.main(["--mpc", str(tmp_path / "none.json"), "--warmstart", str(tmp_path / "none.json")])
     assert rc == 2 and "no report at" in capsys.readouterr().err
+
+
+def test_an_incomplete_report_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A report not marked complete (its run stopped before the end, or an older ttompc) draws no figure."""
+    write_json(tmp_path / "mpc.json", {k: v for k, v in mpc_report().items() if k != "complete"})
+    write_json(tmp_path / "warmstart.json", warmstart_report())
+    rc = figures.main(["--mpc", str(tmp_path / "mpc.json"), "--warmstart", str(tmp_path / "warmstart.json")])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert f"{tmp_path / 'mpc.json'} is not a complete report" in err
 
 
 def test_a_report_without_its_command_is_refused_naming_the_fix(

@@ -33,6 +33,7 @@ WS = {
          "gain_share": _iv(-0.5)},
         {"method": "ORACLE", "runs": 10, "failures": 0, "suboptimality": _iv(0.30), "iterations": _iv(6.0)},
     ],
+    "complete": True,
 }  # fmt: skip
 
 
@@ -61,6 +62,7 @@ MPC = {
         _row("perturbed", "TTO-MPC", 3, 0.6, vs_rel_mpc=_iv(-0.06, 0.3)),
         _row("nominal", "DIST-MPC", 4, 1.2),
     ],
+    "complete": True,
 }
 
 
@@ -170,6 +172,19 @@ def test_a_report_without_its_command_is_one_line_naming_the_fix(
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith("ttompc zoo: error: the closed-loop report (mpc.json) records no command")
     assert line.endswith("; re-run `ttompc evaluate mpc ...` to write a report with its command")
+
+
+def test_an_incomplete_report_is_refused_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A report without ``complete`` (an interrupted run, an older ttompc) never becomes a card's numbers."""
+    from ttompc.cli import main
+
+    (tmp_path / "mpc.json").write_text(json.dumps({k: v for k, v in MPC.items() if k != "complete"}))
+    monkeypatch.delenv("TTOMPC_DEBUG", raising=False)
+    assert main(["zoo", "metrics", "--method", "TTO", "--mpc", str(tmp_path / "mpc.json")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"{tmp_path / 'mpc.json'} is not a complete report" in line
 
 
 def test_cli_writes_publishable_metrics(tmp_path) -> None:

@@ -82,9 +82,13 @@ class Bar:
     """A progress bar on stderr for ``total`` units of work (None: unknown), used as a context manager. Hidden, and
     every method a no-op, when ``show`` is false or progress is off."""
 
-    def __init__(self, total: float | None, desc: str, unit: str = "it", *, show: bool = True) -> None:
+    def __init__(
+        self, total: float | None, desc: str, unit: str = "it", *, show: bool = True, initial: float = 0
+    ) -> None:
+        """``initial``: units already done before this bar started (a resumed run): counted, not in the rate."""
         self.enabled = show and progress_enabled()
-        self._bar = tqdm(total=total, desc=desc, unit=unit, file=STDERR, dynamic_ncols=True, disable=not self.enabled)
+        shown = {"desc": desc, "unit": unit, "file": STDERR, "dynamic_ncols": True, "initial": initial}
+        self._bar = tqdm(total=total, disable=not self.enabled, **shown)
         self._lock = threading.Lock()  # tqdm's counters are not thread-safe: the heartbeat and ticks share them
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []

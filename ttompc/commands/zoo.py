@@ -280,12 +280,13 @@ def _publish(args: argparse.Namespace) -> int:
 
 
 def _metrics(args: argparse.Namespace) -> int:
+    from ttompc.evaluation.report_files import read_report
     from ttompc.zoo.report_metrics import card_metrics
 
     if not args.warmstart and not args.mpc:
         raise UserError("zoo metrics needs a report", "pass --warmstart FILE and/or --mpc FILE")
     pairs = (("warmstart", args.warmstart), ("mpc", args.mpc))
-    reports = {k: json.loads(Path(v).read_text()) if v else None for k, v in pairs}
+    reports = {k: read_report(v, k) if v else None for k, v in pairs}  # complete reports only
     try:
         metrics = card_metrics(args.method, horizon=args.horizon, **reports)
     except KeyError as err:

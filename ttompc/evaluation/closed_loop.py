@@ -13,8 +13,11 @@ The report (``ttompc.evaluation.closed_loop_report``): per (plant, method, H) co
 intervals, the paper's normalisation, the paired difference to REL-MPC, the share of the reachable gain, plan
 consistency and step times, under the protocol's name and resolved settings and the departures from the paper.
 
-Problems run in parallel in the spawn pool in tasks of ``batch`` problems; each worker loads the model(s) once.
-Within a task the episodes of one method run in lockstep (``run_mpc_batch``): a TTO method plans the windows of all
+The study is a resumable sweep (``run_closed_loop``): problems run in parallel in the spawn pool in tasks of ``batch``
+problems on one plant at one horizon (``sweep_tasks``); each worker loads the model(s) once and builds each problem
+once. The records of a task are stored in the report folder as it finishes (``ttompc.evaluation.episode_store``): a
+run of the same configuration into the same folder runs only the tasks not yet stored. Within a task the episodes
+of one method run in lockstep (``run_mpc_batch``): a TTO method plans the windows of all
 its problems with one batched rollout per step, and the solver structures built for the first problem serve the
 others (one per window shape, cached per process). Step times (``Episode.step_times``: observe of the previous
 outcome + warm start + solve) are then each episode's share of the batched rollout and context advance plus its own
@@ -25,23 +28,26 @@ Tasks are fixed by ``batch``, not by ``workers``, so the report does not depend 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ttompc.errors import UserError
 from ttompc.evaluation.closed_loop_report import write_report
+from ttompc.evaluation.episode_store import EpisodeStore, fingerprint
 from ttompc.evaluation.episodes import episode_record
+from ttompc.evaluation.machine import load_average
 from ttompc.evaluation.measurement import PLANTS, Measurement
 from ttompc.evaluation.problems import EvalProblem
 from ttompc.evaluation.warmstart import default_workers
-from ttompc.mpc.loop import run_mpc_batch
+from ttompc.mpc.loop import MPCRun, run_mpc_batch
 from ttompc.mpc.methods import MODEL_SLOTS, ROBUST_BLEND, MethodInputs, methods_for
 from ttompc.mpc.providers import full_horizon_plan
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
-from ttompc.progress import Bar
+from ttompc.progress import Bar, status
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario
 
@@ -80,15 +86,20 @@ def run_problems(
     models: dict[str, Planner],
     cfg: ClosedLoopConfig,
     on_episode: Callable[[], None] | None = None,
+    *,
+    runs: Sequence[tuple[str, MPCRun]] | None = None,
+    plans: Sequence[Any] | None = None,
 ) -> list[dict[str, Any]]:
-    """Every (plant, H, method) episode of the problems ``eps`` under the measurement ``cfg`` with ``models`` in
-    their slots (``MODEL_SLOTS``), the episodes of one method in lockstep: their records, per problem, then plant, H
-    and method. ``on_episode`` is called after each episode (a progress bar's ticker)."""
+    """Every (plant, H, method) episode of the problems ``eps`` under the measurement ``cfg`` (or only the
+    (plant, how it runs) of ``runs``) with ``models`` in their slots (``MODEL_SLOTS``), the episodes of one method in
+    lockstep: their records, per problem, then plant, H and method. ``plans``: the problems' full-horizon plans
+    (PLAN-ONCE's and ORACLE-MPC's; default: solved here). ``on_episode`` is called after each episode (a progress
+    bar's ticker)."""
     records: list[dict[str, Any]] = []
     s = cfg.settings
-    plans = [full_horizon_plan(scenario, ep.problem, s.backend) for ep in eps]
+    plans = list(plans) if plans is not None else [full_horizon_plan(scenario, ep.problem, s.backend) for ep in eps]
     starts = [ep.start for ep in eps]
-    for _, run in cfg.runs(scenario):  # the plant is in each episode's record
+    for _, run in cfg.runs(scenario) if runs is None else runs:  # the plant is in each episode's record
         for method in methods_for(models, cfg.robust_blend):
             inputs = MethodInputs(s, plans, models.get(method.model or ""), cfg.robust_blend, cfg.rtg_scale)
             episodes = run_mpc_batch(scenario, starts, method.providers(inputs), run)
@@ -113,12 +124,13 @@ def episodes_per_problem(cfg: ClosedLoopConfig, models: Collection[str]) -> int:
 
 @dataclass
 class _Worker:
-    """What ``_init`` loads once per pool worker for ``_run``."""
+    """What ``_init`` loads once per pool worker for ``_run``, and the problems and plans it has built so far."""
 
     cfg: ClosedLoopConfig
     scenario: Scenario
     models: dict[str, Planner]
     tick: Callable[[], None]
+    problems: dict[int, tuple[EvalProblem, Any]] = field(default_factory=dict)
 
 
 _WORKER: WorkerState[_Worker] = WorkerState()
@@ -135,10 +147,18 @@ def _init(cfg: dict[str, Any], tick: Callable[[], None]) -> None:
     _WORKER.set(_Worker(c, scenario, models, tick))
 
 
-def _run(indices: tuple[int, ...]) -> list[dict[str, Any]]:
+Task = tuple[tuple[int, ...], str, int]  # (problem indices, plant, horizon): the episodes of one lockstep batch
+
+
+def _run(task: Task) -> list[dict[str, Any]]:
     w = _WORKER.get()
     cfg, sc = w.cfg, w.scenario
-    return run_problems(sc, cfg.problem_set(sc, indices), w.models, cfg, w.tick)
+    indices, plant, horizon = task
+    for ep in cfg.problem_set(sc, [i for i in indices if i not in w.problems]):  # each problem once per worker
+        w.problems[ep.index] = (ep, full_horizon_plan(sc, ep.problem, cfg.settings.backend))
+    eps, plans = zip(*(w.problems[i] for i in indices), strict=True)
+    runs = [(p, run) for p, run in cfg.runs(sc) if p == plant and run.horizon == horizon]
+    return run_problems(sc, eps, w.models, cfg, w.tick, runs=runs, plans=plans)
 
 
 def tasks(problems: int, batch: int) -> list[tuple[int, ...]]:
@@ -146,9 +166,41 @@ def tasks(problems: int, batch: int) -> list[tuple[int, ...]]:
     return [tuple(range(i, min(i + batch, problems))) for i in range(0, problems, batch)]
 
 
+def sweep_tasks(cfg: ClosedLoopConfig) -> list[Task]:
+    """The sweep's pool tasks: each batch of ``tasks`` on each plant at each horizon, in that order."""
+    return [(chunk, plant, H) for chunk in tasks(cfg.problems, cfg.batch) for plant in cfg.plants for H in cfg.horizons]
+
+
+def sweep_fingerprint(cfg: ClosedLoopConfig, sc: Scenario) -> dict[str, Any]:
+    """What decides the sweep's episodes (``episode_store.fingerprint``): its config, the resolved settings and
+    perturbed plant, the scenario's version."""
+    resolved = {"settings": asdict(cfg.settings), "plant": asdict(cfg.plant.resolve(sc)), "scenario": sc.version}
+    return fingerprint(asdict(cfg), resolved)
+
+
+def _pending(cfg: ClosedLoopConfig, store: EpisodeStore) -> tuple[list[Task], int]:
+    """The tasks not yet done in ``store`` (a task is done when each of its problems has every method's episode on
+    its plant at its horizon) and how many episodes of the sweep are done."""
+    methods = len(methods_for(model_sources(cfg), cfg.robust_blend))
+    count = Counter((p, plant, H) for p, plant, H, _ in store.done)
+    todo = [t for t in sweep_tasks(cfg) if any(count[(p, t[1], t[2])] < methods for p in t[0])]
+    grid = {(p, plant, H) for p in range(cfg.problems) for plant in cfg.plants for H in cfg.horizons}
+    return todo, sum(min(n, methods) for key, n in count.items() if key in grid)
+
+
+def sweep_records(cfg: ClosedLoopConfig, store: EpisodeStore) -> list[dict[str, Any]]:
+    """The stored episodes of the sweep's grid in report order: by problem, then plant and horizon in the config's
+    order, then method in the order they ran."""
+    plants, horizons = {p: i for i, p in enumerate(cfg.plants)}, {h: i for i, h in enumerate(cfg.horizons)}
+    mine = [r for (p, plant, H, _), r in store.done.items() if p < cfg.problems and plant in plants and H in horizons]
+    return sorted(mine, key=lambda r: (r["problem"], plants[r["plant"]], horizons[r["horizon"]]))
+
+
 def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
-    """Run the study; writes ``mpc.json``, ``mpc.md`` (the table), ``mpc_runs.csv`` and plots into ``cfg.out``
-    (``closed_loop_report.write_report``)."""
+    """Run the study as a resumable sweep: each task's episodes are stored as it finishes (``EpisodeStore`` in
+    ``cfg.out``), the episodes a previous run of the same configuration stored there are not run again, and a
+    progress bar counts the sweep's episodes with an ETA. Then writes ``mpc.json`` (last, marked complete),
+    ``mpc.md`` (the table), ``mpc_runs.csv`` and plots into ``cfg.out`` (``closed_loop_report.write_report``)."""
     from ttompc.config import to_container
 
     if cfg.scenario is None:
@@ -163,11 +215,14 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
     cfg.horizons = sorted(set(cfg.horizons))
     out = Path(cfg.out or f"outputs/evaluate/mpc-{sc.name}")
     workers = default_workers(cfg.workers)
-    t0 = time.perf_counter()
-    records: list[dict[str, Any]] = []
-    with Bar(cfg.problems * episodes_per_problem(cfg, model_sources(cfg)), f"mpc {sc.name}", "episode") as bar:
+    t0, load = time.perf_counter(), load_average()
+    store = EpisodeStore.open(out, sweep_fingerprint(cfg, sc))
+    todo, done = _pending(cfg, store)
+    total = cfg.problems * episodes_per_problem(cfg, model_sources(cfg))
+    if done:
+        status(f"ttompc evaluate mpc: resuming the sweep in {out}: {done} of {total} episodes done")
+    with Bar(total, f"mpc {sc.name}", "episode", initial=done) as bar:
         init = (to_container(cfg), bar.ticker())
-        chunks = tasks(cfg.problems, cfg.batch)
-        for rs in pool_map(_run, chunks, workers, _init, init, scenarios=[scenario_spec(sc)]):
-            records.extend(rs)
-    return write_report(cfg, sc, records, out, workers, t0)
+        for rs in pool_map(_run, todo, workers, _init, init, scenarios=[scenario_spec(sc)]):
+            store.add(rs)
+    return write_report(cfg, sc, sweep_records(cfg, store), out, workers, t0, load)

@@ -2,12 +2,13 @@
 and the files it writes.
 
 Reported per (plant, method, H): runs, feasible and infeasible counts (infeasible or goal-missing runs are never
-averaged into a cost), (J − J_REL)/J_REL over feasible runs with standard error and bootstrap interval, the paper's
-normalisation (problems feasible for every method, DIST-MPC's worst horizon = 1), the paired difference to
-REL-MPC on the problems both ran feasibly (fair where the feasible sets differ), the share of the reachable gain
-REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between steps), step times and SCP
-iterations per solved step (``summarize``, ``format_table``); with more than one horizon, every method at the
-shortest against REL-MPC at the longest (``headline``). The report names its protocol (``protocol_label``) and
+averaged into a cost: their rate is shown), (J − J_REL)/J_REL over feasible runs with standard error and bootstrap
+interval, the paper's normalised cost increment (``metrics.normalized_cost``: per problem, its worst feasible run
+= 1), the paired difference to REL-MPC on the problems both ran feasibly (fair where the feasible sets differ), the
+share of the reachable gain REL-MPC → ORACLE-MPC, plan consistency (mean change of the terminal target between
+steps), step times and SCP iterations per solved step (``summarize``, ``format_table``); with more than one horizon,
+every method at the shortest against REL-MPC at the longest (``headline``) and the speedup at equal cost
+(``ttompc.evaluation.equal_cost``). The report names its protocol (``protocol_label``) and
 records the resolved settings and the command line that reproduces it (``command``,
 ``ttompc.evaluation.reproduce``); the settings that depart from the paper preset (``ttompc.mpc.settings.departures``)
 are listed under the table (``write_report``). Every paired difference is ``stats.paired``'s.
@@ -23,11 +24,14 @@ from typing import Any
 import numpy as np
 
 from ttompc.evaluation.episodes import summarize_episodes
+from ttompc.evaluation.equal_cost import equal_cost, format_equal_cost
+from ttompc.evaluation.machine import load_average, machine_record
 from ttompc.evaluation.measurement import Measurement
-from ttompc.evaluation.metrics import format_gain_share, gain_share, paper_normalized, write_csv, write_json
+from ttompc.evaluation.metrics import format_gain_share, gain_share, normalized_cost, write_csv
+from ttompc.evaluation.report_files import finish
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import Outcome, format_interval, paired
-from ttompc.mpc.methods import BASELINE, CEILING, REFERENCE
+from ttompc.mpc.methods import BASELINE, CEILING
 from ttompc.mpc.settings import departures
 from ttompc.scenarios.base import Scenario
 from ttompc.solvers.backends import solver_path
@@ -40,12 +44,13 @@ def protocol_label(cfg: Measurement) -> str:
 
 
 def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
-    """Rows per (plant, method, horizon): ``summarize_episodes`` + paper normalisation + share of reachable gain."""
+    """Rows per (plant, method, horizon): ``summarize_episodes`` + the paper's normalised cost increment
+    (``paper_norm``) + share of reachable gain."""
     rows = []
     for plant in sorted({r["plant"] for r in records}):
         recs = [r for r in records if r["plant"] == plant]
         methods = list(dict.fromkeys(r["method"] for r in recs))
-        paper = {(p["method"], p["horizon"]): p for p in paper_normalized(recs, methods, REFERENCE, seed=seed)}
+        paper = {(p["method"], p["horizon"]): p["paper_norm"] for p in normalized_cost(recs, seed=seed)}
         for m in methods:
             for H in sorted({r["horizon"] for r in recs}):
                 group = [r for r in recs if r["method"] == m and r["horizon"] == H]
@@ -56,8 +61,7 @@ def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, An
                     **summarize_episodes(group, seed=seed),
                 }
                 if (m, H) in paper:
-                    row["paper_norm"] = paper[(m, H)]["paper_norm"]
-                    row["paper_problems"] = paper[(m, H)]["problems"]
+                    row["paper_norm"] = paper[(m, H)]
                 if m != BASELINE:  # paired with REL-MPC on the problems both ran feasibly
                     runs = {
                         k: {r["problem"]: Outcome.of(r) for r in recs if r["method"] == k and r["horizon"] == H}
@@ -125,8 +129,9 @@ def format_headline(rows: list[dict[str, Any]]) -> str:
 def format_table(summary: list[dict[str, Any]]) -> str:
     """A readable markdown table of ``summarize``."""
     lines = [
-        "| plant | method | H | feasible | (J − J_REL)/J_REL, % (mean ± s.e. [95% CI]) | paired vs REL-MPC, points "
-        "(n) | paper norm. | share of reachable gain, % | goal miss of infeasible runs [m] | target change "
+        "| plant | method | H | feasible (failed) | (J − J_REL)/J_REL, % (mean ± s.e. [95% CI]) | paired vs REL-MPC, "
+        "points (n) | (J − LB)/(maxcost − LB) | share of reachable gain, % | goal miss of infeasible runs [m] "
+        "| target change "
         "| mean / max step [ms] | SCP it. / solved step |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -135,24 +140,20 @@ def format_table(summary: list[dict[str, Any]]) -> str:
         share = format_gain_share(r["gain_share"]) if "gain_share" in r else "–"
         vs = r.get("vs_rel_mpc")
         paired = f"{format_interval(vs, 100)} ({vs['n']})" if vs and vs["n"] else "–"
+        failed = 100 * (1 - r["feasible"] / r["runs"]) if r["runs"] else float("nan")
         lines.append(
-            f"| {r['plant']} | {r['method']} | {r['horizon']} | {r['feasible']}/{r['runs']} "
+            f"| {r['plant']} | {r['method']} | {r['horizon']} | {r['feasible']}/{r['runs']} ({failed:.0f}%) "
             f"| {format_interval(r['rel_increment'], 100)} | {paired} | {paper} | {share} "
             f"| {format_interval(r['infeasible_terminal_error'], 1, 2)} | {r['target_change']['mean']:.3g} "
             f"| {r['mean_step_time'] * 1e3:.3g} / {r['max_step_time'] * 1e3:.3g} "
             f"| {r['mean_iterations_solved']:.2f} |"
         )
-    for plant in dict.fromkeys(r["plant"] for r in summary):
-        n = max((r.get("paper_problems", 0) for r in summary if r["plant"] == plant), default=0)
-        lines.append(
-            f"\n{plant} plant: paper normalisation over {n} problems feasible for every method."
-            if n
-            else f"\n{plant} plant: paper normalisation undefined (no problem on which every method is feasible, or "
-            "DIST-MPC never costs more than J_REL)."
-        )
     lines.append(
-        "Costs average feasible runs only; infeasible runs (keep-out, path or goal tolerance violated) are counted "
-        "in 'feasible' and described by their goal miss. Paired vs REL-MPC: the mean per-problem difference in "
+        "\nCosts average feasible runs only; infeasible runs (keep-out, path or goal tolerance violated) are counted "
+        "in 'feasible' (failed: their rate) and described by their goal miss. (J − LB)/(maxcost − LB): the paper's "
+        "normalised cost increment per feasible run, LB = J_REL of its problem and maxcost the problem's worst "
+        "feasible cost over every method and H of the plant (= 1). Paired vs REL-MPC: the mean per-problem "
+        "difference in "
         "(J − J_REL)/J_REL over the n problems both ran feasibly (negative: cheaper). Share of reachable gain: "
         "REL-MPC = 0, ORACLE-MPC = 100; "
         "undefined when the reachable gain (REL-MPC − ORACLE-MPC cost) is within noise. A step: observing the "
@@ -163,12 +164,19 @@ def format_table(summary: list[dict[str, Any]]) -> str:
 
 
 def write_report(
-    cfg: Measurement, sc: Scenario, records: list[dict[str, Any]], out: Path, workers: int, started: float
+    cfg: Measurement,
+    sc: Scenario,
+    records: list[dict[str, Any]],
+    out: Path,
+    workers: int,
+    started: float,
+    load_start: list[float] | None = None,
 ) -> dict[str, Any]:
     """The report of the episode ``records`` of the measurement ``cfg`` (a ``ClosedLoopConfig``) on ``sc``: writes
-    ``mpc.json``, ``mpc.md`` (the table), ``mpc_runs.csv`` and plots into ``out`` and returns the report; ``workers``
-    is recorded in its config, the config's ``report_command`` as its ``command``, and ``started``
-    (``time.perf_counter()`` at the start) gives its wall time."""
+    ``mpc.md`` (the table), ``mpc_runs.csv``, plots and last ``mpc.json`` (marked complete, ``report_files.finish``)
+    into ``out`` and returns the report; ``workers`` is recorded in its config, the config's ``report_command`` as
+    its ``command``, ``started`` (``time.perf_counter()`` at the start) gives its wall time (this run's, when a sweep
+    resumed) and ``load_start`` (``machine.load_average()`` then; default now) its ``machine``."""
     from ttompc.evaluation.plots import plot_horizon
 
     summary = summarize(records, cfg.seed)
@@ -179,6 +187,8 @@ def write_report(
     if notes:
         table += "\nDepartures from the paper: " + "; ".join(notes) + "."
     table += format_headline(head)
+    matches = equal_cost(records, seed=cfg.seed) if len(cfg.horizons) > 1 else []
+    table += format_equal_cost(matches)
     config = {**asdict(cfg), "out": str(out), "workers": workers}
     report = {
         "config": config,
@@ -188,15 +198,18 @@ def write_report(
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
         "perturbed_plant": asdict(cfg.plant.resolve(sc)),  # the disturbance the perturbed episodes met
         "wall_time_s": time.perf_counter() - started,
+        "machine": machine_record(load_start or load_average()),  # what the step times ran on
         "departures": notes,
         "summary": summary,
         "headline": head,
+        "equal_cost": matches,
         "table": table,
         "runs": records,
     }
-    write_json(out / "mpc.json", report)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "mpc.md").write_text(f"# Closed loop: {sc.name}, {cfg.problems} problems\n\n{table}\n")
     write_csv(out / "mpc_runs.csv", records)
     report["plots"] = [str(p) for p in plot_horizon(summary, out)]
+    finish(out / "mpc.json", report)
     report["out"] = str(out)
     return report

@@ -1,10 +1,10 @@
 """Pairing closed-loop reports made on the same held-out problems (``ttompc evaluate compare BASE OTHER ...``).
 
-Contract. A report is a folder written by ``ttompc evaluate mpc`` (its ``mpc_runs.csv``, and ``mpc.json`` when
-present) or the path of such an ``mpc_runs.csv``; it is labelled by its folder name (the path as given when two
-reports share a folder name). Runs are matched on (plant, method, horizon, problem). For every other report and every
-(plant, method, horizon) that both it and the base ran (optionally only ``methods`` and ``horizons``), one row
-(``compare_reports``) over the problems both ran:
+Contract. A report is a folder written by ``ttompc evaluate mpc`` (its ``mpc_runs.csv`` and ``mpc.json``) or the
+path of such an ``mpc_runs.csv``, complete (``report_files.read_report``: its ``mpc.json`` marked complete); it is
+labelled by its folder name (the path as given when two reports share a folder name). Runs are matched on (plant,
+method, horizon, problem). For every other report and every (plant, method, horizon) that both it and the base ran
+(optionally only ``methods`` and ``horizons``), one row (``compare_reports``) over the problems both ran:
 
 * ``problems``: how many; ``base_goals`` / ``other_goals``: feasible episodes among them; ``lost``: feasible in the
   base, not in the other; ``won``: the reverse;
@@ -16,16 +16,16 @@ reports share a folder name). Runs are matched on (plant, method, horizon, probl
 
 all of them ``stats.paired``'s, the comparison the closed-loop report and the demo make too.
 
-Refused with a ``UserError`` (one line, what to do): a report that cannot be read, two reports whose ``mpc.json``
-configs differ in scenario or seed, a matched run whose per-problem ``seed`` differs (not the same held-out problem),
-and two reports with no (plant, method, horizon) in common. ``format_comparison`` renders the rows as a markdown table.
-Only the standard library, numpy and ``stats`` are imported (no solver, no torch).
+Refused with a ``UserError`` (one line, what to do): a report that cannot be read or is not complete, two reports
+whose ``mpc.json`` configs differ in scenario or seed, a matched run whose per-problem ``seed`` differs (not the
+same held-out problem), and two reports with no (plant, method, horizon) in common. ``format_comparison`` renders the
+rows as a markdown table. Only the standard library, numpy, ``stats`` and ``report_files`` are imported (no solver,
+no torch).
 """
 
 from __future__ import annotations
 
 import csv
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from ttompc.errors import UserError
+from ttompc.evaluation.report_files import read_report
 from ttompc.evaluation.stats import Outcome, format_interval, paired
 
 RUNS_FILE, CONFIG_FILE = "mpc_runs.csv", "mpc.json"
@@ -52,7 +53,8 @@ class Run:
 
 @dataclass
 class Report:
-    """A closed-loop report: its runs by (plant, method, horizon) and problem, and its ``mpc.json`` config if any."""
+    """A closed-loop report: its runs by (plant, method, horizon) and problem, and its ``mpc.json`` config (None when
+    it records none)."""
 
     path: Path
     label: str
@@ -70,18 +72,14 @@ def _bool(text: str) -> bool:
 
 
 def load_report(path: str | Path, label: str | None = None) -> Report:
-    """Read a report folder (or its ``mpc_runs.csv``) and its ``mpc.json`` when present."""
+    """Read a complete report folder (or its ``mpc_runs.csv``) with its ``mpc.json``."""
     given = Path(path)
     csv_path = given / RUNS_FILE if given.is_dir() else given
     if not csv_path.is_file():
         raise UserError(f"no closed-loop report at {given} ({csv_path} not found)", _WHAT)
     report = Report(path=given, label=label or csv_path.parent.resolve().name)
-    config_path = csv_path.parent / CONFIG_FILE
-    if config_path.is_file():
-        try:
-            report.config = dict(json.loads(config_path.read_text(encoding="utf-8")).get("config") or {})
-        except (ValueError, AttributeError, TypeError) as err:
-            raise UserError(f"{config_path} is not a report's JSON ({err})", "re-run `ttompc evaluate mpc`") from err
+    config = read_report(csv_path.parent / CONFIG_FILE, "mpc").get("config")  # refuses an incomplete report
+    report.config = dict(config) if isinstance(config, dict) else None
     with open(csv_path, newline="", encoding="utf-8") as f:
         reader = csv.DictReader(f)
         missing = [c for c in COLUMNS if c not in (reader.fieldnames or [])]

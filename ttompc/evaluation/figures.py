@@ -9,25 +9,21 @@ drawn from a report that a stated ``ttompc evaluate`` command writes, and each c
 * ``warmstart.png`` (Fig. 4) from ``warmstart.json`` of ``ttompc evaluate warmstart``: % improvement over the REL
   warm start in suboptimality (J − J_REL) and SCP iterations, over problems at or above each non-convexity factor,
   for the TTO and FT-TTO models and the oracle's best optimum (the ceiling), with the problems behind each bar.
-* ``closed_loop_cost.png`` (Fig. 5) from ``mpc.json`` of ``ttompc evaluate mpc``: the paper's four methods (REL-MPC,
-  DIST-MPC, TTO-MPC, FT-TTO-MPC; under ``protocol=recommended`` the model methods carry their rtg mode in their name)
-  vs the planning horizon H on one plant: the paper's normalised cost increment (left) and (J − J_REL)/J_REL over
-  each method's feasible runs with feasible/runs marked (right).
-* ``step_time.png`` (Fig. 6) from the same report: the mean over episodes of each episode's largest MPC step time
-  (the paper's measure; it includes one-off costs such as the first solve of a window shape) and of its mean step
-  time, ± s.e., vs H (CPU seconds: an episode's share of the batched rollout plus its own solves, as the report
-  records).
+* ``closed_loop_<plant>.png`` (Fig. 5 and 6) from the ``mpc.json`` of ``ttompc evaluate mpc`` sweeps, one report per
+  scenario (``--mpc`` takes several): per plant that every report ran, one column per scenario, the paper's
+  normalised cost increment, (J − J_REL)/J_REL and the failure rate, and the largest and mean step time, vs H
+  (``ttompc.evaluation.horizon_figures``). The speedup at equal cost of every report is printed below the paths
+  (``ttompc.evaluation.equal_cost``).
 
-    python -m ttompc.evaluation.figures --mpc MPC.json --warmstart WARMSTART.json --out docs/figures
+    python -m ttompc.evaluation.figures --mpc MPC.json [MPC.json ...] --warmstart WARMSTART.json --out docs/figures
 
-``make figures`` runs the two ``ttompc evaluate`` commands whose reports these are (the Makefile names them) when
-the reports are missing, then this.
+``make figures`` runs the ``ttompc evaluate`` commands whose reports these are (the Makefile names them) when the
+reports are missing, then this. Every report must be complete (``report_files.read_report``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import textwrap
 from collections.abc import Sequence
@@ -37,12 +33,13 @@ from typing import Any
 import numpy as np
 
 from ttompc.errors import UserError
-from ttompc.evaluation.plots import Panel, horizon_axis, horizon_cost_panel, line_style, trajectory_figure
+from ttompc.evaluation.equal_cost import equal_cost, format_equal_cost
+from ttompc.evaluation.horizon_figures import horizon_figure, model_label
+from ttompc.evaluation.plots import Panel, trajectory_figure
+from ttompc.evaluation.report_files import read_report
 
-PAPER_METHODS = ("REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC")
 WARMSTART_METHODS = ("TTO", "FT-TTO", "ORACLE")
-MODEL_KEYS = {"TTO": "model", "FT-TTO": "ft_model"}  # method -> the config key naming its model
-FILES = ("planned_trajectory.png", "warmstart.png", "closed_loop_cost.png", "step_time.png")
+FILES = ("planned_trajectory.png", "warmstart.png")  # then closed_loop_<plant>.png per plant (``horizon_file``)
 # The planned problems of the stream of seed 4242 (the zoo cards'): 0, the first, on which SCP from REL and from
 # freeflyer-ft-tto-v5 reach the same optimum (as on 68 of the 100 problems of the warm-start report that `make figures`
 # runs); 7, the first on which SCP from the model reaches a cheaper one (21 of 100; 11 the other way).
@@ -50,13 +47,11 @@ PROBLEMS = (0, 7)
 
 
 def load_report(path: str | Path, kind: str) -> dict[str, Any]:
-    """The report at ``path``: ``kind`` "mpc" (``mpc.json``, with ``summary`` and ``runs``) or "warmstart"
-    (``warmstart.json``, with ``methods`` and ``thresholds``), the nulls of those sections read as nan; raises
-    ``UserError`` for a missing file, another kind of report or a report without its ``command`` (the footer's)."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"no report at {path}", f"run `ttompc evaluate {kind} ...` first (see `make figures`)")
-    report: dict[str, Any] = json.loads(path.read_text())
+    """The complete report at ``path`` (``report_files.read_report``): ``kind`` "mpc" (``mpc.json``, with
+    ``summary`` and ``runs``) or "warmstart" (``warmstart.json``, with ``methods`` and ``thresholds``), the nulls of
+    those sections read as nan; raises ``UserError`` for a missing, unreadable or incomplete file, another kind of
+    report or a report without its ``command`` (the footer's)."""
+    report = read_report(path, kind)
     need = ("summary", "runs") if kind == "mpc" else ("methods", "thresholds")
     if any(key not in report for key in need):
         raise UserError(f"{path} is not a `ttompc evaluate {kind}` report (it lacks {' and '.join(need)})")
@@ -76,47 +71,6 @@ def _nan(data: Any) -> Any:
     if isinstance(data, list):
         return [_nan(v) for v in data]
     return float("nan") if data is None else data
-
-
-def model_label(method: str, config: dict[str, Any]) -> str:
-    """A method's legend label: the method, and for a model's method (TTO…, FT-TTO…, their MPC variants) the model
-    the report ran it with."""
-    base = method.removeprefix("R-").split("-MPC")[0]
-    model = config.get(MODEL_KEYS.get(base, ""))
-    return f"{method} ({model})" if model else method
-
-
-def paper_rows(report: dict[str, Any], plant: str = "nominal") -> list[dict[str, Any]]:
-    """The ``summary`` rows of ``PAPER_METHODS`` on ``plant`` (a model method's rtg suffix, e.g. ``[rtg=value]``,
-    ignored when matching), in that method order then by H; raises ``UserError`` if there are none."""
-
-    def base(method: str) -> str:
-        return method.split("[")[0]
-
-    rows = [r for r in report["summary"] if r["plant"] == plant and base(r["method"]) in PAPER_METHODS]
-    if not rows:
-        raise UserError(f"the closed-loop report has no run of {', '.join(PAPER_METHODS)} on the {plant} plant")
-    return sorted(rows, key=lambda r: (PAPER_METHODS.index(base(r["method"])), r["horizon"]))
-
-
-STEP_KINDS = {"max_step_time": "largest step of an episode (the paper's Fig. 6)", "mean_step_time": "mean step"}
-
-
-def step_times(report: dict[str, Any], plant: str = "nominal") -> list[dict[str, Any]]:
-    """Fig. 6's points from the report's ``runs``: per method of ``paper_rows`` and H, the number of episodes and,
-    for each episode statistic of ``STEP_KINDS`` (its largest and its mean step time [s]), the mean and standard
-    error over the episodes."""
-    out = []
-    for row in paper_rows(report, plant):
-        runs = [r for r in report["runs"]
-                if r["plant"] == plant and r["method"] == row["method"] and r["horizon"] == row["horizon"]]  # fmt: skip
-        point: dict[str, Any] = {"method": row["method"], "horizon": row["horizon"], "runs": len(runs)}
-        for key in STEP_KINDS:
-            times = np.array([r[key] for r in runs])
-            se = float(times.std(ddof=1) / np.sqrt(len(times))) if len(times) > 1 else float("nan")
-            point[key] = {"mean": float(times.mean()), "se": se}
-        out.append(point)
-    return out
 
 
 def warmstart_bars(report: dict[str, Any]) -> dict[str, Any]:
@@ -191,77 +145,9 @@ def warmstart_figure(report: dict[str, Any], path: Path) -> Path:
     return _save_with_footer(fig, path, f"From `{report['command']}`.")
 
 
-def cost_figure(report: dict[str, Any], path: Path, plant: str = "nominal") -> Path:
-    """Fig. 5 to ``path``: the paper's normalised cost increment (left; over the problems every method of the
-    report ran feasibly at every H, DIST-MPC's worst H = 1) and ``horizon_cost_panel`` (right, with the legend) of
-    ``paper_rows``, its command in the footer."""
-    import matplotlib.pyplot as plt
-
-    rows, config = paper_rows(report, plant), report["config"]
-    methods = list(dict.fromkeys(r["method"] for r in rows))
-    labels = {m: model_label(m, config) for m in methods}
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
-    normed = [r for r in rows if "paper_norm" in r]
-    for i, m in enumerate(methods):
-        rs = [r for r in normed if r["method"] == m]
-        left.errorbar(
-            [r["horizon"] for r in rs],
-            [r["paper_norm"]["mean"] for r in rs],
-            yerr=[np.nan_to_num(r["paper_norm"]["se"]) for r in rs],
-            capsize=3,
-            **{**line_style(i), "marker": "o", "markersize": 5, "markevery": 1},
-            label=labels[m],
-        )
-    n = max((r["paper_problems"] for r in normed), default=0)
-    left.set_title(
-        f"the paper's normalisation, over the {n} problems\nevery method of the report ran feasibly at every H"
-        if n
-        else "the paper's normalisation: undefined\n(no problem every method ran feasibly)",
-        fontsize=9,
-    )
-    left.set_ylabel("normalised cost increment\n(DIST-MPC at its worst H = 1)")
-    horizon_axis(left, rows)
-    horizon_cost_panel(right, rows, labels)
-    right.set_title(f"each method's feasible runs,\n{plant} plant, {config['problems']} problems", fontsize=9)
-    fig.suptitle(
-        f"Closed-loop cost vs planning horizon, {report['scenario']['name']} (protocol {report['protocol']['name']})",
-        fontsize=10,
-    )
-    return _save_with_footer(fig, path, f"From `{report['command']}`.")
-
-
-def step_time_figure(report: dict[str, Any], path: Path, plant: str = "nominal") -> Path:
-    """Fig. 6 (``step_times``) to ``path``, one log-scale panel per statistic of ``STEP_KINDS``, its command in the
-    footer."""
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import FuncFormatter
-
-    points, config = step_times(report, plant), report["config"]
-    fig, axes = plt.subplots(1, len(STEP_KINDS), figsize=(11, 4.2))
-    for ax, (key, title) in zip(axes, STEP_KINDS.items(), strict=True):
-        for i, m in enumerate(dict.fromkeys(p["method"] for p in points)):
-            ps = [p for p in points if p["method"] == m]
-            ax.errorbar(
-                [p["horizon"] for p in ps],
-                [1e3 * p[key]["mean"] for p in ps],
-                yerr=[1e3 * np.nan_to_num(p[key]["se"]) for p in ps],
-                capsize=3,
-                **{**line_style(i), "marker": "o", "markersize": 5, "markevery": 1},
-                label=model_label(m, config),
-            )
-        horizon_axis(ax, points)
-        ax.set_yscale("log")
-        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))  # 10, 100: not 10^1, 10^2
-        ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:g}"[0] in "25" else ""))
-        ax.set_ylabel("MPC step time [ms]\n(mean ± s.e. over episodes)")
-        ax.set_title(title, fontsize=9)
-    axes[0].legend(fontsize=7)
-    fig.suptitle(
-        f"Step time vs planning horizon, {report['scenario']['name']}, {plant} plant: observe + warm start + solves, "
-        f"CPU, workers={config.get('workers', '?')}",
-        fontsize=10,
-    )
-    return _save_with_footer(fig, path, f"From `{report['command']}`.")
+def horizon_file(plant: str) -> str:
+    """The file name of the closed-loop figure of ``plant``."""
+    return f"closed_loop_{plant}.png"
 
 
 def planned_trajectory(model: str, seed: int, indices: Sequence[int], path: Path) -> Path:
@@ -315,21 +201,37 @@ def planned_trajectory(model: str, seed: int, indices: Sequence[int], path: Path
 
 
 def make_figures(
-    mpc: str | Path,
+    mpc: Sequence[str | Path],
     warmstart: str | Path,
     out: str | Path,
     *,
     model: str,
     seed: int,
     problems: Sequence[int],
-    plant: str,
 ) -> list[Path]:
-    """Every figure of ``FILES`` into ``out`` from the reports at ``mpc`` and ``warmstart`` (both read before
-    anything is drawn) and the planned ``problems``; returns their paths."""
-    closed, ws = load_report(mpc, "mpc"), load_report(warmstart, "warmstart")
+    """The figures of ``FILES`` into ``out`` from the warm-start report at ``warmstart`` and the planned
+    ``problems``, and ``closed_loop_<plant>.png`` from the closed-loop reports at ``mpc`` (one per scenario) for
+    every plant they all ran (every report read before anything is drawn); returns their paths."""
+    closed, ws = [load_report(path, "mpc") for path in mpc], load_report(warmstart, "warmstart")
+    plants = sorted(set.intersection(*({r["plant"] for r in c["summary"]} for c in closed)))
+    if not plants:
+        raise UserError("the closed-loop reports share no plant", "pass reports that ran the same plants=")
     out = Path(out)
     paths = [planned_trajectory(model, seed, problems, out / FILES[0]), warmstart_figure(ws, out / FILES[1])]
-    return [*paths, cost_figure(closed, out / FILES[2], plant), step_time_figure(closed, out / FILES[3], plant)]
+    for plant in plants:
+        fig, footer = horizon_figure(closed, plant)
+        paths.append(_save_with_footer(fig, out / horizon_file(plant), footer))
+    return paths
+
+
+def equal_cost_table(mpc: Sequence[str | Path]) -> str:
+    """The speedup at equal cost (``equal_cost``) of each closed-loop report at ``mpc``, one table with a scenario
+    column."""
+    rows = []
+    for path in mpc:
+        report = load_report(path, "mpc")
+        rows += [{"scenario": report["scenario"]["name"], **r} for r in equal_cost(report["runs"])]
+    return format_equal_cost(rows)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -338,7 +240,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     matplotlib.use("Agg")
     p = argparse.ArgumentParser(prog="python -m ttompc.evaluation.figures", description=__doc__.split("\n\n")[0])
-    p.add_argument("--mpc", required=True, help="mpc.json of `ttompc evaluate mpc` (several horizons)")
+    p.add_argument("--mpc", required=True, nargs="+", help="mpc.json of `ttompc evaluate mpc` sweeps, one per scenario")
     p.add_argument("--warmstart", required=True, help="warmstart.json of `ttompc evaluate warmstart`")
     p.add_argument("--out", default="docs/figures", help="folder for the figures (default docs/figures)")
     p.add_argument("--model", default="freeflyer-ft-tto-v5", help="the planned trajectory's model")
@@ -350,7 +252,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=list(PROBLEMS),
         help=f"their indices in that stream (default {' '.join(map(str, PROBLEMS))})",
     )
-    p.add_argument("--plant", default="nominal", choices=("nominal", "perturbed"), help="closed-loop plant")
     args = p.parse_args(argv)
     try:
         paths = make_figures(
@@ -360,12 +261,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             model=args.model,
             seed=args.seed,
             problems=args.problems,
-            plant=args.plant,
         )
+        table = equal_cost_table(args.mpc)
     except UserError as err:
         print(f"{p.prog}: error: {err}", file=sys.stderr)
         return 2
     print("\n".join(str(path) for path in paths))
+    print(table)
     return 0
 
 

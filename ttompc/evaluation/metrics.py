@@ -3,9 +3,9 @@
 * absolute: (J − J_REL)/J_REL per run, J_REL the open-loop REL cost (a lower bound of the full problem); means over
   feasible runs only, with standard error and bootstrap interval (``ttompc.evaluation.stats.interval``); infeasible runs
   are counted apart.
-* paper normalisation (Fig. 5): over the problems on which *every* method's run is feasible, mean(J_m − J_REL) per
-  method and horizon divided by the largest mean(J_DIST-MPC − J_REL) over the horizons (DIST-MPC = 1 at its worst
-  horizon). Reported per problem as (J_m − J_REL)/D so that it gets an interval too.
+* the paper's normalised cost increment (Fig. 5): (J − J_REL)/(maxcost − J_REL) per feasible run, maxcost the worst
+  feasible cost of its problem over every method and horizon (``normalized_cost``); runs that miss the goal or
+  violate a constraint are counted apart.
 * share of the reachable gain: (mean J_base − mean J_m)/(mean J_base − mean J_oracle) over problems solved by base,
   model and oracle — 0 = no better than the baseline (SCP from REL open loop, REL-MPC closed loop), 1 = as good as
   the oracle — with a paired bootstrap interval; undefined (nan, null in JSON) when the reachable gain
@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
@@ -30,36 +31,31 @@ import numpy as np
 from ttompc.evaluation.stats import BOOTSTRAP_SAMPLES, format_interval, interval
 
 
-def paper_normalized(
-    records: list[dict[str, Any]], methods: Sequence[str], reference: str = "DIST-MPC", *, seed: int = 0
-) -> list[dict[str, Any]]:
-    """Paper normalisation of closed-loop ``records`` (keys problem, method, horizon, cost, rel_cost, feasible) of
-    one plant: rows (method, horizon, problems, paper_norm interval) over the problems whose runs are feasible for
-    every method in ``methods`` at every horizon; empty if ``reference`` is missing or never costs more than J_REL."""
-    by_problem: dict[Any, list[dict[str, Any]]] = defaultdict(list)
+def normalized_cost(records: list[dict[str, Any]], *, seed: int = 0) -> list[dict[str, Any]]:
+    """The paper's normalised cost increment (§V-C, Fig. 5), (J − LB)/(maxcost − LB), of closed-loop ``records``
+    (keys problem, method, horizon, cost, rel_cost, feasible) of one plant, per problem: LB is the problem's REL cost
+    J_REL (the lower bound) and maxcost the largest cost of a feasible run of that problem over every method and
+    horizon of ``records`` ("the worst performance observed across all planning horizons": 1). Runs that miss the
+    goal or violate a constraint have no cost and are counted apart (their rate is the report's ``feasible``/``runs``);
+    every feasible run of a problem with a feasible run above LB counts. Rows (method, horizon, ``paper_norm``: the
+    ``interval`` over those runs), methods in first-seen order, horizons ascending."""
+    worst: dict[Any, float] = {}
     for r in records:
-        if r["method"] in methods:
-            by_problem[r["problem"]].append(r)
+        if r["feasible"]:
+            worst[r["problem"]] = max(worst.get(r["problem"], -math.inf), float(r["cost"]))
+    values: dict[tuple[str, int], list[float]] = {}
+    for r in records:
+        span = worst.get(r["problem"], -math.inf) - r["rel_cost"]
+        run = values.setdefault((r["method"], r["horizon"]), [])  # a row for every (method, horizon) that ran
+        if r["feasible"] and span > 0:
+            run.append((r["cost"] - r["rel_cost"]) / span)
+    methods = list(dict.fromkeys(r["method"] for r in records))
     horizons = sorted({r["horizon"] for r in records})
-    need = {(m, h) for m in methods for h in horizons}
-    ok = [rs for rs in by_problem.values() if {(r["method"], r["horizon"]) for r in rs if r["feasible"]} >= need]
-    gap: dict[tuple[str, int], list[float]] = defaultdict(list)
-    for rs in ok:
-        for r in rs:
-            gap[(r["method"], r["horizon"])].append(r["cost"] - r["rel_cost"])
-    ref = [float(np.mean(gap[(reference, h)])) for h in horizons if gap.get((reference, h))]
-    denom = max(ref, default=float("nan"))
-    if not (denom > 0):
-        return []
     return [
-        {
-            "method": m,
-            "horizon": h,
-            "problems": len(ok),
-            "paper_norm": interval(np.array(gap[(m, h)]) / denom, seed=seed),
-        }
+        {"method": m, "horizon": h, "paper_norm": interval(values[(m, h)], seed=seed)}
         for m in methods
         for h in horizons
+        if (m, h) in values
     ]
 
 
@@ -195,8 +191,14 @@ def _jsonable(x: Any) -> Any:
 
 
 def write_json(path: str | Path, obj: Any) -> Path:
-    """JSON with numpy values converted and non-finite floats as null (strict JSON)."""
+    """JSON with numpy values converted and non-finite floats as null (strict JSON), written whole or not at all: to
+    a temporary sibling, then renamed over ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_jsonable(obj), indent=2) + "\n")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(_jsonable(obj), indent=2) + "\n")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path

@@ -30,9 +30,9 @@ from ttompc.evaluation.metrics import (
     gain_share,
     improvement_by_threshold,
     write_csv,
-    write_json,
 )
 from ttompc.evaluation.problems import EvalProblem, eval_problem
+from ttompc.evaluation.report_files import finish
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import format_interval, interval
 from ttompc.mpc.tto import check_rtg_scale
@@ -229,8 +229,9 @@ def format_table(summary: list[dict[str, Any]]) -> str:
 
 
 def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
-    """Run the evaluation; writes ``warmstart.json``, ``warmstart.md`` (the table), ``warmstart_problems.csv``,
-    ``warmstart_thresholds.csv``, ``warmstart_bins.csv`` and ``warmstart_improvement.png`` into ``cfg.out``; the
+    """Run the evaluation; writes ``warmstart.md`` (the table), ``warmstart_problems.csv``,
+    ``warmstart_thresholds.csv``, ``warmstart_bins.csv``, ``warmstart_improvement.png`` and last ``warmstart.json``
+    (marked complete: ``report_files.finish``) into ``cfg.out``; the
     report records its config and the command line that reproduces it (``command``, ``reproduce.report_command``)."""
     from ttompc.evaluation.plots import plot_warmstart
 
@@ -269,11 +270,12 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
         "thresholds": thresholds,
         "problems": rows,
     }
-    write_json(out / "warmstart.json", report)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "warmstart.md").write_text(f"# Open-loop warm starts: {sc.name}, {len(rows)} problems\n\n{table}\n")
     write_csv(out / "warmstart_problems.csv", rows)
     write_csv(out / "warmstart_thresholds.csv", thresholds)
     write_csv(out / "warmstart_bins.csv", bins)
     report["plots"] = [str(plot_warmstart(thresholds, [*models, ORACLE], out))]
+    finish(out / "warmstart.json", report)  # last, marked complete
     report["out"] = str(out)
     return report

@@ -1,0 +1,123 @@
+"""The paper's Fig. 5 and Fig. 6 as we measure them: one figure per plant, one column per scenario (a closed-loop
+sweep report of ``ttompc evaluate mpc`` each), drawn by ``make figures`` (``ttompc.evaluation.figures``).
+
+Rows, each against the planning horizon H, for the methods of ``PAPER_METHODS`` the reports ran (a model method's rtg
+suffix, e.g. ``[rtg=value]``, ignored when matching):
+
+1. the paper's normalised cost increment (J − LB)/(maxcost − LB) over each method's feasible runs, mean ± s.e.
+   (``metrics.normalized_cost``: per problem, its worst feasible run over every method and H = 1);
+2. (J − J_REL)/J_REL over each method's feasible runs (``plots.horizon_cost_panel``: feasible/runs marked);
+3. the failure rate: runs that missed the goal or violated a constraint, in % of the runs (counted apart from the
+   costs above);
+4. and 5. Fig. 6: the largest step of each episode (the paper's measure) and its mean step, each averaged over the
+   episodes ± s.e. (``step_times``), log scale, titled with the machine and its load (the report's ``machine``).
+
+The footer names the command of each column's report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ttompc.errors import UserError
+from ttompc.evaluation.machine import machine_label
+from ttompc.evaluation.plots import horizon_axis, horizon_cost_panel, line_style
+
+# the paper's four methods, our headline (the robust fine-tuned method) and the ceiling
+PAPER_METHODS = ("REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC", "R-FT-TTO-MPC", "ORACLE-MPC")
+MODEL_KEYS = {"TTO": "model", "FT-TTO": "ft_model"}  # method -> the config key naming its model
+STEP_KINDS = {"max_step_time": "largest step of an episode (the paper's Fig. 6)", "mean_step_time": "mean step"}
+
+
+def _base(method: str) -> str:
+    return method.split("[")[0]
+
+
+def model_label(method: str, config: dict[str, Any]) -> str:
+    """A method's legend label: the method, and for a model's method (TTO…, FT-TTO…, their MPC variants) the model
+    the report ran it with."""
+    base = method.removeprefix("R-").split("-MPC")[0]
+    model = config.get(MODEL_KEYS.get(base, ""))
+    return f"{method} ({model})" if model else method
+
+
+def paper_rows(report: dict[str, Any], plant: str = "nominal") -> list[dict[str, Any]]:
+    """The ``summary`` rows of ``PAPER_METHODS`` on ``plant``, in that method order then by H; raises ``UserError``
+    if there are none."""
+    rows = [r for r in report["summary"] if r["plant"] == plant and _base(r["method"]) in PAPER_METHODS]
+    if not rows:
+        raise UserError(f"the closed-loop report has no run of {', '.join(PAPER_METHODS)} on the {plant} plant")
+    return sorted(rows, key=lambda r: (PAPER_METHODS.index(_base(r["method"])), r["horizon"]))
+
+
+def step_times(report: dict[str, Any], plant: str = "nominal") -> list[dict[str, Any]]:
+    """Fig. 6's points from the report's ``runs``: per method of ``paper_rows`` and H, the number of episodes and,
+    for each episode statistic of ``STEP_KINDS`` (its largest and its mean step time [s]), the mean and standard
+    error over the episodes."""
+    out = []
+    for row in paper_rows(report, plant):
+        runs = [r for r in report["runs"]
+                if r["plant"] == plant and r["method"] == row["method"] and r["horizon"] == row["horizon"]]  # fmt: skip
+        point: dict[str, Any] = {"method": row["method"], "horizon": row["horizon"], "runs": len(runs)}
+        for key in STEP_KINDS:
+            times = np.array([r[key] for r in runs])
+            se = float(times.std(ddof=1) / np.sqrt(len(times))) if len(times) > 1 else float("nan")
+            point[key] = {"mean": float(times.mean()), "se": se}
+        out.append(point)
+    return out
+
+
+def _lines(ax: Any, points: Sequence[dict[str, Any]], value: Any, labels: dict[str, str]) -> None:
+    """One error-bar line per method of ``points`` (rows with method and horizon): ``value(point)`` → (y, s.e.)."""
+    for method in dict.fromkeys(p["method"] for p in points):
+        ps = [p for p in points if p["method"] == method]
+        ys, ses = zip(*(value(p) for p in ps), strict=True)
+        style = {**line_style(PAPER_METHODS.index(_base(method))), "marker": "o", "markersize": 4, "markevery": 1}
+        xs = [p["horizon"] for p in ps]
+        ax.errorbar(xs, ys, yerr=np.nan_to_num(ses), capsize=3, **style, label=labels[method])
+    horizon_axis(ax, list(points))
+
+
+def _log_ms(ax: Any) -> None:
+    from matplotlib.ticker import FuncFormatter
+
+    ax.set_yscale("log")
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))  # 10, 100: not 10^1, 10^2
+    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:g}"[0] in "25" else ""))
+
+
+def horizon_figure(reports: Sequence[dict[str, Any]], plant: str) -> tuple[Any, str]:
+    """The figure of the module doc for ``plant``, one column per report (of ``paper_rows``), and its footer text
+    (the reports' commands)."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(5, len(reports), figsize=(5 * len(reports), 17), squeeze=False)
+    for col, report in zip(axes.T, reports, strict=True):
+        rows, config = paper_rows(report, plant), report["config"]
+        labels = {r["method"]: model_label(r["method"], config) for r in rows}
+        name, n = report["scenario"]["name"], config["problems"]
+        normed = [r for r in rows if "paper_norm" in r]
+        _lines(col[0], normed, lambda r: (r["paper_norm"]["mean"], r["paper_norm"]["se"]), labels)
+        col[0].set_title(f"{name}, {n} problems ({report['protocol']['name']})", fontsize=10)
+        col[0].set_ylabel("(J − LB)/(maxcost − LB)\nof feasible runs (worst = 1)")
+        col[0].legend(fontsize=7)
+        horizon_cost_panel(col[1], rows, labels)
+        col[1].get_legend().remove()
+        _lines(col[2], rows, lambda r: (100 * (1 - r["feasible"] / r["runs"]), np.nan), labels)
+        col[2].set_ylabel("runs that missed the goal or\nviolated a constraint [%]")
+        col[2].set_ylim(-5, 105)
+        machine = f"{machine_label(report.get('machine'))}, workers={config.get('workers', '?')}"
+        for ax, key in zip(col[3:], STEP_KINDS, strict=True):
+            _lines(ax, step_times(report, plant), lambda p, k=key: (1e3 * p[k]["mean"], 1e3 * p[k]["se"]), labels)
+            _log_ms(ax)
+            ax.set_ylabel(f"{STEP_KINDS[key]} [ms]\n(mean ± s.e. over episodes)", fontsize=8)
+        col[3].set_title(f"step time: observe + warm start + solves, CPU\n{machine}", fontsize=8)
+    fig.suptitle(
+        f"Closed loop vs planning horizon H, {plant} plant: cost (Fig. 5, rows 1–3) and step time (Fig. 6, rows 4–5)",
+        fontsize=11,
+    )
+    commands = "; ".join(f"{r['scenario']['name']}: `{r['command']}`" for r in reports)
+    return fig, f"From {commands}."
