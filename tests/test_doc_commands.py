@@ -26,7 +26,7 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT
 # subcommands that take --print-config (their command lines run with it) ...
 PRINT_CONFIG = {
     "solve", "generate", "train", "finetune", "demo", "check-scenario", "evaluate warmstart", "evaluate mpc",
-    "evaluate target",
+    "evaluate target", "evaluate loss",
 }  # fmt: skip
 # ... and those that do not (their command lines are only parsed): every subcommand is in one of the two
 PARSE_ONLY = {

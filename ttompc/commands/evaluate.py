@@ -1,5 +1,5 @@
-"""``ttompc evaluate warmstart|mpc|target [RECIPE.yaml] key=value ...``: the evaluation protocol (docs/evaluation.md);
-``ttompc evaluate compare BASE OTHER ...``: pair closed-loop reports made on the same problems.
+"""``ttompc evaluate warmstart|mpc|target|loss [RECIPE.yaml] key=value ...``: the evaluation protocol
+(docs/evaluation.md); ``ttompc evaluate compare BASE OTHER ...``: pair closed-loop reports made on the same problems.
 
 * ``warmstart``: open-loop SCP warm starts, REL vs the model(s) vs the oracle (best of several warm starts), on
   ``problems`` (default 100) held-out non-convex problems (``WarmStartConfig`` keys);
@@ -10,6 +10,8 @@
 * ``target``: along the closed-loop episodes of one method, the distance of its terminal target and first control
   from the expert's re-solved from the measured state, by steps to go and plant, and its correlation with the
   closed-loop cost (``TargetErrorConfig`` keys; ``ttompc.evaluation.target_error``);
+* ``loss``: a model's training objective on the splits of its datasets, open-loop and DAgger rows apart
+  (``LossConfig`` keys; ``ttompc.evaluation.fit_loss``);
 * ``compare``: pairs ``mpc`` reports on their common problems (``ttompc.evaluation.compare``), prints a table and
   with ``--json FILE`` writes its rows.
 
@@ -57,6 +59,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _shortcuts(mpc, "protocol=zoo horizons=[10,30] plants=[perturbed] plant.process_std=0.005", 20)
     target = sub.add_parser("target", help="closed loop: a method's target and first control vs the expert's")
     _shortcuts(target, "method=R-FT-TTO-MPC horizons=[10] every=2 plot=true", 20)
+    loss = sub.add_parser("loss", help="training objective by split, open-loop and DAgger (closed-loop) rows apart")
+    add_config_arguments(loss, "data.paths=[data/quadrotor-v4] data.dagger_dirs=[runs/ft/dagger/iter-000] rows=2000")
+    loss.add_argument("--model", help="model: zoo name, hf://ORG/NAME[@REV], bundle folder or Lightning .ckpt")
+    loss.add_argument("--out", help="output folder (default outputs/evaluate/loss-<model>)")
     cmp = sub.add_parser(
         "compare",
         help="pair closed-loop reports made on the same held-out problems: goals lost/won, paired cost, step time",
@@ -155,6 +161,21 @@ def _target(args: argparse.Namespace) -> int:
     return 0
 
 
+def _loss(args: argparse.Namespace) -> int:
+    """``evaluate loss``: the output folder is checked before the model and the data are read."""
+    from ttompc.evaluation.fit_loss import LossConfig, run_fit_loss
+
+    cfg = command_config(LossConfig, args, ("model", "out"))
+    if args.print_config:
+        print(json.dumps(to_container(cfg), indent=2))
+        return 0
+    checks.writable(cfg.out or "outputs/evaluate")
+    report = run_fit_loss(cfg)
+    print(report["table"])
+    print(f"report: {report['out']}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     if args.evaluation == "compare":
         return _compare(args)
@@ -175,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
         report = run_warmstart(cfg)
     elif args.evaluation == "target":
         return _target(args)
+    elif args.evaluation == "loss":
+        return _loss(args)
     else:
         from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
         from ttompc.evaluation.measurement import with_settings

@@ -412,22 +412,27 @@ class TrajectoryDataModule(L.LightningDataModule):
         )
         return self._loader(ds, _EpochLoader)
 
-    def _eval(self, split: str) -> DataLoader:
-        if not self._files[split]:
-            raise ShardError(f"split {split!r} of {self.cfg.paths} has no rows")
-        allowed = frozenset(("rel", "scp") if self.cfg.sources == "both" else (self.cfg.sources,))
-        return self._loader(EvalStream(self._files[split], allowed, self.cfg, self._batcher, *self._ranks))
+    def eval_dataloader(self, split: str, closed_loop: bool = False) -> DataLoader:
+        """One deterministic pass (``EvalStream``) over ``split`` ("train", "val" or "test") of the open-loop
+        datasets (their rows of ``sources``) or, with ``closed_loop``, of the DAgger folders; ``ShardError`` when
+        it has no rows."""
+        if closed_loop:
+            if not self._dagger.get(split):
+                raise ShardError(f"no {split}/*.parquet in DAgger folders {self.cfg.dagger_dirs}")
+            files, allowed = self._dagger[split], frozenset(("dagger",))
+        else:
+            if not self._files[split]:
+                raise ShardError(f"split {split!r} of {self.cfg.paths} has no rows")
+            files = self._files[split]
+            allowed = frozenset(("rel", "scp") if self.cfg.sources == "both" else (self.cfg.sources,))
+        return self._loader(EvalStream(files, allowed, self.cfg, self._batcher, *self._ranks))
 
     def val_dataloader(self) -> DataLoader:
-        return self._eval("val")
+        return self.eval_dataloader("val")
 
     def test_dataloader(self) -> DataLoader:
-        return self._eval("test")
+        return self.eval_dataloader("test")
 
     def dagger_val_dataloader(self) -> DataLoader:
         """The DAgger folders' ``val`` shards (the reference's closed-loop validation set)."""
-        if not self._dagger.get("val"):
-            raise ShardError(f"no val/*.parquet in DAgger folders {self.cfg.dagger_dirs}")
-        return self._loader(
-            EvalStream(self._dagger["val"], frozenset(("dagger",)), self.cfg, self._batcher, *self._ranks)
-        )
+        return self.eval_dataloader("val", closed_loop=True)

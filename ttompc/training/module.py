@@ -134,6 +134,11 @@ class TrajectoryTransformerModule(L.LightningModule):
             out["loss"] = out.get("loss", 0.0) + out["loss_value"]
         return out
 
+    def validation_losses(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The loss ("loss") and its terms ("loss_action", "loss_state", "loss_value") of ``batch`` as validation
+        logs them (plain MSE): what ``ttompc evaluate loss`` reports on any split."""
+        return {k: v for k, v in self._losses(batch).items() if k.startswith("loss")}
+
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         out = self._losses(batch, self.optim_cfg.huber_delta)  # validation stays plain MSE
         B = batch["states"].shape[0]

@@ -1,0 +1,185 @@
+"""``ttompc evaluate loss``: a model's training objective on the splits of given datasets, open-loop (REL/SCP) rows
+and DAgger (closed-loop) rows apart, so that a model that cannot fit (training and held-out loss both high) is told
+apart from one that does not generalise (training loss low, held-out high) (issue 57; docs/evaluation.md, "Loss by
+split and row kind").
+
+The loss is the validation loss of the ``TrajectoryTransformerModule`` (``validation_losses``: masked MSE of the
+actions and of the next states, plus the value output's where the model has one, over the rows of
+``VALUE_SOURCES``), the module built from the model's weights and its recipe's ``optim`` section (the value loss's
+tail weighting; the defaults where the bundle has no recipe). Rows come in one deterministic pass per split
+(``TrajectoryDataModule.eval_dataloader``): the open-loop datasets of ``data.paths`` (their rows of
+``data.sources``) and the DAgger folders of ``data.dagger_dirs`` (``<run>/dagger/iter-<i>``; their ``train`` and
+``val`` splits), normalised with the model's statistics, at most ``rows`` rows each. Each term is averaged over its
+own valid steps across the batches (a batch's mean weighted by its valid steps), so the numbers do not depend on
+the batch size; with ``optim.value_tail_steps`` the value term's batches are weighted by their valid steps, not by
+their tail weights.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ttompc.data.config import DataConfig
+from ttompc.errors import UserError
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+    from torch import Tensor
+
+    from ttompc.policy import Planner
+    from ttompc.training.module import TrajectoryTransformerModule
+
+KINDS = {"open_loop": False, "dagger": True}  # row kind -> TrajectoryDataModule.eval_dataloader(closed_loop=...)
+TERMS = ("loss", "loss_action", "loss_state", "loss_value")
+
+
+@dataclass
+class LossConfig:
+    """``ttompc evaluate loss`` settings (``key=value``): the model, the datasets (``data.paths``: open-loop
+    folders, at least one; ``data.dagger_dirs``: DAgger folders), the splits and at most ``rows`` rows per split and
+    row kind; ``out`` defaults to ``outputs/evaluate/loss-<model>`` (the model's zoo or folder name)."""
+
+    model: str | None = None
+    data: DataConfig = field(default_factory=lambda: DataConfig(verify_checksums=False))
+    splits: list[str] = field(default_factory=lambda: ["train", "val", "test"])
+    rows: int = 2000
+    device: str = "cpu"
+    out: str = ""
+
+    def __post_init__(self) -> None:
+        bad = [s for s in self.splits if s not in ("train", "val", "test")]
+        if bad or not self.splits:
+            raise ValueError(f"splits must be a non-empty subset of [train, val, test], got {self.splits}")
+        if self.rows < 1:
+            raise ValueError(f"rows must be >= 1, got {self.rows}")
+
+
+def loss_module(planner: Planner) -> TrajectoryTransformerModule:
+    """The LightningModule of ``planner``'s weights and statistics under its recipe's ``optim`` (module doc), in
+    evaluation mode."""
+    from ttompc.config import ConfigError, from_container, to_container
+    from ttompc.training.config import OptimConfig
+    from ttompc.training.module import TrajectoryTransformerModule
+
+    try:
+        optim = from_container(OptimConfig, planner.recipe.get("optim") or {})
+    except ConfigError:  # a recipe of an older code version: the loss terms do not depend on the optimiser
+        optim = OptimConfig()
+    module = TrajectoryTransformerModule(
+        model_config=to_container(planner.model.cfg),
+        optim=to_container(optim),
+        scenario=planner.scenario.name,
+        scenario_version=planner.scenario.version,
+        norm_stats=planner.stats.to_dict(),
+        plot_trajectories=False,
+    )
+    module.model.load_state_dict(planner.model.state_dict())
+    return module.to(planner.device).eval()
+
+
+def _weights(batch: dict[str, Tensor]) -> dict[str, float]:
+    """The valid steps each term of ``validation_losses`` averages over in ``batch``."""
+    import torch
+
+    from ttompc.training.module import VALUE_SOURCES
+
+    mask = batch.get("mask", torch.ones_like(batch["timesteps"], dtype=torch.float32))
+    value_rows = torch.isin(batch["source"], torch.as_tensor(VALUE_SOURCES)).to(mask.dtype)
+    return {"loss_action": float(mask.sum()), "loss_state": float(batch.get("state_mask", mask).sum()),
+            "loss_value": float((mask * value_rows[:, None]).sum())}  # fmt: skip
+
+
+def row_losses(module: TrajectoryTransformerModule, batches: Iterable[dict[str, Tensor]], rows: int) -> dict[str, Any]:
+    """The loss terms of ``module`` over at most ``rows`` rows of ``batches``, each averaged over its valid steps
+    (module doc): ``rows`` evaluated, the terms (nan for one the module does not compute or with no valid step, e.g.
+    the value on REL rows, which the training loss leaves out too) and ``loss``, the sum of the others."""
+    import torch
+
+    sums: dict[str, float] = {}
+    steps: dict[str, float] = {}
+    seen = 0
+    with torch.inference_mode():
+        for b in batches:
+            if seen >= rows:
+                break
+            B = len(b["source"])
+            if seen + B > rows:
+                b = {k: v[: rows - seen] for k, v in b.items()}
+            seen += len(b["source"])
+            weights = _weights(b)
+            out = module.validation_losses({k: v.to(module.device) for k, v in b.items()})
+            for k, v in out.items():
+                if k != "loss" and weights[k] > 0:
+                    sums[k] = sums.get(k, 0.0) + float(v) * weights[k]
+                    steps[k] = steps.get(k, 0.0) + weights[k]
+    result: dict[str, Any] = {"rows": seen}
+    for k in TERMS[1:]:
+        result[k] = sums[k] / steps[k] if k in steps else float("nan")
+    result["loss"] = sum(sums[k] / steps[k] for k in steps) if steps else float("nan")
+    return result
+
+
+def fit_losses(cfg: LossConfig) -> list[dict[str, Any]]:
+    """One row per (row kind, split) of ``cfg``: ``kind`` ("open_loop", "dagger"), ``split`` and ``row_losses``
+    (``rows`` 0 and nan terms where the datasets have no such rows; DAgger rows only with ``data.dagger_dirs``)."""
+    from ttompc.data.datamodule import TrajectoryDataModule
+    from ttompc.data.shards import ShardError
+    from ttompc.parallel import single_torch_thread
+    from ttompc.policy import Planner
+
+    if not cfg.model:
+        raise UserError("evaluate loss needs a model", "pass --model NAME (zoo name, hf://ORG/NAME, folder or .ckpt)")
+    if not cfg.data.paths:
+        raise UserError("evaluate loss needs an open-loop dataset", "pass data.paths=[FOLDER] (the model's data)")
+    planner = Planner.from_pretrained(cfg.model, device=cfg.device)
+    dm = TrajectoryDataModule(cfg.data)
+    dm.setup("validate")
+    if dm.scenario_name != planner.scenario.name:
+        raise UserError(f"{cfg.model} is a {planner.scenario.name} model but {cfg.data.paths[0]} holds "
+                        f"{dm.scenario_name} trajectories", "pass the model's datasets")  # fmt: skip
+    dm.use_stats(planner.stats)
+    module = loss_module(planner)
+    out = []
+    with single_torch_thread():
+        for kind, closed in KINDS.items():
+            if closed and not cfg.data.dagger_dirs:
+                continue
+            for split in cfg.splits:
+                try:
+                    loader = dm.eval_dataloader(split, closed_loop=closed)
+                except ShardError:
+                    out.append({"kind": kind, "split": split, "rows": 0, **dict.fromkeys(TERMS, float("nan"))})
+                    continue
+                out.append({"kind": kind, "split": split, **row_losses(module, loader, cfg.rows)})
+    return out
+
+
+def format_losses(rows: list[dict[str, Any]], model: str) -> str:
+    """The markdown table of ``fit_losses``' rows."""
+    lines = [
+        f"Training objective of {model} (masked MSE, normalised units) by row kind and split: both high is "
+        "under-fitting, train low and held-out high is not generalising.",
+        "",
+        "| rows | split | rows evaluated | loss | action | next state | value |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        terms = " | ".join("–" if math.isnan(r[k]) else f"{r[k]:.4g}" for k in TERMS)
+        lines.append(f"| {r['kind'].replace('_', '-')} | {r['split']} | {r['rows']} | {terms} |")
+    return "\n".join(lines) + "\n"
+
+
+def run_fit_loss(cfg: LossConfig) -> dict[str, Any]:
+    """Run ``fit_losses`` and write ``loss.json`` (config and rows) and ``loss.md`` (the table) into ``cfg.out``."""
+    from ttompc.evaluation.metrics import write_json
+
+    rows = fit_losses(cfg)
+    table = format_losses(rows, str(cfg.model))
+    out = Path(cfg.out or f"outputs/evaluate/loss-{Path(str(cfg.model)).stem}")
+    write_json(out / "loss.json", {"config": asdict(cfg), "rows": rows})
+    (out / "loss.md").write_text(table)
+    return {"rows": rows, "table": table, "out": str(out)}
