@@ -5,6 +5,8 @@ applies the fallback control, and its steps compile nothing (the warm-up ran bef
 from __future__ import annotations
 
 import json
+import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -192,3 +194,25 @@ def test_a_first_run_compiles_nothing_inside_a_step(entry: str) -> None:
     out = subprocess.run(cmd, capture_output=True, text=True, check=True)
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["before"] > 0 and result["after"] == result["before"], result
+
+
+@pytest.mark.slow
+def test_control_loop_example_runs(tmp_path: Path) -> None:
+    """examples/control_loop.py as the README shows it: a zoo model's learned MPC on the gymnasium quadrotor."""
+    example = Path(__file__).parents[1] / "examples" / "control_loop.py"
+    env = {**os.environ, "TTOMPC_HOME": str(tmp_path / "cache"), "TTOMPC_PROGRESS": "0", "HF_HUB_OFFLINE": "1"}
+    out = subprocess.run([sys.executable, str(example)], capture_output=True, text=True, check=True, env=env)
+    assert re.fullmatch(
+        r"R-FT-TTO-MPC\[rtg=value\]: cost \d+\.\d{4}, goal reached: (True|False), step [\d.]+ ms mean, [\d.]+ ms p99",
+        out.stdout.strip(),
+    ), out.stdout
+
+
+def test_readme_shows_the_control_loop_example() -> None:
+    """The README's "Control your own system" block is examples/control_loop.py (below its docstring)."""
+    root = Path(__file__).parents[1]
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("## Control your own system") :]
+    block = re.search(r"```python\n(.*?)```", section, re.DOTALL)
+    example = (root / "examples" / "control_loop.py").read_text(encoding="utf-8")
+    assert block is not None and block.group(1) == example.split('"""', 2)[2].lstrip("\n")

@@ -31,7 +31,7 @@ from ttompc.mpc.tto import TTOProvider
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import SCPOptions, SCPProblem, TerminalCost, solve_rel, solve_scp
 
-NOTICE_SECONDS = 1.0  # a warm-up this long or longer is announced on stderr
+NOTICE_SECONDS = 3.0  # a warm-up this long or longer (a compilation, not a cache load) is announced on stderr
 _DONE: set[tuple[object, ...]] = set()  # what this process has warmed up (module doc)
 
 
