@@ -95,10 +95,13 @@ def _num(v: Any) -> float:
 
 def _footer(fig: Any, text: str) -> None:
     """``text`` wrapped under the figure's axes (about 15 characters per inch at font size 7, lines 1.35 font sizes
-    apart), the axes laid out above it."""
+    apart), the axes laid out above it and below the figure's title (``suptitle``; ``tight_layout`` leaves it
+    out)."""
     lines = textwrap.wrap(text, int(15 * fig.get_figwidth()))
     height = (len(lines) * 7 * 1.35 / 72 + 0.1) / fig.get_figheight()  # inches -> figure fraction
-    fig.tight_layout(rect=(0, height, 1, 1))
+    title = fig._suptitle  # matplotlib's own attribute: there is no public getter
+    top = (title.get_fontsize() * 1.35 * (title.get_text().count("\n") + 1) / 72 + 0.05) if title else 0.0
+    fig.tight_layout(rect=(0, height, 1, 1 - top / fig.get_figheight()))
     fig.text(0.01, 0.01, "\n".join(lines), fontsize=7, color="0.3", va="bottom")
 
 
