@@ -4,6 +4,7 @@ applies the fallback control, and its steps compile nothing (the warm-up ran bef
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -18,7 +19,7 @@ import pytest
 from ttompc.errors import UserError
 from ttompc.evaluation import closed_loop
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_problems
-from ttompc.mpc.controller import Controller
+from ttompc.mpc.controller import Controller, sample_problem
 from ttompc.mpc.plant import Plant
 from ttompc.policy import Planner
 
@@ -69,7 +70,7 @@ def test_controller_reproduces_evaluate_mpc(planner: Planner, plant: str, monkey
 def test_step_record(planner: Planner) -> None:
     ctrl = Controller.from_pretrained(MODEL, horizon=5)
     assert ctrl.name.startswith("R-FT-TTO-MPC")  # the model is fine-tuned: its robust method by default
-    problem = ctrl._sample()
+    problem = sample_problem(ctrl.scenario, np.random.default_rng(0))
     ctrl.reset(problem)
     assert ctrl.rel_cost > 0  # J_REL solved at reset for a learned method
     u = ctrl.step(problem.x0)
@@ -101,9 +102,10 @@ def test_bad_input_is_one_line_and_leaves_the_controller_usable(planner: Planner
     _bad(lambda: Controller.from_pretrained(MODEL, scenario="freeflyer"), "trained on scenario 'quadrotor'")
     ctrl = Controller(sc, "REL-MPC", horizon=5)
     _bad(lambda: ctrl.step(np.zeros(6)), r"step\(\) before reset")
-    problem = ctrl._sample()
+    problem = sample_problem(ctrl.scenario, np.random.default_rng(0))
     bad_problem = type(problem)(np.zeros(4), np.zeros(4), problem.dt, problem.n_steps)
     _bad(lambda: ctrl.reset(bad_problem), r"shape \(6,\)")
+    _bad(lambda: ctrl.reset(dataclasses.replace(problem, n_steps=50)), "problems have 100 steps, got 50")
     ctrl.reset(problem)
     _bad(lambda: ctrl.step(np.zeros(5)), r"shape \(6,\), got \(5,\)")
     _bad(lambda: ctrl.step(np.full(6, np.nan)), "NaN or inf")
@@ -119,7 +121,7 @@ def test_a_failed_window_applies_the_fallback_and_says_so(planner: Planner, monk
     from ttompc.solvers.scp import SCPStatus
 
     ctrl = Controller(planner.scenario, "REL-MPC", horizon=5)
-    problem = ctrl._sample()
+    problem = sample_problem(ctrl.scenario, np.random.default_rng(0))
     ctrl.reset(problem)
     ctrl.step(problem.x0)
     first = ctrl.last
@@ -142,8 +144,9 @@ _NO_COMPILE = """
 import json, sys
 from numba.core.dispatcher import Dispatcher
 from ttompc.mpc import loop
-from ttompc.mpc.controller import Controller
+from ttompc.mpc.controller import Controller, sample_problem
 from ttompc.mpc.plant import Plant
+import numpy as np
 
 def overloads():  # compiled (or cache-loaded) specialisations of every numba function of ttompc
     n = 0
@@ -154,7 +157,7 @@ def overloads():  # compiled (or cache-loaded) specialisations of every numba fu
 
 if sys.argv[2] == "controller":
     ctrl = Controller.from_pretrained(sys.argv[1], horizon=10)
-    problem = ctrl._sample()
+    problem = sample_problem(ctrl.scenario, np.random.default_rng(0))
     ctrl.reset(problem)
     before = overloads()
     x, plant = problem.x0, Plant(ctrl.scenario)
@@ -167,7 +170,8 @@ else:  # the episode loop of evaluate mpc, the callback, DAgger and the demo: co
     from ttompc.solvers.scp import solve_rel
 
     planner = Planner.from_pretrained(sys.argv[1])
-    problem = Controller(planner.scenario)._sample()  # its warm-up is another process's: counts start after it
+    Controller(planner.scenario)  # its warm-up covers the solver only: the decoder is left to the loop's
+    problem = sample_problem(planner.scenario, np.random.default_rng(0))
     counts, plan = [], loop.MPCController.plan
 
     def counted(self, t, x):

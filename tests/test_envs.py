@@ -93,6 +93,8 @@ def test_any_scenario_through_make_env(toy: object) -> None:
     given = env.scenario.sample(np.random.default_rng(5))
     obs, info = env.reset(options={"problem": given})
     assert info["problem"] is given
+    with pytest.raises(UserError, match="start and goal of shape"):
+        env.reset(options={"problem": type(given)(np.zeros(9), np.zeros(9), given.dt, given.n_steps)})
 
 
 def test_bad_action_is_one_line() -> None:

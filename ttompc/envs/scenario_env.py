@@ -26,12 +26,12 @@ import numpy as np
 from gymnasium import spaces
 
 from ttompc.errors import UserError
+from ttompc.mpc.controller import check_problem, sample_problem
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.scenarios import get_scenario
-from ttompc.scenarios.base import BlockKind, InfeasibleProblemError, Problem, Scenario, Window
+from ttompc.scenarios.base import BlockKind, Problem, Scenario, Window
 
 PLANTS = ("nominal", "perturbed")
-SAMPLE_ATTEMPTS = 100  # draws per reset until a problem is valid (Scenario.validate)
 
 
 def control_bounds(scenario: Scenario, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
@@ -71,31 +71,20 @@ class ScenarioEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self.plant = Plant(self.scenario, PlantNoise.perturbed(self.scenario) if plant == "perturbed" else None)
         n, m = self.scenario.state_dim, self.scenario.control_dim
         self.observation_space = spaces.Box(-np.inf, np.inf, (n,), np.float64)
-        low, high = control_bounds(self.scenario, self._sample(np.random.default_rng(0)))
+        low, high = control_bounds(self.scenario, sample_problem(self.scenario, np.random.default_rng(0)))
         self.action_space = spaces.Box(low, high, (m,), np.float64)
         self.problem: Problem | None = None
         self.t = 0
         self.x = np.zeros(n)
-
-    def _sample(self, rng: np.random.Generator) -> Problem:
-        for _ in range(SAMPLE_ATTEMPTS):
-            problem = self.scenario.sample(rng)
-            try:
-                self.scenario.validate(problem)
-            except InfeasibleProblemError:
-                continue
-            return problem
-        raise RuntimeError(f"{self.scenario.name}: no valid problem in {SAMPLE_ATTEMPTS} draws")
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
         given = (options or {}).get("problem")
-        self.problem = given if given is not None else self._sample(self.np_random)
-        if self.problem.x0.shape != (self.scenario.state_dim,):
-            raise UserError(f"a {self.scenario.name} problem has a start of shape ({self.scenario.state_dim},), got "
-                            f"{self.problem.x0.shape}")  # fmt: skip
+        if given is not None:
+            check_problem(self.scenario, given)
+        self.problem = given if given is not None else sample_problem(self.scenario, self.np_random)
         self.plant.reset(int(self.np_random.integers(2**63 - 1)))
         self.t, self.x = 0, self.problem.x0.copy()
         return self.x.copy(), {"problem": self.problem, "t": 0}

@@ -84,6 +84,31 @@ class StepRecord:
         return f"step {self.t}: {what} in {self.iterations} iterations, {1e3 * self.seconds:.1f} ms"
 
 
+def sample_problem(scenario: Scenario, rng: np.random.Generator, attempts: int = 100) -> Problem:
+    """The first of ``attempts`` draws of ``scenario.sample(rng)`` that ``scenario.validate`` accepts."""
+    for _ in range(attempts):
+        problem = scenario.sample(rng)
+        try:
+            scenario.validate(problem)
+        except InfeasibleProblemError:
+            continue
+        return problem
+    raise RuntimeError(f"{scenario.name}: no valid problem in {attempts} draws")
+
+
+def check_problem(scenario: Scenario, problem: Problem) -> None:
+    """Raise a one-line ``UserError`` for a problem ``scenario`` cannot pose: start or goal of another shape, another
+    number of steps, non-finite values, or one without a solution (``Scenario.validate``)."""
+    n = scenario.state_dim
+    shapes = (np.shape(problem.x0), np.shape(problem.goal))
+    if shapes != ((n,), (n,)):
+        raise UserError(f"a {scenario.name} problem has start and goal of shape ({n},), got {shapes}")
+    try:
+        scenario.validate(problem)
+    except ValueError as err:  # InfeasibleProblemError included
+        raise UserError(str(err)) from None
+
+
 def _status(plan: StepPlan) -> str:
     if plan.fallback:
         return "fallback"
@@ -166,30 +191,16 @@ class Controller:
 
     def _sample(self) -> Problem:
         """A valid problem of the scenario (the warm-up's)."""
-        rng = np.random.default_rng(WARMUP_SEED)
-        for _ in range(100):
-            problem = self.scenario.sample(rng)
-            try:
-                self.scenario.validate(problem)
-            except InfeasibleProblemError:
-                continue
-            return problem
-        raise RuntimeError(f"{self.scenario.name}: no valid problem in 100 samples")
+        return sample_problem(self.scenario, np.random.default_rng(WARMUP_SEED))
 
     def reset(self, problem: Problem, rel_cost: float | None = None) -> None:
         """Start an episode on ``problem`` at step 0. ``rel_cost``: J_REL, the cost of the problem's open-loop REL
         solution that TTO-MPC conditions on (rtg_0 = −J_REL); None: solved here (learned methods only)."""
         sc = self.scenario
-        shapes = (np.shape(problem.x0), np.shape(problem.goal))
-        if shapes != ((sc.state_dim,), (sc.state_dim,)):
-            raise UserError(f"a {sc.name} problem has start and goal of shape ({sc.state_dim},), got {shapes}")
+        check_problem(sc, problem)
         if self.planner is not None and problem.n_steps > self.planner.model.cfg.max_steps:
             raise UserError(f"the model plans {self.planner.model.cfg.max_steps} steps, the problem has "
                             f"{problem.n_steps}")  # fmt: skip
-        try:
-            sc.validate(problem)
-        except InfeasibleProblemError as err:
-            raise UserError(str(err)) from None
         if rel_cost is None and self.method.model is not None:
             from ttompc.solvers.scp import solve_rel
 
