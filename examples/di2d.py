@@ -2,8 +2,10 @@
 docs/scenarios.md, small enough to read in one sitting and to train on in minutes.
 
 State x = [px, py, vx, vy] (m, m/s), control u = [ax, ay] (m/s²), cost Σ ½‖u‖². The dynamics are the exact
-zero-order-hold step of p̈ = u, so the convex model is exact (no virtual control); the keep-out disc is the only
-non-convex constraint, linearised by the shared tangent half-spaces of ``ttompc.scenarios.keepout``.
+zero-order-hold step of p̈ = u, written once (``step``, a ``CompiledStep``: the environment, the transformer's batched
+model and the fused decoder's compiled step all come from it), so the convex model is exact (no virtual control); the
+keep-out disc is the only non-convex constraint, linearised by the shared tangent half-spaces of
+``ttompc.scenarios.keepout``.
 
 Use it without installing anything:
 
@@ -13,11 +15,11 @@ Use it without installing anything:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import numpy as np
 
+import ttompc.scenarios.dynamics as compiled
 from ttompc.scenarios import (
     BlockKind,
     ConstraintBlock,
@@ -25,7 +27,6 @@ from ttompc.scenarios import (
     InfeasibleProblemError,
     MPCWeights,
     Problem,
-    Scenario,
     SCPSettings,
     Window,
 )
@@ -40,11 +41,20 @@ START = (np.array([-3.0, -1.0]), np.array([-2.5, 1.0]))  # box of start position
 GOAL = (np.array([2.5, -1.0]), np.array([3.0, 1.0]))  # box of goal positions (at rest)
 VIOLATION_TOL = 1e-5  # m: a solution touching the disc is not a violation
 
-A_STEP = np.block([[np.eye(2), DT * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
+A_STEP = np.block([[np.eye(2), DT * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])  # the step's Jacobians
 B_STEP = np.vstack([0.5 * DT**2 * np.eye(2), DT * np.eye(2)])
 
 
-class DoubleIntegrator2D(Scenario):
+def step(x: Any, u: Any, k: int, p: Any, out: Any) -> None:
+    """x_{k+1} from x (4,), u (2,) at step k with p = [dt], written into out (4,): plain Python on scalars that numba
+    compiles (``CompiledStep``)."""
+    dt = p[0]
+    for i in range(2):
+        out[i] = x[i] + dt * x[2 + i] + 0.5 * dt * dt * u[i]
+        out[2 + i] = x[2 + i] + dt * u[i]
+
+
+class DoubleIntegrator2D(compiled.CompiledScenario):
     name: ClassVar[str] = "di2d"
     version: ClassVar[str] = "1.0"
     state_dim: ClassVar[int] = 4
@@ -54,6 +64,7 @@ class DoubleIntegrator2D(Scenario):
     exact_linear_dynamics: ClassVar[bool] = True  # A, B do not depend on the reference: no virtual control
     rel_is_convex: ClassVar[bool] = True  # without the disc the problem is a QP: REL is one solve
     time_invariant: ClassVar[bool] = True  # ``step`` ignores k and vectorises over leading axes
+    dynamics = compiled.CompiledStep(step)  # step(), batched_model() and the fused decoder's step, from one source
     # Δ bounds every state entry's change per SCP iteration, in state units: 2 m lets the first iteration swing
     # the straight line around the disc; 1e-3 m is where it stops. docs/scenarios.md measures other choices.
     scp: ClassVar[SCPSettings] = SCPSettings(tr_start=2.0, tr_end=1e-3, max_iters=20, penalty=1e2, feas_tol=1e-4)
@@ -82,17 +93,11 @@ class DoubleIntegrator2D(Scenario):
         return Problem(x0=x0, goal=goal, dt=float(dt), n_steps=N_STEPS)
 
     # ----------------------------------------------------------------------------------------------------- dynamics
-    def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.asarray(x, dtype=np.float64) @ A_STEP.T + np.asarray(u, dtype=np.float64) @ B_STEP.T
-
     def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
         H = window.length
         return ConvexModel(
             A=np.broadcast_to(A_STEP, (H, 4, 4)).copy(), B=np.broadcast_to(B_STEP, (H, 4, 2)).copy(), c=np.zeros((H, 4))
         )
-
-    def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _Torch:
-        return _Torch(device)
 
     # ---------------------------------------------------------------------------------------------- constraints
     def constraints(
@@ -124,20 +129,3 @@ class DoubleIntegrator2D(Scenario):
 
     def keepout_zones(self, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
         return CENTRE, RADIUS
-
-
-class _Torch:
-    """The same linear step in torch, batched over problems (what the transformer rollout propagates)."""
-
-    def __init__(self, device: Any) -> None:
-        import torch
-
-        self._A, self._B = torch.as_tensor(A_STEP, device=device), torch.as_tensor(B_STEP, device=device)
-        self._centre, self._radius = torch.as_tensor(CENTRE, device=device), torch.as_tensor(RADIUS, device=device)
-
-    def step(self, S: Any, U: Any, k: int) -> Any:
-        return S @ self._A.to(S.dtype).T + U @ self._B.to(S.dtype).T
-
-    def violations(self, S: Any, k: int) -> Any:
-        d = (S[:, None, :2] - self._centre.to(S.dtype)).norm(dim=-1) - self._radius.to(S.dtype)
-        return (d < -VIOLATION_TOL).sum(dim=1).to(S.dtype)

@@ -3,6 +3,7 @@ worked example (examples/di2d.py) that a user could plausibly have written."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -10,9 +11,11 @@ from typing import Any
 import numpy as np
 
 from ttompc.scenarios import ConvexModel, Problem, Window, get_scenario
+from ttompc.scenarios.dynamics import CompiledStep
 
 EXAMPLE = f"{Path(__file__).resolve().parents[1] / 'examples' / 'di2d.py'}:DoubleIntegrator2D"
 DoubleIntegrator2D: Any = type(get_scenario(EXAMPLE))
+di2d = sys.modules[DoubleIntegrator2D.__module__]
 
 
 class WrongJacobian(DoubleIntegrator2D):
@@ -32,15 +35,39 @@ class WrongJacobian(DoubleIntegrator2D):
 
 
 class WrongBatchedModel(DoubleIntegrator2D):
-    """The torch model forgets the ½ of ½·dt²·u in the position update."""
+    """A hand-written torch model that forgets the ½ of ½·dt²·u in the position update."""
 
     name = "di2d-wrong-batched-model"
 
     def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> Any:
         model = super().batched_model(problems, device)
-        model._B = model._B.clone()
-        model._B[:2] *= 2.0
+        exact = model.step
+
+        def step(S: Any, A: Any, k: int) -> Any:
+            out = exact(S, A, k).clone()
+            out[:, :2] += 0.5 * problems[0].dt ** 2 * A
+            return out
+
+        model.step = step
         return model
+
+
+def forgetful_step(x: Any, u: Any, k: int, p: Any, out: Any) -> None:
+    """The example's step without the ½ of ½·dt²·u."""
+    dt = p[0]
+    for i in range(2):
+        out[i] = x[i] + dt * x[2 + i] + dt * dt * u[i]
+        out[2 + i] = x[2 + i] + dt * u[i]
+
+
+class WrongCompiledStep(DoubleIntegrator2D):
+    """The exact step in numpy, but compiled dynamics (the rollout's and the fused decoder's) without the ½."""
+
+    name = "di2d-wrong-compiled-step"
+    dynamics = CompiledStep(forgetful_step)
+
+    def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.asarray(x) @ di2d.A_STEP.T + np.asarray(u) @ di2d.B_STEP.T
 
 
 class UnsolvableSampler(DoubleIntegrator2D):

@@ -36,8 +36,9 @@ def planner(scenario: str, activation: str = "relu", layout: str = "stacked", se
     the state: a test that compares plans must compare plans that differ from step to step)."""
     sc = get_scenario(scenario)
     torch.manual_seed(seed)
-    cfg = ModelConfig(n_embd=32, n_layer=2, n_head=4, max_steps=sc.n_steps, dropout=0.0, layout=layout,
-                      activation=activation)  # type: ignore[arg-type]  # fmt: skip
+    dims = {"state_dim": sc.state_dim, "control_dim": sc.control_dim, "max_steps": sc.n_steps}
+    cfg = ModelConfig(n_embd=32, n_layer=2, n_head=4, dropout=0.0, layout=layout,
+                      activation=activation, **dims)  # type: ignore[arg-type]  # fmt: skip
     rng = np.random.default_rng(seed)
     m = sc.control_dim
     problems = [sc.sample(rng) for _ in range(4)]
@@ -171,3 +172,21 @@ def test_mpc_with_the_fused_decoder() -> None:
         assert a.U.shape == b.U.shape and np.abs(a.U).max() > 0
         np.testing.assert_allclose(b.U, a.U, rtol=1e-4, atol=1e-4 * np.abs(a.U).max())
         np.testing.assert_allclose(b.X, a.X, rtol=1e-4, atol=1e-6)
+
+
+def test_the_worked_example_gets_the_fused_decoder() -> None:
+    """A user's scenario with its dynamics written once (examples/di2d.py, a ``CompiledScenario``) runs the fused
+    decode, and it plans what the torch decode plans."""
+    from pathlib import Path
+
+    spec = f"{Path(__file__).resolve().parents[1] / 'examples' / 'di2d.py'}:DoubleIntegrator2D"
+    pl, probs = planner(spec), problems(spec, 2)
+    torch_ctx, fused_ctx = (pl.context(probs, rtg0=-1.0, decoder=d) for d in ("torch", "fused"))
+    assert fused_ctx.decoder == "fused"
+    for _ in range(3):
+        ref, res = torch_ctx.rollout(6), fused_ctx.rollout(6)
+        for name in ("states", "actions", "rtg"):
+            assert_close(getattr(res, name), getattr(ref, name), f"di2d {name}")
+        assert float((ref.states[:, 1:] - ref.states[:, :-1]).abs().max()) > 1e-6  # the plan moves
+        for ctx in (torch_ctx, fused_ctx):
+            ctx.advance(ref.actions[:, 0], ref.states[:, 1])

@@ -120,7 +120,8 @@ def test_example_plot_draws_its_keepout_disc() -> None:
 def test_check_scenario_passes_the_example(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["check-scenario", EXAMPLE, "problems=2"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[-1] == "all checks passed" and sum(line.startswith("ok") for line in out) == 9
+    assert out[-1] == "all checks passed" and sum(line.startswith("ok") for line in out) == 10
+    assert any(line.startswith("ok    fused_step: the fused decoder's compiled step matches") for line in out)
 
 
 def test_check_scenario_rejects_a_trust_norm_the_engine_does_not_have(capsys: pytest.CaptureFixture[str]) -> None:
@@ -138,10 +139,12 @@ def test_check_scenario_rejects_a_trust_norm_the_engine_does_not_have(capsys: py
             "WrongJacobian",
             ["jacobian", "solve"],
             "A[0, 2] at step 0 is 0.5 but finite differences of step() give 0.25",
-            9,
+            10,
         ),
-        ("WrongBatchedModel", ["batched_model"], "but the scenario's step gives", 9),
-        ("UnsolvableSampler", ["solve"], "REL infeasible after 1 iteration(s)", 9),
+        ("WrongBatchedModel", ["batched_model"], "but the scenario's step gives", 10),
+        # the one source differs from step(): every form derived from it is named
+        ("WrongCompiledStep", ["batched_model", "fused_step"], "but the scenario's step gives", 10),
+        ("UnsolvableSampler", ["solve"], "REL infeasible after 1 iteration(s)", 10),
         # a broken interface stops the checks: the others would fail for the same reason
         ("NegativePerturbation", ["interface"], "perturbation must be (gain_std, actuation_std, process_std)", 1),
     ],

@@ -4,7 +4,7 @@
 per generated step the window embedding, the decoder layers over the KV cache (the new token's keys/values are
 written into the free slots after the history, which the caller leaves unclaimed: the cache's ``length`` is never
 touched here), the action head, the scenario's approximate dynamics (a numba ``cfunc``, called by address:
-``ttompc.scenarios.fused_step.fused_step_signature``) and the rtg update with the stage cost. ``extend_kernel`` runs the
+``ttompc.scenarios.dynamics.step_signature``) and the rtg update with the stage cost. ``extend_kernel`` runs the
 trunk over T new tokens after the cached ones (the KV-cache extension of ``RolloutContext.advance``).
 
 Matmuls go through ``np.dot`` (numba's BLAS binding, single-threaded under ``OMP_NUM_THREADS=1``): measured on the

@@ -209,11 +209,9 @@ class BatchedModel(Protocol):
     ``violations(S, k)`` counts violated keep-out constraints (B,) of states at step k (float tensor).
 
     Optional (the fused decode kernel, ``ttompc.policy.fused``; without it that kernel is refused and the torch
-    rollout runs): ``fused_step()`` -> (step, params). ``step`` is a numba cfunc of ``fused_step_signature()``
-    (``ttompc.scenarios.fused_step``: ``compile_fused_step`` of a plain function): step(s, a, k, p, out) reads the
-    float32 state s (n,) and control a (m,) at absolute step k and the problem's parameter row p, and writes the next
-    state into out (n,) (pointers; out never aliases s or a). ``params`` (B, P) float32, C-contiguous: row b is
-    problem b's p. It must equal ``step`` on float32 tensors up to float rounding.
+    rollout runs): ``fused_step()`` -> (step, params): a float32 ``CompiledStep.cfunc`` (``ttompc.scenarios.dynamics``)
+    and the problems' parameter rows (B, P) float32, C-contiguous. ``CompiledStep.batched`` makes the whole model
+    from the scenario's one step function; ``check-scenario`` checks every form against ``Scenario.step``.
     """
 
     def step(self, S: Any, A: Any, k: int) -> Any: ...
@@ -278,7 +276,8 @@ class Scenario(abc.ABC):
     # ----------------------------------------------------------------------------------------------------- dynamics
     @abc.abstractmethod
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Exact dynamics x_{k+1} = f_k(x_k, u_k) (the 'environment'); vectorised over leading axes of x, u."""
+        """Exact dynamics x_{k+1} = f_k(x_k, u_k) (the 'environment'); vectorised over leading axes of x, u. A
+        ``CompiledScenario`` (``ttompc.scenarios.dynamics``) derives it from its dynamics written once."""
 
     def step_window(self, problem: Problem, start: int, X: np.ndarray, U: np.ndarray) -> np.ndarray:
         """One exact step from each of the states X (H, n) with controls U (H, m) at steps start..start+H−1:
@@ -370,7 +369,7 @@ class Scenario(abc.ABC):
     @abc.abstractmethod
     def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> BatchedModel:
         """The approximate dynamics used by the transformer rollout (paper §IV-B), batched in torch over problems,
-        acting on the *model* representation (RPOD: RTN). See ``BatchedModel``."""
+        acting on the *model* representation (RPOD: RTN). See ``BatchedModel``; a ``CompiledScenario`` derives it."""
 
     def problem_features(self, problem: Problem) -> dict[str, np.ndarray]:
         """Flat arrays that, with x0 and goal, reconstruct the problem (stored in datasets)."""

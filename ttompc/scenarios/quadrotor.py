@@ -21,11 +21,10 @@ from ttompc.scenarios.base import (
     InfeasibleProblemError,
     MPCWeights,
     Problem,
-    Scenario,
     SCPSettings,
     Window,
 )
-from ttompc.scenarios.fused_step import compile_fused_step
+from ttompc.scenarios.dynamics import CompiledBatchedModel, CompiledScenario, CompiledStep
 from ttompc.scenarios.keepout import keepout_block, keepout_distance
 
 MASS = 32.0  # kg
@@ -54,8 +53,17 @@ def drag_jacobian(v: np.ndarray) -> np.ndarray:
     return -(DRAG / MASS) * J
 
 
+def _step(x: Any, u: Any, k: int, p: Any, out: Any) -> None:
+    """The explicit-Euler step with quadratic drag, p = [dt] (``CompiledStep``: the scenario's one dynamics source)."""
+    dt = p[0]
+    speed = np.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
+    for i in range(3):
+        out[i] = x[i] + dt * x[3 + i]
+        out[3 + i] = x[3 + i] + dt * (u[i] / MASS - (DRAG / MASS) * speed * x[3 + i])
+
+
 @register
-class Quadrotor(Scenario):
+class Quadrotor(CompiledScenario):
     name: ClassVar[str] = "quadrotor"
     version: ClassVar[str] = "1.0"
     n_steps: ClassVar[int] = N_STEPS
@@ -64,6 +72,7 @@ class Quadrotor(Scenario):
     time_invariant: ClassVar[bool] = True
     exact_linear_dynamics: ClassVar[bool] = False
     approximate_rows: ClassVar[tuple[int, ...]] = (3, 4, 5)  # only the velocity update carries the drag
+    dynamics: ClassVar[CompiledStep] = CompiledStep(_step)  # the numpy step, the rollout's model and the fused one
     # Penalty 1e2: the multipliers of the dynamics/obstacle rows are O(m·‖u‖) ≲ 10 for forces of a few newtons, so
     # slacks vanish at the solution. feas_tol 1e-6 on the one-step defect: it compounds in the open-loop
     # environment roughly as Σ_k (N−k)·d ≈ 5e3·d in position, so 1e-6 keeps rollouts within ~5 mm of the plan and
@@ -99,6 +108,7 @@ class Quadrotor(Scenario):
 
     # ----------------------------------------------------------------------------------------------------- dynamics
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``dynamics`` in vectorised numpy (5-10× faster per call than the compiled form's; checked against it)."""
         x = np.asarray(x, dtype=np.float64)
         v = x[..., 3:]
         dv = np.asarray(u, dtype=np.float64) / MASS + drag_accel(v)
@@ -144,8 +154,8 @@ class Quadrotor(Scenario):
     def problem_from_features(self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]) -> Problem:
         return Problem(x0=x0, goal=goal, dt=float(dt), n_steps=N_STEPS)
 
-    def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _QuadrotorTorch:
-        return _QuadrotorTorch(problems, device)
+    def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _QuadrotorModel:
+        return _QuadrotorModel(self.dynamics, self, problems, device)
 
     def plot(self, ax: Any, problem: Problem, trajectories: dict[str, np.ndarray]) -> None:
         """Top view (x–y) with the obstacles' horizontal cross-sections at their centres."""
@@ -200,35 +210,12 @@ def _control_box(H: int) -> ConstraintBlock:
     )
 
 
-class _QuadrotorTorch:
-    """Explicit-Euler drag dynamics in torch, batched over problems (exact w.r.t. ``Quadrotor.step``)."""
-
-    def __init__(self, problems: Sequence[Problem], device: Any) -> None:
-        import torch
-
-        self._torch = torch
-        self._dt = torch.as_tensor([p.dt for p in problems], device=device)[:, None]
-        self._obs = torch.as_tensor(OBSTACLES, device=device)
-        self._radii = torch.as_tensor(OBSTACLE_RADII, device=device)
-
-    def step(self, S: Any, A: Any, k: int) -> Any:
-        v = S[:, 3:]
-        dv = A / MASS - (DRAG / MASS) * self._torch.linalg.norm(v, dim=-1, keepdim=True) * v
-        return S + self._dt.to(S.dtype) * self._torch.cat([v, dv], dim=-1)
+class _QuadrotorModel(CompiledBatchedModel):
+    """The compiled step, with the keep-out count batched in torch."""
 
     def violations(self, S: Any, k: int) -> Any:
-        d = self._torch.linalg.norm(S[:, None, :3] - self._obs.to(S.dtype)[None], dim=-1) - self._radii.to(S.dtype)
+        import torch
+
+        obs, radii = (torch.as_tensor(a, dtype=S.dtype, device=S.device) for a in (OBSTACLES, OBSTACLE_RADII))
+        d = torch.linalg.norm(S[:, None, :3] - obs[None], dim=-1) - radii
         return (d < -VIOLATION_TOL).sum(dim=1).to(S.dtype)
-
-    def fused_step(self) -> tuple[Any, np.ndarray]:
-        """``BatchedModel.fused_step``: ``_fused_step`` with each problem's dt as its row."""
-        return compile_fused_step(_fused_step), self._dt.to(self._torch.float32).cpu().numpy().copy()
-
-
-def _fused_step(s: Any, a: Any, k: int, p: Any, out: Any) -> None:
-    """``Quadrotor.step``'s Euler step with quadratic drag, p = [dt] (a numba cfunc body: ``compile_fused_step``)."""
-    dt = p[0]
-    speed = np.sqrt(s[3] * s[3] + s[4] * s[4] + s[5] * s[5])
-    for i in range(3):
-        out[i] = s[i] + dt * s[3 + i]
-        out[3 + i] = s[3 + i] + dt * (a[i] / MASS - (DRAG / MASS) * speed * s[3 + i])

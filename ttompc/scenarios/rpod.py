@@ -30,7 +30,7 @@ from ttompc.scenarios.base import (
     SCPSettings,
     Window,
 )
-from ttompc.scenarios.fused_step import compile_fused_step
+from ttompc.scenarios.dynamics import CompiledBatchedModel, CompiledStep
 from ttompc.scenarios.keepout import keepout_block
 from ttompc.scenarios.orbits import (
     ISS_OE,
@@ -281,8 +281,9 @@ class Rpod(Scenario):
     def model_goal(self, problem: Problem) -> np.ndarray:
         return docking_geometry(problem.params["dock_sign"]).target
 
-    def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _RpodTorch:
-        return _RpodTorch(problems, device)
+    def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> _RpodModel:
+        """The RTN dynamics (``_rtn_step``) of the problems, batched."""
+        return _RpodModel(RTN_MODEL, self, problems, device)
 
     def problem_features(self, problem: Problem) -> dict[str, np.ndarray]:
         p = problem.params
@@ -373,40 +374,16 @@ def cone_block(psi: np.ndarray, geo: DockingGeometry, steps: np.ndarray) -> Cons
     return ConstraintBlock("cone", BlockKind.SOC, steps, Gx, None, h.copy())
 
 
-class _RpodTorch:
-    """RTN dynamics for a batch of problems: S_{k+1} = M_k S_k + N_k a_k with M_k = Ψ_{k+1}Φ_kΨ_k⁻¹ and
-    N_k = Ψ_{k+1}Φ_k B_k precomputed per problem (the horizons, hence dt, differ between problems)."""
-
-    def __init__(self, problems: Sequence[Problem], device: Any) -> None:
-        import torch
-
-        self._torch = torch
-        mats = [orbit_matrices(p) for p in problems]
-        M = np.stack([m.psi[1:] @ m.phi @ m.psi_inv[:-1] for m in mats])  # (B, N, 6, 6)
-        Nm = np.stack([m.psi[1:] @ m.phi @ m.B for m in mats])  # (B, N, 6, 3)
-        self._M = torch.as_tensor(M, device=device)
-        self._N = torch.as_tensor(Nm, device=device)
-        self._scale = torch.as_tensor(KOZ_SCALE, device=device)
-
-    def step(self, S: Any, A: Any, k: int) -> Any:
-        M, N = self._M[:, k].to(S.dtype), self._N[:, k].to(S.dtype)
-        return (M @ S[..., None] + N @ A[..., None])[..., 0]
-
-    def violations(self, S: Any, k: int) -> Any:
-        if k >= WAYPOINT_STEP:
-            return self._torch.zeros(S.shape[0], dtype=S.dtype, device=S.device)
-        rho = self._torch.linalg.norm(S[:, :3] * self._scale.to(S.dtype), dim=-1)
-        return (rho < 1.0 - KOZ_TOL).to(S.dtype)
-
-    def fused_step(self) -> tuple[Any, np.ndarray]:
-        """``BatchedModel.fused_step``: ``_fused_step`` with problem b's [M_k, N_k] for k = 0..N-1 as row b."""
-        rows = self._torch.cat([self._M.flatten(2), self._N.flatten(2)], dim=2).flatten(1)  # (B, N·54)
-        return compile_fused_step(_fused_step), rows.to(self._torch.float32).cpu().numpy().copy()
+def _rtn_rows(problem: Problem) -> np.ndarray:
+    """The problem's RTN dynamics S_{k+1} = M_k S_k + N_k a_k as one row [M_0, N_0, M_1, N_1, ..] (row-major), with
+    M_k = Ψ_{k+1}Φ_kΨ_k⁻¹ and N_k = Ψ_{k+1}Φ_k B_k (the horizons, hence dt, differ between problems)."""
+    m = orbit_matrices(problem)
+    M, N = m.psi[1:] @ m.phi @ m.psi_inv[:-1], m.psi[1:] @ m.phi @ m.B  # (N, 6, 6), (N, 6, 3)
+    return np.concatenate([M.reshape(len(M), 36), N.reshape(len(N), 18)], axis=1).ravel()
 
 
-def _fused_step(s: Any, a: Any, k: int, p: Any, out: Any) -> None:
-    """out = M_k s + N_k a, p = [M_k (6×6), N_k (6×3)] row-major for k = 0, 1, .. (a numba cfunc body:
-    ``compile_fused_step``)."""
+def _rtn_step(s: Any, a: Any, k: int, p: Any, out: Any) -> None:
+    """out = M_k s + N_k a, p = ``_rtn_rows`` (``CompiledStep``: the transformer's model of the dynamics)."""
     o = 54 * k
     for i in range(6):
         acc = 0.0
@@ -415,3 +392,18 @@ def _fused_step(s: Any, a: Any, k: int, p: Any, out: Any) -> None:
         for c in range(3):
             acc += p[o + 36 + 3 * i + c] * a[c]
         out[i] = acc
+
+
+RTN_MODEL = CompiledStep(_rtn_step, _rtn_rows)
+
+
+class _RpodModel(CompiledBatchedModel):
+    """The compiled RTN step, with the keep-out count batched in torch (RTN positions against the KOZ ellipsoid)."""
+
+    def violations(self, S: Any, k: int) -> Any:
+        import torch
+
+        if k >= WAYPOINT_STEP:
+            return torch.zeros(S.shape[0], dtype=S.dtype, device=S.device)
+        rho = torch.linalg.norm(S[:, :3] * torch.as_tensor(KOZ_SCALE, dtype=S.dtype, device=S.device), dim=-1)
+        return (rho < 1.0 - KOZ_TOL).to(S.dtype)
