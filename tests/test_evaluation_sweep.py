@@ -184,3 +184,30 @@ def test_no_matching_horizon_is_said() -> None:
     assert rel["horizon"] is None and rel["why"] == "H = 10 tried"
     assert ft["horizon"] is None and ft["why"] == "REL-MPC@30 did not run"
     assert "no H matches (REL-MPC@30 did not run)" in format_equal_cost([rel, ft])
+
+
+@pytest.mark.slow
+def test_real_episodes_resume_to_the_same_report(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The baselines' real episodes (3 steps each) on the short scenario: stopped after the first stored task, the
+    sweep resumes with the other and reports the runs of an uninterrupted sweep, step times aside."""
+    settings = {"scenario": SHORT, "problems": 2, "batch": 1, "horizons": [10], "plants": ["nominal"],
+                "max_steps": 3, "workers": 1, "robust_blend": 0.0}  # fmt: skip
+    monkeypatch.setattr(plots, "plot_horizon", lambda summary, out: [])
+    whole = run_closed_loop(ClosedLoopConfig(**settings, out=str(tmp_path / "whole")))
+    add = EpisodeStore.add
+
+    def add_then_stop(self: EpisodeStore, records: Any) -> None:
+        add(self, records)
+        raise Stop
+
+    monkeypatch.setattr(EpisodeStore, "add", add_then_stop)
+    with pytest.raises(Stop):
+        run_closed_loop(ClosedLoopConfig(**settings, out=str(tmp_path / "parts")))
+    monkeypatch.setattr(EpisodeStore, "add", add)
+    parts = run_closed_loop(ClosedLoopConfig(**settings, out=str(tmp_path / "parts")))
+
+    def untimed(runs: list[dict[str, Any]]) -> str:  # as text: nan equals nan
+        return json.dumps([{k: v for k, v in r.items() if k not in ("mean_step_time", "max_step_time")} for r in runs])
+
+    assert untimed(parts["runs"]) == untimed(whole["runs"])
+    assert len(parts["runs"]) == 2 * len(methods_for({}, 0.0))
