@@ -96,6 +96,8 @@ def _bad(call: Any, match: str) -> None:
 def test_bad_input_is_one_line_and_leaves_the_controller_usable(planner: Planner) -> None:
     sc = planner.scenario
     _bad(lambda: Controller(sc, "MAGIC-MPC"), "unknown method 'MAGIC-MPC'")
+    _bad(lambda: Controller("nonesuch"), "nonesuch")
+    _bad(lambda: Controller(sc, horizon=0), r"horizon must be in \[1, 100\]")
     _bad(lambda: Controller(sc, "R-TTO-MPC"), "plans with a model")
     _bad(lambda: Controller(sc, "REL-MPC", protocol="nonesuch"), "unknown protocol 'nonesuch'")
     _bad(lambda: Controller("rpod", "R-TTO-MPC", planner=planner), "trained on 'quadrotor', not 'rpod'")

@@ -145,6 +145,9 @@ class Controller:
             raise UserError(f"{method} plans with a model", "use Controller.from_pretrained(MODEL, method=...)")
         if planner is not None and planner.scenario.name != self.scenario.name:
             raise UserError(f"the model was trained on {planner.scenario.name!r}, not {self.scenario.name!r}")
+        if planner is not None and planner.model.cfg.max_steps < self.scenario.n_steps:
+            raise UserError(f"the model plans {planner.model.cfg.max_steps} steps, {self.scenario.name} has "
+                            f"{self.scenario.n_steps}")  # fmt: skip
         if not 1 <= horizon <= self.scenario.n_steps:
             raise UserError(f"horizon must be in [1, {self.scenario.n_steps}] for {self.scenario.name}, got {horizon}")
         try:
@@ -198,9 +201,6 @@ class Controller:
         solution that TTO-MPC conditions on (rtg_0 = −J_REL); None: solved here (learned methods only)."""
         sc = self.scenario
         check_problem(sc, problem)
-        if self.planner is not None and problem.n_steps > self.planner.model.cfg.max_steps:
-            raise UserError(f"the model plans {self.planner.model.cfg.max_steps} steps, the problem has "
-                            f"{problem.n_steps}")  # fmt: skip
         if rel_cost is None and self.method.model is not None:
             from ttompc.solvers.scp import solve_rel
 
