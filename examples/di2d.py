@@ -2,10 +2,10 @@
 docs/scenarios.md, small enough to read in one sitting and to train on in minutes.
 
 State x = [px, py, vx, vy] (m, m/s), control u = [ax, ay] (m/s²), cost Σ ½‖u‖². The dynamics are the exact
-zero-order-hold step of p̈ = u, written once (``step``, a ``CompiledStep``: the environment, the transformer's batched
-model and the fused decoder's compiled step all come from it), so the convex model is exact (no virtual control); the
-keep-out disc is the only non-convex constraint, linearised by the shared tangent half-spaces of
-``ttompc.scenarios.keepout``.
+zero-order-hold step of p̈ = u, written once (``step``, a ``CompiledStep``: the environment, the SCP's convex model
+and its Jacobians, the transformer's batched model and the fused decoder's compiled step all come from it); the
+dynamics are linear, so the convex model is exact (no virtual control), and the keep-out disc is the only
+non-convex constraint, linearised by the shared tangent half-spaces of ``ttompc.scenarios.keepout``.
 
 Use it without installing anything:
 
@@ -23,7 +23,6 @@ import ttompc.scenarios.dynamics as compiled
 from ttompc.scenarios import (
     BlockKind,
     ConstraintBlock,
-    ConvexModel,
     InfeasibleProblemError,
     MPCWeights,
     Problem,
@@ -40,9 +39,6 @@ RADIUS = np.array([1.0])  # m
 START = (np.array([-3.0, -1.0]), np.array([-2.5, 1.0]))  # box of start positions (at rest)
 GOAL = (np.array([2.5, -1.0]), np.array([3.0, 1.0]))  # box of goal positions (at rest)
 VIOLATION_TOL = 1e-5  # m: a solution touching the disc is not a violation
-
-A_STEP = np.block([[np.eye(2), DT * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])  # the step's Jacobians
-B_STEP = np.vstack([0.5 * DT**2 * np.eye(2), DT * np.eye(2)])
 
 
 def step(x: Any, u: Any, k: int, p: Any, out: Any) -> None:
@@ -64,7 +60,7 @@ class DoubleIntegrator2D(compiled.CompiledScenario):
     exact_linear_dynamics: ClassVar[bool] = True  # A, B do not depend on the reference: no virtual control
     rel_is_convex: ClassVar[bool] = True  # without the disc the problem is a QP: REL is one solve
     time_invariant: ClassVar[bool] = True  # ``step`` ignores k and vectorises over leading axes
-    dynamics = compiled.CompiledStep(step)  # step(), batched_model() and the fused decoder's step, from one source
+    dynamics = compiled.CompiledStep(step)  # step(), convex_model(), batched_model() and the fused step: one source
     # Δ bounds every state entry's change per SCP iteration, in state units: 2 m lets the first iteration swing
     # the straight line around the disc; 1e-3 m is where it stops. docs/scenarios.md measures other choices.
     scp: ClassVar[SCPSettings] = SCPSettings(tr_start=2.0, tr_end=1e-3, max_iters=20, penalty=1e2, feas_tol=1e-4)
@@ -91,13 +87,6 @@ class DoubleIntegrator2D(compiled.CompiledScenario):
 
     def problem_from_features(self, x0: np.ndarray, goal: np.ndarray, dt: float, features: dict[str, Any]) -> Problem:
         return Problem(x0=x0, goal=goal, dt=float(dt), n_steps=N_STEPS)
-
-    # ----------------------------------------------------------------------------------------------------- dynamics
-    def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
-        H = window.length
-        return ConvexModel(
-            A=np.broadcast_to(A_STEP, (H, 4, 4)).copy(), B=np.broadcast_to(B_STEP, (H, 4, 2)).copy(), c=np.zeros((H, 4))
-        )
 
     # ---------------------------------------------------------------------------------------------- constraints
     def constraints(

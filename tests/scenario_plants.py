@@ -3,7 +3,6 @@ worked example (examples/di2d.py) that a user could plausibly have written."""
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -15,7 +14,6 @@ from ttompc.scenarios.dynamics import CompiledStep
 
 EXAMPLE = f"{Path(__file__).resolve().parents[1] / 'examples' / 'di2d.py'}:DoubleIntegrator2D"
 DoubleIntegrator2D: Any = type(get_scenario(EXAMPLE))
-di2d = sys.modules[DoubleIntegrator2D.__module__]
 
 
 class WrongJacobian(DoubleIntegrator2D):
@@ -61,13 +59,16 @@ def forgetful_step(x: Any, u: Any, k: int, p: Any, out: Any) -> None:
 
 
 class WrongCompiledStep(DoubleIntegrator2D):
-    """The exact step in numpy, but compiled dynamics (the rollout's and the fused decoder's) without the ½."""
+    """The exact step in numpy, but compiled dynamics (the convex model's, the rollout's and the fused decoder's)
+    without the ½."""
 
     name = "di2d-wrong-compiled-step"
     dynamics = CompiledStep(forgetful_step)
 
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.asarray(x) @ di2d.A_STEP.T + np.asarray(u) @ di2d.B_STEP.T
+        dt = problem.dt
+        x, u = np.asarray(x), np.asarray(u)
+        return np.concatenate([x[..., :2] + dt * x[..., 2:] + 0.5 * dt**2 * u, x[..., 2:] + dt * u], axis=-1)
 
 
 class UnsolvableSampler(DoubleIntegrator2D):

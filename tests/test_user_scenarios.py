@@ -142,8 +142,13 @@ def test_check_scenario_rejects_a_trust_norm_the_engine_does_not_have(capsys: py
             10,
         ),
         ("WrongBatchedModel", ["batched_model"], "but the scenario's step gives", 10),
-        # the one source differs from step(): every form derived from it is named
-        ("WrongCompiledStep", ["batched_model", "fused_step"], "but the scenario's step gives", 10),
+        # the one source differs from a hand-written step(): every form derived from it is named
+        (
+            "WrongCompiledStep",
+            ["convex_model", "jacobian", "batched_model", "fused_step", "solve"],
+            "A x + B u + c differs from step() at the reference it was built on",
+            10,
+        ),
         ("UnsolvableSampler", ["solve"], "REL infeasible after 1 iteration(s)", 10),
         # a broken interface stops the checks: the others would fail for the same reason
         ("NegativePerturbation", ["interface"], "perturbation must be (gain_std, actuation_std, process_std)", 1),

@@ -1,22 +1,23 @@
-"""A scenario's dynamics written once (``CompiledStep``): one numba-compatible step function, from which the framework
-derives the exact numpy step (``Scenario.step``), the batched torch model of the rollout (``Scenario.batched_model``)
-and the fused decoder's compiled step (``BatchedModel.fused_step``), so that none of them is written twice. The SCP's
-Jacobians (``Scenario.convex_model``) stay the scenario's own; ``ttompc check-scenario`` checks them against the step
-by finite differences, and every other form against it on random states.
+"""A scenario's dynamics written once (``CompiledStep``): one numba-compatible step function, from which a
+``CompiledScenario`` derives the exact numpy step (``Scenario.step``), the SCP's affine model with its Jacobians
+(``Scenario.convex_model``, by complex steps), the batched torch model of the rollout (``Scenario.batched_model``) and
+the fused decoder's compiled step (``BatchedModel.fused_step``), so that none of them is written twice. A scenario may
+override any of them with a faster hand-written form; ``ttompc check-scenario`` checks every form against ``step``.
 
 The function, ``func(x, u, k, p, out)``, is plain Python that numba compiles (``numba.cfunc``): scalar arithmetic,
 loops, ``math``/NumPy scalar functions and module-level constants, indexing its arguments: the state x (n,) and
 control u (m,) at absolute step k and the problem's parameter row p (P,), writing x_{k+1} into out (n,) (which never
 aliases x or u). It runs in float64 for the numpy step and the torch model's float64 states, in float32 for float32
-ones and the fused decode; it may call no compiled code from other files (its cache is keyed on its own file,
-``ttompc.compiled``).
+ones and the fused decode, in complex128 for the Jacobians (so it must be analytic in x and u: NumPy functions, no
+``abs``, ``min`` or comparisons of them); it may call no compiled code from other files (its cache is keyed on its
+own file, ``ttompc.compiled``).
 
 Measured against hand-written forms in one run each (2-core dev VM under load, one thread): a batched torch step
 costs 20-52 µs derived against 35-87 µs for the torch code it replaced (free-flyer, quadrotor; B = 1 and 40), so the
 built-in scenarios derive theirs; a numpy step costs 37-54 µs derived (mostly numba's call overhead, though
 ``ttompc.compiled.entry_point`` skips its type dispatch, 48 µs per call with a cfunc argument) against 3-17 µs for
-vectorised NumPy, so the built-in scenarios keep a NumPy ``step``, checked against the compiled one by
-``check-scenario``.
+vectorised NumPy, and a 100-step window's linearisation 0.6-0.9 ms against 12-434 µs, so the built-in scenarios keep
+those two hand-written, checked against the compiled step by ``check-scenario``.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ttompc.compiled import Kernel, entry_point, own_file_kernel
-from ttompc.scenarios.base import Problem, Scenario
+from ttompc.scenarios.base import ConvexModel, Problem, Scenario, Window
 
 Row = Sequence[float] | np.ndarray  # a problem's parameter row
 KERNEL = Kernel("the compiled-step loop", [Path(__file__)])
@@ -42,6 +43,36 @@ def _apply(step: Any, X: Any, U: Any, k: int, P: Any, out: Any) -> None:
         step(X[i].ctypes, U[i].ctypes, k, P[min(i, last)].ctypes, out[i].ctypes)
 
 
+@KERNEL.jit
+def _linearise(step: Any, X: Any, U: Any, k0: int, P: Any, A: Any, B: Any, f: Any) -> None:
+    """A[j], B[j] = ∂f/∂x, ∂f/∂u and f[j] = f at (X[j], U[j]), step k0 + j, by complex steps: one evaluation of the
+    complex128 ``step`` per column with an imaginary perturbation ih, whose imaginary part is h times the column
+    (no difference is taken, so the derivative is exact to rounding for any h; h = 1e-30 leaves the real part f)."""
+    H, n, m = B.shape
+    h = 1e-30
+    x = np.empty(n, np.complex128)
+    u = np.empty(m, np.complex128)
+    p = np.empty(P.shape[0], np.complex128)
+    out = np.empty(n, np.complex128)
+    p[:] = P
+    for j in range(H):
+        for c in range(n + m):
+            x[:] = X[j]
+            u[:] = U[j]
+            if c < n:
+                x[c] += 1j * h
+            else:
+                u[c - n] += 1j * h
+            step(x.ctypes, u.ctypes, k0 + j, p.ctypes, out.ctypes)
+            for r in range(n):
+                if c < n:
+                    A[j, r, c] = out[r].imag / h
+                else:
+                    B[j, r, c - n] = out[r].imag / h
+                if c == 0:
+                    f[j, r] = out[r].real
+
+
 def step_signature(dtype: Any) -> Any:
     """The numba signature of a compiled step: void(x*, u*, intp k, p*, out*), pointers to ``dtype`` (float32 for the
     fused decode kernel, which calls any scenario's step by address through it)."""
@@ -51,7 +82,8 @@ def step_signature(dtype: Any) -> Any:
     return types.void(ptr, ptr, types.intp, ptr, ptr)
 
 
-_ENTRY: dict[np.dtype, Callable[..., None]] = {}  # dtype -> ``_apply``'s specialisation, called without dispatch
+# float dtype -> ``_apply``'s specialisation, complex128 -> ``_linearise``'s: called without numba's dispatch
+_ENTRY: dict[np.dtype, Callable[..., None]] = {}
 
 
 class CompiledStep:
@@ -70,7 +102,8 @@ class CompiledStep:
         return np.atleast_1d(np.asarray(self.params(problem), dtype=np.float64))
 
     def cfunc(self, dtype: Any) -> Any:
-        """``func`` compiled for float32 or float64 pointers (a numba cfunc of ``step_signature``), once per process."""
+        """``func`` compiled for pointers to ``dtype`` (a numba cfunc of ``step_signature``: float64 for the numpy
+        step, float32 for the fused decode, complex128 for the Jacobians), once per process."""
         dtype = np.dtype(dtype)
         if dtype not in self._cfuncs:
             kernel = own_file_kernel(f"the dynamics {self.func.__module__}.{self.func.__qualname__}", self.func)
@@ -100,6 +133,24 @@ class CompiledStep:
         X = np.broadcast_to(x, (*lead, x.shape[-1])).reshape(-1, x.shape[-1])
         U = np.broadcast_to(u, (*lead, u.shape[-1])).reshape(-1, u.shape[-1])
         return self.apply(X, U, k, self.row(problem)[None]).reshape(*lead, x.shape[-1])
+
+    def linearise(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
+        """``Scenario.convex_model``: the first-order Taylor expansion of the step at the reference (H+1, n), (H, m),
+        A and B its Jacobians by complex steps (``_linearise``) and c = f(x̄, ū) − A x̄ − B ū, so the model is exact at
+        the reference. Dense (no masks)."""
+        H = window.length
+        X = np.ascontiguousarray(X_ref[:H], dtype=np.float64)
+        U = np.ascontiguousarray(U_ref[:H], dtype=np.float64)
+        n, m = X.shape[1], U.shape[1]
+        A, B, f = np.empty((H, n, n)), np.empty((H, n, m)), np.empty((H, n))
+        args = (self.cfunc(np.complex128), X, U, int(window.start), self.row(problem), A, B, f)
+        entry = _ENTRY.get(np.dtype(np.complex128))
+        if entry is None:
+            _ENTRY[np.dtype(np.complex128)] = entry_point(_linearise, *args)
+        else:
+            entry(*args)
+        c = f - np.einsum("jab,jb->ja", A, X) - np.einsum("jab,jb->ja", B, U)
+        return ConvexModel(A=A, B=B, c=c)
 
     def batched(self, scenario: Scenario, problems: Sequence[Problem], device: Any = "cpu") -> CompiledBatchedModel:
         """``Scenario.batched_model`` for a scenario whose model representation is its optimisation one."""
@@ -153,3 +204,6 @@ class CompiledScenario(Scenario):
 
     def batched_model(self, problems: Sequence[Problem], device: Any = "cpu") -> CompiledBatchedModel:
         return self.dynamics.batched(self, problems, device)
+
+    def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
+        return self.dynamics.linearise(problem, window, X_ref, U_ref)
