@@ -3,10 +3,11 @@
 1. Peer (free-flyer, quadrotor; the same seeded problems, interleaved): REL + SCP with the PIQP path ("ours",
    ``backend="piqp"``: PIQP on the compact QP, ∞-norm trust region; ``auto`` without the kernel), the Riccati
    interior-point backend (``backend="riccati"``, the default ``auto``), the conic path (``backend="conic"``:
-   QOCO/Clarabel, 2-norm trust region; the default before the QP path) and IPOPT through CasADi, built once as
-   parametric NLPs with ``expand=True`` (REL, then the full problem from the REL solution; ``bench/ipopt_peer.py``,
-   needs the ``peer`` extra). Median time per problem, iterations (SCP subproblems / IPOPT iterations), costs
-   relative to IPOPT's.
+   QOCO/Clarabel, 2-norm trust region; the default before the QP path), and IPOPT and fatrop through CasADi, each
+   built once as parametric NLPs with ``expand=True`` (REL, then the full problem from the REL solution;
+   ``bench/ipopt_peer.py``, ``bench/fatrop_peer.py``, the ``peer`` extra). Median wall and CPU time per problem,
+   iterations (SCP subproblems / NLP iterations), failures, costs relative to IPOPT's and ours; fatrop's time per
+   iteration split into its Riccati search direction and CasADi's function evaluations.
 2. Robustness (free-flyer and quadrotor, 200 seeded problems each): failures of the PIQP path and of the Riccati
    backend (the default); for the free-flyer also the reference formulation (hard linearised constraints, on its own
    path: Clarabel) and its costs where both succeed.
@@ -127,46 +128,60 @@ def robustness(name: str, n: int, reference: bool, backend: str) -> dict:
 
 
 def peer(name: str, n: int) -> dict:
-    """Ours (the PIQP path), the Riccati backend (the default), the conic path and built-once IPOPT on the same
-    problems, interleaved."""
+    """Ours (the PIQP path), the Riccati backend (the default), the conic path, built-once IPOPT and built-once fatrop
+    on the same problems, interleaved; wall and CPU time of this process per problem."""
+    from fatrop_peer import FatropPeer
     from ipopt_peer import IpoptPeer
 
     scenario = get_scenario(name)
-    ipopt = IpoptPeer(scenario)
+    ipopt, fatrop = IpoptPeer(scenario), FatropPeer(scenario)
     runners = {
         "ours": lambda p: _ours(scenario, p, "piqp"),
         "conic": lambda p: _ours(scenario, p, "conic"),
-        "ipopt": lambda p: _ipopt(ipopt, scenario, p),
+        "ipopt": lambda p: _nlp_peer(ipopt, scenario, p),
         "riccati": lambda p: _ours(scenario, p, "riccati"),
+        "fatrop": lambda p: _nlp_peer(fatrop, scenario, p),
     }
     warm = scenario.sample(np.random.default_rng(10_000))
     for run in runners.values():  # imports, structure caches, CasADi code generation outside the timing
         run(warm)
-    rows: dict[str, list[tuple[float, int, float, bool]]] = {k: [] for k in runners}
+    fatrop.profile.clear()
+    rows: dict[str, list[tuple[float, float, int, float, bool]]] = {k: [] for k in runners}
     order = list(runners)
     for i in range(n):
         p = scenario.sample(np.random.default_rng(i))
         for k in order[i % len(order) :] + order[: i % len(order)]:  # rotate who goes first
-            rows[k].append(runners[k](p))
+            w0, c0 = time.perf_counter(), time.process_time()
+            its, c, ok = runners[k](p)
+            rows[k].append((time.perf_counter() - w0, time.process_time() - c0, its, c, ok))
     out: dict = {"scenario": name, "problems": n, "backend": "+".join(backend_chain("piqp", scenario))}
-    cost = {}
+    cost, cpu_time = {}, {}
     for k, r in rows.items():
-        t, its, c, ok = (np.array(v) for v in zip(*r, strict=True))
-        cost[k] = np.where(ok, c, np.nan)
+        t, cpu, its, c, ok = (np.array(v) for v in zip(*r, strict=True))
+        cost[k], cpu_time[k] = np.where(ok, c, np.nan), cpu
         out[k] = {
             "median_s": float(np.median(t)),
             "mean_s": float(t.mean()),
+            "median_cpu_s": float(np.median(cpu)),
             "mean_iterations": float(its.mean()),
             "failures": int((~ok).sum()),
         }
     out["speedup_vs_ipopt"] = out["ipopt"]["median_s"] / out["ours"]["median_s"]
     out["speedup_vs_conic"] = out["conic"]["median_s"] / out["ours"]["median_s"]
     out["cost_vs_ipopt"] = _cost_vs(cost["ours"], cost["ipopt"])
-    if "riccati" in rows:
-        out["riccati_speedup_vs_ipopt"] = out["ipopt"]["median_s"] / out["riccati"]["median_s"]
-        out["riccati_speedup_vs_ours"] = out["ours"]["median_s"] / out["riccati"]["median_s"]
-        out["riccati_cost_vs_ipopt"] = _cost_vs(cost["riccati"], cost["ipopt"])
-        out["riccati_cost_vs_ours"] = _cost_vs(cost["riccati"], cost["ours"])
+    out["riccati_speedup_vs_ipopt"] = out["ipopt"]["median_s"] / out["riccati"]["median_s"]
+    out["riccati_speedup_vs_ours"] = out["ours"]["median_s"] / out["riccati"]["median_s"]
+    out["riccati_cost_vs_ipopt"] = _cost_vs(cost["riccati"], cost["ipopt"])
+    out["riccati_cost_vs_ours"] = _cost_vs(cost["riccati"], cost["ours"])
+    out["riccati_speedup_vs_fatrop"] = out["fatrop"]["median_s"] / out["riccati"]["median_s"]
+    out["riccati_cpu_speedup_vs_fatrop"] = out["fatrop"]["median_cpu_s"] / out["riccati"]["median_cpu_s"]
+    out["fatrop_speedup_vs_ipopt"] = out["ipopt"]["median_s"] / out["fatrop"]["median_s"]
+    out["fatrop_cost_vs_riccati"] = _cost_vs(cost["fatrop"], cost["riccati"])
+    out["fatrop_cost_vs_ipopt"] = _cost_vs(cost["fatrop"], cost["ipopt"])
+    ratio = cpu_time["fatrop"] / cpu_time["riccati"]  # per problem, CPU time: < 1 where fatrop is faster
+    out["fatrop_faster_problems"] = int(np.sum(ratio < 1))
+    out["riccati_cpu_speedup_vs_fatrop_range"] = (float(ratio.min()), float(ratio.max()))
+    out["fatrop_profile"] = fatrop.profile_per_iteration()
     conic_both = np.isfinite(cost["ours"]) & np.isfinite(cost["conic"])
     out["max_rel_cost_diff_vs_conic"] = float(
         np.max(np.abs(cost["ours"][conic_both] - cost["conic"][conic_both]) / cost["conic"][conic_both])
@@ -179,13 +194,20 @@ def peer(name: str, n: int) -> dict:
         f"{out['cost_vs_ipopt']['median_rel_diff']:.1e}",
         flush=True,
     )
-    if "riccati" in rows:
-        print(
-            f"[peer {name}] riccati {out['riccati']['median_s'] * 1e3:.1f} ms ({out['riccati']['mean_iterations']:.1f}"
-            f" SCP it.) | x{out['riccati_speedup_vs_ipopt']:.2f} vs IPOPT, x{out['riccati_speedup_vs_ours']:.2f} vs "
-            f"ours | cost vs ours median {out['riccati_cost_vs_ours']['median_rel_diff']:.1e}",
-            flush=True,
-        )
+    print(
+        f"[peer {name}] riccati {out['riccati']['median_s'] * 1e3:.1f} ms ({out['riccati']['mean_iterations']:.1f}"
+        f" SCP it.) | x{out['riccati_speedup_vs_ipopt']:.2f} vs IPOPT, x{out['riccati_speedup_vs_ours']:.2f} vs "
+        f"ours | cost vs ours median {out['riccati_cost_vs_ours']['median_rel_diff']:.1e}",
+        flush=True,
+    )
+    print(
+        f"[peer {name}] fatrop {out['fatrop']['median_s'] * 1e3:.1f} ms ({out['fatrop']['mean_iterations']:.1f} it., "
+        f"{out['fatrop']['failures']} failures) | riccati x{out['riccati_speedup_vs_fatrop']:.2f} vs fatrop (CPU x"
+        f"{out['riccati_cpu_speedup_vs_fatrop']:.2f}; fatrop faster on {out['fatrop_faster_problems']} of {n}), fatrop "
+        f"x{out['fatrop_speedup_vs_ipopt']:.2f} vs IPOPT | cost vs riccati median "
+        f"{out['fatrop_cost_vs_riccati']['median_rel_diff']:.1e}",
+        flush=True,
+    )
     return out
 
 
@@ -277,24 +299,20 @@ def _cost_vs(a: np.ndarray, b: np.ndarray) -> dict:
     }
 
 
-def _ours(scenario, problem, backend: str) -> tuple[float, int, float, bool]:
-    t0 = time.perf_counter()
+def _ours(scenario, problem, backend: str) -> tuple[int, float, bool]:
     rel, scp = solve_problem(scenario, problem, backend=backend)
-    elapsed = time.perf_counter() - t0
     ok = scp is not None and scp.success
-    return elapsed, rel.iterations + (scp.iterations if scp else 0), scp.cost if ok else np.nan, ok
+    return rel.iterations + (scp.iterations if scp else 0), scp.cost if ok else np.nan, ok
 
 
-def _ipopt(ipopt, scenario, problem) -> tuple[float, int, float, bool]:
-    t0 = time.perf_counter()
-    rel, full = ipopt.solve(problem)
-    elapsed = time.perf_counter() - t0
-    return elapsed, rel.iterations + full.iterations, scenario.cost(full.U), full.ok
+def _nlp_peer(peer, scenario, problem) -> tuple[int, float, bool]:
+    rel, full = peer.solve(problem)
+    return rel.iterations + full.iterations, scenario.cost(full.U), full.ok
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--peer-problems", type=int, default=30, help="problems per scenario in the IPOPT comparison")
+    ap.add_argument("--peer-problems", type=int, default=30, help="problems per scenario in the peer comparison")
     ap.add_argument("--naive-problems", type=int, default=2, help="problems for the (slow) naive baseline")
     ap.add_argument("--robustness", type=int, default=200)
     ap.add_argument("--subproblem-problems", type=int, default=6, help="problems whose subproblems are re-solved")
@@ -349,6 +367,13 @@ def main() -> None:
             headline[f"{key}_riccati_speedup_vs_ipopt"] = row["riccati_speedup_vs_ipopt"]
             headline[f"{key}_riccati_median_s"] = row["riccati"]["median_s"]
             headline[f"{key}_riccati_cost_vs_ipopt_median_rel"] = row["riccati_cost_vs_ipopt"]["median_rel_diff"]
+        if "fatrop" in row:
+            headline[f"{key}_riccati_speedup_vs_fatrop"] = row["riccati_speedup_vs_fatrop"]
+            headline[f"{key}_riccati_cpu_speedup_vs_fatrop"] = row["riccati_cpu_speedup_vs_fatrop"]
+            headline[f"{key}_fatrop_median_s"] = row["fatrop"]["median_s"]
+            headline[f"{key}_fatrop_iterations"] = row["fatrop"]["mean_iterations"]
+            headline[f"{key}_fatrop_failures"] = row["fatrop"]["failures"]
+            headline[f"{key}_fatrop_cost_vs_riccati_median_rel"] = row["fatrop_cost_vs_riccati"]["median_rel_diff"]
     for name, row in result.get("robustness", {}).items():
         headline[f"{name}_failures_of_{args.robustness}"] = row["penalized"]["failures"]
     for name, row in result.get("robustness_riccati", {}).items():

@@ -1,0 +1,84 @@
+"""The free-flyer and quadrotor problems in CasADi ``Opti`` terms, shared by the NLP peers of
+``bench/solver_speed.py`` (``ipopt_peer.py``, ``fatrop_peer.py``): the scenarios' own dynamics, bounds, keep-out
+radii and costs, written over blocks of K steps (one column per step), so that IPOPT's whole-trajectory variables
+(K = N) and fatrop's stage-wise ones (K = 1) are posed by the same expressions. Needs ``casadi`` (the ``peer``
+extra).
+
+Each function that adds constraints adds only constraints on the columns it is given, in a fixed order, so that a
+caller controls the order of the rows (fatrop needs each stage's dynamics first)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ttompc.scenarios import freeflyer as ff
+from ttompc.scenarios import quadrotor as qr
+
+N_STEPS = 100  # both scenarios' horizon (ff.N_STEPS == qr.N_STEPS)
+STATE_DIM = 6
+
+
+def control_variables(opti: Any, name: str, K: int) -> tuple[Any, tuple[Any, ...], Any]:
+    """New control variables for K steps: (U (3, K) expression, the decision variables, their cost). The free-flyer's
+    L1 cost goes through U = U⁺ − U⁻ with U± ≥ 0 (``control_constraints`` adds the signs), cost Σ(U⁺ + U⁻); the
+    quadrotor's is ½‖U‖²."""
+    import casadi as ca
+
+    if name == "freeflyer":
+        Up, Um = opti.variable(3, K), opti.variable(3, K)
+        return Up - Um, (Up, Um), ca.sum1(ca.sum2(Up + Um))
+    U = opti.variable(3, K)
+    return U, (U,), 0.5 * ca.sumsqr(U)
+
+
+def set_control_guess(opti: Any, variables: tuple[Any, ...], U: np.ndarray) -> None:
+    """Initial guess of ``control_variables``' variables from controls U (3, K): U± = max(±U, 0) for the split."""
+    if len(variables) == 2:
+        opti.set_initial(variables[0], np.maximum(U, 0))
+        opti.set_initial(variables[1], np.maximum(-U, 0))
+    else:
+        opti.set_initial(variables[0], U)
+
+
+def next_states(name: str, X: Any, U: Any) -> Any:
+    """The scenario's discrete dynamics: states (6, K) and controls (3, K) -> the next states (6, K)."""
+    import casadi as ca
+
+    if name == "freeflyer":
+        return ca.DM(ff.A_STEP) @ X + ca.DM(ff.A_STEP @ ff.B_IMP) @ U
+    v = X[3:, :]
+    speed = ca.sqrt(ca.sum1(v**2) + 1e-12)  # smooth at v = 0 (the drag is O(‖v‖²) there)
+    drag = -(qr.DRAG / qr.MASS) * ca.repmat(speed, 3, 1) * v
+    return X + qr.DT * ca.vertcat(v, U / qr.MASS + drag)
+
+
+def control_constraints(opti: Any, name: str, X: Any, U: Any, variables: tuple[Any, ...]) -> None:
+    """Constraints of steps 0..N−1 on states X (6, K) and controls U (3, K): the free-flyer's split signs and
+    per-cluster thruster bound |Λ⁻¹R_BG(ψ)u| ≤ Δv_max, the quadrotor's control box."""
+    import casadi as ca
+
+    if name == "freeflyer":
+        for part in variables:
+            opti.subject_to(ca.vec(part) >= 0)
+        c, s = ca.cos(X[2, :]), ca.sin(X[2, :])
+        body = ca.vertcat(c * U[0, :] + s * U[1, :], -s * U[0, :] + c * U[1, :], U[2, :])
+        opti.subject_to(opti.bounded(-ff.DV_MAX, ca.vec(ca.DM(ff.LAMBDA_INV) @ body), ff.DV_MAX))
+    else:
+        opti.subject_to(opti.bounded(-qr.U_MAX, ca.vec(U), qr.U_MAX))
+
+
+def state_constraints(opti: Any, name: str, X: Any, obstacles: bool) -> None:
+    """Constraints of steps 1..N on states X (6, K): the free-flyer's table box, and with ``obstacles`` the keep-out
+    spheres (squared distance ≥ radius²)."""
+    if name == "freeflyer":
+        for d in range(2):
+            opti.subject_to(opti.bounded(ff.TABLE[0][d], X[d, :], ff.TABLE[1][d]))
+        centres, radii = ff.OBSTACLES, np.full(len(ff.OBSTACLES), ff.R_EFF)
+    else:
+        centres, radii = qr.OBSTACLES, qr.OBSTACLE_RADII
+    if obstacles:
+        for centre, r in zip(centres, radii, strict=True):
+            d2 = sum((X[i, :] - centre[i]) ** 2 for i in range(len(centre)))
+            opti.subject_to(d2 >= r**2)
