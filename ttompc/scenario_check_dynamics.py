@@ -91,21 +91,11 @@ def batched_model(ctx: CheckContext) -> str:
     model = sc.batched_model(problems)
     N = problems[0].n_steps
     for k in sorted({0, N // 2, N - 1}):
-        X = np.stack([ctx.reference(p)[0][k] for p in problems])
-        U = ctx.controls(len(problems))
-        S = np.stack([sc.to_model_states(p, x[None], start=k)[0] for p, x in zip(problems, X, strict=True)])
-        expected = np.stack(
-            [sc.to_model_states(p, sc.step(p, k, x, u)[None], start=k + 1)[0]
-             for p, x, u in zip(problems, X, U, strict=True)]
-        )  # fmt: skip
+        S, U, expected = _transitions(ctx, problems, k)
         got = model.step(torch.as_tensor(S), torch.as_tensor(U), k)
         if tuple(got.shape) != expected.shape or got.dtype != torch.float64:
             fail(f"step(S, A, {k}) returned {tuple(got.shape)} {got.dtype} for float64 states {expected.shape}")
-        scale = np.abs(expected).max(axis=0) + 1.0
-        (b, i), err = worst(np.abs(got.numpy() - expected) / scale)
-        if err > MODEL_TOL:
-            fail(f"step() at step {k}, state {i} is {got.numpy()[b, i]:.6g} but the scenario's step gives "
-                  f"{expected[b, i]:.6g} (problem seed {pairs[b][0]})")  # fmt: skip
+        _compare("the torch model's step()", got.numpy(), expected, k, pairs, MODEL_TOL)
     for s, p in pairs:
         X = probe_states(ctx, p)
         states = torch.as_tensor(sc.to_model_states(p, X))
@@ -133,15 +123,32 @@ def fused_step(ctx: CheckContext) -> str:
     ptr = ctypes.POINTER(ctypes.c_float)
     N = problems[0].n_steps
     for k in sorted({0, N // 2, N - 1}):
-        for b, (s, p) in enumerate(pairs):
-            x, u = ctx.reference(p)[0][k], ctx.controls(1)[0]
-            expected = sc.to_model_states(p, sc.step(p, k, x, u)[None], start=k + 1)[0]
-            xs = np.ascontiguousarray(sc.to_model_states(p, x[None], start=k)[0], dtype=np.float32)
-            us, out = np.ascontiguousarray(u, dtype=np.float32), np.full(len(expected), np.nan, np.float32)
-            xp, up, pp, op = (a.ctypes.data_as(ptr) for a in (xs, us, params[b], out))
-            step.ctypes(xp, up, k, pp, op)
-            (i,), err = worst(np.abs(out - expected) / (np.abs(expected).max() + 1.0))
-            if not err <= FUSED_TOL:
-                got = f"the fused step at step {k}, state {i} gives {out[i]:.6g}"
-                fail(f"{got} but the scenario's step gives {expected[i]:.6g} (problem seed {s})")
+        S, U, expected = _transitions(ctx, problems, k)
+        S, U, got = S.astype(np.float32), U.astype(np.float32), np.full(expected.shape, np.nan, np.float32)
+        for b in range(len(problems)):
+            x, u, p, out = (a.ctypes.data_as(ptr) for a in (S[b], U[b], params[b], got[b]))
+            step.ctypes(x, u, k, p, out)
+        _compare("the fused step", got, expected, k, pairs, FUSED_TOL)
     return "the fused decoder's compiled step matches step() (float32)"
+
+
+def _transitions(ctx: CheckContext, problems: list[Problem], k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One random transition at step k per problem, in the model representation: states (B, n), controls (B, m) and
+    the states ``step`` leads to (B, n)."""
+    sc = ctx.sc
+    X = np.stack([ctx.reference(p)[0][k] for p in problems])
+    U = ctx.controls(len(problems))
+    S = np.stack([sc.to_model_states(p, x[None], start=k)[0] for p, x in zip(problems, X, strict=True)])
+    nxt = [sc.step(p, k, x, u)[None] for p, x, u in zip(problems, X, U, strict=True)]
+    return S, U, np.stack([sc.to_model_states(p, y, start=k + 1)[0] for p, y in zip(problems, nxt, strict=True)])
+
+
+def _compare(
+    what: str, got: np.ndarray, expected: np.ndarray, k: int, pairs: list[tuple[int, Problem]], tol: float
+) -> None:
+    """Fail naming the worst entry where ``got`` differs from ``expected`` (B, n) by more than ``tol``, relative to
+    each state's largest magnitude over the batch (plus one)."""
+    (b, i), err = worst(np.abs(got - expected) / (np.abs(expected).max(axis=0) + 1.0))
+    if not err <= tol:
+        where = f"{what} at step {k}, state {i} gives {got[b, i]:.6g}"
+        fail(f"{where} but the scenario's step gives {expected[b, i]:.6g} (problem seed {pairs[b][0]})")
