@@ -211,3 +211,21 @@ def test_real_episodes_resume_to_the_same_report(tmp_path: Path, monkeypatch: py
 
     assert untimed(parts["runs"]) == untimed(whole["runs"])
     assert len(parts["runs"]) == 2 * len(methods_for({}, 0.0))
+
+
+def test_a_report_that_fails_midway_leaves_no_complete_report(
+    tmp_path: Path, fake_episodes: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The earlier complete mpc.json is removed before the new tables are written: a failure in between (here in
+    the plots) leaves a folder that no consumer reads as a report."""
+    out = tmp_path / "sweep"
+    run_closed_loop(_config(out, problems=2, plants=["nominal"], horizons=[10]))
+    assert json.loads((out / "mpc.json").read_text())["complete"] is True
+
+    def broken(summary: Any, out: Any) -> Any:
+        raise Stop
+
+    monkeypatch.setattr(plots, "plot_horizon", broken)
+    with pytest.raises(Stop):
+        run_closed_loop(_config(out, problems=3, plants=["nominal"], horizons=[10]))
+    assert not (out / "mpc.json").exists() and (out / "mpc_runs.csv").is_file()

@@ -28,7 +28,7 @@ from ttompc.evaluation.equal_cost import equal_cost, format_equal_cost
 from ttompc.evaluation.machine import load_average, machine_record
 from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.metrics import format_gain_share, gain_share, normalized_cost, write_csv
-from ttompc.evaluation.report_files import finish
+from ttompc.evaluation.report_files import finish, retract
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import Outcome, format_interval, paired
 from ttompc.mpc.methods import BASELINE, CEILING
@@ -207,6 +207,7 @@ def write_report(
         "runs": records,
     }
     out.mkdir(parents=True, exist_ok=True)
+    retract(out / "mpc.json")
     (out / "mpc.md").write_text(f"# Closed loop: {sc.name}, {cfg.problems} problems\n\n{table}\n")
     write_csv(out / "mpc_runs.csv", records)
     report["plots"] = [str(p) for p in plot_horizon(summary, out)]

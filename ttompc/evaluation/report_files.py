@@ -1,7 +1,8 @@
 """Report files of ``ttompc evaluate``: written whole or not at all, and read only when complete.
 
-A report's JSON (``mpc.json``, ``warmstart.json``) is the last file its command writes, after its table, CSVs and
-plots, in one atomic rename (``metrics.write_json``), and it records ``"complete": true`` (``finish``). A folder
+A report's JSON (``mpc.json``, ``warmstart.json``) is removed before its command writes the report's other files
+(``retract``) and written last, after its table, CSVs and plots, in one atomic rename (``metrics.write_json``),
+recording ``"complete": true`` (``finish``). A folder
 whose JSON is missing or lacks that mark holds an interrupted run (or one of a ttompc before the mark), whatever
 other files it holds: ``read_report`` refuses it, and it is how every consumer of a report opens one
 (``ttompc evaluate compare``, ``make figures``, ``ttompc zoo metrics``).
@@ -17,6 +18,12 @@ from ttompc.errors import UserError
 from ttompc.evaluation.metrics import write_json
 
 COMPLETE = "complete"
+
+
+def retract(path: Path) -> None:
+    """Remove the report's JSON at ``path`` before its other files are written again: until ``finish`` writes the new
+    one, the folder holds no complete report (an earlier report's JSON never vouches for new tables and CSVs)."""
+    path.unlink(missing_ok=True)
 
 
 def finish(path: Path, report: dict[str, Any]) -> Path:

@@ -32,7 +32,7 @@ from ttompc.evaluation.metrics import (
     write_csv,
 )
 from ttompc.evaluation.problems import EvalProblem, eval_problem
-from ttompc.evaluation.report_files import finish
+from ttompc.evaluation.report_files import finish, retract
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import format_interval, interval
 from ttompc.mpc.tto import check_rtg_scale
@@ -271,6 +271,7 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
         "problems": rows,
     }
     out.mkdir(parents=True, exist_ok=True)
+    retract(out / "warmstart.json")
     (out / "warmstart.md").write_text(f"# Open-loop warm starts: {sc.name}, {len(rows)} problems\n\n{table}\n")
     write_csv(out / "warmstart_problems.csv", rows)
     write_csv(out / "warmstart_thresholds.csv", thresholds)
