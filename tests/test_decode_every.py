@@ -185,9 +185,9 @@ def test_decode_every_settings(setup: tuple, capsys: pytest.CaptureFixture[str])
     from ttompc.finetune.config import check_rollout_settings
 
     sc = setup[0]
-    with pytest.raises(ValueError, match="decode_every must be >= 1"):
+    with pytest.raises(ConfigError, match="invalid decode_every=0: must be >= 1"):
         MPCSettings(decode_every=0)
-    with pytest.raises(ConfigError, match="decode_every must be >= 1"):
+    with pytest.raises(ConfigError, match="invalid decode_every=0: must be >= 1"):
         protocol_settings("paper", {"decode_every": 0})
     with pytest.raises(ValueError, match="decode_every must be >= 1"):
         RolloutGroup(mpc_fakes.tiny_planner(), decode_every=0)

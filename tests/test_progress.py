@@ -197,7 +197,8 @@ def test_finetune_shows_every_phase_on_stderr_and_names_the_pretrained_model(tmp
     """Measuring and collecting printed nothing for about 2 of 2.5 minutes, and the decision said "against iteration
     -1". Now each phase has a line and a bar on stderr, the decision names the pretrained model, stdout is JSON."""
     from ttompc.data.config import GenerateConfig, SplitConfig
-    from ttompc.data.generate import generate, load_manifest
+    from ttompc.data.generate import generate
+    from ttompc.data.manifests import load_manifest
     from ttompc.policy import Planner
     from ttompc.policy.stats import NormStats
 

@@ -1,9 +1,11 @@
 """Configs as data: every command reads ``ttompc COMMAND [RECIPE.yaml] key=value ...`` through one loader.
 
 ``load_command_config(schema, recipe, overrides)`` merges, in order, the defaults of a typed OmegaConf structured
-config (a dataclass), an optional YAML recipe and dotted ``key=value`` overrides, then builds the dataclass (so its
-``__post_init__`` checks run). Every problem (an unknown key, a wrong type, a missing file, a failed check) raises
-``ConfigError``, a ``UserError`` that names the key and, for an unknown key, the valid ones. Command-line flags are
+config (a dataclass), an optional YAML recipe (a mapping of keys) and dotted ``key=value`` overrides, checks every
+value against the range its schema declares (``ttompc.ranges``), then builds the dataclass (so its ``__post_init__``
+checks run). Every problem (YAML that does not parse, an unknown key, a wrong type, a value out of range, a missing
+file, a failed check) raises ``ConfigError``, a ``UserError`` of one line that names the key and, for an unknown key,
+the valid ones. Command-line flags are
 only documented shortcuts: a command turns them into overrides (``shortcut_overrides``) before calling the loader.
 
 Typed configs are converted to plain containers (``to_container``) before they go into checkpoints, so nothing
@@ -17,16 +19,15 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
-from ttompc.errors import UserError
+from ttompc.errors import ConfigError
+from ttompc.ranges import check_settings
 
 T = TypeVar("T")
-
-
-class ConfigError(UserError, ValueError):
-    """A recipe or override that does not match its schema."""
+__all__ = ["ConfigError", "load_command_config"]
 
 
 def load_command_config(schema_cls: type[T], recipe: str | Path | None = None, overrides: Sequence[str] = ()) -> T:
@@ -35,14 +36,7 @@ def load_command_config(schema_cls: type[T], recipe: str | Path | None = None, o
     base = OmegaConf.structured(schema_cls)
     merged = base
     if recipe is not None:
-        path = Path(recipe)
-        if not path.is_file():
-            raise ConfigError(f"recipe not found: {recipe}", "pass an existing YAML file (see recipes/)")
-        try:
-            layer = OmegaConf.load(path)
-        except Exception as err:  # YAML scanner/parser errors have no common base class here
-            raise ConfigError(f"{recipe} is not valid YAML: {err}") from None
-        merged = _merge(base, merged, layer, str(recipe))
+        merged = _merge(base, merged, load_recipe(recipe), str(recipe))
     if overrides:
         bad = [o for o in overrides if "=" not in o]
         if bad:
@@ -50,12 +44,9 @@ def load_command_config(schema_cls: type[T], recipe: str | Path | None = None, o
                 f"settings must look like key=value, got {' '.join(bad)}",
                 "write e.g. seed=3 (a RECIPE.yaml may only come first)",
             )
-        try:
-            layer = OmegaConf.from_dotlist(list(overrides))
-        except OmegaConfBaseException as err:
-            raise ConfigError(f"cannot parse {' '.join(overrides)}: {_first_line(err)}") from None
-        merged = _merge(base, merged, layer, "the command line")
+        merged = _merge(base, merged, _parse_overrides(overrides), "the command line")
     try:
+        check_settings(merged)
         return OmegaConf.to_object(merged)  # type: ignore[return-value]
     except MissingMandatoryValue as err:
         raise ConfigError(f"missing required setting {err.full_key!r}", f"pass {err.full_key}=VALUE") from None
@@ -65,10 +56,57 @@ def load_command_config(schema_cls: type[T], recipe: str | Path | None = None, o
         raise ConfigError(str(err)) from None
 
 
+def load_recipe(recipe: str | Path) -> DictConfig:
+    """The settings of the YAML file ``recipe``: a mapping of keys (an empty file is no settings); raises
+    ``ConfigError`` in one line for a missing file, a folder, YAML that does not parse or a file of another shape."""
+    path = Path(recipe)
+    if path.is_dir():
+        raise ConfigError(f"recipe {recipe} is a folder", "pass a YAML file (see recipes/)")
+    if not path.is_file():
+        raise ConfigError(f"recipe not found: {recipe}", "pass an existing YAML file (see recipes/)")
+    try:
+        layer = OmegaConf.load(path)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{recipe} is not valid YAML: {_yaml_problem(err)}") from None
+    except (OmegaConfBaseException, UnicodeDecodeError, ValueError) as err:
+        raise ConfigError(f"{recipe} is not a YAML file of settings: {_first_line(err)}") from None
+    if not isinstance(layer, DictConfig):
+        raise ConfigError(
+            f"{recipe} holds a YAML {type(layer).__name__.removesuffix('Config').lower()}, not settings",
+            "write one `key: value` per line (see recipes/)",
+        )
+    return layer
+
+
+def _parse_overrides(overrides: Sequence[str]) -> DictConfig:
+    """The ``key=value`` overrides as one layer; the first that does not parse is named in the ``ConfigError``."""
+    for item in overrides:
+        try:
+            OmegaConf.from_dotlist([item])
+        except yaml.YAMLError as err:
+            raise ConfigError(
+                f"cannot parse {item}: its value is not valid YAML ({_yaml_problem(err, where=False)})",
+                "quote it or close its brackets, e.g. horizons=[10,30]",
+            ) from None
+        except (OmegaConfBaseException, ValueError) as err:
+            raise ConfigError(f"cannot parse {item}: {_first_line(err)}") from None
+    return OmegaConf.from_dotlist(list(overrides))
+
+
+def _yaml_problem(err: yaml.YAMLError, where: bool = True) -> str:
+    """A YAML error in one line: its problem and, with ``where``, its line and column (the parser's own text spans
+    several lines)."""
+    problem = getattr(err, "problem", None) or _first_line(err)
+    mark = getattr(err, "problem_mark", None)
+    if where and mark is not None:
+        return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+    return str(problem)
+
+
 def given_keys(recipe: str | Path | None = None, overrides: Sequence[str] = ()) -> set[str]:
     """The dotted keys a recipe and ``key=value`` overrides set explicitly (call it once ``load_command_config``
     accepted the same arguments): settings whose default follows the data may only fill in the others."""
-    layers = [OmegaConf.load(recipe)] if recipe is not None else []
+    layers: list[Any] = [load_recipe(recipe)] if recipe is not None else []
     if overrides:
         layers.append(OmegaConf.from_dotlist(list(overrides)))
     keys: set[str] = set()
@@ -143,7 +181,8 @@ def from_container(schema: type[T], data: dict[str, Any]) -> T:
     try:
         merged = OmegaConf.merge(OmegaConf.structured(schema), OmegaConf.create(data))
     except OmegaConfBaseException as err:
-        raise ConfigError(f"invalid stored config: {err}") from None
+        raise ConfigError(f"invalid stored config: {_first_line(err)}") from None
+    check_settings(merged)
     return OmegaConf.to_object(merged)  # type: ignore[return-value]
 
 

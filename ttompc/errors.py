@@ -2,7 +2,8 @@
 
 ``ttompc.cli.main`` prints a ``UserError`` as one line naming the problem (plus what to do) and exits with code 2,
 without a traceback (``--debug`` or ``TTOMPC_DEBUG=1`` shows it). Library code raises subclasses of it (e.g.
-``ConfigError``, the zoo's errors) so that callers in Python can still catch the specific type.
+``ConfigError``, the zoo's errors) so that callers in Python can still catch the specific type, with the words the
+CLI prints.
 """
 
 from __future__ import annotations
@@ -18,3 +19,7 @@ class UserError(Exception):
     def __str__(self) -> str:
         message = super().__str__()
         return f"{message}; {self.hint}" if self.hint else message
+
+
+class ConfigError(UserError, ValueError):
+    """A setting, recipe or override that does not match its schema (``ttompc.config``, ``ttompc.ranges``)."""

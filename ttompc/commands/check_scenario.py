@@ -14,13 +14,14 @@ from dataclasses import dataclass
 from ttompc.commands import checks
 from ttompc.config import command_config, to_container
 from ttompc.errors import UserError
+from ttompc.ranges import Checked, setting
 
 
 @dataclass
-class CheckConfig:
+class CheckConfig(Checked):
     scenario: str = "???"  # the positional SPEC
-    problems: int = 3  # sampled problems the checks use (and solve)
-    seed: int = 0  # root seed: problem i is drawn as ``ttompc generate`` draws it
+    problems: int = setting(3, ge=1)  # sampled problems the checks use (and solve)
+    seed: int = setting(0, ge=0)  # root seed: problem i is drawn as ``ttompc generate`` draws it
     backend: str = "auto"  # convex backend of the solve check
 
 
@@ -41,7 +42,6 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
-    checks.seed(cfg.seed)
     checks.backend(cfg.backend)
     if cfg.problems < 1:
         raise UserError(f"problems must be at least 1, got {cfg.problems}")

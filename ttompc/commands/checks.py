@@ -4,6 +4,7 @@ creating output folders): each raises a ``UserError`` naming the setting and the
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -29,12 +30,6 @@ def backend(name: str | None) -> None:
         raise UserError(f"unknown solver backend {name!r}", f"choose one of: {', '.join(BACKEND_NAMES)}")
 
 
-def seed(value: int, key: str = "seed") -> None:
-    """Seeds feed ``numpy.random.SeedSequence``, which takes non-negative integers only."""
-    if value < 0:
-        raise UserError(f"{key} must be a non-negative integer, got {value}")
-
-
 def solver(spec: str) -> None:
     """``spec`` names an importable function as ``module:function`` (``ttompc generate``'s ``solver``, which every
     worker process imports as the parent does here)."""
@@ -54,14 +49,37 @@ def solver(spec: str) -> None:
 
 def writable(path: str | Path) -> None:
     """The folder ``path`` can be created or written into: its nearest existing ancestor is a folder this process
-    may write in. Checked without creating anything, so that an output a command may not write is refused (one line,
-    worded as the CLI's error for such a path) before the work, not after it."""
+    can write in, found by trying (a file created there and removed at once: permission bits do not tell for root,
+    a read-only file system or a kernel file system), so that an output a command may not write is refused (one
+    line, worded as the CLI's error for such a path) before the work, not after it. Leaves nothing behind."""
     target = Path(path).absolute()
     existing = next(p for p in (target, *target.parents) if p.exists())
     reason = "not a directory" if not existing.is_dir() else None
-    if reason is None and not os.access(existing, os.W_OK | os.X_OK):
-        reason = "permission denied"
+    if reason is None:
+        try:
+            handle, probe = tempfile.mkstemp(prefix=".ttompc-write-test-", dir=existing)
+        except OSError as err:
+            reason = (err.strerror or type(err).__name__).lower()
+        else:
+            os.close(handle)
+            os.unlink(probe)
     if reason is not None:
         raise UserError(
             f"cannot use {existing} ({reason})", "choose a location you can write to, or fix its permissions"
         )
+
+
+def figure_file(path: str | Path, key: str) -> None:
+    """``path`` (the setting ``key``) names an image file matplotlib can write: not a folder, with the suffix of a
+    format it knows (it would otherwise append ``.png`` to the name, or fail after the work), in a writable place."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    target = Path(path)
+    if target.is_dir():
+        raise UserError(f"{key}={path} is a folder", f"name an image file, e.g. {target / 'plot.png'}")
+    formats = FigureCanvasBase.get_supported_filetypes()
+    suffix = target.suffix.lstrip(".").lower()
+    if suffix not in formats:
+        what = f".{suffix} is not an image format matplotlib writes" if suffix else "the file name has no suffix"
+        raise UserError(f"{key}={path}: {what}", f"use one of {', '.join('.' + f for f in sorted(formats))}")
+    writable(target.parent)

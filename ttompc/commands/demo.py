@@ -35,6 +35,7 @@ from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
 from ttompc.errors import UserError
 from ttompc.evaluation.measurement import Measurement
+from ttompc.ranges import Checked, setting
 
 if TYPE_CHECKING:
     from ttompc.evaluation.plots import Panel
@@ -45,27 +46,28 @@ SAME = 0.01  # SCP optima of one problem closer than 1% of J_REL count as the sa
 
 
 @dataclass
-class DemoConfig:
+class DemoConfig(Checked):
     model: str = "freeflyer-tto-v3"  # open-loop warm starts: zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt
     mpc_model: str = "freeflyer-ft-tto-v5"  # TTO-MPC: the same forms, the same scenario as model
-    problems: int = 2  # shown: the scanned problems whose two warm starts differ most
+    problems: int = setting(2, ge=1)  # shown: the scanned problems whose two warm starts differ most
     # the scan (its held-out non-convex problems, run open loop to choose the shown ones from; the zoo cards' seed)
     # and TTO-MPC's closed loop (its protocol and one horizon, on the nominal plant)
     eval: Measurement = field(
         default_factory=lambda: Measurement(protocol="recommended", problems=12, seed=4242, horizons=[10])
     )
-    rel_horizon: int = 30  # REL-MPC planning horizon H (the paper's baseline, under the paper's protocol)
+    # REL-MPC planning horizon H (the paper's baseline, under the paper's protocol)
+    rel_horizon: int = setting(30, ge=1)
     mpc: bool = True  # also close the loop (slower)
     out: str = "outputs/demo"
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         self.eval.check_single("demo.eval")
         if self.eval.plants != ["nominal"]:
             raise ValueError(f"demo.eval runs on the nominal plant, got plants={self.eval.plants}")
-        if min(self.problems, self.rel_horizon) < 1 or self.eval.problems < self.problems:
+        if self.eval.problems < self.problems:
             raise ValueError(
-                "problems and rel_horizon must be >= 1 and eval.problems (the scan) >= problems, got "
-                f"{self.problems}, {self.rel_horizon} and {self.eval.problems}"
+                f"invalid eval.problems={self.eval.problems}: the scan must hold at least problems={self.problems}"
             )
 
     def rel_loop(self) -> Measurement:
@@ -104,7 +106,6 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
-    checks.seed(cfg.eval.seed)
     checks.writable(cfg.out)
     from ttompc.evaluation.plots import save_figure, trajectory_figure
     from ttompc.policy import Planner

@@ -77,9 +77,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
     """The scenario defaults to the model's; settings and models are checked before any work. Every model is loaded
     here as the pool workers will load it: a name that is not in the zoo, a damaged bundle or a model of another
-    scenario is one error line before the pool starts, not a failure in every worker."""
+    scenario is one error line before the pool starts, not a failure in every worker. The devices the settings name
+    must exist here (``ttompc.ranges.check_devices``)."""
     from ttompc.evaluation.warmstart import WarmStartConfig
+    from ttompc.ranges import check_devices
 
+    check_devices(cfg)
     sources = [source for source in (cfg.model, cfg.ft_model) if source]
     if not sources:
         if cfg.scenario is None:
@@ -95,7 +98,6 @@ def _resolve_scenario(cfg: WarmStartConfig | ClosedLoopConfig) -> None:
             planner = Planner.from_pretrained(source, scenario, device=cfg.device)
             if not isinstance(cfg, WarmStartConfig):
                 _announce_rtg(source, planner, cfg.settings.rtg_mode)
-    checks.seed(cfg.seed)
     checks.backend(cfg.backend if isinstance(cfg, WarmStartConfig) else cfg.settings.backend)
 
 
@@ -114,8 +116,13 @@ def _announce_rtg(source: str, planner: Planner, mode: str) -> None:
 
 def _check_output(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
     """The report folder (``out``, else ``outputs/evaluate/<kind>-<scenario>`` as the evaluation names it) must be
-    writable before any problem is solved, not after the whole evaluation."""
-    checks.writable(cfg.out or f"outputs/evaluate/{kind}-{checks.scenario(str(cfg.scenario)).name}")
+    writable before any problem is solved, not after the whole evaluation, and new, empty or a report folder of this
+    kind (its files are named ``<kind>*``: ``ttompc.outputs.claim_folder``), never a dataset or a user's folder."""
+    from ttompc.outputs import claim_folder
+
+    out = cfg.out or f"outputs/evaluate/{kind}-{checks.scenario(str(cfg.scenario)).name}"
+    claim_folder(out, f"evaluate {kind}", lambda folder: any(p.name.startswith(kind) for p in folder.iterdir()))
+    checks.writable(out)
 
 
 def _announce(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:

@@ -13,7 +13,7 @@ import argparse
 import json
 
 from ttompc.config import add_config_arguments, split_recipe
-from ttompc.errors import UserError
+from ttompc.errors import ConfigError, UserError
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
 from ttompc.progress import status
 
@@ -42,6 +42,22 @@ def resume_hint(args: argparse.Namespace) -> str:
     return f"re-run the same command to continue after the last finished iteration (kept in {out_dir})"
 
 
+def _check_against_data(cfg: FinetuneConfig) -> None:
+    """The devices the recipe names exist here, and the learners' horizons fit the data's N (a longer one would be
+    cut to N under its own name)."""
+    from ttompc.data.manifests import check_datasets
+    from ttompc.ranges import check_devices
+
+    check_devices(cfg)
+    n_steps = int(check_datasets(cfg.data)[0]["scenario"]["n_steps"])
+    horizons = cfg.dagger.exploration.horizons
+    if max(horizons) > n_steps:
+        raise ConfigError(
+            f"invalid dagger.exploration.horizons={horizons}: the data's trajectories have {n_steps} steps",
+            f"use horizons within [1, {n_steps}]",
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     cfg = _config(args)
     if args.print_config:
@@ -56,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
             "no open-loop data: data.paths is empty (the recipe leaves it to the command line)",
             "pass data.paths=[FOLDER], the dataset written by `ttompc generate` that the model was trained on",
         )
+    _check_against_data(cfg)
     status(f"ttompc finetune: loading {args.model} and Lightning")
     from ttompc.finetune import finetune
 

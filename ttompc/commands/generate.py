@@ -48,7 +48,6 @@ def config_from_args(args: argparse.Namespace) -> GenerateConfig:
     flags = [*shortcut_overrides(args, _FLAGS), *_split_fractions(args.splits)]
     cfg = load_command_config(GenerateConfig, recipe, [*flags, *overrides])
     checks.scenario(cfg.scenario)
-    checks.seed(cfg.seed)
     checks.backend(cfg.backend)
     checks.solver(cfg.solver)
     return cfg
@@ -80,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
+    checks.writable(cfg.out)
     try:
         manifest = finalize(cfg) if args.finalize else generate(cfg, progress=not args.no_progress)
     except (GenerationError, ShardError) as err:

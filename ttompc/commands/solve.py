@@ -14,12 +14,13 @@ import numpy as np
 
 from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
+from ttompc.ranges import Checked, setting
 
 
 @dataclass
-class SolveConfig:
+class SolveConfig(Checked):
     scenario: str = "freeflyer"
-    seed: int = 0  # problem seed (numpy Generator)
+    seed: int = setting(0, ge=0)  # problem seed (numpy Generator)
     backend: str = "auto"  # one of ttompc.solvers.backends.BACKEND_NAMES
     formulation: Literal["penalized", "reference"] = "penalized"
     plot: str | None = None  # PNG path for a plot of the REL and SCP trajectories
@@ -52,8 +53,9 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
     scenario = checks.scenario(cfg.scenario)
-    checks.seed(cfg.seed)
     checks.backend(cfg.backend)
+    if cfg.plot:
+        checks.figure_file(cfg.plot, "plot")
     from ttompc.solvers import solve_problem
 
     problem = scenario.sample(np.random.default_rng(cfg.seed))

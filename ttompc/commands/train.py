@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
+from ttompc.commands import checks
 from ttompc.config import add_config_arguments, split_recipe
 from ttompc.errors import UserError
 from ttompc.progress import status
@@ -56,11 +56,16 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(with_settings(cfg), indent=2))
         print(f"# {MAX_STEPS_HELP}", file=sys.stderr)  # JSON has no comments; stdout stays the config alone
         return 0
-    from ttompc.data.generate import check_datasets  # every folder, before anything is created or Lightning imported
+    from ttompc.data.manifests import check_datasets  # every folder, before anything is created or Lightning imported
+    from ttompc.ranges import check_devices
+    from ttompc.training.preflight import check_model_fits, claim_run
 
-    check_datasets(cfg.data)
-    # an out_dir the user may not write fails here, in one line, not after Lightning and the shard checksums
-    Path(cfg.trainer.out_dir).mkdir(parents=True, exist_ok=True)
+    check_devices(cfg)
+    manifests = check_datasets(cfg.data)
+    check_model_fits(cfg, manifests)
+    checks.writable(cfg.trainer.out_dir)
+    # the out_dir is this run's (new, empty or its own checkpoints), claimed before Lightning and the shard checksums
+    claim_run(cfg, manifests)
     status("ttompc train: loading Lightning and the data")
     from ttompc.data.shards import ShardError
     from ttompc.training.run import train

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ttompc import zoo
+from ttompc.commands import checks
 from ttompc.errors import UserError
 from ttompc.zoo.cards import KINDS, ModelCard
 from ttompc.zoo.evaluations import headline_metrics, load_metrics
@@ -226,6 +227,8 @@ def _publish(args: argparse.Namespace) -> int:
         raise UserError("zoo publish to a folder needs --name NAME")
     if not hub and args.private:
         raise UserError("--private is for a Hugging Face repository (--to hf://ORG/NAME)")
+    if not hub:
+        checks.writable(args.to)
     if hub and args.base_url:
         raise UserError("--base-url is for a folder destination: a Hub card lists the repository's own files")
     given = {

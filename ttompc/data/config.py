@@ -9,49 +9,54 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from ttompc.ranges import Checked, setting
+
 Sources = Literal["rel", "scp", "both"]
 ClosedLoopShare = Literal["fixed", "grow"]
 
 
 @dataclass
-class SplitConfig:
-    """Fractions of *problems* per split; REL and SCP rows of one problem always share a split (no leakage)."""
+class SplitConfig(Checked):
+    """Fractions of *problems* per split, each in [0, 1], summing to 1; REL and SCP rows of one problem always share
+    a split (no leakage)."""
 
-    train: float = 0.9
-    val: float = 0.05
-    test: float = 0.05
-    salt: int = 0  # changes the assignment without changing the problems
+    train: float = setting(0.9, ge=0, le=1)
+    val: float = setting(0.05, ge=0, le=1)
+    test: float = setting(0.05, ge=0, le=1)
+    salt: int = setting(0)  # changes the assignment without changing the problems
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        total = self.train + self.val + self.test
+        if abs(total - 1.0) > 1e-9:
+            raise ValueError(
+                f"invalid splits: train + val + test must sum to 1, got {self.train:g} + {self.val:g} + "
+                f"{self.test:g} = {total:g}"
+            )
 
     def fractions(self) -> dict[str, float]:
-        fr = {"train": self.train, "val": self.val, "test": self.test}
-        if any(v < 0 for v in fr.values()) or abs(sum(fr.values()) - 1.0) > 1e-9:
-            raise ValueError(f"split fractions must be non-negative and sum to 1, got {fr}")
-        return fr
+        return {"train": self.train, "val": self.val, "test": self.test}
 
 
 @dataclass
-class GenerateConfig:
+class GenerateConfig(Checked):
     scenario: str = "freeflyer"
-    problems: int = 20_000
+    problems: int = setting(20_000, ge=1)
     out: str = "data/freeflyer-v1"
-    seed: int = 0  # root seed; problem i uses SeedSequence(seed, spawn_key=(i,))
-    shard_size: int = 500  # problems per shard (a fixed contiguous id range)
-    workers: int = 0  # 0 = all cores
+    seed: int = setting(0, ge=0)  # root seed; problem i uses SeedSequence(seed, spawn_key=(i,))
+    shard_size: int = setting(500, ge=1)  # problems per shard (a fixed contiguous id range)
+    workers: int = setting(0, ge=0, meaning="0: all cores")
     solver: str = "ttompc.solvers.scp:solve_problem"  # "module:function" with solve_problem's signature
     backend: str | None = None  # convex backend passed to the solver (None = solver default)
-    max_shards: int | None = None  # stop after writing this many shards (chunked runs; resume later)
-    finalize_wait_s: float = 0.0  # rank 0 waits this long for other ranks' shards before the manifest
+    max_shards: int | None = setting(None, ge=1)  # stop after writing this many new shards (resume later); None: all
+    finalize_wait_s: float = setting(0.0, ge=0)  # rank 0 waits this long for other ranks' shards before the manifest
     splits: SplitConfig = field(default_factory=SplitConfig)
     name: str | None = None  # dataset name for the card (default: the output folder name)
     card_dir: str | None = None  # the card is <out>/README.md; set this to also copy it to <card_dir>/<name>.md
 
-    def __post_init__(self) -> None:
-        if self.problems < 1 or self.shard_size < 1:
-            raise ValueError(f"problems and shard_size must be at least 1, got {self.problems} and {self.shard_size}")
-
 
 @dataclass
-class DataConfig:
+class DataConfig(Checked):
     """What the ``TrajectoryDataModule`` streams.
 
     Batches mix open-loop rows (``sources`` of ``paths``) with DAgger rows (``dagger_dirs``) at
@@ -59,20 +64,22 @@ class DataConfig:
     r·|newest DAgger dir| against all DAgger rows, r = f/(1−f), i.e. 9:1 at the first iteration then growing).
     """
 
-    paths: list[str] = field(default_factory=list)  # open-loop dataset folders (one manifest each)
+    paths: list[str] = setting(factory=list, unique=True)  # open-loop dataset folders (one manifest each)
     # the scenario the recipe is written for (recipes/<scenario>/ set it): every dataset must hold its trajectories,
     # or a quadrotor recipe would train on free-flyer data without a word; None accepts any one scenario
     scenario: str | None = None
-    dagger_dirs: list[str] = field(default_factory=list)  # DAgger shard folders (``train/*.parquet``)
+    dagger_dirs: list[str] = setting(factory=list, unique=True)  # DAgger shard folders (``train/*.parquet``)
     sources: Sources = "both"
-    open_loop_fraction: float = 0.9
+    open_loop_fraction: float = setting(0.9, ge=0, le=1)
     closed_loop_share: ClosedLoopShare = "fixed"
-    batch_size: int = 64
-    eval_batch_size: int | None = None  # default: batch_size
-    num_workers: int = 0
-    shuffle_pool: int = 4096  # rows held per source for in-memory shuffling
-    read_batch_size: int = 256  # rows per ``IterableDataset.iter`` read
-    context_length: int | None = None  # L ≤ N, random windows of length L when L < N; None: the whole horizon N
-    train_batches_per_epoch: int | None = None  # None: one endless epoch (use max_steps); else equal per rank
+    batch_size: int = setting(64, ge=1)
+    eval_batch_size: int | None = setting(None, ge=1)  # default: batch_size
+    num_workers: int = setting(0, ge=0)
+    shuffle_pool: int = setting(4096, ge=1)  # rows held per source for in-memory shuffling
+    read_batch_size: int = setting(256, ge=1)  # rows per ``IterableDataset.iter`` read
+    # L ≤ N, random windows of length L when L < N; None: the whole horizon N
+    context_length: int | None = setting(None, ge=1)
+    # None: one endless epoch (use max_steps); else equal per rank
+    train_batches_per_epoch: int | None = setting(None, ge=1)
     verify_checksums: bool = True  # sha256 of every open-loop shard against its manifest at setup
-    seed: int = 0
+    seed: int = setting(0, ge=0)

@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from ttompc.config import from_container, to_container
 from ttompc.data.config import DataConfig
 from ttompc.data.distributed import rank_info
-from ttompc.data.generate import open_loop_manifests
+from ttompc.data.manifests import open_loop_manifests
 from ttompc.data.schema import SOURCE_CODES
 from ttompc.data.shards import SPLITS, ShardError, verify_shard
 from ttompc.policy.stats import NormStats

@@ -27,12 +27,14 @@ from typing import Any
 
 import numpy as np
 
-from ttompc.config import ConfigError, to_container
-from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
+from ttompc.config import to_container
+from ttompc.data.config import GenerateConfig, SplitConfig
 from ttompc.data.distributed import RankInfo, rank_info
+from ttompc.data.manifests import MANIFEST
 from ttompc.data.resumable import META_DIR, ShardedFolder
 from ttompc.data.schema import SCHEMA_VERSION, make_row, model_costates, trajectory_features
-from ttompc.data.shards import SPLITS, ShardError, atomic_write_json
+from ttompc.data.shards import SPLITS, atomic_write_json
+from ttompc.outputs import claim_folder
 from ttompc.parallel import pool_map
 from ttompc.policy.stats import KEYS, NormStats
 from ttompc.scenarios import get_scenario, scenario_spec
@@ -41,7 +43,6 @@ from ttompc.seeding import problem_seed
 from ttompc.solvers.backends import solver_path
 from ttompc.version import code_version
 
-MANIFEST = "manifest.json"
 STAGES = ("validate", "rel", "scp")
 
 
@@ -289,12 +290,15 @@ def generate(
 
 
 def _check_folder(folder: ShardedFolder, cfg: GenerateConfig, scenario: Scenario) -> None:
-    """Refuse to mix generations: the folder's recorded fingerprint must match, and no shard may lie beyond
-    the requested problem count. Backend names match where they resolve to the same solver path: a folder made with
-    ``auto`` and no recorded solver path continues with ``backend=piqp``, which runs what that ``auto`` ran."""
+    """Refuse to write anywhere but a new folder or one of this generation (``claim_folder``: a folder without the
+    recorded fingerprint ``meta/generation.json`` must be empty), and to mix generations: the recorded fingerprint
+    must match, and no shard may lie beyond the requested problem count. Backend names match where they resolve to
+    the same solver path: a folder made with ``auto`` and no recorded solver path continues with ``backend=piqp``,
+    which runs what that ``auto`` ran."""
     out = folder.root
     fp = fingerprint(cfg, scenario)
     path = out / META_DIR / "generation.json"
+    claim_folder(out, "generate", lambda _: path.is_file())
     if path.is_file():
         stored = json.loads(path.read_text())
         stored.setdefault("solver_path", _path_before_solver_path(stored.get("backend"), scenario))
@@ -378,72 +382,3 @@ def finalize(cfg: GenerateConfig) -> dict[str, Any]:
     atomic_write_json(out / MANIFEST, manifest)
     write_card(out, manifest, copy_dir=cfg.card_dir)
     return manifest
-
-
-def load_manifest(root: str | Path) -> dict[str, Any]:
-    path = Path(root) / MANIFEST
-    if not path.is_file():
-        raise ShardError(f"{path} not found: not a finalised dataset (run `ttompc generate ... --finalize`)")
-    return json.loads(path.read_text())
-
-
-def open_loop_manifests(cfg: DataConfig) -> list[dict[str, Any]]:
-    """The manifests of ``cfg.paths``, checked against each other and against the recipe before anything trains on
-    them: one scenario and horizon in every folder, the recipe's ``data.scenario`` when it names one, and a
-    ``data.context_length`` within the horizon. Raises ``ConfigError`` (one line, naming the folders)."""
-    manifests = [load_manifest(p) for p in cfg.paths]
-    first = manifests[0]["scenario"]
-    name, steps = first["name"], first["n_steps"]
-    for path, manifest in zip(cfg.paths[1:], manifests[1:], strict=True):
-        other = manifest["scenario"]
-        if (other["name"], other["n_steps"]) != (name, steps):
-            raise ConfigError(
-                f"data.paths mixes scenarios: {cfg.paths[0]} holds {name} trajectories of {steps} steps, {path} "
-                f"{other['name']} trajectories of {other['n_steps']} steps",
-                "train on datasets of one scenario",
-            )
-    if cfg.scenario is not None and cfg.scenario != name:
-        raise ConfigError(
-            f"the recipe is for {cfg.scenario} (data.scenario) but {cfg.paths[0]} holds {name} trajectories",
-            f"train a recipe of recipes/{name}/ on it, or point data.paths at {cfg.scenario} data",
-        )
-    if cfg.context_length is not None and not 1 <= cfg.context_length <= steps:
-        raise ConfigError(
-            f"data.context_length={cfg.context_length} does not fit the {steps}-step {name} trajectories of "
-            f"{cfg.paths[0]}",
-            f"set data.context_length within [1, {steps}]",
-        )
-    return manifests
-
-
-def check_datasets(cfg: DataConfig) -> list[dict[str, Any]]:
-    """Every dataset folder of ``cfg`` exists, is a finished ``ttompc generate`` dataset and fits the recipe
-    (``open_loop_manifests``): checked from the manifests alone (no shard is read), before a command creates,
-    imports or computes anything. Returns the manifests of ``cfg.paths``; raises ``ConfigError`` (one line naming the
-    folder and what to do)."""
-    paths, dagger_dirs = cfg.paths, cfg.dagger_dirs
-    if not paths and not dagger_dirs:
-        raise ConfigError(
-            "no training data: data.paths is empty (the recipe leaves it to the command line)",
-            "pass data.paths=[FOLDER], a dataset written by `ttompc generate`",
-        )
-    for key, folders in (("data.paths", paths), ("data.dagger_dirs", dagger_dirs)):
-        missing = [p for p in folders if not Path(p).is_dir()]
-        if missing:
-            raise ConfigError(
-                f"{key}: dataset folder {missing[0]} does not exist",
-                f"make it with `ttompc generate out={missing[0]} ...` or point {key}=[...] at existing folders",
-            )
-    for folder in map(Path, paths):
-        if (folder / MANIFEST).is_file():
-            continue
-        if (folder / META_DIR).is_dir():
-            raise ConfigError(
-                f"data.paths: the generation of {folder} is not finished (no {MANIFEST})",
-                "re-run the same `ttompc generate` command (add --finalize once every rank's shards exist)",
-            )
-        raise ConfigError(
-            f"data.paths: {folder} is not a dataset made by `ttompc generate` (no {MANIFEST})",
-            "point data.paths=[...] at a folder written by `ttompc generate`",
-        )
-    return open_loop_manifests(cfg) if paths else []

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 from ttompc.mpc.loop import MPCRun
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.settings import MPCSettings, protocol_settings
+from ttompc.ranges import Checked, setting
 
 if TYPE_CHECKING:
     from ttompc.evaluation.problems import EvalProblem
@@ -28,31 +29,30 @@ PLANTS = ("nominal", "perturbed")
 
 
 @dataclass
-class Measurement:
+class Measurement(Checked):
     """A closed-loop measurement (module doc); ``__post_init__`` checks it and resolves its settings."""
 
     protocol: str = "paper"  # MPC settings: a preset (paper, zoo, recommended; ttompc/mpc/presets) or a YAML file
     mpc: dict[str, Any] = field(default_factory=dict)  # single MPCSettings keys over the protocol's, e.g. mpc.mode=hard
-    problems: int = 20  # held-out problems whose REL solution violates a keep-out zone
-    seed: int = 0  # root seed of the evaluation stream (disjoint from data generation and DAgger rollouts)
-    horizons: list[int] = field(default_factory=lambda: [10])  # planning horizons H
-    plants: list[str] = field(default_factory=lambda: ["nominal"])  # nominal: the exact dynamics; perturbed: below
+    problems: int = setting(20, ge=1)  # held-out problems whose REL solution violates a keep-out zone
+    # root seed of the evaluation stream (disjoint from data generation and DAgger rollouts)
+    seed: int = setting(0, ge=0)
+    horizons: list[int] = setting(factory=lambda: [10], ge=1, nonempty=True, unique=True)  # planning horizons H
+    # nominal: the exact dynamics; perturbed: below
+    plants: list[str] = setting(factory=lambda: ["nominal"], nonempty=True, unique=True)
     # the perturbed plant's disturbances; None: the scenario's own (Scenario.perturbation)
     plant: PlantNoise = field(default_factory=lambda: PlantNoise(None, None, None))
-    max_steps: int | None = None  # MPC steps per episode (None: whole episodes; fewer: smoke runs)
+    max_steps: int | None = setting(None, ge=1)  # MPC steps per episode (None: whole episodes; fewer: smoke runs)
     # the target blend of the one model method that the callback and DAgger run (rollouts and keep/reject): 0 runs
     # TTO-MPC (the paper's target), > 0 R-TTO-MPC (the robust target that the zoo's headlines report); ``ttompc
     # evaluate mpc`` runs both, the robust ones with this blend
-    robust_blend: float = 0.0
+    robust_blend: float = setting(0.0, ge=0, lt=1)
 
     def __post_init__(self) -> None:
-        if self.problems < 1 or not self.horizons or min(self.horizons) < 1:
-            raise ValueError(f"problems and horizons must be positive, got {self.problems}, {self.horizons}")
-        if not 0.0 <= self.robust_blend < 1.0:
-            raise ValueError(f"robust_blend must be in [0, 1), got {self.robust_blend}")
+        super().__post_init__()
         bad = [p for p in self.plants if p not in PLANTS]
-        if bad or not self.plants:
-            raise ValueError(f"plants must be a non-empty subset of {list(PLANTS)}, got {self.plants}")
+        if bad:
+            raise ValueError(f"invalid plants={self.plants}: each must be one of {list(PLANTS)}")
         self._settings = protocol_settings(self.protocol, self.mpc)  # raises ConfigError naming what does not fit
 
     @property

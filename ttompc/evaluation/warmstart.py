@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,6 +38,7 @@ from ttompc.evaluation.stats import format_interval, interval
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
+from ttompc.ranges import Checked, setting
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario, Window
 from ttompc.seeding import rng
@@ -54,26 +55,30 @@ DETOUR_SIZE = 0.3  # detour amplitude in units of the scenario's state_scale
 
 
 @dataclass
-class WarmStartConfig:
+class WarmStartConfig(Checked):
     """``ttompc evaluate warmstart`` settings (``key=value`` on the command line)."""
 
     model: str | None = None  # TTO model: zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt
     ft_model: str | None = None  # FT-TTO model, same forms
     scenario: str | None = None  # default: the model's scenario
-    problems: int = 100
-    seed: int = 0  # root seed of the held-out evaluation stream
+    problems: int = setting(100, ge=1)
+    seed: int = setting(0, ge=0)  # root seed of the held-out evaluation stream
     nonconvex_only: bool = True  # keep problems whose REL solution violates a keep-out zone
-    rtg_scale: float | None = None  # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale)
-    oracle_detours: int = 4  # random detours tried by the oracle (besides REL, models and the straight line)
-    workers: int = 0  # processes; 0 = one per CPU core
-    thresholds: list[float] = field(default_factory=lambda: [round(0.1 * i, 1) for i in range(10)])
+    # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale); its range: check_rtg_scale
+    rtg_scale: float | None = setting(None)
+    # random detours tried by the oracle (besides REL, models and the straight line)
+    oracle_detours: int = setting(4, ge=0)
+    workers: int = setting(0, ge=0, meaning="0: one per CPU core")  # processes
+    # suboptimality thresholds of the improvement curve
+    thresholds: list[float] = setting(
+        factory=lambda: [round(0.1 * i, 1) for i in range(10)], ge=0, nonempty=True, unique=True
+    )
     backend: str = "auto"
-    device: str = "cpu"
+    device: str = setting("cpu", device="torch")
     out: str = ""  # default: outputs/evaluate/warmstart-<scenario>
 
     def __post_init__(self) -> None:
-        if self.problems < 1 or self.oracle_detours < 0 or self.workers < 0:
-            raise ValueError("problems must be >= 1, oracle_detours and workers >= 0")
+        super().__post_init__()
         if self.rtg_scale is not None:
             check_rtg_scale(self.rtg_scale)
 

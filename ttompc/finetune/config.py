@@ -29,6 +29,7 @@ from ttompc.evaluation.measurement import Measurement
 from ttompc.mpc.rtg import RTG_MODES
 from ttompc.mpc.settings import MPCSettings
 from ttompc.mpc.terminal import TERMINALS
+from ttompc.ranges import Checked, setting
 from ttompc.training.config import CallbacksConfig, LoggerConfig, OptimConfig, TrainerConfig
 
 DAGGER_OWNED = ("max_steps", "max_epochs", "keep_checkpoints", "resume", "export_planner")  # trainer keys DAgger sets
@@ -37,27 +38,26 @@ MEASURED_ONCE = ("callbacks.eval_mpc.protocol", "callbacks.eval_mpc.robust_blend
 
 
 @dataclass
-class ExplorationConfig:
+class ExplorationConfig(Checked):
     """Exploration policy of a rollout (paper Alg. 1, §IV-C): the learner is TTO-MPC with H drawn
     uniformly from ``horizons``; the expert acts inside ``windows`` = U{min..max} windows of U{min..max} steps,
     one of them covering the end of the episode when ``end_window``."""
 
-    horizons: list[int] = field(default_factory=lambda: list(range(10, 101, 10)))
-    windows: list[int] = field(default_factory=lambda: [1, 3])
-    window_length: list[int] = field(default_factory=lambda: [15, 25])
+    horizons: list[int] = setting(factory=lambda: list(range(10, 101, 10)), ge=1, nonempty=True, unique=True)
+    windows: list[int] = setting(factory=lambda: [1, 3], ge=0)
+    window_length: list[int] = setting(factory=lambda: [15, 25], ge=0)
     end_window: bool = True
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         for name in ("windows", "window_length"):
             lo_hi = getattr(self, name)
-            if len(lo_hi) != 2 or lo_hi[0] > lo_hi[1] or lo_hi[0] < 0:
+            if len(lo_hi) != 2 or lo_hi[0] > lo_hi[1]:
                 raise ValueError(f"dagger.exploration.{name} must be [min, max] with 0 <= min <= max, got {lo_hi}")
-        if not self.horizons or min(self.horizons) < 1:
-            raise ValueError(f"dagger.exploration.horizons must be positive, got {self.horizons}")
 
 
 @dataclass
-class LabelConfig:
+class LabelConfig(Checked):
     """Which visited states get an expert label, and what a label is (``ttompc.finetune.collect``).
 
     ``per_rollout``: labelled visited steps per rollout, drawn without replacement (0: every step, the paper); steps
@@ -71,40 +71,29 @@ class LabelConfig:
     stage costs) or ``expert`` (the plan's own cost-to-go, as open-loop rows carry; measured in docs/scaling.md)."""
 
     kind: Literal["step", "plan"] = "step"
-    per_rollout: int = 0
+    per_rollout: int = setting(0, ge=0, meaning="0: every step")
     rtg: Literal["learner", "expert"] = "learner"
-    late: float = 0.0
+    late: float = setting(0.0, ge=0, meaning="0: uniform")
 
     def __post_init__(self) -> None:
-        if self.late < 0:
-            raise ValueError(f"dagger.labels.late must be >= 0 (0: uniform), got {self.late}")
+        super().__post_init__()
         if self.kind not in ("step", "plan"):
             raise ValueError(f"dagger.labels.kind must be 'step' or 'plan', got {self.kind!r}")
-        if self.per_rollout < 0:
-            raise ValueError(f"dagger.labels.per_rollout must be >= 0 (0: every step), got {self.per_rollout}")
         if self.rtg not in ("learner", "expert"):
             raise ValueError(f"dagger.labels.rtg must be 'learner' or 'expert', got {self.rtg!r}")
 
 
 @dataclass
-class CollectConfig:
-    rollouts: int = 2000  # closed-loop rollouts per iteration (all ranks together)
-    workers: int = 0  # processes per rank (spawn pool); 0 = all cores
-    shard_size: int = 50  # rollouts per shard (the unit of resumption and of the rank split)
-    batch: int = 10  # rollouts a worker runs in lockstep (one batched transformer rollout per step for all)
-    val_fraction: float = 0.1  # share of rollouts written to the DAgger val split (by rollout index hash)
+class CollectConfig(Checked):
+    rollouts: int = setting(2000, ge=1)  # closed-loop rollouts per iteration (all ranks together)
+    workers: int = setting(0, ge=0, meaning="0: all cores")  # processes per rank (spawn pool)
+    shard_size: int = setting(50, ge=1)  # rollouts per shard (the unit of resumption and of the rank split)
+    batch: int = setting(10, ge=1)  # rollouts a worker runs in lockstep (one batched transformer rollout per step)
+    val_fraction: float = setting(0.1, ge=0, lt=1)  # share of rollouts written to the DAgger val split (by hash)
     # share of rollouts run on the evaluations' perturbed plant (``PlantNoise.perturbed``), each drawn from its own
     # seed: the disturbed states are where re-planning from the measured state fails; 0 = the exact plant (paper)
-    perturbed: float = 0.0
-    wait_s: float = 3600.0  # multi-rank: how long to wait for other ranks' shards and rank 0's decisions
-
-    def __post_init__(self) -> None:
-        if self.rollouts < 1 or self.shard_size < 1 or self.batch < 1:
-            raise ValueError("dagger.collect.rollouts, dagger.collect.shard_size and dagger.collect.batch must be >= 1")
-        if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"dagger.collect.val_fraction must be in [0, 1), got {self.val_fraction}")
-        if not 0.0 <= self.perturbed <= 1.0:
-            raise ValueError(f"dagger.collect.perturbed must be in [0, 1], got {self.perturbed}")
+    perturbed: float = setting(0.0, ge=0, le=1)
+    wait_s: float = setting(3600.0, ge=0)  # multi-rank: how long to wait for other ranks' shards and rank 0's decisions
 
 
 # MPCSettings values DAgger's rollouts cannot run (``check_rollout_settings``), each with why: the value they run
@@ -138,10 +127,10 @@ def check_rollout_settings(settings: MPCSettings) -> None:
 
 
 @dataclass
-class DaggerConfig:
-    iterations: int = 10
-    seed: int = 0  # root seed: rollout (i, r) uses SeedSequence(seed, spawn_key=(stream, i, r))
-    steps_per_iteration: int = 3000
+class DaggerConfig(Checked):
+    iterations: int = setting(10, ge=1)
+    seed: int = setting(0, ge=0)  # root seed: rollout (i, r) uses SeedSequence(seed, spawn_key=(stream, i, r))
+    steps_per_iteration: int = setting(3000, ge=1)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     labels: LabelConfig = field(default_factory=LabelConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
@@ -152,8 +141,7 @@ class DaggerConfig:
     eval: Measurement = field(default_factory=lambda: Measurement(problems=4))
 
     def __post_init__(self) -> None:
-        if self.iterations < 1 or self.steps_per_iteration < 1:
-            raise ValueError("dagger.iterations and dagger.steps_per_iteration must be >= 1")
+        super().__post_init__()
         self.eval.check_single("dagger.eval")
         check_rollout_settings(self.eval.settings)
 

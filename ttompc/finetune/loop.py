@@ -167,10 +167,10 @@ def check_inputs(cfg: FinetuneConfig, planner: Planner, source: str) -> None:
     """Whether ``cfg`` can fine-tune ``planner`` (loaded from ``source``), decided from the recipe, the model and the
     datasets' manifests alone (no shard is read), so that a mismatch costs seconds, not a measurement and a
     collection: the recipe's scenario (``data.scenario``, when set) is the model's; every ``data.paths`` folder
-    exists, is a finished dataset that fits the recipe (``ttompc.data.generate.check_datasets``) and holds the
+    exists, is a finished dataset that fits the recipe (``ttompc.data.manifests.check_datasets``) and holds the
     model's scenario with its normalisation statistics (the data it was trained on); the labels suit its outputs
     (``check_value_labels``). Raises a ``UserError`` (one line naming the mismatch and what to do)."""
-    from ttompc.data.generate import check_datasets
+    from ttompc.data.manifests import check_datasets
     from ttompc.policy.stats import NormStats
 
     model = planner.scenario.name

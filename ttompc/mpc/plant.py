@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ttompc.ranges import check_settings, setting
 from ttompc.scenarios.base import Problem, Scenario
 
 PLANT_STREAM = 0x706C616E  # "plan(t)": seeds of plant disturbances, disjoint from problem seeds
@@ -41,15 +42,12 @@ class PlantNoise:
     """Magnitudes of the plant disturbances, relative to the scenario's state/control scales (see module doc); a
     None component is the scenario's own (``Scenario.perturbation``), filled in by ``resolve``."""
 
-    gain_std: float | None = 0.0
-    actuation_std: float | None = 0.0
-    process_std: float | None = 0.0
+    gain_std: float | None = setting(0.0, ge=0, meaning="null: the scenario's own")
+    actuation_std: float | None = setting(0.0, ge=0, meaning="null: the scenario's own")
+    process_std: float | None = setting(0.0, ge=0, meaning="null: the scenario's own")
 
     def __post_init__(self) -> None:
-        for name in ("gain_std", "actuation_std", "process_std"):
-            value = getattr(self, name)
-            if value is not None and not value >= 0:
-                raise ValueError(f"PlantNoise.{name} must be >= 0, got {value}")
+        check_settings(self, recurse=False)  # frozen: it cannot derive from ``Checked``
 
     def stds(self, scenario: Scenario) -> tuple[float, float, float]:
         """(gain_std, actuation_std, process_std), every None component the scenario's own."""

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from ttompc.mpc.rtg import RTG_MODES
 from ttompc.mpc.terminal import TERMINALS
 from ttompc.policy.config import DECODERS
+from ttompc.ranges import Checked, setting
 
 if TYPE_CHECKING:
     from ttompc.scenarios.base import Scenario
@@ -39,7 +40,7 @@ RTI_SCOPES: tuple[bool | str, ...] = (False, True, "model")
 
 
 @dataclass
-class MPCSettings:
+class MPCSettings(Checked):
     """The settings of a closed-loop run (``ttompc.mpc.loop`` documents each behaviour).
 
     ``mode``: soft (all paper analyses) or hard end condition. ``end_horizon``: windows run to N once
@@ -60,23 +61,20 @@ class MPCSettings:
     "auto" (fused where it can, else torch with a warning)."""
 
     mode: Mode = "soft"
-    end_horizon: int = 0
-    track: float | None = None
+    end_horizon: int = setting(0, ge=0, meaning="0: the paper's fixed H")
+    track: float | None = setting(None, gt=0)
     terminal: str = "target"
     rtg_mode: str = "running"
     reuse: bool = True
     rti: bool | str | None = False  # False, True or "model" (RTI_SCOPES); None: the scenario's mpc.rti
-    decode_every: int = 1
+    decode_every: int = setting(1, ge=1, meaning="1: a decode at every step")
     backend: str = "auto"
     decoder: str = "torch"
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.mode not in ("soft", "hard"):
             raise ValueError(f"mode must be 'soft' or 'hard', got {self.mode!r}")
-        if self.end_horizon < 0:
-            raise ValueError(f"end_horizon must be >= 0, got {self.end_horizon}")
-        if self.track is not None and not self.track > 0:
-            raise ValueError(f"track must be > 0 or null, got {self.track}")
         if self.terminal not in TERMINALS:
             raise ValueError(f"terminal must be one of {list(TERMINALS)}, got {self.terminal!r}")
         if self.rtg_mode not in RTG_MODES:
@@ -85,11 +83,6 @@ class MPCSettings:
             raise ValueError(f"rti must be one of {RTI_SCOPES}, got {self.rti!r}")
         if self.decoder not in DECODERS:
             raise ValueError(f"decoder must be one of {list(DECODERS)}, got {self.decoder!r}")
-        if self.decode_every < 1:
-            raise ValueError(
-                f"decode_every must be >= 1 (TTO-MPC decodes a plan every k MPC steps; 1: at every step), got "
-                f"{self.decode_every}"
-            )
 
     def rti_scope(self, scenario: Scenario) -> bool | str:
         """The real-time-iteration scope on ``scenario``: ``rti``, or the scenario's ``mpc.rti`` where it is None."""

@@ -270,6 +270,8 @@ class Planner:
             "pass a zoo model name (see `ttompc zoo list`), hf://ORG/NAME[@REVISION], a bundle folder or a "
             "Lightning .ckpt file"
         )
+        if not isinstance(source, (str, Path)) or not str(source):
+            raise BundleError(f"no model named by {source!r}", forms)
         if is_hub_ref(source):
             path, meta = download_model(str(source), progress=progress)  # verified and checked like a bundle
             return cls._from_bundle(path, meta, scenario, device=device, check_version=check_version)

@@ -73,7 +73,11 @@ def list_scenarios() -> list[str]:
 
 def get_scenario(spec: str) -> Scenario:
     """The (stateless, shared) instance of the scenario ``spec`` names (see the module docstring); raises
-    ``ScenarioNotFoundError`` naming what is missing."""
+    ``ScenarioNotFoundError`` naming what is missing (also for a ``spec`` that is not a string)."""
+    if not isinstance(spec, str):
+        raise ScenarioNotFoundError(
+            f"unknown scenario {spec!r}", f"choose one of: {', '.join(list_scenarios())}, {_FORMS}"
+        )
     name = spec if spec in _REGISTRY else _LOADED.get(spec) or _load(spec)
     if name not in _INSTANCES:
         _INSTANCES[name] = _REGISTRY[name]()

@@ -18,6 +18,7 @@ from ttompc.config import ConfigError, given_keys, load_command_config
 from ttompc.data.config import DataConfig
 from ttompc.evaluation.measurement import Measurement
 from ttompc.policy.config import ModelConfig
+from ttompc.ranges import Checked, setting
 
 # what ``lightning.Trainer(precision=...)`` accepts (checked when the recipe loads, not when training starts)
 LightningPrecision = Literal[
@@ -29,61 +30,62 @@ Precision = Literal["auto", LightningPrecision]
 
 
 @dataclass
-class OptimConfig:
+class OptimConfig(Checked):
     """AdamW with linear warm-up, then a constant or cosine learning rate (per optimiser step)."""
 
-    lr: float = 3e-4
-    weight_decay: float = 0.01  # applied to matrices and embeddings only, not to biases and norms
-    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
-    warmup_steps: int = 100
+    lr: float = setting(3e-4, gt=0)
+    weight_decay: float = setting(0.01, ge=0)  # applied to matrices and embeddings only, not to biases and norms
+    betas: list[float] = setting(factory=lambda: [0.9, 0.999], ge=0, lt=1)
+    warmup_steps: int = setting(100, ge=0)
     schedule: Literal["constant", "cosine"] = "constant"
-    min_lr_ratio: float = 0.1  # cosine floor as a fraction of lr
-    grad_clip: float = 1.0  # global-norm clipping (0 = off)
-    accumulate: int = 1  # micro-batches per optimiser step
+    min_lr_ratio: float = setting(0.1, ge=0, le=1)  # cosine floor as a fraction of lr
+    grad_clip: float = setting(1.0, ge=0, meaning="0: off")  # global-norm clipping
+    accumulate: int = setting(1, ge=1)  # micro-batches per optimiser step
     # training loss: None = MSE (the paper); a number = Huber beyond that many normalised units (docs/training.md)
-    huber_delta: float | None = None
+    huber_delta: float | None = setting(None, gt=0)
     # "all", or "value": train the value output alone on a frozen policy (adds a value to a published model without
     # changing its plans; the transformer is not run)
     trainable: Literal["all", "value"] = "all"
     # the value loss weighs steps with at most ``value_tail_steps`` steps to go (N = model.max_steps) by
     # ``value_tail_weight``: where a short MPC window's terminal cost reads the value (0: every step alike)
-    value_tail_steps: int = 0
-    value_tail_weight: float = 1.0
+    value_tail_steps: int = setting(0, ge=0)
+    value_tail_weight: float = setting(1.0, gt=0)
     # a Sobolev term: the weight of the value's gradient error against the rows' costates (0: the value alone)
-    value_grad_weight: float = 0.0
+    value_grad_weight: float = setting(0.0, ge=0)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.trainable not in ("all", "value"):
             raise ValueError(f"optim.trainable must be 'all' or 'value', got {self.trainable!r}")
         if len(self.betas) != 2:
-            raise ValueError(f"optim.betas needs two values, got {self.betas}")
-        if self.lr <= 0 or self.warmup_steps < 0 or self.accumulate < 1:
-            raise ValueError("optim.lr must be > 0, optim.warmup_steps >= 0 and optim.accumulate >= 1")
-        if self.value_tail_steps < 0 or not self.value_tail_weight > 0 or self.value_grad_weight < 0:
-            raise ValueError("optim.value_tail_steps and value_grad_weight must be >= 0, value_tail_weight > 0")
-        if self.huber_delta is not None and not self.huber_delta > 0:
-            raise ValueError(f"optim.huber_delta must be > 0 or null, got {self.huber_delta}")
+            raise ValueError(f"invalid optim.betas={self.betas}: needs two values")
 
 
 @dataclass
-class TrainerConfig:
-    max_steps: int = 100_000  # optimiser steps (-1: until max_epochs)
-    max_epochs: int | None = None
-    val_check_interval: float = 1.0  # <= 1: fraction of an epoch; > 1: every that many training batches
-    limit_val_batches: float = 1.0  # <= 1: fraction; > 1: number of batches
-    checkpoint_every_n_steps: int = 1000  # refreshes last.ckpt and writes step<N>.ckpt
-    keep_checkpoints: int = 3  # most recent step<N>.ckpt files kept (-1: all)
-    log_every_n_steps: int = 50
-    devices: int = 1
-    num_nodes: int = 1
-    accelerator: str = "auto"
+class TrainerConfig(Checked):
+    max_steps: int = setting(100_000, ge=1, also=(-1,), meaning="-1: until max_epochs")  # optimiser steps
+    max_epochs: int | None = setting(None, ge=1)
+    # <= 1: fraction of an epoch; > 1: every that many training batches
+    val_check_interval: float = setting(1.0, gt=0)
+    limit_val_batches: float = setting(1.0, ge=0, meaning="<= 1: a fraction; > 1: a number of batches; 0: none")
+    checkpoint_every_n_steps: int = setting(1000, ge=1)  # refreshes last.ckpt and writes step<N>.ckpt
+    keep_checkpoints: int = setting(3, ge=0, also=(-1,), meaning="-1: all")  # most recent step<N>.ckpt files kept
+    log_every_n_steps: int = setting(50, ge=1)
+    devices: int = setting(1, ge=1, also=(-1,), meaning="-1: all")
+    num_nodes: int = setting(1, ge=1)
+    accelerator: str = setting("auto", device="lightning")
     strategy: str = "auto"  # e.g. ddp, ddp_spawn, fsdp
     precision: Precision = "auto"  # resolved when the Trainer is built; the checkpoint records what ran
-    num_sanity_val_steps: int = 0
-    seed: int = 0
+    num_sanity_val_steps: int = setting(0, ge=0, also=(-1,), meaning="-1: all")
+    seed: int = setting(0, ge=0, le=2**32 - 1)
     out_dir: str = "runs/freeflyer-pretrain"
     resume: bool = True  # continue from <out_dir>/checkpoints/last.ckpt when it exists
     export_planner: bool = True  # write <out_dir>/planner/ after training
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.max_steps == -1 and self.max_epochs is None:
+            raise ValueError("invalid trainer.max_steps=-1: it trains until trainer.max_epochs, which is null")
 
 
 @dataclass
@@ -115,15 +117,13 @@ class EvalMPCConfig(Measurement):
     step-based validation of endless epochs works). Its protocol is checked when the recipe loads, not mid-training.
     """
 
-    problems: int = 8
+    problems: int = setting(8, ge=1)
     enabled: bool = False
-    every_n_val: int = 1
+    every_n_val: int = setting(1, ge=1)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         self.check_single("callbacks.eval_mpc")
-        if self.every_n_val < 1:
-            raise ValueError(f"callbacks.eval_mpc.every_n_val must be >= 1, got {self.every_n_val}")
 
 
 @dataclass
@@ -167,7 +167,7 @@ def _data_horizon(paths: Sequence[str]) -> int | None:
     """N of the first dataset's scenario, or None when it has no readable manifest (``train`` reports that)."""
     if not paths or not Path(paths[0]).is_dir():
         return None
-    from ttompc.data.generate import MANIFEST
+    from ttompc.data.manifests import MANIFEST
 
     try:
         return int(json.loads((Path(paths[0]) / MANIFEST).read_text())["scenario"]["n_steps"])

@@ -60,7 +60,12 @@ def _card_paths(zoo_dir: str | Path | None) -> list[Path]:
 
 
 def load_cards(zoo_dir: str | Path | None = None) -> dict[str, ModelCard]:
-    """All cards of the zoo with their evaluations, by name (sorted)."""
+    """All cards of the zoo with their evaluations, by name (sorted); a zoo folder that does not exist (a
+    ``$TTOMPC_ZOO`` or ``zoo_dir`` that points at nothing) is a ``UserError``, not an empty zoo."""
+    folder = zoo_path(zoo_dir)
+    if not folder.is_dir():
+        via = "$TTOMPC_ZOO" if zoo_dir is None and os.environ.get("TTOMPC_ZOO") else "the zoo folder"
+        raise UserError(f"no zoo at {folder} ({via} does not exist)", "point it at a folder of model cards")
     return {card.name: card for card in map(load_card, _card_paths(zoo_dir))}
 
 
