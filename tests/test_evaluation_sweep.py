@@ -19,6 +19,7 @@ from ttompc.evaluation.episode_store import EPISODES_FILE, EpisodeStore
 from ttompc.evaluation.equal_cost import equal_cost, format_equal_cost
 from ttompc.evaluation.measurement import Measurement
 from ttompc.mpc.methods import methods_for
+from ttompc.scenarios import get_scenario
 
 SHORT = mpc_fakes.FreeFlyerShort.name
 
@@ -91,6 +92,11 @@ def test_an_interrupted_sweep_resumes_to_the_uninterrupted_report(
     first = list(fake_episodes["calls"])
     assert not (parts / "mpc.json").exists()  # no report until the sweep is whole
     assert len((parts / EPISODES_FILE).read_text().splitlines()) == sum(len(p) for p, _, _ in first) * 4
+    cfg = _config(parts)  # the progress bar starts at the episodes of the 5 stored tasks: 2 problems x 4 methods each
+    todo, done = closed_loop._pending(
+        cfg, EpisodeStore.open(parts, closed_loop.sweep_fingerprint(cfg, get_scenario(SHORT)))
+    )
+    assert (len(todo), done) == (12 - 5, 5 * 2 * 4)
     fake_episodes["calls"].clear()
     fake_episodes["stop_after"] = None
     run_closed_loop(_config(parts))
