@@ -1,0 +1,326 @@
+"""Bad input, as a user types it: every case runs through the real CLI (``ttompc.cli.main`` in a subprocess,
+``tests/cli_batch.py``, many cases per interpreter) and must end in exit code 2 with one line on stderr naming the
+problem, no traceback, and no file created, changed or removed.
+
+Two tables: the cases of issue 58 (each once a traceback, a silent acceptance or a wrong report), and cases generated
+from the command schemas (every numeric setting at 0, -1 and a huge value, every list empty, every path missing, a
+file, a read-only folder), whose verdicts must match the ranges the schemas declare (``ttompc.ranges``). The
+generated settings cases go through ``--print-config``, which exits before any work once the settings load.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import typing
+from dataclasses import fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from cli_batch import read_only_folder
+
+from ttompc.commands.check_scenario import CheckConfig
+from ttompc.commands.demo import DemoConfig
+from ttompc.commands.solve import SolveConfig
+from ttompc.data.config import GenerateConfig
+from ttompc.evaluation.closed_loop import ClosedLoopConfig
+from ttompc.evaluation.warmstart import WarmStartConfig
+from ttompc.finetune.config import FinetuneConfig
+from ttompc.mpc.settings import MPCSettings
+from ttompc.ranges import ALLOWED, Allowed
+from ttompc.training.config import TrainConfig
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = str(REPO / "recipes/freeflyer/tiny.yaml")
+QUAD_TINY = str(REPO / "recipes/quadrotor/tiny.yaml")
+FINETUNE = str(REPO / "recipes/freeflyer/finetune.yaml")
+SMALL_SPLITS = ["problems=2", "splits.train=1", "splits.val=0", "splits.test=0"]
+# the command line of each schema, up to its settings
+SCHEMAS: dict[str, tuple[type, list[str]]] = {
+    "solve": (SolveConfig, ["solve"]),
+    "generate": (GenerateConfig, ["generate"]),
+    "train": (TrainConfig, ["train", TINY]),
+    "finetune": (FinetuneConfig, ["finetune", FINETUNE]),
+    "evaluate mpc": (ClosedLoopConfig, ["evaluate", "mpc"]),
+    "evaluate warmstart": (WarmStartConfig, ["evaluate", "warmstart"]),
+    "demo": (DemoConfig, ["demo"]),
+    "check-scenario": (CheckConfig, ["check-scenario", "freeflyer"]),
+}
+HUGE = {int: 10**12, float: 1e300}
+
+
+def _cuda() -> bool:
+    import torch
+
+    return bool(torch.cuda.is_available())
+
+
+# (id, argv, what the line must say); {name} is a path of the fixture ``world``
+LISTED: list[tuple[str, list[str], list[str]]] = [
+    # a wrong model, silently: free-flyer weights resumed on quadrotor data; another architecture's checkpoints
+    ("train-resumes-another-scenario", ["train", QUAD_TINY, "data.paths=[{quad}]", "trainer.out_dir={ff_run}"],
+     ["holds checkpoints of another run", "scenario freeflyer there, quadrotor here", "trainer.resume=false"]),
+    ("train-resumes-another-architecture", ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={wide_run}"],
+     ["holds checkpoints of another run", "model.n_embd=512 there"]),
+    ("train-into-a-users-folder", ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={user}"],
+     ["{user} holds files that `ttompc train` did not write (README.md, manifest.json)"]),
+    # data loss: generate into a user's folder, or into an evaluation report
+    ("generate-into-a-users-folder", ["generate", *SMALL_SPLITS, "out={user}"],
+     ["{user} holds files that `ttompc generate` did not write (README.md, manifest.json)"]),
+    ("generate-into-a-report", ["generate", *SMALL_SPLITS, "out={report}"],
+     ["holds files that `ttompc generate` did not write", "mpc.json"]),
+    ("mpc-max-steps-0", ["evaluate", "mpc", "--scenario", "freeflyer", "max_steps=0"],
+     ["invalid max_steps=0: must be >= 1"]),
+    ("mpc-max-steps-negative", ["evaluate", "mpc", "--scenario", "freeflyer", "max_steps=-1"],
+     ["invalid max_steps=-1: must be >= 1"]),
+    # damaged manifests
+    ("train-truncated-manifest", ["train", TINY, "data.paths=[{truncated}]", "trainer.out_dir=run"],
+     ["manifest.json is damaged (not JSON"]),
+    ("train-manifest-without-scenario", ["train", TINY, "data.paths=[{no_scenario}]", "trainer.out_dir=run"],
+     ["manifest.json is incomplete: it names no scenario"]),
+    ("finetune-truncated-manifest", ["finetune", FINETUNE, "--model", "m", "data.paths=[{truncated}]"],
+     ["manifest.json is damaged (not JSON"]),
+    ("finetune-manifest-without-scenario", ["finetune", FINETUNE, "--model", "m", "data.paths=[{no_scenario}]"],
+     ["manifest.json is incomplete"]),
+    # an unbalanced bracket in key=value, in every command
+    *[(f"unbalanced-bracket-{'-'.join(argv[:2])}", [*argv, "seed=[10,"],
+       ["cannot parse seed=[10,: its value is not valid YAML"])
+      for argv in (["solve"], ["generate"], ["train", TINY], ["finetune", FINETUNE], ["evaluate", "mpc"],
+                   ["evaluate", "warmstart"], ["demo"], ["check-scenario", "freeflyer"])],
+    ("recipe-with-unbalanced-bracket", ["generate", "{bad_yaml}"], ["is not valid YAML", "at line 3"]),
+    ("recipe-that-is-a-list", ["generate", "{list_yaml}"], ["holds a YAML list, not settings"]),
+    ("recipe-that-is-a-folder", ["generate", "{user}"], ["is a folder"]),
+    ("splits-that-do-not-sum-to-1", ["generate", "splits.val=0", "splits.test=0", "out=o"],
+     ["invalid splits: train + val + test must sum to 1, got 0.9 + 0 + 0 = 0.9"]),
+    ("splits-flag-that-does-not-sum-to-1", ["generate", "--splits", "0.5,0.5,0.5", "out=o"],
+     ["must sum to 1", "= 1.5"]),
+    ("trainer-max-steps-0", ["train", TINY, "trainer.max_steps=0"], ["invalid trainer.max_steps=0: must be >= 1"]),
+    ("trainer-max-steps-endless", ["train", TINY, "trainer.max_steps=-1"], ["trainer.max_epochs, which is null"]),
+    ("batch-size-0", ["train", TINY, "data.batch_size=0"], ["invalid data.batch_size=0: must be >= 1"]),
+    ("model-shorter-than-the-data", ["train", TINY, "data.paths=[{ff}]", "model.max_steps=10", "trainer.out_dir=r"],
+     ["invalid model.max_steps=10", "100-step trajectories"]),
+    ("trainer-devices-0", ["train", TINY, "trainer.devices=0"], ["invalid trainer.devices=0"]),
+    ("val-check-interval-0", ["train", TINY, "trainer.val_check_interval=0"],
+     ["invalid trainer.val_check_interval=0.0: must be > 0"]),
+    ("solve-plot-unknown-format", ["solve", "--plot", "x.xyz"], [".xyz is not an image format", ".png"]),
+    ("solve-plot-folder", ["solve", "--plot", "{user}"], ["is a folder", "plot.png"]),
+    ("mpc-plants-repeated", ["evaluate", "mpc", "--scenario", "freeflyer", "plants=[nominal,nominal]"],
+     ["invalid plants=", "without repeats"]),
+    ("mpc-workers-negative", ["evaluate", "mpc", "--scenario", "freeflyer", "workers=-1"],
+     ["invalid workers=-1: must be >= 0"]),
+    ("generate-workers-negative", ["generate", "workers=-1"], ["invalid workers=-1: must be >= 0"]),
+    ("warmstart-thresholds-empty", ["evaluate", "warmstart", "--model", "m", "thresholds=[]"],
+     ["invalid thresholds=[]: must be a non-empty list"]),
+    ("warmstart-thresholds-negative", ["evaluate", "warmstart", "--model", "m", "thresholds=[2,-1]"],
+     ["invalid thresholds=", "each >= 0"]),
+    ("dagger-horizon-beyond-the-data", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
+                                        "dagger.exploration.horizons=[500]"],
+     ["invalid dagger.exploration.horizons=[500]", "100 steps"]),
+    ("generate-max-shards-0", ["generate", "max_shards=0"], ["invalid max_shards=0: must be >= 1"]),
+    ("zoo-that-does-not-exist", ["zoo", "list"], ["no zoo at", "$TTOMPC_ZOO does not exist"]),
+    ("mpc-device-that-does-not-exist", ["evaluate", "mpc", "--scenario", "freeflyer", "device=nosuch"],
+     ["invalid device=\"nosuch\": must be a device of this machine"]),
+    ("mpc-device-cuda-without-a-gpu", ["evaluate", "mpc", "--scenario", "freeflyer", "device=cuda"],
+     ["invalid device=\"cuda\""]),
+    ("train-accelerator-gpu-without-a-gpu", ["train", TINY, "trainer.accelerator=gpu"],
+     ["invalid trainer.accelerator=\"gpu\": must be an accelerator of this machine"]),
+]  # fmt: skip
+NEEDS_NO_GPU = {"mpc-device-cuda-without-a-gpu", "train-accelerator-gpu-without-a-gpu"}
+ENV = {"zoo-that-does-not-exist": {"TTOMPC_ZOO": "{missing}"}}
+
+
+def settings_of(schema: type, prefix: str = "") -> list[tuple[str, type, Allowed | None]]:
+    """(dotted key, value type, declared range) of every numeric or list setting of ``schema``, nested sections and
+    a measurement's ``mpc`` overrides (``MPCSettings``) included."""
+    out: list[tuple[str, type, Allowed | None]] = []
+    hints = typing.get_type_hints(schema)
+    for f in fields(schema):
+        hint = hints[f.name]
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        base = typing.get_origin(hint) or hint
+        if f.name == "mpc" and base is dict:
+            out += settings_of(MPCSettings, f"{prefix}mpc.")
+        elif is_dataclass(hint):
+            out += settings_of(hint, f"{prefix}{f.name}.")  # type: ignore[arg-type]
+        elif base is list or (len(args) == 1 and args[0] in (int, float)) or hint in (int, float):
+            kind = list if base is list else (args[0] if args else hint)
+            out.append((f"{prefix}{f.name}", kind, f.metadata.get(ALLOWED)))
+    return out
+
+
+def test_every_numeric_and_list_setting_declares_its_range() -> None:
+    """The schemas state what each number and list may be (``ttompc.ranges.setting``), so none is left unchecked."""
+    undeclared = [f"{cmd}: {key}" for cmd, (schema, _) in SCHEMAS.items()
+                  for key, _, allowed in settings_of(schema) if allowed is None]  # fmt: skip
+    assert undeclared == []
+
+
+def generated_cases() -> list[tuple[str, list[str], str, Any, Allowed]]:
+    """(id, argv, key, value, declared range): every numeric setting at 0, -1 and huge, every list empty."""
+    cases = []
+    for cmd, (schema, argv) in SCHEMAS.items():
+        for key, kind, allowed in settings_of(schema):
+            values = [[]] if kind is list else [kind(0), kind(-1), HUGE[kind]]
+            for value in values:
+                shown = json.dumps(value)
+                cases.append((f"{cmd} {key}={shown}", [*argv, f"{key}={shown}", "--print-config"], key, value, allowed))
+    return cases
+
+
+def path_cases() -> list[tuple[str, list[str], list[str]]]:
+    """Every path a command reads (missing, a file) or writes into (a file in the way, a read-only folder)."""
+    cases = []
+    cases.append(("recipe-missing", ["generate", "{missing}"], ["recipe not found"]))  # a file: an empty recipe
+    for what, bad in (("missing", "{missing}"), ("a-file", "{a_file}")):
+        cases += [
+            (f"data-paths-{what}", ["train", TINY, f"data.paths=[{bad}]", "trainer.out_dir=r"], ["data.paths"]),
+            (f"finetune-data-{what}", ["finetune", FINETUNE, "--model", "m", f"data.paths=[{bad}]"], ["data.paths"]),
+            (f"mpc-model-{what}", ["evaluate", "mpc", "--model", bad, "problems=1"], [bad]),
+            (f"warmstart-model-{what}", ["evaluate", "warmstart", "--model", bad, "problems=1"], [bad]),
+            (f"demo-model-{what}", ["demo", "--model", bad, "--no-mpc"], [bad]),
+        ]
+    for what, parent in (("under-a-file", "{a_file}"), ("in-a-read-only-folder", "{read_only}")):
+        out = f"{parent}/out"
+        cases += [
+            (f"generate-out-{what}", ["generate", *SMALL_SPLITS, f"out={out}"], [f"cannot use {parent}"]),
+            (f"train-out-{what}", ["train", TINY, "data.paths=[{ff}]", f"trainer.out_dir={out}"],
+             [f"cannot use {parent}"]),
+            (f"mpc-out-{what}", ["evaluate", "mpc", "--scenario", "freeflyer", f"out={out}"],
+             [f"cannot use {parent}"]),
+            (f"demo-out-{what}", ["demo", "--no-mpc", f"out={out}"], [f"cannot use {parent}"]),
+            (f"solve-plot-{what}", ["solve", "--plot", f"{out}.png"], [f"cannot use {parent}"]),
+        ]  # fmt: skip
+    return cases
+
+
+def _manifest(scenario: str) -> dict[str, Any]:
+    """What the checks before any work read of a dataset (``ttompc.data.manifests``): no shard is opened."""
+    dims = {"n_steps": 100, "state_dim": 6, "control_dim": 3}
+    return {"scenario": {"name": scenario, **dims}, "shards": [{"index": 0, "files": {"train": scenario}}]}
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    """Folders the cases point at: fake datasets (manifests only), a user's folder, a report, runs of another
+    scenario and architecture, damaged manifests, bad recipes, a file and a read-only folder."""
+    from ttompc.training.config import load_train_config
+    from ttompc.training.preflight import run_identity
+
+    root = tmp_path_factory.mktemp("world")
+    paths: dict[str, Path] = {}
+    for name, scenario in (("ff", "freeflyer"), ("quad", "quadrotor")):
+        paths[name] = root / f"{name}-data"
+        paths[name].mkdir()
+        (paths[name] / "manifest.json").write_text(json.dumps(_manifest(scenario)))
+    for name, text in (("truncated", '{"scenario": {"na'), ("no_scenario", '{"counts": {}}')):
+        paths[name] = root / f"{name}-data"
+        paths[name].mkdir()
+        (paths[name] / "manifest.json").write_text(text)
+    paths["user"] = root / "user-folder"
+    paths["user"].mkdir()
+    (paths["user"] / "README.md").write_text("# my notes\n")
+    (paths["user"] / "manifest.json").write_text('{"mine": true}\n')
+    paths["report"] = root / "report"
+    paths["report"].mkdir()
+    for name in ("mpc.json", "mpc.md", "mpc_runs.csv"):
+        (paths["report"] / name).write_text("{}\n")
+    ff = load_train_config(TINY, [f"data.paths=[{paths['ff']}]"])
+    identity = run_identity(ff, [_manifest("freeflyer")])
+    wide = {**identity, "architecture": {**identity["architecture"], "n_embd": 512}}
+    for name, stored in (("ff_run", identity), ("wide_run", wide)):
+        paths[name] = root / name
+        (paths[name] / "checkpoints").mkdir(parents=True)
+        (paths[name] / "checkpoints" / "last.ckpt").write_bytes(b"")
+        (paths[name] / "run.json").write_text(json.dumps(stored))
+    paths["bad_yaml"] = root / "bad.yaml"
+    paths["bad_yaml"].write_text("problems: 3\nsplits: [1,\n")
+    paths["list_yaml"] = root / "list.yaml"
+    paths["list_yaml"].write_text("- problems\n- 3\n")
+    paths["a_file"] = root / "a-file"
+    paths["a_file"].write_text("")
+    paths["missing"] = root / "no-such-thing"
+    read_only = read_only_folder(root)
+    paths["read_only"] = read_only if read_only is not None else root / "unused"
+    out = {k: str(v) for k, v in paths.items()}
+    out["root"], out["has_read_only"] = str(root), str(read_only is not None)
+    return out
+
+
+def _fill(text: str, world: dict[str, str]) -> str:
+    return text.format(**world) if "{" in text else text
+
+
+@pytest.fixture(scope="module")
+def results(world: dict[str, str], tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
+    """Every case of the three tables, run in one subprocess in the world's folder."""
+    cases = [{"id": i, "argv": [_fill(a, world) for a in argv],
+              "env": {k: _fill(v, world) for k, v in ENV.get(i, {}).items()}}
+             for i, argv, _ in [*LISTED, *path_cases()]]  # fmt: skip
+    cases += [{"id": i, "argv": argv, "env": {}} for i, argv, *_ in generated_cases()]
+    spool = tmp_path_factory.mktemp("spool")
+    (spool / "cases.json").write_text(json.dumps(cases))
+    env = {k: v for k, v in os.environ.items() if k != "TTOMPC_DEBUG"}
+    env.update(WANDB_MODE="offline", HF_HUB_OFFLINE="1", TTOMPC_PROGRESS="0", OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+    done = subprocess.run(
+        [sys.executable, str(REPO / "tests" / "cli_batch.py"), str(spool / "cases.json"), str(spool / "out.json")],
+        cwd=world["root"], env=env, capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return dict(json.loads((spool / "out.json").read_text()))
+
+
+def assert_one_line(result: dict[str, Any], *needles: str) -> str:
+    """Exit 2, exactly one line on stderr, no traceback, nothing in the folder created, changed or removed."""
+    assert result["traceback"] is None, result["traceback"]
+    lines = result["stderr"].strip().splitlines()
+    assert result["code"] == 2 and len(lines) == 1, (result["code"], result["stderr"])
+    assert "Traceback" not in result["stderr"]
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    assert result["changed"] == [], result["changed"]
+    return lines[0]
+
+
+@pytest.mark.parametrize(("case", "argv", "needles"), LISTED, ids=[c[0] for c in LISTED])
+def test_the_issues_cases_are_one_line(
+    case: str, argv: list[str], needles: list[str], world: dict[str, str], results: dict[str, dict[str, Any]]
+) -> None:
+    if case in NEEDS_NO_GPU and _cuda():
+        pytest.skip("this machine has the GPU the case asks for")
+    line = assert_one_line(results[case], *(_fill(n, world) for n in needles))
+    assert line.startswith(f"ttompc {argv[0]}: error: ")
+
+
+PATHS = path_cases()
+
+
+@pytest.mark.parametrize(("case", "argv", "needles"), PATHS, ids=[c[0] for c in PATHS])
+def test_paths_that_are_missing_a_file_or_read_only_are_one_line(
+    case: str, argv: list[str], needles: list[str], world: dict[str, str], results: dict[str, dict[str, Any]]
+) -> None:
+    if "read-only" in case and world["has_read_only"] != "True":
+        pytest.skip("no folder here refuses this process")
+    assert_one_line(results[case], *(_fill(n, world) for n in needles))
+
+
+GENERATED = generated_cases()
+
+
+@pytest.mark.parametrize(("case", "argv", "key", "value", "allowed"), GENERATED, ids=[c[0] for c in GENERATED])
+def test_each_setting_at_its_edges_is_taken_or_refused_as_its_schema_declares(
+    case: str, argv: list[str], key: str, value: Any, allowed: Allowed, results: dict[str, dict[str, Any]]
+) -> None:
+    """A value its declared range refuses is one line naming the key and the value; one it admits loads (or a check
+    across settings refuses it in one line naming the key), never a traceback."""
+    result = results[case]
+    leaf = key.rsplit(".", 1)[-1]
+    if not allowed.admits(value):
+        assert_one_line(result, f"{leaf}={json.dumps(value)}", "must be")
+    elif result["code"] != 0:
+        assert_one_line(result, leaf)
+    else:
+        assert result["traceback"] is None and result["changed"] == []
