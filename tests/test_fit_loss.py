@@ -23,6 +23,7 @@ from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import get_scenario
 
 DAGGER_ROWS = 10
+N = 12  # data-fake's steps
 
 
 @pytest.fixture(scope="module")
@@ -60,9 +61,11 @@ def _config(data: dict[str, Path], batch_size: int, **kw: object) -> LossConfig:
     return LossConfig(model=str(data["bundle"]), data=dc, **kw)  # type: ignore[arg-type]
 
 
-def _by_hand(data: dict[str, Path], closed_loop: bool, split: str) -> tuple[int, float, float, float]:
-    """Rows, action MSE, next-state MSE and value MSE (over VALUE_SOURCES rows) of the split over all valid steps,
-    from the model's forward pass."""
+def _by_hand(
+    data: dict[str, Path], closed_loop: bool, split: str, last: int | None = None
+) -> tuple[int, float, float, float]:
+    """Rows, action MSE, next-state MSE and value MSE (over VALUE_SOURCES rows) of the split over all valid steps
+    (``last``: those with at most that many steps to go), from the model's forward pass."""
     planner = Planner.from_pretrained(data["bundle"])
     dm = TrajectoryDataModule(DataConfig(paths=[str(data["ol"])], dagger_dirs=[str(data["dagger"])], batch_size=7))
     dm.setup("validate")
@@ -75,12 +78,13 @@ def _by_hand(data: dict[str, Path], closed_loop: bool, split: str) -> tuple[int,
             n += len(b["source"])
             a, s = planner.model(b["goals"], b["rtg"], b["ctg"], b["states"], b["actions"], b["timesteps"])
             v = planner.model.value(b["goals"], b["states"], b["timesteps"])
-            mask = b["mask"][..., None]
+            keep = torch.ones_like(b["mask"]) if last is None else (N - b["timesteps"] <= last).float()
+            mask = (b["mask"] * keep)[..., None]
             value_rows = (b["source"] == SOURCE_CODES["scp"]) | (b["source"] == SOURCE_CODES["dagger"])
             vmask = mask * value_rows[:, None, None]
             sq["a"] += float(((a - b["target_actions"]) ** 2 * mask).sum())
             count["a"] += float(mask.sum()) * a.shape[-1]
-            state_mask = b.get("state_mask", b["mask"])[..., None]
+            state_mask = (b.get("state_mask", b["mask"]) * keep)[..., None]
             sq["s"] += float(((s - b["target_next_states"]) ** 2 * state_mask).sum())
             count["s"] += float(state_mask.sum()) * s.shape[-1]
             sq["v"] += float(((v - b["rtg"]) ** 2 * vmask).sum())
@@ -102,6 +106,16 @@ def test_losses_by_kind_and_split_are_the_masked_mse_over_all_steps(data: dict[s
         assert r["loss_state"] == pytest.approx(state, rel=1e-5)
         assert r["loss_value"] == pytest.approx(value, rel=1e-5)
         assert r["loss"] == pytest.approx(action + state + value, rel=1e-5)
+        # by steps to go: the last five steps by hand, and the buckets' means recombine into the whole's
+        _, action, state, value = _by_hand(data, kind == "dagger", split, last=5)
+        last5 = r["buckets"]["1-5"]
+        assert last5["loss_action"] == pytest.approx(action, rel=1e-5)
+        assert last5["loss_state"] == pytest.approx(state, rel=1e-5)
+        assert last5["loss_value"] == pytest.approx(value, rel=1e-5)
+        steps = sum(b["steps"] for b in r["buckets"].values())
+        assert steps == r["steps"] and list(r["buckets"]) == ["1-5", "6-10", "11-20"]  # N = 12 steps to go at most
+        recombined = sum(b["loss_action"] * b["steps"] for b in r["buckets"].values()) / steps
+        assert recombined == pytest.approx(r["loss_action"], rel=1e-5)
     # another batch size, the same numbers; ``rows`` caps every (kind, split)
     again = {(r["kind"], r["split"]): r for r in fit_losses(_config(data, batch_size=32))}
     for key, r in rows.items():

@@ -12,7 +12,8 @@ tail weighting; the defaults where the bundle has no recipe). Rows come in one d
 ``val`` splits), normalised with the model's statistics, at most ``rows`` rows each. Each term is averaged over its
 own valid steps across the batches (a batch's mean weighted by its valid steps), so the numbers do not depend on
 the batch size; with ``optim.value_tail_steps`` the value term's batches are weighted by their valid steps, not by
-their tail weights.
+their tail weights. The same terms by steps to go (the buckets of ``ttompc.evaluation.value_error``) say where a
+loss lives: on closed-loop rows the last steps of the expert's plans can dominate it.
 """
 
 from __future__ import annotations
@@ -93,34 +94,69 @@ def _weights(batch: dict[str, Tensor]) -> dict[str, float]:
             "loss_value": float((mask * value_rows[:, None]).sum())}  # fmt: skip
 
 
-def row_losses(module: TrajectoryTransformerModule, batches: Iterable[dict[str, Tensor]], rows: int) -> dict[str, Any]:
-    """The loss terms of ``module`` over at most ``rows`` rows of ``batches``, each averaged over its valid steps
-    (module doc): ``rows`` evaluated, the terms (nan for one the module does not compute or with no valid step, e.g.
-    the value on REL rows, which the training loss leaves out too) and ``loss``, the sum of the others."""
+class _TermMeans:
+    """Each loss term's mean over valid steps, from batch means weighted by their valid steps (``_weights``)."""
+
+    def __init__(self) -> None:
+        self.sums: dict[str, float] = {}
+        self.steps: dict[str, float] = {}
+
+    def add(self, out: dict[str, Tensor], weights: dict[str, float]) -> None:
+        for k, v in out.items():
+            if k != "loss" and weights[k] > 0:
+                self.sums[k] = self.sums.get(k, 0.0) + float(v) * weights[k]
+                self.steps[k] = self.steps.get(k, 0.0) + weights[k]
+
+    def result(self) -> dict[str, float]:
+        """The terms (nan for one not computed or without a valid step), ``loss``, the sum of the others, and
+        ``steps``, the valid steps of the action term."""
+        out = {k: self.sums[k] / self.steps[k] if k in self.steps else float("nan") for k in TERMS[1:]}
+        loss = sum(self.sums[k] / self.steps[k] for k in self.steps) if self.steps else float("nan")
+        return {"loss": loss, **out, "steps": self.steps.get("loss_action", 0.0)}
+
+
+def _within(batch: dict[str, Tensor], keep: Tensor) -> dict[str, Tensor]:
+    """``batch`` with only the steps where ``keep`` (B, L) valid (its masks restricted)."""
     import torch
 
-    sums: dict[str, float] = {}
-    steps: dict[str, float] = {}
+    out = dict(batch)
+    out["mask"] = batch.get("mask", torch.ones_like(keep, dtype=torch.float32)) * keep
+    if "state_mask" in batch:
+        out["state_mask"] = batch["state_mask"] * keep
+    return out
+
+
+def row_losses(
+    module: TrajectoryTransformerModule, batches: Iterable[dict[str, Tensor]], rows: int, n_steps: int
+) -> dict[str, Any]:
+    """The loss terms of ``module`` over at most ``rows`` rows of ``batches``, each averaged over its valid steps
+    (module doc): ``rows`` evaluated, the terms (nan for one the module does not compute or with no valid step, e.g.
+    the value on REL rows, which the training loss leaves out too), ``loss``, the sum of the others, and
+    ``buckets``: the same over the steps of each bucket of steps to go N − t (``BUCKETS`` of
+    ``ttompc.evaluation.value_error``; N = ``n_steps``) that has one."""
+    import torch
+
+    from ttompc.evaluation.value_error import BUCKETS
+
+    total = _TermMeans()
+    buckets = {f"{lo}-{hi}": _TermMeans() for lo, hi in BUCKETS}
     seen = 0
     with torch.inference_mode():
         for b in batches:
             if seen >= rows:
                 break
-            B = len(b["source"])
-            if seen + B > rows:
+            if seen + len(b["source"]) > rows:
                 b = {k: v[: rows - seen] for k, v in b.items()}
             seen += len(b["source"])
-            weights = _weights(b)
-            out = module.validation_losses({k: v.to(module.device) for k, v in b.items()})
-            for k, v in out.items():
-                if k != "loss" and weights[k] > 0:
-                    sums[k] = sums.get(k, 0.0) + float(v) * weights[k]
-                    steps[k] = steps.get(k, 0.0) + weights[k]
-    result: dict[str, Any] = {"rows": seen}
-    for k in TERMS[1:]:
-        result[k] = sums[k] / steps[k] if k in steps else float("nan")
-    result["loss"] = sum(sums[k] / steps[k] for k in steps) if steps else float("nan")
-    return result
+            total.add(module.validation_losses({k: v.to(module.device) for k, v in b.items()}), _weights(b))
+            to_go = n_steps - b["timesteps"]
+            for (lo, hi), means in zip(BUCKETS, buckets.values(), strict=True):
+                part = _within(b, (to_go >= lo) & (to_go <= hi))
+                if part["mask"].any():
+                    means.add(module.validation_losses({k: v.to(module.device) for k, v in part.items()}),
+                              _weights(part))  # fmt: skip
+    by_bucket = {label: m.result() for label, m in buckets.items() if m.steps}
+    return {"rows": seen, **total.result(), "buckets": by_bucket}
 
 
 def fit_losses(cfg: LossConfig) -> list[dict[str, Any]]:
@@ -152,9 +188,11 @@ def fit_losses(cfg: LossConfig) -> list[dict[str, Any]]:
                 try:
                     loader = dm.eval_dataloader(split, closed_loop=closed)
                 except ShardError:
-                    out.append({"kind": kind, "split": split, "rows": 0, **dict.fromkeys(TERMS, float("nan"))})
+                    out.append({"kind": kind, "split": split, "rows": 0, **dict.fromkeys(TERMS, float("nan")),
+                                "steps": 0.0, "buckets": {}})  # fmt: skip
                     continue
-                out.append({"kind": kind, "split": split, **row_losses(module, loader, cfg.rows)})
+                assert dm.n_steps is not None  # set by setup
+                out.append({"kind": kind, "split": split, **row_losses(module, loader, cfg.rows, dm.n_steps)})
     return out
 
 
@@ -168,9 +206,19 @@ def format_losses(rows: list[dict[str, Any]], model: str) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        terms = " | ".join("–" if math.isnan(r[k]) else f"{r[k]:.4g}" for k in TERMS)
+        terms = " | ".join(_number(r[k]) for k in TERMS)
         lines.append(f"| {r['kind'].replace('_', '-')} | {r['split']} | {r['rows']} | {terms} |")
+    labels = list(dict.fromkeys(label for r in rows for label in r["buckets"]))[::-1]  # the longest first
+    lines += ["", "The loss by steps to go:", "", "| rows | split | " + " | ".join(labels) + " |",
+              "|---|---|" + "---|" * len(labels)]  # fmt: skip
+    for r in rows:
+        cells = " | ".join(_number(r["buckets"][b]["loss"]) if b in r["buckets"] else "–" for b in labels)
+        lines.append(f"| {r['kind'].replace('_', '-')} | {r['split']} | {cells} |")
     return "\n".join(lines) + "\n"
+
+
+def _number(x: float) -> str:
+    return "–" if math.isnan(x) else f"{x:.4g}"
 
 
 def run_fit_loss(cfg: LossConfig) -> dict[str, Any]:
