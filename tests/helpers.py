@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pytest
 
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import Window, get_scenario
@@ -13,6 +14,7 @@ from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
+    from ttompc.scenarios import Problem, Scenario
 
 
 def toy_stats(seed: int = 0) -> NormStats:
@@ -94,3 +96,18 @@ def waypoint_subproblem(penalized: bool):
     data = dataclasses.replace(data, blocks=[*data.blocks, wp])
     spec = dataclasses.replace(spec, blocks=(*spec.blocks, SubproblemSpec.block_signature(wp)))
     return spec, data, wp
+
+
+def assert_rtg_ctg_by_hand(sc: Scenario, problem: Problem, row: dict, rtol: float) -> None:
+    """A row's rtg and ctg against arithmetic independent of the functions that wrote them: rtg_0 = −J (the solver's
+    recorded cost and the scenario's sum over the actions), each rtg step up by that step's stage cost, the last one
+    the last control's; ctg_t the keep-out violations of x_t..x_{N−1}, counted state by state."""
+    stage = sc.stage_cost(np.asarray(row["actions"], dtype=np.float64))
+    J = float(sc.cost(np.asarray(row["actions"], dtype=np.float64)))
+    rtg = np.asarray(row["rtg"], dtype=np.float64)
+    assert rtg[0] == pytest.approx(-J, rel=rtol) and rtg[0] == pytest.approx(-float(row["cost"]), rel=rtol)
+    np.testing.assert_allclose(np.diff(rtg), stage[:-1], rtol=0, atol=rtol * max(1.0, J))
+    assert rtg[-1] == pytest.approx(-stage[-1], abs=rtol * max(1.0, J))
+    X = np.asarray(row["states_opt"])
+    violating = [int(np.sum(sc.violations(problem, X[t : t + 1]))) for t in range(sc.n_steps)]
+    assert [int(c) for c in row["ctg"]] == [sum(violating[t:]) for t in range(sc.n_steps)]

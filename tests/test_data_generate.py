@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import data_fakes as fakes
+import helpers
 import numpy as np
 import pytest
 
@@ -15,7 +16,7 @@ from ttompc.data.cards import parse_front_matter
 from ttompc.data.config import GenerateConfig, SplitConfig
 from ttompc.data.distributed import RankInfo, rank_info
 from ttompc.data.generate import GenerationError, finalize, generate, split_of
-from ttompc.data.schema import constraints_to_go, problem_from_row, returns_to_go
+from ttompc.data.schema import problem_from_row
 from ttompc.data.shards import read_shard
 from ttompc.scenarios import get_scenario
 from ttompc.seeding import problem_seed
@@ -88,8 +89,7 @@ def test_rtg_ctg_and_representations_match_recomputation(dataset: tuple[Path, di
     assert any(r["ctg"][0] > 0 for r in rows), "some trajectories should cross the keep-out zone"
     for r in rows:
         problem = problem_from_row(sc, r)
-        np.testing.assert_allclose(r["rtg"], returns_to_go(sc, r["actions"]), rtol=1e-5, atol=1e-6)
-        np.testing.assert_array_equal(r["ctg"], constraints_to_go(sc, problem, r["states_opt"]))
+        helpers.assert_rtg_ctg_by_hand(sc, problem, r, rtol=1e-5)
         np.testing.assert_allclose(r["states"], sc.to_model_states(problem, r["states_opt"]), rtol=1e-6)
         np.testing.assert_allclose(r["goal"], sc.model_goal(problem), rtol=1e-6)
         np.testing.assert_array_equal(r["target_actions"], r["actions"])
