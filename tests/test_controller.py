@@ -112,9 +112,24 @@ def test_bad_input_is_one_line_and_leaves_the_controller_usable(planner: Planner
     _bad(lambda: ctrl.step(np.zeros(5)), r"shape \(6,\), got \(5,\)")
     _bad(lambda: ctrl.step(np.full(6, np.nan)), "NaN or inf")
     _bad(lambda: ctrl.step(np.r_[problem.x0[:5], np.inf]), "NaN or inf")
+    _bad(lambda: ctrl.step(problem.x0, applied=np.zeros(3)), "first step")
     assert ctrl.t == 0 and ctrl.last is None  # nothing happened
     u = ctrl.step(problem.x0)
     assert u.shape == (3,) and np.all(np.isfinite(u)) and ctrl.t == 1
+    _bad(lambda: ctrl.step(problem.x0, applied=np.zeros(2)), r"applied control must have shape \(3,\)")
+    assert ctrl.t == 1
+
+
+def test_applied_control_reaches_the_method(planner: Planner) -> None:
+    """``step(x, applied=...)``: the method observes the control that acted (TTO-MPC's spent cost counts it)."""
+    ctrl = Controller(planner.scenario, "TTO-MPC", planner=planner, horizon=5)
+    problem = sample_problem(ctrl.scenario, np.random.default_rng(1))
+    ctrl.reset(problem)
+    u = ctrl.step(problem.x0)
+    half = 0.5 * u
+    ctrl.step(ctrl.scenario.step(problem, 0, problem.x0, half), applied=half)
+    provider = ctrl._mpc.provider if ctrl._mpc is not None else None
+    assert provider is not None and provider.spent == pytest.approx(ctrl.scenario.cost(half[None]))  # type: ignore[attr-defined]
 
 
 def test_a_failed_window_applies_the_fallback_and_says_so(planner: Planner, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -53,8 +53,8 @@ class StepRecord:
     tail, optimal for this window: no solve) or "fallback" (the SCP failed: ``u`` is the previous plan's next
     control, or the warm start's first at step 0). ``X`` (H+1, n) and ``U`` (H, m) are the window's plan (its first
     control is ``u``), ``target`` its terminal target (None when the window reaches the end). ``seconds`` is the
-    step's wall time, measured state to control: ``observe_time`` (the previous outcome passed to the method, e.g.
-    TTO-MPC's KV-cache advance) + ``warm_time`` (warm start) + ``solve_time`` (SCP) and the facade's checks."""
+    step's wall time, measured state to control: the facade's checks, ``observe_time`` (the previous outcome passed
+    to the method, e.g. TTO-MPC's KV-cache advance), ``warm_time`` (warm start) and ``solve_time`` (SCP)."""
 
     t: int
     u: np.ndarray
@@ -107,6 +107,16 @@ def check_problem(scenario: Scenario, problem: Problem) -> None:
         scenario.validate(problem)
     except ValueError as err:  # InfeasibleProblemError included
         raise UserError(str(err)) from None
+
+
+def _finite(value: np.ndarray, shape: tuple[int, ...], what: str) -> np.ndarray:
+    """``value`` as a float64 array of ``shape`` with finite entries, else a one-line ``UserError`` naming ``what``."""
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape != shape:
+        raise UserError(f"{what} must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise UserError(f"{what} has NaN or inf entries: {a.tolist()}")
+    return a
 
 
 def _status(plan: StepPlan) -> str:
@@ -214,26 +224,27 @@ class Controller:
         self.problem, self.rel_cost = problem, start.rel_cost
         self.t, self.last, self._acted = 0, None, None
 
-    def step(self, x: np.ndarray) -> np.ndarray:
-        """One MPC step from the measured state ``x`` (n,): the control to apply now, (m,). The previous step's
-        control is taken as applied and ``x`` as the state it led to. ``last`` then holds the step's record."""
-        mpc, problem = self._mpc, self.problem
+    def step(self, x: np.ndarray, applied: np.ndarray | None = None) -> np.ndarray:
+        """One MPC step from the measured state ``x`` (n,): the control to apply now, (m,). ``x`` is taken as the
+        state the previous step's control led to, and that control as the one it returned unless ``applied`` says
+        what was applied instead (a saturated or overridden actuator). ``last`` then holds the step's record."""
+        t0 = time.perf_counter()
+        mpc, problem, sc = self._mpc, self.problem, self.scenario
         if mpc is None or problem is None:
             raise UserError("step() before reset(problem)", "call reset(problem) to start an episode")
         if self.t >= problem.n_steps:
             raise UserError(f"the episode's N = {problem.n_steps} steps are done", "reset(problem) starts another")
-        x = np.asarray(x, dtype=np.float64)
-        if x.shape != (self.scenario.state_dim,):
-            raise UserError(f"the state must have shape ({self.scenario.state_dim},), got {x.shape}")
-        if not np.all(np.isfinite(x)):
-            raise UserError(f"the state has NaN or inf entries: {x.tolist()}")
-        t0 = time.perf_counter()
-        observed = mpc.observe(self._acted, self._acted.u, x)[0] if self._acted is not None else 0.0
+        x = _finite(x, (sc.state_dim,), "the state")
+        if applied is not None:
+            if self._acted is None:
+                raise UserError("applied= names the previous step's control, and this is the episode's first step")
+            applied = _finite(applied, (sc.control_dim,), "the applied control")
+        acted = self._acted
+        observed = 0.0 if acted is None else mpc.observe(acted, acted.u if applied is None else applied, x)[0]
         plan = mpc.plan(self.t, x)
-        seconds = time.perf_counter() - t0
         self._acted = plan
         self.last = StepRecord(self.t, plan.u.copy(), plan.X, plan.U, plan.target, plan.iterations, _status(plan),
-                               seconds, observed, plan.warm_time, plan.solve_time)  # fmt: skip
+                               time.perf_counter() - t0, observed, plan.warm_time, plan.solve_time)  # fmt: skip
         self.t += 1
         return plan.u.copy()
 
