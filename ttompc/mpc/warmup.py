@@ -14,12 +14,12 @@ the end) as the run's settings pose them, and for every TTO provider whose rollo
 one throwaway rollout, context advance and rollout of its model; once per process and key (scenario, backend and
 mode; scenario, the model's number of layers and decoder), so only a process's first run pays it.
 ``run_mpc_batch`` calls it before its first step (``evaluate mpc``, the training callback, DAgger and the demo),
-``ttompc.mpc.controller.Controller`` when it is built. A warm-up of ``NOTICE_SECONDS`` or more says so on stderr.
+``ttompc.mpc.controller.Controller`` when it is built. A warm-up of ``NOTICE_SECONDS`` or more says so on stderr
+(``ttompc.progress.status``: unless progress is off).
 """
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Sequence
 
@@ -57,8 +57,10 @@ def warm_up(
                     done.append("the fused decoder")
     seconds = time.perf_counter() - t0
     if done and seconds >= NOTICE_SECONDS:
-        print(f"ttompc: {' and '.join(done)} compiled (or loaded from numba's cache) in {seconds:.1f} s before the "
-              "first MPC step", file=sys.stderr)  # fmt: skip
+        from ttompc.progress import status
+
+        status(f"ttompc: {' and '.join(done)} compiled (or loaded from numba's cache) in {seconds:.1f} s before the "
+               "first MPC step")  # fmt: skip
     return done
 
 
