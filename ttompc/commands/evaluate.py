@@ -169,14 +169,20 @@ def _target(args: argparse.Namespace) -> int:
 
 
 def _loss(args: argparse.Namespace) -> int:
-    """``evaluate loss``: the output folder is checked before the model and the data are read."""
+    """``evaluate loss``: the device and the output folder (new, empty or a loss report's) are checked before the
+    model and the data are read."""
     from ttompc.evaluation.fit_loss import LossConfig, run_fit_loss
+    from ttompc.outputs import claim_folder
+    from ttompc.ranges import check_devices
 
     cfg = command_config(LossConfig, args, ("model", "out"))
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
-    checks.writable(cfg.out or "outputs/evaluate")
+    check_devices(cfg)
+    out = cfg.out_dir()
+    claim_folder(out, "evaluate loss", lambda folder: any(p.name.startswith("loss") for p in folder.iterdir()))
+    checks.writable(out)
     report = run_fit_loss(cfg)
     print(report["table"])
     print(f"report: {report['out']}")

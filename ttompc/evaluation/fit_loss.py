@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from ttompc.data.config import DataConfig
 from ttompc.errors import UserError
+from ttompc.ranges import Checked, setting
 
 if TYPE_CHECKING:
     from collections.abc import Iterable
@@ -39,24 +40,27 @@ TERMS = ("loss", "loss_action", "loss_state", "loss_value")
 
 
 @dataclass
-class LossConfig:
+class LossConfig(Checked):
     """``ttompc evaluate loss`` settings (``key=value``): the model, the datasets (``data.paths``: open-loop
     folders, at least one; ``data.dagger_dirs``: DAgger folders), the splits and at most ``rows`` rows per split and
     row kind; ``out`` defaults to ``outputs/evaluate/loss-<model>`` (the model's zoo or folder name)."""
 
     model: str | None = None
     data: DataConfig = field(default_factory=lambda: DataConfig(verify_checksums=False))
-    splits: list[str] = field(default_factory=lambda: ["train", "val", "test"])
-    rows: int = 2000
-    device: str = "cpu"
+    splits: list[str] = setting(factory=lambda: ["train", "val", "test"], nonempty=True, unique=True)
+    rows: int = setting(2000, ge=1)
+    device: str = setting("cpu", device="torch")
     out: str = ""
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         bad = [s for s in self.splits if s not in ("train", "val", "test")]
-        if bad or not self.splits:
-            raise ValueError(f"splits must be a non-empty subset of [train, val, test], got {self.splits}")
-        if self.rows < 1:
-            raise ValueError(f"rows must be >= 1, got {self.rows}")
+        if bad:
+            raise ValueError(f"splits must be among [train, val, test], got {self.splits}")
+
+    def out_dir(self) -> Path:
+        """``out``, else ``outputs/evaluate/loss-<model>`` (the model's zoo or folder name)."""
+        return Path(self.out or f"outputs/evaluate/loss-{Path(str(self.model)).stem}")
 
 
 def loss_module(planner: Planner) -> TrajectoryTransformerModule:
@@ -227,7 +231,7 @@ def run_fit_loss(cfg: LossConfig) -> dict[str, Any]:
 
     rows = fit_losses(cfg)
     table = format_losses(rows, str(cfg.model))
-    out = Path(cfg.out or f"outputs/evaluate/loss-{Path(str(cfg.model)).stem}")
+    out = cfg.out_dir()
     write_json(out / "loss.json", {"config": asdict(cfg), "rows": rows})
     (out / "loss.md").write_text(table)
     return {"rows": rows, "table": table, "out": str(out)}

@@ -50,6 +50,7 @@ from ttompc.mpc.providers import Provider, WarmStart
 from ttompc.mpc.tto import TTOProvider
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
+from ttompc.ranges import setting
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Problem, Scenario, Window
 
@@ -67,13 +68,11 @@ class TargetErrorConfig(ClosedLoopConfig):
     ``outputs/evaluate/target-<scenario>``."""
 
     method: str | None = None
-    every: int = 1
+    every: int = setting(1, ge=1)  # the expert plans at every k-th step
     plot: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.every < 1:
-            raise ValueError(f"every must be >= 1 (the expert plans every k-th step), got {self.every}")
         if self.method is not None and self.method not in METHODS:
             raise ValueError(f"method must be one of {list(METHODS)}, got {self.method!r}")
 
