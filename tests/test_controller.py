@@ -55,7 +55,8 @@ def test_controller_reproduces_evaluate_mpc(planner: Planner, plant: str, monkey
     for episode, record in zip(seen, records, strict=True):
         method = episode.method.split("[")[0]
         ctrl = Controller(sc, method, planner=planner, horizon=10, protocol="recommended")
-        ctrl.reset(ep.problem, ep.rel_cost)
+        ctrl.reset(ep.problem)  # as a user would: J_REL solved by the Controller for a learned method
+        assert ctrl.method.model is None or ctrl.rel_cost == ep.rel_cost
         sim = Plant(sc, run.plant)
         sim.reset(ep.seed)
         x, U = ep.problem.x0.copy(), []
