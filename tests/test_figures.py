@@ -227,3 +227,21 @@ def test_the_written_report_records_the_command_of_its_config(kind: str, tmp_pat
     report = figures.load_report(tmp_path / f"{kind}.json", kind)
     assert report["command"] == report_command(kind, report["config"])
     assert report["command"].startswith(f"ttompc evaluate {kind} --model ")
+
+
+def test_a_method_keeps_its_style_in_every_panel_whatever_ran() -> None:
+    """A report of the baselines only: ORACLE-MPC is drawn in the same colour in the cost, failure and step panels
+    (its place in the paper's methods), not by its place among the methods that ran."""
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_hex
+
+    report = mpc_report()
+    baselines = ("REL-MPC", "DIST-MPC", "ORACLE-MPC")
+    report["summary"] = [r for r in report["summary"] if r["method"] in baselines]
+    report["runs"] = [r for r in report["runs"] if r["method"] in baselines]
+    fig, _ = horizon_figures.horizon_figure([report], "nominal")
+    colours = {
+        to_hex(c.lines[0].get_color()) for ax in fig.axes[:5] for c in ax.containers if c.get_label() == "ORACLE-MPC"
+    }
+    assert colours == {to_hex(f"C{horizon_figures.PAPER_METHODS.index('ORACLE-MPC')}")}
+    plt.close(fig)

@@ -36,6 +36,11 @@ def _base(method: str) -> str:
     return method.split("[")[0]
 
 
+def _style(method: str) -> int:
+    """A method's line style (``plots.line_style``): its place in ``PAPER_METHODS``, the same in every panel."""
+    return PAPER_METHODS.index(_base(method))
+
+
 def model_label(method: str, config: dict[str, Any]) -> str:
     """A method's legend label: the method, and for a model's method (TTO…, FT-TTO…, their MPC variants) the model
     the report ran it with."""
@@ -75,7 +80,7 @@ def _lines(ax: Any, points: Sequence[dict[str, Any]], value: Any, labels: dict[s
     for method in dict.fromkeys(p["method"] for p in points):
         ps = [p for p in points if p["method"] == method]
         ys, ses = zip(*(value(p) for p in ps), strict=True)
-        style = {**line_style(PAPER_METHODS.index(_base(method))), "marker": "o", "markersize": 4, "markevery": 1}
+        style = {**line_style(_style(method)), "marker": "o", "markersize": 4, "markevery": 1}
         xs = [p["horizon"] for p in ps]
         ax.errorbar(xs, ys, yerr=np.nan_to_num(ses), capsize=3, **style, label=labels[method])
     horizon_axis(ax, list(points))
@@ -104,7 +109,7 @@ def horizon_figure(reports: Sequence[dict[str, Any]], plant: str) -> tuple[Any, 
         col[0].set_title(f"{name}, {n} problems ({report['protocol']['name']})", fontsize=10)
         col[0].set_ylabel("(J − LB)/(maxcost − LB)\nof feasible runs (worst = 1)")
         col[0].legend(fontsize=7)
-        horizon_cost_panel(col[1], rows, labels)
+        horizon_cost_panel(col[1], rows, labels, {r["method"]: _style(r["method"]) for r in rows})
         col[1].get_legend().remove()
         _lines(col[2], rows, lambda r: (100 * (1 - r["feasible"] / r["runs"]), np.nan), labels)
         col[2].set_ylabel("runs that missed the goal or\nviolated a constraint [%]")

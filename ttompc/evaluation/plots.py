@@ -63,17 +63,20 @@ def horizon_cost_figure(summary: list[dict[str, Any]]) -> Any:
     return fig
 
 
-def horizon_cost_panel(ax: Any, rows: list[dict[str, Any]], labels: dict[str, str] | None = None) -> None:
+def horizon_cost_panel(
+    ax: Any, rows: list[dict[str, Any]], labels: dict[str, str] | None = None, styles: dict[str, int] | None = None
+) -> None:
     """Mean (J − J_REL)/J_REL over feasible runs ± s.e. vs H of the summary ``rows`` of one plant on ``ax``, one line
-    per method (legend: ``labels[method]``, default the method). No method is dropped where runs were infeasible: a
-    hollow marker is the mean of the feasible runs when some were infeasible, a hollow triangle at the top edge marks
-    a horizon with no feasible run, both annotated feasible/runs."""
+    per method (legend: ``labels[method]``, default the method; style: ``line_style(styles[method])``, default the
+    method's place in ``rows``). No method is dropped where runs were infeasible: a hollow marker is the mean of the
+    feasible runs when some were infeasible, a hollow triangle at the top edge marks a horizon with no feasible run,
+    both annotated feasible/runs."""
     from matplotlib.lines import Line2D
 
     labels = labels or {}
     for i, m in enumerate(dict.fromkeys(r["method"] for r in rows)):
         rs = sorted((r for r in rows if r["method"] == m), key=lambda r: r["horizon"])
-        style = {**line_style(i), "marker": "o", "markersize": 5}
+        style = {**line_style((styles or {}).get(m, i)), "marker": "o", "markersize": 5}
         style["markevery"] = [r["feasible"] == r["runs"] for r in rs]  # filled: every run feasible
         line = ax.errorbar(
             [r["horizon"] for r in rs],
