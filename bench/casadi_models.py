@@ -20,26 +20,32 @@ N_STEPS = 100  # both scenarios' horizon (ff.N_STEPS == qr.N_STEPS)
 STATE_DIM = 6
 
 
-def control_variables(opti: Any, name: str, K: int) -> tuple[Any, tuple[Any, ...], Any]:
+def control_variables(
+    opti: Any, name: str, K: int, scale: np.ndarray | None = None
+) -> tuple[Any, tuple[Any, ...], Any]:
     """New control variables for K steps: (U (3, K) expression, the decision variables, their cost). The free-flyer's
     L1 cost goes through U = U⁺ − U⁻ with U± ≥ 0 (``control_constraints`` adds the signs), cost Σ(U⁺ + U⁻); the
-    quadrotor's is ½‖U‖²."""
+    quadrotor's is ½‖U‖². With ``scale`` (3,) the variables are in those units: U = diag(scale) · variables."""
     import casadi as ca
+
+    def units(V: Any) -> Any:
+        return V if scale is None else ca.diag(ca.DM(np.asarray(scale, dtype=np.float64))) @ V
 
     if name == "freeflyer":
         Up, Um = opti.variable(3, K), opti.variable(3, K)
-        return Up - Um, (Up, Um), ca.sum1(ca.sum2(Up + Um))
-    U = opti.variable(3, K)
-    return U, (U,), 0.5 * ca.sumsqr(U)
+        return units(Up - Um), (Up, Um), ca.sum1(ca.sum2(units(Up + Um)))
+    V = opti.variable(3, K)
+    return units(V), (V,), 0.5 * ca.sumsqr(units(V))
 
 
-def set_control_guess(opti: Any, variables: tuple[Any, ...], U: np.ndarray) -> None:
+def set_control_guess(opti: Any, variables: tuple[Any, ...], U: np.ndarray, scale: np.ndarray | None = None) -> None:
     """Initial guess of ``control_variables``' variables from controls U (3, K): U± = max(±U, 0) for the split."""
+    V = U if scale is None else U / np.asarray(scale, dtype=np.float64)[:, None]
     if len(variables) == 2:
-        opti.set_initial(variables[0], np.maximum(U, 0))
-        opti.set_initial(variables[1], np.maximum(-U, 0))
+        opti.set_initial(variables[0], np.maximum(V, 0))
+        opti.set_initial(variables[1], np.maximum(-V, 0))
     else:
-        opti.set_initial(variables[0], U)
+        opti.set_initial(variables[0], V)
 
 
 def next_states(name: str, X: Any, U: Any) -> Any:

@@ -8,7 +8,10 @@ Posed as fatrop's CasADi interface asks (``structure_detection='auto'``): the de
 stage (x_k, then u_k), and the constraint rows stage by stage, each stage's gap-closing dynamics x_{k+1} − f(x_k, u_k)
 first, then the constraints on (x_k, u_k) alone (x_0 = x0 in stage 0, x_N = goal in stage N); no row couples stages
 other than the dynamics. The free-flyer's L1 cost goes through the split u = u⁺ − u⁻, u± ≥ 0 (``casadi_models.py``):
-with per-stage slacks s ≥ ±u instead, fatrop hit its iteration limit (1,000) on 2 of 3 full free-flyer problems."""
+with per-stage slacks s ≥ ±u instead, fatrop hit its iteration limit (1,000) on 2 of 3 full free-flyer problems. The
+control variables are in the scenario's ``control_scale`` units (Δv in 0.01 m/s on the free-flyer): in SI units the
+free-flyer's Δv ≤ 0.005 m/s left fatrop over-regularising its Hessian near the optimum (dual infeasibility stuck at
+2e-6, 1,000 iterations) on 1 of 20 problems; IPOPT, which scales its own convergence test, needs neither."""
 
 from __future__ import annotations
 
@@ -20,16 +23,14 @@ from ipopt_peer import PeerResult
 
 from ttompc.scenarios.base import Problem, Scenario
 
-# fatrop's defaults are IPOPT's (mu_init 0.1, bound_push = bound_frac = 1e-2); from the warm starts here (REL from
-# the straight line, the full problem from REL) a smaller initial barrier and push cut the free-flyer's iterations by
-# ~45% at the same optima, and change nothing on the quadrotor (10 problems each, docs/benchmarks.md)
+# fatrop's defaults are IPOPT's (mu_init 0.1, bound_push = bound_frac = 1e-2); with the controls in the scenario's
+# units, mu_init 1e-2 takes 13% fewer iterations on the quadrotor, as many on the free-flyer (20 problems each)
 FATROP_OPTIONS = {
     "expand": True,
     "structure_detection": "auto",
     "print_time": False,
-    "fatrop": {"print_level": 0, "mu_init": 1e-3, "bound_push": 1e-4, "bound_frac": 1e-4},
+    "fatrop": {"print_level": 0, "mu_init": 1e-2},
 }
-
 PROFILE_KEYS = (
     "compute_sd_time",
     "eval_hess_time",
@@ -44,7 +45,7 @@ PROFILE_KEYS = (
 class FatropProblem:
     """One parametric stage-wise NLP (x0, goal as parameters; X, U initial guesses per solve)."""
 
-    def __init__(self, scenario_name: str, obstacles: bool) -> None:
+    def __init__(self, scenario_name: str, obstacles: bool, control_scale: np.ndarray) -> None:
         import casadi as ca
 
         opti = ca.Opti()
@@ -54,7 +55,7 @@ class FatropProblem:
         for k in range(N + 1):  # variables in stage order: x_k, then u_k
             X.append(opti.variable(cm.STATE_DIM))
             if k < N:
-                u, variables, c = cm.control_variables(opti, scenario_name, 1)
+                u, variables, c = cm.control_variables(opti, scenario_name, 1, control_scale)
                 U.append(u)
                 u_vars.append(variables)
                 cost += c
@@ -72,6 +73,7 @@ class FatropProblem:
         opti.minimize(cost)
         opti.solver("fatrop", FATROP_OPTIONS)
         self.opti, self.X, self.U, self.u_vars, self.x0, self.goal = opti, X, U, u_vars, x0, goal
+        self.control_scale = control_scale
         self.X_all, self.U_all = ca.horzcat(*X), ca.horzcat(*U)
 
     def solve(self, problem: Problem, X_init: np.ndarray, U_init: np.ndarray) -> PeerResult:
@@ -80,7 +82,7 @@ class FatropProblem:
         opti.set_value(self.goal, problem.goal)
         opti.set_initial(self.X_all, X_init.T)
         for k, variables in enumerate(self.u_vars):
-            cm.set_control_guess(opti, variables, U_init[k][:, None])
+            cm.set_control_guess(opti, variables, U_init[k][:, None], self.control_scale)
         t0 = time.perf_counter()
         try:
             sol = opti.solve()
@@ -100,8 +102,9 @@ class FatropPeer:
 
     def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
-        self.rel = FatropProblem(scenario.name, obstacles=False)
-        self.full = FatropProblem(scenario.name, obstacles=True)
+        scale = np.asarray(scenario.control_scale, dtype=np.float64)
+        self.rel = FatropProblem(scenario.name, obstacles=False, control_scale=scale)
+        self.full = FatropProblem(scenario.name, obstacles=True, control_scale=scale)
         self.profile: dict[str, float] = {}
 
     def solve(self, problem: Problem) -> tuple[PeerResult, PeerResult]:
