@@ -12,12 +12,11 @@ ones and the fused decode, in complex128 for the Jacobians (so it must be analyt
 ``abs``, ``min`` or comparisons of them); it may call no compiled code from other files (its cache is keyed on its
 own file, ``ttompc.compiled``).
 
-Measured against hand-written forms in one run each (2-core dev VM under load, one thread): a batched torch step
-costs 20-52 µs derived against 35-87 µs for the torch code it replaced (free-flyer, quadrotor; B = 1 and 40), so the
-built-in scenarios derive theirs; a numpy step costs 37-54 µs derived (mostly numba's call overhead, though
-``ttompc.compiled.entry_point`` skips its type dispatch, 48 µs per call with a cfunc argument) against 3-17 µs for
-vectorised NumPy, and a 100-step window's linearisation 0.6-0.9 ms against 12-434 µs, so the built-in scenarios keep
-those two hand-written, checked against the compiled step by ``check-scenario``.
+Measured against hand-written forms in one run (``bench/dynamics_forms.py``, docs/benchmarks.md): the derived batched
+torch step is 1.1-2× faster than the torch code it replaced, so the built-in scenarios derive theirs; a vectorised
+NumPy step and hand-written Jacobians are 1.8-6× and 1.8-10× faster than the compiled forms (numba's call overhead
+dominates these small systems, though ``ttompc.compiled.entry_point`` skips its type dispatch), so the built-in
+scenarios keep those, checked against the compiled step by ``check-scenario``.
 """
 
 from __future__ import annotations
@@ -86,6 +85,19 @@ def step_signature(dtype: Any) -> Any:
 _ENTRY: dict[np.dtype, Callable[..., None]] = {}
 
 
+def _ready(a: np.ndarray, dtype: np.dtype) -> bool:
+    """Whether the compiled loop can take ``a`` as it is (its dtype, C-contiguous, writable)."""
+    return a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable
+
+
+def _host(t: Any, dtype: Any) -> np.ndarray:
+    """A tensor as a numpy array of ``dtype`` on the CPU (a view where it is one already)."""
+    t = t.detach()
+    if t.device.type != "cpu" or t.dtype != dtype:
+        t = t.to("cpu", dtype)
+    return t.contiguous().numpy()
+
+
 class CompiledStep:
     """A scenario's dynamics as one step function ``func(x, u, k, p, out)`` (the module docstring) and its parameter
     row per problem, ``params(problem)`` (P,) (default: the problem's dt)."""
@@ -116,7 +128,7 @@ class CompiledStep:
         dtype = np.dtype(X.dtype)
         if dtype not in (np.float32, np.float64):
             raise ValueError(f"compiled dynamics run float32 or float64 states, got {dtype}")
-        X, U, P = (np.require(a, dtype, ["C", "W"]) for a in (X, U, P))
+        X, U, P = (a if _ready(a, dtype) else np.require(a, dtype, ["C", "W"]) for a in (X, U, P))
         out = np.empty_like(X)
         step = self.cfunc(dtype)
         entry = _ENTRY.get(dtype)
@@ -170,8 +182,9 @@ class CompiledBatchedModel:
     def step(self, S: Any, A: Any, k: int) -> Any:
         import torch
 
-        X, U = (t.detach().to("cpu", S.dtype).contiguous().numpy() for t in (S, A))
-        return torch.from_numpy(self.dynamics.apply(X, U, k, self.rows.get(X.dtype, X))).to(S.device)
+        X, U = (_host(t, S.dtype) for t in (S, A))
+        out = torch.from_numpy(self.dynamics.apply(X, U, k, self.rows.get(X.dtype, X)))
+        return out if S.device.type == "cpu" else out.to(S.device)
 
     def violations(self, S: Any, k: int) -> Any:
         """The scenario's ``violations`` of each problem's state (B,), in S's dtype and device (one call per problem:
