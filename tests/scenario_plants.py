@@ -94,3 +94,10 @@ class NegativePerturbation(DoubleIntegrator2D):
 
     name = "di2d-negative-perturbation"
     perturbation = (0.05, -0.02, 0.002)
+
+
+class NoDynamics(DoubleIntegrator2D):
+    """A ``CompiledScenario`` that forgot to declare its step function."""
+
+    name = "di2d-no-dynamics"
+    dynamics = None

@@ -152,6 +152,7 @@ def test_check_scenario_rejects_a_trust_norm_the_engine_does_not_have(capsys: py
         ("UnsolvableSampler", ["solve"], "REL infeasible after 1 iteration(s)", 10),
         # a broken interface stops the checks: the others would fail for the same reason
         ("NegativePerturbation", ["interface"], "perturbation must be (gain_std, actuation_std, process_std)", 1),
+        ("NoDynamics", ["interface"], "a CompiledScenario declares dynamics = CompiledStep", 1),
     ],
 )
 def test_check_scenario_names_a_planted_mistake_in_one_line(

@@ -42,6 +42,7 @@ from ttompc.scenarios.base import (
     SCPSettings,
     Window,
 )
+from ttompc.scenarios.dynamics import CompiledScenario, CompiledStep
 from ttompc.seeding import problem_seed
 from ttompc.solvers.scp import solve_problem
 
@@ -127,6 +128,9 @@ def _interface(ctx: CheckContext) -> str:
         fail(f"perturbation must be (gain_std, actuation_std, process_std), 3 numbers >= 0, got {perturbation}")
     if any(not 0 <= r < n for r in sc.approximate_rows):
         fail(f"approximate_rows {sc.approximate_rows} are not state rows 0..{n - 1}")
+    if isinstance(sc, CompiledScenario) and not isinstance(getattr(sc, "dynamics", None), CompiledStep):
+        got = type(getattr(sc, "dynamics", None)).__name__
+        fail(f"a CompiledScenario declares dynamics = CompiledStep(its step function), got {got}")
     return f"{sc.name} v{sc.version}: {n} states, {m} controls, N = {N}, cost {sc.cost_norm}"
 
 
