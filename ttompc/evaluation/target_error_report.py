@@ -116,23 +116,25 @@ def format_tables(summary: Sequence[dict[str, Any]], method: str) -> str:
 
 
 def plot_target_error(summary: Sequence[dict[str, Any]], path: Path) -> Path:
-    """``target_error.png``: the mean of each error by bucket of steps to go, one panel per plant (a line per
-    error and horizon)."""
+    """``target_error.png``: the mean of each error by bucket of steps to go, a column per plant, the targets' in
+    the first row and the first controls' in the second (a line per error and horizon)."""
     from matplotlib.figure import Figure
 
     from ttompc.evaluation.plots import save_figure
 
     plants = list(dict.fromkeys(g["plant"] for g in summary))
-    fig = Figure(figsize=(6 * len(plants), 4))
-    axes = fig.subplots(1, len(plants), squeeze=False)
-    for ax, plant in zip(axes[0], plants, strict=True):
-        for g in (g for g in summary if g["plant"] == plant):
-            labels = list(g["buckets"])
-            for k in ERRORS:
-                ax.plot(labels, [g["buckets"][b][k]["mean"] for b in labels], marker="o",
-                        label=f"{LABELS[k]}, H={g['horizon']}")  # fmt: skip
-        ax.set(title=plant, xlabel="steps to go", ylabel="error (scaled units)")
-        ax.legend(fontsize=7)
+    fig = Figure(figsize=(6 * len(plants), 7))
+    axes = fig.subplots(2, len(plants), squeeze=False)
+    for col, plant in enumerate(plants):
+        for row, (what, kinds) in enumerate((("target", ERRORS[:2]), ("first control", ERRORS[2:]))):
+            ax = axes[row][col]
+            for g in (g for g in summary if g["plant"] == plant):
+                labels = list(g["buckets"])
+                for k in kinds:
+                    ax.plot(labels, [g["buckets"][b][k]["mean"] for b in labels], marker="o",
+                            label=f"{LABELS[k]}, H={g['horizon']}")  # fmt: skip
+            ax.set(title=f"{plant}: {what}", xlabel="steps to go", ylabel="mean error (scaled units)")
+            ax.legend(fontsize=7)
     return save_figure(fig, path)
 
 
