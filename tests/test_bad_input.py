@@ -67,6 +67,9 @@ LISTED: list[tuple[str, list[str], list[str]]] = [
      ["holds checkpoints of another run", "model.n_embd=512 there"]),
     ("train-into-a-users-folder", ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={user}"],
      ["{user} holds files that `ttompc train` did not write (README.md, manifest.json)"]),
+    ("finetune-into-a-users-folder", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
+                                      "trainer.out_dir={user}"],
+     ["{user} holds files that `ttompc finetune` did not write"]),
     # data loss: generate into a user's folder, or into an evaluation report
     ("generate-into-a-users-folder", ["generate", *SMALL_SPLITS, "out={user}"],
      ["{user} holds files that `ttompc generate` did not write (README.md, manifest.json)"]),
@@ -173,15 +176,17 @@ def generated_cases() -> list[tuple[str, list[str], str, Any, Allowed]]:
 def path_cases() -> list[tuple[str, list[str], list[str]]]:
     """Every path a command reads (missing, a file) or writes into (a file in the way, a read-only folder)."""
     cases = []
-    cases.append(("recipe-missing", ["generate", "{missing}"], ["recipe not found"]))  # a file: an empty recipe
-    for what, bad in (("missing", "{missing}"), ("a-file", "{a_file}")):
+    # a recipe that is a file is a recipe (an empty file: no settings), so only a missing one
+    cases.append(("recipe-missing", ["generate", "{missing}"], ["recipe not found"]))
+    for what, bad, said in (("missing", "{missing}", "does not exist"), ("a-file", "{a_file}", "is a file")):
         cases += [
-            (f"data-paths-{what}", ["train", TINY, f"data.paths=[{bad}]", "trainer.out_dir=r"], ["data.paths"]),
-            (f"finetune-data-{what}", ["finetune", FINETUNE, "--model", "m", f"data.paths=[{bad}]"], ["data.paths"]),
+            (f"data-paths-{what}", ["train", TINY, f"data.paths=[{bad}]", "trainer.out_dir=r"], ["data.paths", said]),
+            (f"finetune-data-{what}", ["finetune", FINETUNE, "--model", "m", f"data.paths=[{bad}]"],
+             ["data.paths", said]),
             (f"mpc-model-{what}", ["evaluate", "mpc", "--model", bad, "problems=1"], [bad]),
             (f"warmstart-model-{what}", ["evaluate", "warmstart", "--model", bad, "problems=1"], [bad]),
             (f"demo-model-{what}", ["demo", "--model", bad, "--no-mpc"], [bad]),
-        ]
+        ]  # fmt: skip
     for what, parent in (("under-a-file", "{a_file}"), ("in-a-read-only-folder", "{read_only}")):
         out = f"{parent}/out"
         cases += [
@@ -191,6 +196,8 @@ def path_cases() -> list[tuple[str, list[str], list[str]]]:
             (f"mpc-out-{what}", ["evaluate", "mpc", "--scenario", "freeflyer", f"out={out}"],
              [f"cannot use {parent}"]),
             (f"demo-out-{what}", ["demo", "--no-mpc", f"out={out}"], [f"cannot use {parent}"]),
+            (f"finetune-out-{what}", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
+                                      f"trainer.out_dir={out}"], [f"cannot use {parent}"]),
             (f"solve-plot-{what}", ["solve", "--plot", f"{out}.png"], [f"cannot use {parent}"]),
         ]  # fmt: skip
     return cases

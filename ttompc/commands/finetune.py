@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from ttompc.commands import checks
 from ttompc.config import add_config_arguments, split_recipe
 from ttompc.errors import ConfigError, UserError
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
@@ -43,12 +44,18 @@ def resume_hint(args: argparse.Namespace) -> str:
 
 
 def _check_against_data(cfg: FinetuneConfig) -> None:
-    """The devices the recipe names exist here, and the learners' horizons fit the data's N (a longer one would be
-    cut to N under its own name)."""
+    """The devices the recipe names exist here, ``trainer.out_dir`` is new, empty or a DAgger run's (its state file
+    or source planner: the run checks its source and seed itself), and the learners' horizons fit the data's N (a
+    longer one would be cut to N under its own name)."""
     from ttompc.data.manifests import check_datasets
+    from ttompc.finetune.loop import SOURCE_PLANNER, STATE_FILE
+    from ttompc.outputs import claim_folder
     from ttompc.ranges import check_devices
 
     check_devices(cfg)
+    out = cfg.trainer.out_dir
+    claim_folder(out, "finetune", lambda f: (f / STATE_FILE).is_file() or (f / SOURCE_PLANNER).is_dir())
+    checks.writable(out)
     n_steps = int(check_datasets(cfg.data)[0]["scenario"]["n_steps"])
     horizons = cfg.dagger.exploration.horizons
     if max(horizons) > n_steps:

@@ -81,8 +81,9 @@ def check_datasets(cfg: DataConfig) -> list[dict[str, Any]]:
     for key, folders in (("data.paths", paths), ("data.dagger_dirs", dagger_dirs)):
         missing = [p for p in folders if not Path(p).is_dir()]
         if missing:
+            what = "is a file, not a dataset folder" if Path(missing[0]).exists() else "does not exist"
             raise ConfigError(
-                f"{key}: dataset folder {missing[0]} does not exist",
+                f"{key}: dataset folder {missing[0]} {what}",
                 f"make it with `ttompc generate out={missing[0]} ...` or point {key}=[...] at existing folders",
             )
     for folder in map(Path, paths):
