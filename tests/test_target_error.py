@@ -16,7 +16,7 @@ import pytest
 from ttompc.cli import main
 from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.problems import EvalProblem
-from ttompc.evaluation.target_error import ERRORS, expert_episodes
+from ttompc.evaluation.target_error import ERRORS, TargetErrorConfig, expert_episodes
 from ttompc.evaluation.target_error_report import bucket_label, correlation, summarize
 from ttompc.finetune.expert import Expert, ExpertRollout
 from ttompc.mpc.loop import MPCRun
@@ -144,3 +144,6 @@ def test_evaluate_target_command(tmp_path: Path, bundle: Path) -> None:
     assert main(["evaluate", "target", f"scenario={SHORT}", "method=TTO-MPC", f"out={out}"]) == 2  # no model
     assert main(["evaluate", "target", f"scenario={SHORT}", "method=NOPE", f"out={out}"]) == 2
     assert main(["evaluate", "target", f"scenario={SHORT}", "every=0", f"out={out}"]) == 2
+    cfg = TargetErrorConfig(model="m", ft_model="f", scenario=SHORT)
+    assert cfg.method_entry().name == "R-FT-TTO-MPC"
+    assert TargetErrorConfig(model="m", robust_blend=0.0, scenario=SHORT).method_entry().name == "TTO-MPC"

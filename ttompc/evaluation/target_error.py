@@ -63,7 +63,8 @@ ERRORS = ("target_raw", "target_blended", "control", "control_raw")  # a step's 
 @dataclass
 class TargetErrorConfig(ClosedLoopConfig):
     """``ttompc evaluate target`` settings: a closed-loop measurement (``ClosedLoopConfig``; default horizon 10 on
-    both plants) of one ``method`` (None: R-FT-TTO-MPC with ``ft_model``, else R-TTO-MPC), the expert planning at
+    both plants) of one ``method`` (None: R-FT-TTO-MPC with ``ft_model``, else R-TTO-MPC; without the R- under
+    ``robust_blend=0``), the expert planning at
     every ``every``-th step; ``plot``: also write ``target_error.png``; ``out`` defaults to
     ``outputs/evaluate/target-<scenario>``."""
 
@@ -78,7 +79,8 @@ class TargetErrorConfig(ClosedLoopConfig):
 
     def method_entry(self) -> Method:
         """The method measured; raises ``UserError`` when it plans with a model the config does not name."""
-        name = self.method or ("R-FT-TTO-MPC" if self.ft_model else "R-TTO-MPC")
+        robust = "R-" if self.robust_blend > 0 else ""
+        name = self.method or robust + ("FT-TTO-MPC" if self.ft_model else "TTO-MPC")
         m = METHODS[name]
         if m.model is not None and m.model not in model_sources(self):
             flag = "--ft-model" if m.model == "FT-TTO" else "--model"
