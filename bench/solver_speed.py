@@ -129,9 +129,14 @@ def robustness(name: str, n: int, reference: bool, backend: str) -> dict:
 
 def peer(name: str, n: int) -> dict:
     """Ours (the PIQP path), the Riccati backend (the default), the conic path, built-once IPOPT and built-once fatrop
-    on the same problems, interleaved; wall and CPU time of this process per problem."""
+    on the same problems, interleaved; wall and CPU time of this process per problem, and the interior-point
+    iterations of the Riccati kernel (over all subproblems), IPOPT and fatrop."""
+    import re
+
     from fatrop_peer import FatropPeer
     from ipopt_peer import IpoptPeer
+
+    from ttompc.solvers.backends.riccati import RiccatiSolver
 
     scenario = get_scenario(name)
     ipopt, fatrop = IpoptPeer(scenario), FatropPeer(scenario)
@@ -146,18 +151,32 @@ def peer(name: str, n: int) -> dict:
     for run in runners.values():  # imports, structure caches, CasADi code generation outside the timing
         run(warm)
     fatrop.profile.clear()
-    rows: dict[str, list[tuple[float, float, int, float, bool]]] = {k: [] for k in runners}
+    kernel_its: list[int] = []  # interior-point iterations of each Riccati subproblem solve
+    original = RiccatiSolver.solve
+
+    def counted(self, data):
+        result = original(self, data)
+        kernel_its.append(int(re.search(r"\((\d+) it", result[2].status).group(1)))
+        return result
+
+    rows: dict[str, list[tuple[float, float, int, float, bool, int]]] = {k: [] for k in runners}
     order = list(runners)
-    for i in range(n):
-        p = scenario.sample(np.random.default_rng(i))
-        for k in order[i % len(order) :] + order[: i % len(order)]:  # rotate who goes first
-            w0, c0 = time.perf_counter(), time.process_time()
-            its, c, ok = runners[k](p)
-            rows[k].append((time.perf_counter() - w0, time.process_time() - c0, its, c, ok))
+    RiccatiSolver.solve = counted  # type: ignore[method-assign]
+    try:
+        for i in range(n):
+            p = scenario.sample(np.random.default_rng(i))
+            for k in order[i % len(order) :] + order[: i % len(order)]:  # rotate who goes first
+                kernel_its.clear()
+                w0, c0 = time.perf_counter(), time.process_time()
+                its, c, ok = runners[k](p)
+                wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+                rows[k].append((wall, cpu, its, c, ok, sum(kernel_its) if k == "riccati" else its))
+    finally:
+        RiccatiSolver.solve = original  # type: ignore[method-assign]
     out: dict = {"scenario": name, "problems": n, "backend": "+".join(backend_chain("piqp", scenario))}
     cost, cpu_time = {}, {}
     for k, r in rows.items():
-        t, cpu, its, c, ok = (np.array(v) for v in zip(*r, strict=True))
+        t, cpu, its, c, ok, ip_its = (np.array(v) for v in zip(*r, strict=True))
         cost[k], cpu_time[k] = np.where(ok, c, np.nan), cpu
         out[k] = {
             "median_s": float(np.median(t)),
@@ -166,6 +185,9 @@ def peer(name: str, n: int) -> dict:
             "mean_iterations": float(its.mean()),
             "failures": int((~ok).sum()),
         }
+        if k in ("riccati", "ipopt", "fatrop"):  # interior-point iterations per problem, CPU time per iteration
+            out[k]["mean_ip_iterations"] = float(ip_its.mean())
+            out[k]["cpu_us_per_ip_iteration"] = float(1e6 * cpu.sum() / ip_its.sum())
     out["speedup_vs_ipopt"] = out["ipopt"]["median_s"] / out["ours"]["median_s"]
     out["speedup_vs_conic"] = out["conic"]["median_s"] / out["ours"]["median_s"]
     out["cost_vs_ipopt"] = _cost_vs(cost["ours"], cost["ipopt"])
@@ -206,6 +228,14 @@ def peer(name: str, n: int) -> dict:
         f"{out['riccati_cpu_speedup_vs_fatrop']:.2f}; fatrop faster on {out['fatrop_faster_problems']} of {n}), fatrop "
         f"x{out['fatrop_speedup_vs_ipopt']:.2f} vs IPOPT | cost vs riccati median "
         f"{out['fatrop_cost_vs_riccati']['median_rel_diff']:.1e}",
+        flush=True,
+    )
+    print(
+        f"[peer {name}] interior-point iterations per problem (CPU us each): "
+        + ", ".join(
+            f"{k} {out[k]['mean_ip_iterations']:.0f} ({out[k]['cpu_us_per_ip_iteration']:.0f})"
+            for k in ("riccati", "ipopt", "fatrop")
+        ),
         flush=True,
     )
     return out
