@@ -5,10 +5,13 @@ radii and costs, written over blocks of K steps (one column per step), so that I
 extra).
 
 Each function that adds constraints adds only constraints on the columns it is given, in a fixed order, so that a
-caller controls the order of the rows (fatrop needs each stage's dynamics first)."""
+caller controls the order of the rows (fatrop needs each stage's dynamics first). ``solve_timed`` solves a built
+problem and collects what the benchmark reports."""
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -18,6 +21,15 @@ from ttompc.scenarios import quadrotor as qr
 
 N_STEPS = 100  # both scenarios' horizon (ff.N_STEPS == qr.N_STEPS)
 STATE_DIM = 6
+
+
+@dataclass
+class PeerResult:
+    ok: bool
+    X: np.ndarray  # (N+1, n)
+    U: np.ndarray  # (N, m)
+    iterations: int  # the NLP solver's iterations
+    seconds: float
 
 
 def control_variables(
@@ -88,3 +100,19 @@ def state_constraints(opti: Any, name: str, X: Any, obstacles: bool) -> None:
         for centre, r in zip(centres, radii, strict=True):
             d2 = sum((X[i, :] - centre[i]) ** 2 for i in range(len(centre)))
             opti.subject_to(d2 >= r**2)
+
+
+def solve_timed(opti: Any, X: Any, U: Any) -> tuple[PeerResult, dict[str, Any]]:
+    """Solve ``opti`` as set (parameters, initial guesses): the states X and controls U of the solution, or of the last
+    iterate where the solver did not converge (``ok`` False), its iterations and wall time; and the solver's stats."""
+    t0 = time.perf_counter()
+    try:
+        sol = opti.solve()
+        ok, getter = True, sol.value
+    except RuntimeError:  # no convergence; the debug values are the last iterate
+        ok, getter = False, opti.debug.value
+    seconds = time.perf_counter() - t0
+    stats = opti.stats()
+    X_value, U_value = np.asarray(getter(X)).T, np.asarray(getter(U)).T
+    iterations = int(stats.get("iter_count", -1))
+    return PeerResult(ok and bool(stats.get("success", False)), X_value, U_value, iterations, seconds), stats

@@ -15,11 +15,9 @@ free-flyer's Δv ≤ 0.005 m/s left fatrop over-regularising its Hessian near th
 
 from __future__ import annotations
 
-import time
-
 import casadi_models as cm
 import numpy as np
-from ipopt_peer import PeerResult
+from casadi_models import PeerResult
 
 from ttompc.scenarios.base import Problem, Scenario
 
@@ -85,17 +83,9 @@ class FatropProblem:
         opti.set_initial(self.X_all, X_init.T)
         for k, variables in enumerate(self.u_vars):
             cm.set_control_guess(opti, variables, U_init[k][:, None], self.control_scale)
-        t0 = time.perf_counter()
-        try:
-            sol = opti.solve()
-            ok, getter = True, sol.value
-        except RuntimeError:  # fatrop did not converge; the debug values are the last iterate
-            ok, getter = False, opti.debug.value
-        seconds = time.perf_counter() - t0
-        stats = opti.stats()
+        result, stats = cm.solve_timed(opti, self.X_all, self.U_all)
         self.last_times = {key: float(stats["fatrop"][key]) for key in PROFILE_KEYS}
-        X, U = np.asarray(getter(self.X_all)).T, np.asarray(getter(self.U_all)).T
-        return PeerResult(ok and bool(stats.get("success", False)), X, U, int(stats.get("iter_count", -1)), seconds)
+        return result
 
 
 class FatropPeer:

@@ -7,24 +7,13 @@ and costs (the L1 cost through u = u⁺ − u⁻, u± ≥ 0), over whole-traject
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
-
 import casadi_models as cm
 import numpy as np
+from casadi_models import PeerResult
 
 from ttompc.scenarios.base import Problem, Scenario
 
 IPOPT_OPTIONS = {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False, "expand": True}
-
-
-@dataclass
-class PeerResult:
-    ok: bool
-    X: np.ndarray  # (N+1, n)
-    U: np.ndarray  # (N, m)
-    iterations: int  # the NLP solver's iterations
-    seconds: float
 
 
 class IpoptProblem:
@@ -53,16 +42,7 @@ class IpoptProblem:
         opti.set_value(self.goal, problem.goal)
         opti.set_initial(self.X, X_init.T)
         cm.set_control_guess(opti, self.u_vars, U_init.T)
-        t0 = time.perf_counter()
-        try:
-            sol = opti.solve()
-            ok, getter = True, sol.value
-        except RuntimeError:  # IPOPT did not converge; the debug values are the last iterate
-            ok, getter = False, opti.debug.value
-        seconds = time.perf_counter() - t0
-        stats = opti.stats()
-        X, U = np.asarray(getter(self.X)).T, np.asarray(getter(self.U)).T
-        return PeerResult(ok and bool(stats.get("success", False)), X, U, int(stats.get("iter_count", -1)), seconds)
+        return cm.solve_timed(opti, self.X, self.U)[0]
 
 
 class IpoptPeer:
