@@ -203,6 +203,10 @@ def peer(name: str, n: int) -> dict:
     ratio = cpu_time["fatrop"] / cpu_time["riccati"]  # per problem, CPU time: < 1 where fatrop is faster
     out["fatrop_faster_problems"] = int(np.sum(ratio < 1))
     out["riccati_cpu_speedup_vs_fatrop_range"] = (float(ratio.min()), float(ratio.max()))
+    out["closest_to_fatrop"] = [  # the 3 problems where fatrop comes nearest: seed, CPU ratio, our subproblems
+        {"seed": int(i), "cpu_ratio": float(ratio[i]), "subproblems": rows["riccati"][i][2]}
+        for i in np.argsort(ratio)[:3]
+    ]
     out["fatrop_profile"] = fatrop.profile_per_iteration()
     conic_both = np.isfinite(cost["ours"]) & np.isfinite(cost["conic"])
     out["max_rel_cost_diff_vs_conic"] = float(
