@@ -36,6 +36,7 @@ from ttompc.training.config import TrainConfig
 REPO = Path(__file__).resolve().parents[1]
 TINY = str(REPO / "recipes/freeflyer/tiny.yaml")
 QUAD_TINY = str(REPO / "recipes/quadrotor/tiny.yaml")
+BUNDLE = str(REPO / "zoo/models/freeflyer-tto-small")  # a model that loads offline
 FINETUNE = str(REPO / "recipes/freeflyer/finetune.yaml")
 SMALL_SPLITS = ["problems=2", "splits.train=1", "splits.val=0", "splits.test=0"]
 # the command line of each schema, up to its settings
@@ -181,7 +182,7 @@ def path_cases() -> list[tuple[str, list[str], list[str]]]:
     for what, bad, said in (("missing", "{missing}", "does not exist"), ("a-file", "{a_file}", "is a file")):
         cases += [
             (f"data-paths-{what}", ["train", TINY, f"data.paths=[{bad}]", "trainer.out_dir=r"], ["data.paths", said]),
-            (f"finetune-data-{what}", ["finetune", FINETUNE, "--model", "m", f"data.paths=[{bad}]"],
+            (f"finetune-data-{what}", ["finetune", FINETUNE, "--model", BUNDLE, f"data.paths=[{bad}]"],
              ["data.paths", said]),
             (f"mpc-model-{what}", ["evaluate", "mpc", "--model", bad, "problems=1"], [bad]),
             (f"warmstart-model-{what}", ["evaluate", "warmstart", "--model", bad, "problems=1"], [bad]),

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from ttompc.commands import checks
 from ttompc.config import add_config_arguments, split_recipe
@@ -46,8 +47,9 @@ def resume_hint(args: argparse.Namespace) -> str:
 def _check_against_data(cfg: FinetuneConfig) -> None:
     """The devices the recipe names exist here, ``trainer.out_dir`` is new, empty or a DAgger run's (its state file
     or source planner: the run checks its source and seed itself), and the learners' horizons fit the data's N (a
-    longer one would be cut to N under its own name)."""
-    from ttompc.data.manifests import check_datasets
+    longer one would be cut to N under its own name) where its manifest is there (``finetune`` checks the data
+    against the model, ``ttompc.finetune.loop.check_inputs``)."""
+    from ttompc.data.manifests import MANIFEST, load_manifest
     from ttompc.finetune.loop import SOURCE_PLANNER, STATE_FILE
     from ttompc.outputs import claim_folder
     from ttompc.ranges import check_devices
@@ -56,7 +58,9 @@ def _check_against_data(cfg: FinetuneConfig) -> None:
     out = cfg.trainer.out_dir
     claim_folder(out, "finetune", lambda f: (f / STATE_FILE).is_file() or (f / SOURCE_PLANNER).is_dir())
     checks.writable(out)
-    n_steps = int(check_datasets(cfg.data)[0]["scenario"]["n_steps"])
+    if not (Path(cfg.data.paths[0]) / MANIFEST).is_file():
+        return
+    n_steps = int(load_manifest(cfg.data.paths[0])["scenario"]["n_steps"])
     horizons = cfg.dagger.exploration.horizons
     if max(horizons) > n_steps:
         raise ConfigError(

@@ -183,8 +183,9 @@ def check_inputs(cfg: FinetuneConfig, planner: Planner, source: str) -> None:
     if missing:  # generating a new dataset would not do: its normalisation statistics would not be the model's
         recorded = (planner.recipe.get("data") or {}).get("paths") or []
         trained_on = f" (recorded in the model: {', '.join(map(str, recorded))})" if recorded else ""
+        what = "is a file, not a dataset folder" if Path(missing[0]).exists() else "does not exist"
         raise FinetuneError(
-            f"data.paths: dataset folder {missing[0]} does not exist",
+            f"data.paths: dataset folder {missing[0]} {what}",
             f"fine-tuning needs the open-loop dataset the model was trained on{trained_on}: point data.paths=[...] "
             "at it, or remake it with the `ttompc generate` command of the model's recipe or data card (the same "
             "settings make the same data)",
