@@ -3,12 +3,12 @@
 Per built-in scenario, the median time of one call, in µs, and the ratio derived / hand-written (below 1: the
 derived form is faster):
 
-* ``numpy_step_1``, ``numpy_step_100``: ``Scenario.step`` (the scenario's vectorised NumPy) against
-  ``CompiledStep.step`` on 1 and 100 states (free-flyer, quadrotor: their ``dynamics`` is their exact step);
-* ``linearise``: ``Scenario.convex_model`` (hand-written Jacobians) against ``CompiledStep.linearise`` (complex
-  steps) on a 100-step window;
-* ``torch_step_1``, ``torch_step_40``: the batched model's float32 step (derived: ``CompiledBatchedModel``) against
-  the torch code it replaced (written out below), at B = 1 and 40.
+* ``numpy_step_1``, ``numpy_step_100``: the vectorised NumPy step (the free-flyer's ``Scenario.step``; the
+  quadrotor's before it derived its own, written out below) against ``CompiledStep.step`` on 1 and 100 states;
+* ``linearise``: the hand-written linearisation (``Scenario.convex_model``) against ``CompiledStep.linearise``
+  (complex steps) on a 100-step window;
+* ``torch_step_1``, ``torch_step_40``: the derived batched float32 step (``CompiledBatchedModel``) against the torch
+  code it replaced (written out below; the free-flyer keeps it), at B = 1 and 40.
 
     python bench/dynamics_forms.py [--repeats 2000] [--out bench/results/dynamics_forms.json]
 """
@@ -70,6 +70,15 @@ def torch_reference(name: str, problems: list[Problem]) -> Callable[[Any, Any, i
     return lambda S, U, k: (M[:, k].to(S.dtype) @ S[..., None] + N[:, k].to(S.dtype) @ U[..., None])[..., 0]
 
 
+def quadrotor_step(problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The quadrotor's vectorised NumPy step before its dynamics were written once."""
+    from ttompc.scenarios.quadrotor import DRAG, MASS
+
+    v = x[..., 3:]
+    dv = u / MASS - (DRAG / MASS) * np.linalg.norm(v, axis=-1, keepdims=True) * v
+    return x + problem.dt * np.concatenate([v, dv], axis=-1)
+
+
 def measure(name: str, repeats: int) -> dict[str, dict[str, float]]:
     sc = get_scenario(name)
     rng = np.random.default_rng(0)
@@ -85,13 +94,17 @@ def measure(name: str, repeats: int) -> dict[str, dict[str, float]]:
 
     dynamics = getattr(sc, "dynamics", None)
     if dynamics is not None:  # free-flyer, quadrotor: their exact step written once
-        pair("numpy_step_1", lambda: sc.step(p, 3, X[3], U[3]), lambda: dynamics.step(p, 3, X[3], U[3]))
-        pair("numpy_step_100", lambda: sc.step(p, 3, X[:100], U), lambda: dynamics.step(p, 3, X[:100], U))
+        step = quadrotor_step if name == "quadrotor" else sc.step
+        linearisation = sc.convex_model
         w = Window.full(p)
-        pair("linearise", lambda: sc.convex_model(p, w, X, U), lambda: dynamics.linearise(p, w, X, U))
+        assert np.allclose(dynamics.linearise(p, w, X, U).A, linearisation(p, w, X, U).A, rtol=1e-12, atol=1e-14)
+        pair("numpy_step_1", lambda: step(p, 3, X[3], U[3]), lambda: dynamics.step(p, 3, X[3], U[3]))
+        pair("numpy_step_100", lambda: step(p, 3, X[:100], U), lambda: dynamics.step(p, 3, X[:100], U))
+        pair("linearise", lambda: linearisation(p, w, X, U), lambda: dynamics.linearise(p, w, X, U))
     for B in (1, 40):
         problems = [sc.sample(rng) for _ in range(B)]
-        model, reference = sc.batched_model(problems), torch_reference(name, problems)
+        model = dynamics.batched(sc, problems) if dynamics is not None else sc.batched_model(problems)
+        reference = torch_reference(name, problems)
         S = torch.as_tensor(rng.normal(size=(B, sc.state_dim)) * sx, dtype=torch.float32)
         A = torch.as_tensor(rng.normal(size=(B, sc.control_dim)) * su, dtype=torch.float32)
         assert torch.allclose(model.step(S, A, 5), reference(S, A, 5), rtol=1e-4, atol=1e-5)

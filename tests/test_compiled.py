@@ -7,11 +7,10 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
 
 import pytest
 
-from ttompc.compiled import Kernel, cache_mode, entry_point
+from ttompc.compiled import Kernel, cache_mode
 
 KERNEL = """
 from pathlib import Path
@@ -97,20 +96,3 @@ def test_a_kernel_compiles_where_its_stamp_cannot_be_set(monkeypatch: pytest.Mon
 
     with pytest.warns(RuntimeWarning, match="compiled in every process"):
         assert kernel.jit(twice)(21) == 42
-
-
-def _scaled(a: float, x: Any, out: Any) -> None:
-    for i in range(x.shape[0]):
-        out[i] = a * x[i]
-
-
-def test_entry_point_is_the_compiled_specialisation() -> None:
-    """``entry_point`` runs the call it is given, then returns what computes the same without numba's dispatch."""
-    import numpy as np
-
-    dispatcher = Kernel("the entry-point test kernel", [Path(__file__)]).jit(_scaled)
-    x, out = np.arange(3.0), np.zeros(3)
-    entry = entry_point(dispatcher, 2.0, x, out)
-    assert out.tolist() == [0.0, 2.0, 4.0] and entry is not dispatcher
-    entry(3.0, x, out)
-    assert out.tolist() == [0.0, 3.0, 6.0]

@@ -125,16 +125,3 @@ class Kernel:
 def own_file_kernel(label: str, func: Callable, **options: Any) -> Kernel:
     """The ``Kernel`` of one function that calls no compiled code from other files, keyed on its own file."""
     return Kernel(label, [Path(inspect.getfile(func))], **options)
-
-
-def entry_point(dispatcher: Any, *args: Any) -> Callable[..., Any]:
-    """``dispatcher`` called once on ``args`` (compiling it or loading it from the cache), then its compiled
-    specialisation for their types, to be called directly with arguments of the same types: numba's type dispatch
-    costs tens of µs per call where an argument is a cfunc (measured 48 µs against 14 µs). The specialisation is
-    found through numba's ``overloads`` and its ``entry_point`` (checked here: where numba lacks them, the dispatcher
-    itself is returned, correct and slower)."""
-    from numba import typeof
-
-    dispatcher(*args)
-    compiled = getattr(dispatcher, "overloads", {}).get(tuple(typeof(a) for a in args))
-    return getattr(compiled, "entry_point", dispatcher)

@@ -174,7 +174,7 @@ class FusedDecoder:
         S[:, 0], R[:, 0] = _numpy(state), _numpy(rtg)
         window = WindowMaps(_numpy(base), _numpy(W), _numpy(head_w), _numpy(head_b))
         rollout_kernel(
-            self.step,
+            self.step.address,
             self.params,
             COST_CODES[cost_norm],
             self.n_head,

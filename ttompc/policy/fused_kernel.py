@@ -3,8 +3,8 @@
 ``rollout_kernel`` runs a whole H-step generation of ``RolloutContext.rollout`` (stacked layout) in one call:
 per generated step the window embedding, the decoder layers over the KV cache (the new token's keys/values are
 written into the free slots after the history, which the caller leaves unclaimed: the cache's ``length`` is never
-touched here), the action head, the scenario's approximate dynamics (a numba ``cfunc``, called by address:
-``ttompc.scenarios.dynamics.step_signature``) and the rtg update with the stage cost. ``extend_kernel`` runs the
+touched here), the action head, the scenario's approximate dynamics (a numba ``cfunc``, called by its address:
+``ttompc.scenarios.dynamics.call_step``) and the rtg update with the stage cost. ``extend_kernel`` runs the
 trunk over T new tokens after the cached ones (the KV-cache extension of ``RolloutContext.advance``).
 
 Matmuls go through ``np.dot`` (numba's BLAS binding, single-threaded under ``OMP_NUM_THREADS=1``): measured on the
@@ -29,11 +29,14 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ttompc.compiled import Kernel
+from ttompc.scenarios import dynamics
+from ttompc.scenarios.dynamics import call_step
 
 COST_CODES = {"l1": 0, "l2": 1, "quad": 2}  # the stage cost c(u) of the rtg update
 ACT_CODES = {"relu": 0, "gelu": 1, "silu": 2}  # the MLP activation (gelu: torch's exact erf form)
 LN_EPS = 1e-5  # torch's LayerNorm default, what ``Decoder`` runs
-KERNEL = Kernel("the fused decode kernel", [Path(__file__)], fastmath={"reassoc", "contract"})
+# dynamics.py: ``call_step`` is compiled into the kernel
+KERNEL = Kernel("the fused decode kernel", [Path(__file__), Path(dynamics.__file__)], fastmath={"reassoc", "contract"})
 jit = KERNEL.jit
 
 
@@ -188,7 +191,7 @@ def _scratch(R: int, C: int, hidden: int, capacity: int) -> tuple:
 
 @jit
 def rollout_kernel(
-    step: Any,
+    step: int,
     params: Any,
     cost: int,
     n_head: int,
@@ -206,8 +209,8 @@ def rollout_kernel(
 ) -> None:
     """The H = A.shape[1] generated steps of a rollout from step t0 after ``history`` cached tokens.
 
-    ``step``: the dynamics cfunc, called as step(s, a, k, params[b], s_next) (pointers); ``params`` (B, P) its
-    per-problem rows. ``cost``: ``COST_CODES``; ``act``: ``ACT_CODES``. K, V (L, B, heads, capacity, hd): the
+    ``step``: the address of the dynamics' float32 cfunc, called as step(s, a, k, params[b], s_next); ``params``
+    (B, P) its per-problem rows. ``cost``: ``COST_CODES``; ``act``: ``ACT_CODES``. K, V (L, B, heads, capacity, hd): the
     cache; positions history..history+H-1 are written, nothing before. In: a_prev (B, m) = a_{t0-1}, S[:, 0]
     (B, n) and R[:, 0] (B,). Out: S[:, 1:] (B, H, n), A (B, H, m), R[:, 1:]."""
     B, H, m = A.shape
@@ -235,7 +238,7 @@ def rollout_kernel(
                 A[b, j, i] = a
                 z[b, 1 + n + i] = a
                 c += abs(a) if cost == 0 else a * a
-            step(S[b, j].ctypes, A[b, j].ctypes, t0 + j, params[b].ctypes, S[b, j + 1].ctypes)
+            call_step(step, S[b, j], A[b, j], t0 + j, params[b], S[b, j + 1])
             R[b, j + 1] = R[b, j] + (c if cost == 0 else np.sqrt(c) if cost == 1 else np.float32(0.5) * c)
 
 

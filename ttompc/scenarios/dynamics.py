@@ -12,11 +12,10 @@ ones and the fused decode, in complex128 for the Jacobians (so it must be analyt
 ``abs``, ``min`` or comparisons of them); it may call no compiled code from other files (its cache is keyed on its
 own file, ``ttompc.compiled``).
 
-Measured against hand-written forms in one run (``bench/dynamics_forms.py``, docs/benchmarks.md): the derived batched
-torch step is 1.1-2× faster than the torch code it replaced, so the built-in scenarios derive theirs; a vectorised
-NumPy step and hand-written Jacobians are 1.8-6× and 1.8-10× faster than the compiled forms (numba's call overhead
-dominates these small systems, though ``ttompc.compiled.entry_point`` skips its type dispatch), so the built-in
-scenarios keep those, checked against the compiled step by ``check-scenario``.
+Measured against hand-written forms in one run (``bench/dynamics_forms.py``, docs/benchmarks.md): the derived torch
+step is 1.7-3× faster than the torch code it replaced and the derived NumPy step 1.3-2.3× faster for the quadrotor,
+which derives both; hand-written Jacobians stay faster than complex steps (1.2× for the quadrotor's, 6× for the
+free-flyer's constant matrices), and so does the free-flyer's NumPy step (two matrix products, 1.05-1.8×).
 """
 
 from __future__ import annotations
@@ -26,24 +25,58 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
-from ttompc.compiled import Kernel, entry_point, own_file_kernel
+from ttompc.compiled import Kernel, own_file_kernel
 from ttompc.scenarios.base import ConvexModel, Problem, Scenario, Window
 
 Row = Sequence[float] | np.ndarray  # a problem's parameter row
+
+
+def _call_step(typingctx: Any, address: Any, x: Any, u: Any, k: Any, p: Any, out: Any) -> Any:
+    """``call_step``, in compiled code: the compiled step at ``address`` (``CompiledStep.cfunc(dtype).address``) on
+    the 1-D arrays x, u, p and out of that dtype at step k. A call by address: a cfunc passed as an argument costs
+    about 50 µs a call to unbox from Python (measured: 65 µs against 1.8 µs for the same loop), an integer nothing."""
+    arrays = (x, u, p, out)
+    if not isinstance(address, types.Integer) or not all(
+        isinstance(a, types.Array) and a.dtype == x.dtype and a.ndim == 1 for a in arrays
+    ):
+        return None  # numba reports the call as untyped
+    sig = types.void(address, x, u, k, p, out)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        address, xv, uv, kv, pv, outv = args
+        xp, up, pp, op = (
+            cgutils.create_struct_proxy(ty)(context, builder, value=v).data
+            for ty, v in zip(arrays, (xv, uv, pv, outv), strict=True)
+        )
+        step_k = context.cast(builder, kv, signature.args[3], types.intp)
+        fnty = ir.FunctionType(ir.VoidType(), [xp.type, up.type, step_k.type, pp.type, op.type])
+        builder.call(builder.inttoptr(address, fnty.as_pointer()), [xp, up, step_k, pp, op])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+call_step: Any = intrinsic(_call_step)  # call_step(address, x, u, k, p, out)
+
+
 KERNEL = Kernel("the compiled-step loop", [Path(__file__)])
 
 
 @KERNEL.jit
-def _apply(step: Any, X: Any, U: Any, k: int, P: Any, out: Any) -> None:
+def _apply(step: int, X: Any, U: Any, k: int, P: Any, out: Any) -> None:
     """out[i] = step(X[i], U[i], k, P[i]) for each row (P[0] for every row where P has one row)."""
     last = P.shape[0] - 1
     for i in range(X.shape[0]):
-        step(X[i].ctypes, U[i].ctypes, k, P[min(i, last)].ctypes, out[i].ctypes)
+        call_step(step, X[i], U[i], k, P[min(i, last)], out[i])
 
 
 @KERNEL.jit
-def _linearise(step: Any, X: Any, U: Any, k0: int, P: Any, A: Any, B: Any, f: Any) -> None:
+def _linearise(step: int, X: Any, U: Any, k0: int, P: Any, A: Any, B: Any, f: Any) -> None:
     """A[j], B[j] = ∂f/∂x, ∂f/∂u and f[j] = f at (X[j], U[j]), step k0 + j, by complex steps: one evaluation of the
     complex128 ``step`` per column with an imaginary perturbation ih, whose imaginary part is h times the column
     (no difference is taken, so the derivative is exact to rounding for any h; h = 1e-30 leaves the real part f)."""
@@ -62,7 +95,7 @@ def _linearise(step: Any, X: Any, U: Any, k0: int, P: Any, A: Any, B: Any, f: An
                 x[c] += 1j * h
             else:
                 u[c - n] += 1j * h
-            step(x.ctypes, u.ctypes, k0 + j, p.ctypes, out.ctypes)
+            call_step(step, x, u, k0 + j, p, out)
             for r in range(n):
                 if c < n:
                     A[j, r, c] = out[r].imag / h
@@ -79,10 +112,6 @@ def step_signature(dtype: Any) -> Any:
 
     ptr = types.CPointer(from_dtype(np.dtype(dtype)))
     return types.void(ptr, ptr, types.intp, ptr, ptr)
-
-
-# float dtype -> ``_apply``'s specialisation, complex128 -> ``_linearise``'s: called without numba's dispatch
-_ENTRY: dict[np.dtype, Callable[..., None]] = {}
 
 
 def _ready(a: np.ndarray, dtype: np.dtype) -> bool:
@@ -108,6 +137,7 @@ class CompiledStep:
         self.func = func
         self.params = params or (lambda problem: (problem.dt,))
         self._cfuncs: dict[np.dtype, Any] = {}
+        self._addresses: dict[np.dtype, int] = {}
 
     def row(self, problem: Problem) -> np.ndarray:
         """The problem's parameter row p (P,), float64."""
@@ -120,7 +150,16 @@ class CompiledStep:
         if dtype not in self._cfuncs:
             kernel = own_file_kernel(f"the dynamics {self.func.__module__}.{self.func.__qualname__}", self.func)
             self._cfuncs[dtype] = kernel.cfunc(self.func, step_signature(dtype))
+            self._addresses[dtype] = self._cfuncs[dtype].address
         return self._cfuncs[dtype]
+
+    def address(self, dtype: np.dtype) -> int:
+        """The address of ``cfunc(dtype)`` (what ``call_step`` calls)."""
+        address = self._addresses.get(dtype)
+        if address is None:
+            self.cfunc(dtype)
+            address = self._addresses[dtype]
+        return address
 
     def apply(self, X: np.ndarray, U: np.ndarray, k: int, P: np.ndarray) -> np.ndarray:
         """The next states of the rows of X (R, n) under U (R, m) at step k with parameter rows P (R or 1, P), in
@@ -130,21 +169,18 @@ class CompiledStep:
             raise ValueError(f"compiled dynamics run float32 or float64 states, got {dtype}")
         X, U, P = (a if _ready(a, dtype) else np.require(a, dtype, ["C", "W"]) for a in (X, U, P))
         out = np.empty_like(X)
-        step = self.cfunc(dtype)
-        entry = _ENTRY.get(dtype)
-        if entry is None:
-            _ENTRY[dtype] = entry_point(_apply, step, X, U, int(k), P, out)
-        else:
-            entry(step, X, U, int(k), P, out)
+        _apply(self.address(dtype), X, U, int(k), P, out)
         return out
 
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """``Scenario.step``: x_{k+1} in float64, vectorised over the leading axes of x and u."""
         x, u = np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)
-        lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
-        X = np.broadcast_to(x, (*lead, x.shape[-1])).reshape(-1, x.shape[-1])
-        U = np.broadcast_to(u, (*lead, u.shape[-1])).reshape(-1, u.shape[-1])
-        return self.apply(X, U, k, self.row(problem)[None]).reshape(*lead, x.shape[-1])
+        n, m = x.shape[-1], u.shape[-1]
+        lead = x.shape[:-1]
+        if u.shape[:-1] != lead:
+            lead = np.broadcast_shapes(lead, u.shape[:-1])
+            x, u = np.broadcast_to(x, (*lead, n)), np.broadcast_to(u, (*lead, m))
+        return self.apply(x.reshape(-1, n), u.reshape(-1, m), k, self.row(problem)[None]).reshape(*lead, n)
 
     def linearise(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
         """``Scenario.convex_model``: the first-order Taylor expansion of the step at the reference (H+1, n), (H, m),
@@ -155,12 +191,7 @@ class CompiledStep:
         U = np.ascontiguousarray(U_ref[:H], dtype=np.float64)
         n, m = X.shape[1], U.shape[1]
         A, B, f = np.empty((H, n, n)), np.empty((H, n, m)), np.empty((H, n))
-        args = (self.cfunc(np.complex128), X, U, int(window.start), self.row(problem), A, B, f)
-        entry = _ENTRY.get(np.dtype(np.complex128))
-        if entry is None:
-            _ENTRY[np.dtype(np.complex128)] = entry_point(_linearise, *args)
-        else:
-            entry(*args)
+        _linearise(self.address(np.dtype(np.complex128)), X, U, int(window.start), self.row(problem), A, B, f)
         c = f - np.einsum("jab,jb->ja", A, X) - np.einsum("jab,jb->ja", B, U)
         return ConvexModel(A=A, B=B, c=c)
 

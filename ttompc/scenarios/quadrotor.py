@@ -1,8 +1,10 @@
 """Quadrotor crossing a forest of four spherical obstacles (paper §V-A; the authors' 'random_target_forest' setting).
 
 State x = [p, v] (m, m/s), control u = thrust force (N). Continuous dynamics ṗ = v, v̇ = u/m − (c_d/m)‖v‖v are
-stepped with explicit Euler (the environment and the transformer's model are the same map). The convex model is the
-first-order Taylor expansion of that Euler step about the reference, so REL (obstacles off) is itself an SCP.
+stepped with explicit Euler, written once (``_step``, a ``CompiledStep``: the environment, the transformer's model and
+the fused decoder's step). The convex model is the first-order Taylor expansion of that Euler step about the
+reference (its Jacobians by hand, 1.6× faster than derived ones, ``bench/dynamics_forms.py``; checked against the
+step by ``check-scenario``), so REL (obstacles off) is itself an SCP.
 """
 
 from __future__ import annotations
@@ -39,11 +41,6 @@ OBSTACLE_RADII = np.array([0.3, 0.2, 0.2, 0.2])  # nominal radii, no inflation (
 VIOLATION_TOL = 1e-5  # m; an SCP solution touching an obstacle is not a violation
 
 
-def drag_accel(v: np.ndarray) -> np.ndarray:
-    """−(c_d/m)‖v‖v for velocities (..., 3)."""
-    return -(DRAG / MASS) * np.linalg.norm(v, axis=-1, keepdims=True) * v
-
-
 def drag_jacobian(v: np.ndarray) -> np.ndarray:
     """∂(−(c_d/m)‖v‖v)/∂v = −(c_d/m)(‖v‖I + vvᵀ/‖v‖) (..., 3, 3); the limit at v = 0 is 0 (the drag is O(‖v‖²)),
     so no ε in the denominator is needed (the reference adds 1e-6)."""
@@ -72,7 +69,7 @@ class Quadrotor(CompiledScenario):
     time_invariant: ClassVar[bool] = True
     exact_linear_dynamics: ClassVar[bool] = False
     approximate_rows: ClassVar[tuple[int, ...]] = (3, 4, 5)  # only the velocity update carries the drag
-    dynamics: ClassVar[CompiledStep] = CompiledStep(_step)  # the numpy step, the rollout's model and the fused one
+    dynamics: ClassVar[CompiledStep] = CompiledStep(_step)  # step, the rollout's model and the fused one
     # Penalty 1e2: the multipliers of the dynamics/obstacle rows are O(m·‖u‖) ≲ 10 for forces of a few newtons, so
     # slacks vanish at the solution. feas_tol 1e-6 on the one-step defect: it compounds in the open-loop
     # environment roughly as Σ_k (N−k)·d ≈ 5e3·d in position, so 1e-6 keeps rollouts within ~5 mm of the plan and
@@ -107,13 +104,6 @@ class Quadrotor(CompiledScenario):
                 )
 
     # ----------------------------------------------------------------------------------------------------- dynamics
-    def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``dynamics`` in vectorised numpy (5-10× faster per call than the compiled form's; checked against it)."""
-        x = np.asarray(x, dtype=np.float64)
-        v = x[..., 3:]
-        dv = np.asarray(u, dtype=np.float64) / MASS + drag_accel(v)
-        return x + problem.dt * np.concatenate([v, dv], axis=-1)
-
     def convex_model(self, problem: Problem, window: Window, X_ref: np.ndarray, U_ref: np.ndarray) -> ConvexModel:
         """x_{j+1} ≈ A_j x_j + B_j u_j + c_j: the Euler step linearised at (x̄_j, ū_j); it is exact at the reference
         (c_j = dt·(c_d/m)‖v̄‖v̄ in the velocity rows) and affine in u, so only the drag contributes an error."""
