@@ -14,9 +14,10 @@ import torch
 
 from ttompc.cli import main
 from ttompc.config import ConfigError
+from ttompc.mpc.departures import departures
 from ttompc.mpc.loop import EpisodeStart, MPCRun, run_mpc_batch
 from ttompc.mpc.methods import MethodInputs, model_method
-from ttompc.mpc.settings import MPCSettings, departures, protocol_settings
+from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.mpc.tto import RolloutGroup, TTOProvider
 from ttompc.policy.rollout import RolloutContext
 from ttompc.scenarios import get_scenario

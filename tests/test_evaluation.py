@@ -48,7 +48,7 @@ def test_interval_mean_standard_error_and_bootstrap() -> None:
 
 def test_infeasible_runs_are_counted_apart_not_averaged() -> None:
     common = {"mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0, "target_change": 0.1,
-              "mean_iterations": 1.0, "mean_iterations_solved": 2.0}  # fmt: skip
+              "mean_iterations": 1.0, "mean_iterations_solved": 2.0, "complete": True}  # fmt: skip
     recs = [
         {**common, "feasible": True, "cost": 1.2, "rel_increment": 0.2, "terminal_error": 0.01},
         {**common, "feasible": True, "cost": 1.4, "rel_increment": 0.4, "terminal_error": 0.02, "max_step_time": 0.03,
@@ -57,7 +57,7 @@ def test_infeasible_runs_are_counted_apart_not_averaged() -> None:
          "mean_iterations": 2.5, "mean_iterations_solved": 3.5},
     ]  # fmt: skip
     s = summarize_episodes(recs)
-    assert (s["runs"], s["feasible"], s["infeasible"]) == (3, 2, 1)
+    assert (s["runs"], s["feasible"], s["infeasible"], s["truncated"]) == (3, 2, 1, 0)
     assert s["rel_increment"]["mean"] == pytest.approx(0.3) and s["cost"]["mean"] == pytest.approx(1.3)
     assert s["infeasible_terminal_error"]["mean"] == pytest.approx(0.7) and s["infeasible_terminal_error"]["n"] == 1
     assert s["max_step_time"] == 0.03 and s["fallbacks"] == 1
@@ -96,7 +96,7 @@ def test_closed_loop_rows_pair_each_method_with_rel_mpc_on_the_problems_both_ran
 
     common = {"mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0, "target_change": 0.1,
               "terminal_error": 0.0, "plant": "perturbed", "mean_iterations": 1.25,
-              "mean_iterations_solved": 1.75}  # fmt: skip
+              "mean_iterations_solved": 1.75, "complete": True}  # fmt: skip
     costs = {"REL-MPC": [2.0, 2.0, None, 3.0], "TTO-MPC": [1.5, 2.5, 9.0, 2.0], "ORACLE-MPC": [1.2, 1.4, 1.5, 1.3]}
     recs = [
         {**common, **_rec(p, m, c if c is not None else 0.5, feasible=c is not None),

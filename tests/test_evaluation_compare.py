@@ -186,7 +186,7 @@ def test_the_report_and_compare_pair_alike(
     _, _, base_runs, _ = reports
     recs = [{**r, "plant": "nominal", "cost": 1.0, "rel_cost": 1.0, "max_step_time": 0.1, "fallbacks": 0,
              "target_change": 0.1, "terminal_error": 0.0, "mean_iterations": 1.0, "mean_iterations_solved": 1.0,
-             "rel_increment": r["rel_increment"] if r["feasible"] else float("nan")}
+             "complete": True, "rel_increment": r["rel_increment"] if r["feasible"] else float("nan")}
             for r in base_runs if r["horizon"] == 10 and r["method"] != "PLAN-ONCE"]  # fmt: skip
     (row,) = [r for r in summarize(recs) if r["method"] == "TTO-MPC"]
     rel = {r["problem"]: Outcome.of(r) for r in recs if r["method"] == "REL-MPC"}

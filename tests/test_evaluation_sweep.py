@@ -36,7 +36,8 @@ def _episode(problem: int, plant: str, horizon: int, method: str) -> dict[str, A
             "plant": plant, "cost": cost, "rel_cost": 1.0, "steps": 3, "feasible": feasible,
             "rel_increment": cost - 1.0 if feasible else float("nan"), "target_change": 0.01 * problem,
             "mean_step_time": 0.001 * (1 + problem), "max_step_time": 0.002 * (1 + problem), "mean_iterations": 2.0,
-            "mean_iterations_solved": 2.0, "fallbacks": 0, "terminal_error": 0.0 if feasible else 0.3}  # fmt: skip
+            "mean_iterations_solved": 2.0, "fallbacks": 0, "terminal_error": 0.0 if feasible else 0.3,
+            "complete": True}  # fmt: skip
 
 
 @pytest.fixture

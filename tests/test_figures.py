@@ -42,10 +42,11 @@ def mpc_report(scenario: str = "freeflyer") -> dict[str, Any]:
                     "target_change": 0.1, "mean_step_time": float(rng.uniform(0.001, 0.01)),
                     "max_step_time": float(rng.uniform(0.01, 0.1)),
                     "fallbacks": 0, "terminal_error": 0.0 if feasible else 0.5, "mean_iterations": 1.0,
-                    "mean_iterations_solved": 1.0,
+                    "mean_iterations_solved": 1.0, "complete": True,
                 })  # fmt: skip
     config = asdict(ClosedLoopConfig(model="tto-x", ft_model="ft-y", horizons=[10, 20], problems=3, seed=7, workers=1))
-    return {"config": config, "command": report_command("mpc", config), "scenario": {"name": scenario},
+    command = report_command("mpc", config, ClosedLoopConfig())
+    return {"config": config, "command": command, "scenario": {"name": scenario},
             "protocol": {"name": "paper"}, "summary": summarize(runs), "runs": runs, "complete": True}  # fmt: skip
 
 
@@ -61,7 +62,7 @@ def warmstart_report() -> dict[str, Any]:
     config = asdict(WarmStartConfig(model="tto-x", ft_model="ft-y", problems=4, seed=7, workers=1))
     return {
         "config": config,
-        "command": report_command("warmstart", config),
+        "command": report_command("warmstart", config, WarmStartConfig()),
         "scenario": {"name": "freeflyer"},
         "methods": method_summary(problems, ["REL", "TTO", "FT-TTO", "ORACLE"]),
         "thresholds": improvement_by_threshold(problems, ["TTO", "FT-TTO", "ORACLE"], "REL", [0.0, 0.5, 0.9]),
@@ -114,7 +115,7 @@ def test_the_footer_command_reproduces_the_reports_settings(kind: str) -> None:
     if kind == "mpc":
         config["mpc"] = {"end_horizon": 20}
         config["plant"] = {**config["plant"], "process_std": 0.005}  # a nested setting, as a dotted key
-    line = report_command(kind, config)
+    line = report_command(kind, config, ClosedLoopConfig() if kind == "mpc" else WarmStartConfig())
     assert line.startswith(f"ttompc evaluate {kind} --model tto-x --ft-model ft-y problems=")
     assert "workers" not in line and "out=" not in line and "seed=7" in line
     argv = shlex.split(line)[1:]
@@ -225,7 +226,8 @@ def test_the_written_report_records_the_command_of_its_config(kind: str, tmp_pat
         run_warmstart(WarmStartConfig(model=str(bundle), scenario=mpc_fakes.FreeFlyerShort.name, problems=1,
                                       workers=1, oracle_detours=0, out=str(tmp_path)))  # fmt: skip
     report = figures.load_report(tmp_path / f"{kind}.json", kind)
-    assert report["command"] == report_command(kind, report["config"])
+    defaults = ClosedLoopConfig() if kind == "mpc" else WarmStartConfig()
+    assert report["command"] == report_command(kind, report["config"], defaults)
     assert report["command"].startswith(f"ttompc evaluate {kind} --model ")
 
 

@@ -74,9 +74,10 @@ def test_cards_print_the_command_the_reports_settings_give() -> None:
     for name, argv in COMMANDS:
         kind = argv[2]
         args = build_parser(argv[1:]).parse_args(argv[1:])
-        cfg = command_config(ClosedLoopConfig if kind == "mpc" else WarmStartConfig, args, _FLAGS)
+        command = ClosedLoopConfig if kind == "mpc" else WarmStartConfig
+        cfg = command_config(command, args, _FLAGS)
         recorded = {**to_container(cfg), "scenario": name.split("-")[0], "workers": 1, "out": "report"}
-        assert report_command(kind, recorded) == " ".join(argv), name
+        assert report_command(kind, recorded, command()) == " ".join(argv), name
 
 
 @pytest.mark.slow

@@ -10,7 +10,7 @@ steps), step times and SCP iterations per solved step (``summarize``, ``format_t
 every method at the shortest against REL-MPC at the longest (``headline``) and the speedup at equal cost
 (``ttompc.evaluation.equal_cost``). The report names its protocol (``protocol_label``) and
 records the resolved settings and the command line that reproduces it (``command``,
-``ttompc.evaluation.reproduce``); the settings that depart from the paper preset (``ttompc.mpc.settings.departures``)
+``ttompc.evaluation.reproduce``); the settings that depart from the paper preset (``ttompc.mpc.departures``)
 are listed under the table (``write_report``). Every paired difference is ``stats.paired``'s.
 """
 
@@ -31,8 +31,8 @@ from ttompc.evaluation.metrics import format_gain_share, gain_share, normalized_
 from ttompc.evaluation.report_files import finish, retract
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import Outcome, format_interval, paired
+from ttompc.mpc.departures import departures
 from ttompc.mpc.methods import BASELINE, CEILING
-from ttompc.mpc.settings import departures
 from ttompc.scenarios.base import Scenario
 from ttompc.solvers.backends import solver_path
 
@@ -160,6 +160,12 @@ def format_table(summary: list[dict[str, Any]]) -> str:
         "previous step's outcome (TTO: the KV-cache advance) + warm start + window SCP, each run charged its share of "
         "batched work; SCP iterations: per step that solved its window (plan reuse excluded)."
     )
+    cut = sum(r["truncated"] for r in summary)
+    if cut:
+        lines.append(
+            f"Truncated: {cut} of {sum(r['runs'] for r in summary)} runs stopped at max_steps before step N (a smoke "
+            "run): they reach no goal, so they count as failed and have no cost."
+        )
     return "\n".join(lines)
 
 
@@ -192,7 +198,7 @@ def write_report(
     config = {**asdict(cfg), "out": str(out), "workers": workers}
     report = {
         "config": config,
-        "command": report_command("mpc", config),  # the line that reproduces the report (``reproduce``)
+        "command": report_command("mpc", config, type(cfg)()),  # the line that reproduces the report (``reproduce``)
         "protocol": {"name": protocol_label(cfg), "settings": asdict(settings)},
         "solver": solver_path(settings.backend, sc),
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},

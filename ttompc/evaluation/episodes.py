@@ -1,9 +1,10 @@
 """Closed-loop metrics of MPC episodes (used by ``ttompc evaluate mpc``, the training callback and DAgger).
 
-Costs are only averaged over episodes that are *feasible* (no keep-out violation, path constraints met, goal
-reached within ``terminal_tol``): an infeasible or goal-missing run has no meaningful cost, so it is counted apart
-(``infeasible``) and never averaged into one. Every mean comes with its standard error and a seeded percentile
-bootstrap interval (``ttompc.evaluation.stats.interval``), so two models can be told apart from noise.
+Costs are only averaged over episodes that are *feasible* (all N steps run, no keep-out violation, path constraints
+met, goal reached within ``terminal_tol``): an infeasible, goal-missing or truncated run has no meaningful cost, so
+it is counted apart (``infeasible``; of those, ``truncated``: cut at ``max_steps``) and never averaged into one.
+Every mean comes with its standard error and a seeded percentile bootstrap interval
+(``ttompc.evaluation.stats.interval``), so two models can be told apart from noise.
 """
 
 from __future__ import annotations
@@ -32,15 +33,16 @@ def episode_record(e: Episode) -> dict[str, Any]:
 
 
 def summarize_episodes(records: Sequence[dict[str, Any]], *, seed: int = 0) -> dict[str, Any]:
-    """Counts (runs, feasible, infeasible), intervals of the relative cost increment and applied cost over the
-    feasible runs, plan consistency, step times, SCP iterations (the mean over runs of each run's
-    ``mean_iterations`` and ``mean_iterations_solved``, ``Episode.summary``), fallbacks and the goal miss of the
-    infeasible runs of a group of episode records."""
+    """Counts (runs, feasible, infeasible, truncated: cut at ``max_steps``, counted as infeasible), intervals of the
+    relative cost increment and applied cost over the feasible runs, plan consistency, step times, SCP iterations
+    (the mean over runs of each run's ``mean_iterations`` and ``mean_iterations_solved``, ``Episode.summary``),
+    fallbacks and the goal miss of the infeasible runs of a group of episode records."""
     feasible = [r for r in records if r["feasible"]]
     return {
         "runs": len(records),
         "feasible": len(feasible),
         "infeasible": len(records) - len(feasible),
+        "truncated": sum(not r["complete"] for r in records),
         "rel_increment": interval([r["rel_increment"] for r in feasible], seed=seed),
         "cost": interval([r["cost"] for r in feasible], seed=seed),
         "target_change": interval([r["target_change"] for r in records], seed=seed),
@@ -68,7 +70,8 @@ def closed_loop_metrics(
     its own ``rtg_scale``) on fixed ``problems``
     (``measurement.problem_set``) as the single-horizon, single-plant ``measurement`` says (its settings, horizon,
     plant and max_steps; the perturbed plant seeded per problem), all episodes in lockstep with one batched rollout
-    per step: flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count),
+    per step: flat metrics for loggers — ``feasible_rate``, ``infeasible`` (count; ``truncated``: of those, the
+    episodes cut at ``max_steps``, which never reach the goal),
     ``cost_increment`` and its ``_se`` (mean (J − J_REL)/J_REL over feasible runs, nan if none), ``cost`` (feasible
     runs), ``target_change``, step times (``Episode.step_times``: each episode's share of the batched rollout and
     context advance plus its own solves) and ``fallbacks``. ``progress``: the label of a progress bar over the
@@ -89,6 +92,7 @@ def closed_loop_metrics(
     metrics = {
         "feasible_rate": summary["feasible"] / max(summary["runs"], 1),
         "infeasible": float(summary["infeasible"]),
+        "truncated": float(summary["truncated"]),
         "cost_increment": summary["rel_increment"]["mean"],
         "cost_increment_se": summary["rel_increment"]["se"],
         "cost": summary["cost"]["mean"],

@@ -25,10 +25,11 @@ import numpy as np
 from ttompc.errors import UserError
 from ttompc.evaluation.machine import machine_label
 from ttompc.evaluation.plots import horizon_axis, horizon_cost_panel, line_style
+from ttompc.mpc.methods import METHODS
 
 # the paper's four methods, our headline (the robust fine-tuned method) and the ceiling
 PAPER_METHODS = ("REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC", "R-FT-TTO-MPC", "ORACLE-MPC")
-MODEL_KEYS = {"TTO": "model", "FT-TTO": "ft_model"}  # method -> the config key naming its model
+MODEL_KEYS = {"TTO": "model", "FT-TTO": "ft_model"}  # model slot -> the config key naming its model
 STEP_KINDS = {"max_step_time": "largest step of an episode (the paper's Fig. 6)", "mean_step_time": "mean step"}
 
 
@@ -44,8 +45,9 @@ def _style(method: str) -> int:
 def model_label(method: str, config: dict[str, Any]) -> str:
     """A method's legend label: the method, and for a model's method (TTO…, FT-TTO…, their MPC variants) the model
     the report ran it with."""
-    base = method.removeprefix("R-").split("-MPC")[0]
-    model = config.get(MODEL_KEYS.get(base, ""))
+    entry = METHODS.get(_base(method))  # a closed-loop method; a warm-start report names its methods by slot
+    slot = entry.model if entry is not None else method
+    model = config.get(MODEL_KEYS.get(slot or "", ""))
     return f"{method} ({model})" if model else method
 
 

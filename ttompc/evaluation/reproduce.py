@@ -23,12 +23,10 @@ SHOWN = {
 }
 
 
-def report_command(kind: str, config: dict[str, Any]) -> str:
+def report_command(kind: str, config: dict[str, Any], defaults: Any) -> str:
     """The ``ttompc evaluate KIND`` command line (``kind``: "mpc" or "warmstart") that reproduces a report whose
-    ``config`` section is ``config`` (module doc)."""
-    from ttompc.evaluation.closed_loop import ClosedLoopConfig
-    from ttompc.evaluation.warmstart import WarmStartConfig
-
+    ``config`` section is ``config`` (module doc); ``defaults``: the command's settings dataclass built with its
+    defaults (``ClosedLoopConfig()``, ``WarmStartConfig()``), whose values the line leaves out."""
     if kind not in SHOWN:
         raise ValueError(f"kind must be one of {list(SHOWN)}, got {kind!r}")
     parts = ["ttompc evaluate", kind]
@@ -36,14 +34,14 @@ def report_command(kind: str, config: dict[str, Any]) -> str:
     parts += [f"{key}={_value(config[key])}" for key in SHOWN[kind] if config.get(key) is not None]
     if kind == "mpc":
         parts += [f"mpc.{key}={_value(value)}" for key, value in (config.get("mpc") or {}).items()]
-    defaults = _flat(asdict(ClosedLoopConfig() if kind == "mpc" else WarmStartConfig()))
+    default = _flat(asdict(defaults))
     done = {*INERT, *SHOWN[kind], "mpc", *(key for _, key in MODELS)}
     if any(config.get(key) for _, key in MODELS):
         done.add("scenario")
     parts += [
         f"{key}={_value(v)}"
         for key, v in _flat(config).items()
-        if key.split(".")[0] not in done and (key not in defaults or defaults[key] != v)
+        if key.split(".")[0] not in done and (key not in default or default[key] != v)
     ]
     return " ".join(parts)
 

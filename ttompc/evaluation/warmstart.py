@@ -264,7 +264,8 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     config = {**asdict(cfg), "out": str(out), "workers": workers}
     report = {
         "config": config,
-        "command": report_command("warmstart", config),  # the line that reproduces the report (``reproduce``)
+        # the line that reproduces the report (``reproduce``)
+        "command": report_command("warmstart", config, WarmStartConfig()),
         "scenario": {"name": sc.name, "version": sc.version, "n_steps": sc.n_steps},
         "solver": solver_path(cfg.backend, sc),
         "wall_time_s": time.perf_counter() - t0,

@@ -26,11 +26,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ttompc.data.shards import atomic_write_json
+from ttompc.mpc.methods import model_method
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
 
-CURVE_FILES = {"TTO-MPC": "curve.json", "R-TTO-MPC": "curve-robust.json"}  # per method measured
+# the curve file of each method measured: the TTO model slot's method (``closed_loop_metrics``), plain or robust
+CURVE_FILES = {
+    model_method("TTO", robust).name: "curve-robust.json" if robust else "curve.json" for robust in (False, True)
+}
 PLANTS = ("nominal", "perturbed")
 
 
@@ -106,7 +110,7 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
     from ttompc.evaluation.measurement import Measurement
     from ttompc.policy import Planner
 
-    path = run / CURVE_FILES["R-TTO-MPC" if robust_blend > 0 else "TTO-MPC"]
+    path = run / CURVE_FILES[model_method("TTO", robust_blend > 0).name]
     records: list[dict[str, Any]] = json.loads(path.read_text()) if path.is_file() else []
     done = {r["iteration"] for r in records}
     state = json.loads((run / "dagger_state.json").read_text())
@@ -127,7 +131,8 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
                 sets[plant] = (m, m.problem_set(planner.scenario))
             m, probs = sets[plant]
             metrics, inc = _closed_loop(planner, m, probs)
-            record[plant] = {k: metrics[k] for k in ("feasible_rate", "cost_increment", "cost_increment_se")}
+            keys = ("feasible_rate", "truncated", "cost_increment", "cost_increment_se")  # truncated: cut at max_steps
+            record[plant] = {k: metrics[k] for k in keys}
             record["increments"][plant] = [None if math.isnan(v) else float(v) for v in inc]
             if iteration == -1:
                 baseline[plant] = inc

@@ -5,6 +5,7 @@ terminal terms and rtg modes the settings name (``TERMINALS``, ``RTG_MODES``) an
 feasibility (``Episode``, ``episode_metrics``; summaries over episodes are ``ttompc.evaluation.episodes``). Importing
 this package does not import Lightning (nor torch until TTO is used)."""
 
+from ttompc.mpc.departures import departures
 from ttompc.mpc.episode import Episode, episode_metrics
 from ttompc.mpc.loop import (
     EpisodeStart,
@@ -28,7 +29,7 @@ from ttompc.mpc.providers import (
     WarmStart,
 )
 from ttompc.mpc.rtg import RTG_MODES, RTGFeed
-from ttompc.mpc.settings import MPCSettings, departures, protocol_settings
+from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.mpc.terminal import TERMINALS, TargetFilter, TerminalDesign, TerminalTerm
 from ttompc.mpc.tto import RolloutGroup, TTOProvider
 

@@ -1,28 +1,45 @@
-"""A closed-loop episode's record (``Episode``), built step by step (``EpisodeTrace``) by the receding-horizon loop
-(``ttompc.mpc.loop``), and its feasibility (``episode_metrics``).
+"""A closed-loop episode's record (``Episode``), built step by step (``EpisodeTrace``, from each step's ``StepPlan``)
+by the receding-horizon loop (``ttompc.mpc.loop``), and its feasibility (``episode_metrics``).
 
-Episodes count as reaching the goal when ‖x_N − goal‖₂ <= scenario.terminal_tol. A goal miss is not the soft end
-penalty's: tracking an exact plan ends on the goal once the tracking weight exceeds the multiplier of the window's
-terminal constraint (``MPCWeights.track``); a plan that lags (REL-MPC at H = 10, docs/design.md) brings the goal into
-the window when the control bound no longer lets it be reached (``MPCSettings.end_horizon``). Plan consistency is
-recorded per episode: ``target_change`` is the mean over consecutive steps of ‖(x̄_t − x̄_{t−1}) / state_scale‖₂, the
-change of the terminal target between MPC steps in units of the scenario's characteristic magnitudes (a consistent
-plan moves it by about one step of motion; a jittering one by much more).
+Episodes count as reaching the goal when they ran all N steps and ‖x_N − goal‖₂ <= scenario.terminal_tol: an
+episode cut short (``max_steps`` < N, a smoke run) is ``complete`` False and never ``feasible``, whatever its cost
+(it has not reached the goal; the reports count it among the failures and say how many were cut).
+
+A goal miss is not the soft end penalty's: tracking an exact plan ends on the goal once the tracking weight exceeds
+the multiplier of the window's terminal constraint (``MPCWeights.track``); a plan that lags (REL-MPC at H = 10,
+docs/design.md) brings the goal into the window when the control bound no longer lets it be reached
+(``MPCSettings.end_horizon``). Plan consistency is recorded per episode: ``target_change`` is the mean over
+consecutive steps of ‖(x̄_t − x̄_{t−1}) / state_scale‖₂, the change of the terminal target between MPC steps in units
+of the scenario's characteristic magnitudes (a consistent plan moves it by about one step of motion; a jittering one
+by much more).
 """
 
 from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ttompc.mpc.plant import PlantNoise
 from ttompc.scenarios.base import Problem, Scenario, Window
 
-if TYPE_CHECKING:
-    from ttompc.mpc.loop import StepPlan
+
+@dataclass
+class StepPlan:
+    """The outcome of one MPC step: the control to apply and the window plan it came from."""
+
+    u: np.ndarray
+    X: np.ndarray  # (H+1, n) solved (or fallback) window plan
+    U: np.ndarray  # (H, m)
+    warm_time: float
+    solve_time: float
+    iterations: int
+    fallback: bool
+    target: np.ndarray | None = None  # the window's terminal target (None when the window reaches the end)
+    soft_end: bool = False  # hard mode: the goal was out of reach, the window used the soft end term
+    reused: bool = False  # the previous plan's tail, neither provider nor solver called (``ttompc.mpc.loop`` doc)
+    converged: bool = False  # the SCP met its stopping rule (a fixed point), or the tail of such a plan: reusable
 
 
 @dataclass
@@ -45,7 +62,7 @@ class Episode:
     keepout_violations: int  # states of the executed trajectory inside a keep-out zone
     path_violation: float  # largest exact path-constraint violation (keep-out depth, bounds, ...)
     complete: bool  # ran all N steps
-    feasible: bool  # no keep-out violation, path violation ≤ tol and (if complete) terminal error ≤ tol
+    feasible: bool  # complete, no keep-out violation, path violation ≤ tol and terminal error ≤ tol
     target_change: float = float("nan")  # plan consistency (module doc); nan without two consecutive targets
     plant: str = "nominal"  # "nominal" or "perturbed"
     soft_ends: int = 0  # hard mode: steps whose end window fell back to the soft end term (goal out of reach)
@@ -90,8 +107,8 @@ def episode_metrics(
     path_tol: float = 1e-3,
     strict_keepout: bool = True,
 ) -> dict[str, float | int | bool]:
-    """Feasibility of an executed trajectory: terminal error (within ``scenario.terminal_tol``), keep-out violations,
-    exact path violation. With
+    """Feasibility of an executed trajectory: complete (all N steps: a truncated one is never feasible), terminal
+    error (within ``scenario.terminal_tol``; nan when truncated), keep-out violations, exact path violation. With
     ``strict_keepout`` any state inside a keep-out zone makes it infeasible; without, only a depth (part of the
     path violation) beyond ``path_tol`` does (the perturbed plant, whose disturbances no controller can undo)."""
     T = len(U)
@@ -99,7 +116,7 @@ def episode_metrics(
     err = float(np.linalg.norm(X[-1] - problem.goal)) if complete else float("nan")
     koz = int(np.sum(scenario.violations(problem, X)))
     path = scenario.path_violation(problem, X, U, Window(0, T, problem.n_steps)) if T else 0.0
-    feasible = (koz == 0 or not strict_keepout) and path <= path_tol and (not complete or err <= scenario.terminal_tol)
+    feasible = complete and (koz == 0 or not strict_keepout) and path <= path_tol and err <= scenario.terminal_tol
     return {
         "terminal_error": err,
         "keepout_violations": koz,

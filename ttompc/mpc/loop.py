@@ -63,30 +63,13 @@ from typing import Protocol
 
 import numpy as np
 
-from ttompc.mpc.episode import Episode, EpisodeTrace
+from ttompc.mpc.episode import Episode, EpisodeTrace, StepPlan
 from ttompc.mpc.plant import Plant, PlantNoise
 from ttompc.mpc.providers import Provider
 from ttompc.mpc.settings import Mode, MPCSettings
 from ttompc.mpc.warmup import warm_up
 from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
 from ttompc.solvers.scp import SCPOptions, SCPProblem, SCPResult, SCPStatus, TerminalCost, solve_scp
-
-
-@dataclass
-class StepPlan:
-    """The outcome of one MPC step: the control to apply and the window plan it came from."""
-
-    u: np.ndarray
-    X: np.ndarray  # (H+1, n) solved (or fallback) window plan
-    U: np.ndarray  # (H, m)
-    warm_time: float
-    solve_time: float
-    iterations: int
-    fallback: bool
-    target: np.ndarray | None = None  # the window's terminal target (None when the window reaches the end)
-    soft_end: bool = False  # hard mode: the goal was out of reach, the window used the soft end term
-    reused: bool = False  # the previous plan's tail, neither provider nor solver called (module doc)
-    converged: bool = False  # the SCP met its stopping rule (a fixed point), or the tail of such a plan: reusable
 
 
 class MPCController:

@@ -36,16 +36,40 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, ClassVar, Protocol
 
 import numpy as np
 
 from ttompc.mpc.providers import RemainingOptimum, RemainingREL
+from ttompc.mpc.settings import register_names
 from ttompc.scenarios.base import Problem, Scenario
 
 if TYPE_CHECKING:
-    from ttompc.mpc.tto import TTOProvider
     from ttompc.policy import Planner
+
+
+class Fed(Protocol):
+    """What a mode reads of the provider it feeds (a ``ttompc.mpc.tto.TTOProvider``): its episode, measured state,
+    model, own feed and ledger."""
+
+    @property
+    def scenario(self) -> Scenario: ...
+    @property
+    def problem(self) -> Problem: ...
+    @property
+    def x(self) -> np.ndarray: ...
+    @property
+    def planner(self) -> Planner: ...
+    @property
+    def rtg(self) -> RTGFeed: ...
+    @property
+    def rtg_mode(self) -> str: ...
+    @property
+    def rtg0(self) -> float: ...
+    @property
+    def rtg_scale(self) -> float: ...
+    @property
+    def spent(self) -> float: ...
 
 
 class RTGFeed(ABC):
@@ -93,13 +117,13 @@ class RTGFeed(ABC):
         """Start an episode of ``problem``."""
 
     @classmethod  # noqa: B027 (most modes share no work)
-    def prepare(cls, members: Sequence[TTOProvider], t: int) -> None:
+    def prepare(cls, members: Sequence[Fed], t: int) -> None:
         """Do at once the work that the feeds of ``members`` (episodes in lockstep running this mode, sharing one
         planner: a ``RolloutGroup``'s) share at step t, before each member's call at step t from its measured state
         ``tto.x``; a call without it gives the same value, up to float rounding."""
 
     @abstractmethod
-    def __call__(self, tto: TTOProvider, t: int) -> float | None:
+    def __call__(self, tto: Fed, t: int) -> float | None:
         """The rtg to feed ``tto``'s model at step t from its measured state ``tto.x`` (unclipped; None: the
         context's running value)."""
 
@@ -109,7 +133,7 @@ class RunningRTG(RTGFeed):
 
     name, paper = "running", True
 
-    def __call__(self, tto: TTOProvider, t: int) -> float | None:
+    def __call__(self, tto: Fed, t: int) -> float | None:
         return None
 
 
@@ -125,7 +149,7 @@ class ReanchorRTG(RTGFeed):
     def reset(self, scenario: Scenario, problem: Problem) -> None:
         self.rel.reset()
 
-    def __call__(self, tto: TTOProvider, t: int) -> float | None:
+    def __call__(self, tto: Fed, t: int) -> float | None:
         if t > 0:
             rel = self.rel(tto.scenario, tto.problem, t, tto.x)
             if rel.success:
@@ -145,7 +169,7 @@ class ValueRTG(RTGFeed):
         self.priced: tuple[int, np.ndarray, float] | None = None  # (t, x_t, V(x_t, t)) from ``prepare``, unread
 
     @classmethod
-    def prepare(cls, members: Sequence[TTOProvider], t: int) -> None:
+    def prepare(cls, members: Sequence[Fed], t: int) -> None:
         """V(x_t, t) of every member's measured state (B >= 1 members) in one ``Planner.cost_to_go`` call of batch
         B, kept for the member's next call (its row of the batch; a feed reads a priced value once)."""
         feeds = [m.rtg for m in members if isinstance(m.rtg, ValueRTG)]
@@ -155,7 +179,7 @@ class ValueRTG(RTGFeed):
         for m, feed, v in zip(members, feeds, V, strict=True):
             feed.priced = (t, np.array(m.x), float(v))
 
-    def __call__(self, tto: TTOProvider, t: int) -> float | None:
+    def __call__(self, tto: Fed, t: int) -> float | None:
         priced, self.priced = self.priced, None
         if priced is not None and priced[0] == t and np.array_equal(priced[1], tto.x):
             return -priced[2]
@@ -174,11 +198,12 @@ class OracleRTG(RTGFeed):
     def reset(self, scenario: Scenario, problem: Problem) -> None:
         self.optimum.reset(scenario, problem)
 
-    def __call__(self, tto: TTOProvider, t: int) -> float | None:
+    def __call__(self, tto: Fed, t: int) -> float | None:
         return -tto.scenario.cost(self.optimum(t, tto.x)[1])
 
 
 RTG_MODES: dict[str, type[RTGFeed]] = {mode.name: mode for mode in (RunningRTG, ReanchorRTG, ValueRTG, OracleRTG)}
+register_names("rtg_mode", RTG_MODES)
 
 
 def rtg_feed(mode: str, planner: Planner) -> type[RTGFeed]:

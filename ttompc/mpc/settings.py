@@ -8,22 +8,23 @@ is a YAML file of ``MPCSettings`` keys: a shipped preset by name (``ttompc/mpc/p
 defaults, which are the ``paper`` preset's. Commands take ``protocol=NAME`` plus single-key overrides
 (``mpc.end_horizon=20``).
 
-The terminal term and the rtg mode are named from their registries (``ttompc.mpc.terminal.TERMINALS``,
-``ttompc.mpc.rtg.RTG_MODES``), whose entries describe themselves: what they need of the model, whether they depart
-from the paper (``departures``, listed under every report's table) and whether DAgger's rollouts run them. A new
-terminal term or rtg mode is a class in its registry's module plus the presets that name it.
+The terminal term and the rtg mode are names here, held by their registries (``ttompc.mpc.terminal.TERMINALS``,
+``ttompc.mpc.rtg.RTG_MODES``), which sit above this module: each registers its names (``register_names``) when
+imported, and importing any module of ``ttompc.mpc`` imports both first (the package's ``__init__``), so
+``MPCSettings`` refuses a name its registry does not hold. The entries describe themselves: what they need of the
+model, whether they depart from the paper (``ttompc.mpc.departures``, listed under every report's table) and whether
+DAgger's rollouts run them. A new terminal term or rtg mode is a class in its registry's module plus the presets that
+name it.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from ttompc.mpc.rtg import RTG_MODES
-from ttompc.mpc.terminal import TERMINALS
 from ttompc.policy.config import DECODERS
 from ttompc.ranges import Checked, setting
 
@@ -37,6 +38,16 @@ PRESETS = Path(__file__).with_name("presets")
 REUSE_TOL = 1e-6
 # real-time iteration: in no window, in every controller's, or in the learned methods' only (MPCSettings.rti)
 RTI_SCOPES: tuple[bool | str, ...] = (False, True, "model")
+# setting -> the names it takes, as their registries hold them (``register_names``: terminal, rtg_mode)
+NAMES: dict[str, Collection[str]] = {}
+
+
+def register_names(key: str, names: Collection[str]) -> None:
+    """Make the names in ``names`` (a registry, read when a setting is checked) the values ``MPCSettings.<key>``
+    takes."""
+    if key not in MPCSettings.__dataclass_fields__:
+        raise ValueError(f"MPCSettings has no setting {key!r}")
+    NAMES[key] = names
 
 
 @dataclass
@@ -75,10 +86,9 @@ class MPCSettings(Checked):
         super().__post_init__()
         if self.mode not in ("soft", "hard"):
             raise ValueError(f"mode must be 'soft' or 'hard', got {self.mode!r}")
-        if self.terminal not in TERMINALS:
-            raise ValueError(f"terminal must be one of {list(TERMINALS)}, got {self.terminal!r}")
-        if self.rtg_mode not in RTG_MODES:
-            raise ValueError(f"rtg_mode must be one of {list(RTG_MODES)}, got {self.rtg_mode!r}")
+        for key, names in NAMES.items():
+            if getattr(self, key) not in names:
+                raise ValueError(f"{key} must be one of {list(names)}, got {getattr(self, key)!r}")
         if self.rti is not None and self.rti not in RTI_SCOPES:
             raise ValueError(f"rti must be one of {RTI_SCOPES}, got {self.rti!r}")
         if self.decoder not in DECODERS:
@@ -101,33 +111,6 @@ class MPCSettings(Checked):
     def reuse_tol(self) -> float | None:
         """The plan-reuse tolerance of the loop (None: re-solve every step)."""
         return REUSE_TOL if self.reuse else None
-
-
-def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
-    """The settings of a run on ``scenario`` that depart from the paper (and from the authors' code), one sentence
-    each: the terminal term's (``TerminalTerm.departures``), the loop's and the rtg mode's (``RTGFeed.departures``)."""
-    out = TERMINALS[settings.terminal].departures(settings, scenario)
-    if settings.end_horizon > 0:
-        out.append(
-            f"shrinking end horizon: windows run to N once N − t <= {settings.end_horizon} (the paper keeps H and "
-            "truncates the windows at N)"
-        )
-    out += RTG_MODES[settings.rtg_mode].departures()
-    if settings.mode != "soft":
-        out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
-    rti = settings.rti_scope(scenario)
-    if rti:
-        whose = "the learned methods' windows (the baselines converge)" if rti == "model" else "every window"
-        out.append(
-            f"real-time iteration in {whose}: one SCP subproblem per MPC step from the previous solution shifted (the "
-            "paper solves every window to convergence)"
-        )
-    if settings.decode_every > 1:
-        out.append(
-            f"decode every {settings.decode_every} steps: TTO-MPC's windows in between are slices of the last decoded "
-            "plan (the paper decodes at every step)"
-        )
-    return out
 
 
 def preset_names() -> list[str]:

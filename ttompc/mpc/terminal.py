@@ -8,7 +8,7 @@ A kind declares, as class attributes and class methods, what the layers above ne
 * ``name``: its ``MPCSettings.terminal`` value;
 * ``refusal(planner)``: why a method with this model (None: a method without one) cannot use it, or None;
 * ``departures(settings, scenario)``: the sentences a report lists under its table where the kind or its settings
-  depart from the paper (``ttompc.mpc.settings.departures``);
+  depart from the paper (``ttompc.mpc.departures``);
 * ``rollouts``: whether DAgger's rollouts can run it (``ttompc.finetune.config.check_rollout_settings``);
 * ``build(settings, blend, planner)``: one episode's term under ``settings``, the target blended by ``blend``;
 
@@ -45,11 +45,11 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
+from ttompc.mpc.settings import MPCSettings, register_names
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import TerminalCost
 
 if TYPE_CHECKING:
-    from ttompc.mpc.settings import MPCSettings
     from ttompc.policy import Planner
     from ttompc.policy.value import ValueExpansion, ValueModel
 
@@ -237,6 +237,7 @@ class ValueOnlyTerminal(ValueTerminal):
 TERMINALS: dict[str, type[TerminalTerm]] = {
     kind.name: kind for kind in (TargetFilter, ValueTerminal, ValueOnlyTerminal)
 }
+register_names("terminal", TERMINALS)
 
 
 def terminal_term(settings: MPCSettings, blend: float = 0.0, planner: Planner | None = None) -> TerminalTerm:
