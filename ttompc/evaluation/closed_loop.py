@@ -48,6 +48,7 @@ from ttompc.mpc.providers import full_horizon_plan
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar, status
+from ttompc.ranges import setting
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario
 
@@ -61,23 +62,23 @@ class ClosedLoopConfig(Measurement):
     problems, seed, horizons, plants, the perturbed plant, max_steps), by default on both plants, and the methods
     and workers that measure it."""
 
-    plants: list[str] = field(default_factory=lambda: list(PLANTS))
+    plants: list[str] = setting(factory=lambda: list(PLANTS), nonempty=True, unique=True)
     model: str | None = None  # TTO model: zoo name, hf://ORG/NAME[@REV], bundle folder or .ckpt; None: baselines only
     ft_model: str | None = None  # FT-TTO model, same forms
     scenario: str | None = None  # default: the model's scenario
-    robust_blend: float = ROBUST_BLEND  # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0: left out
-    rtg_scale: float | None = None  # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale)
-    batch: int = 10  # problems per pool task, their episodes in lockstep (one batched rollout per step)
-    workers: int = 0  # processes; 0 = one per CPU core
-    device: str = "cpu"
+    # target blend of the R-TTO-MPC variants (docs/evaluation.md); 0: left out
+    robust_blend: float = setting(ROBUST_BLEND, ge=0, lt=1)
+    # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale); its range: check_rtg_scale
+    rtg_scale: float | None = setting(None)
+    batch: int = setting(10, ge=1)  # problems per pool task, their episodes in lockstep (one batched rollout per step)
+    workers: int = setting(0, ge=0, meaning="0: one per CPU core")  # processes
+    device: str = setting("cpu", device="torch")
     out: str = ""  # default: outputs/evaluate/mpc-<scenario>
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.rtg_scale is not None:
             check_rtg_scale(self.rtg_scale)
-        if self.batch < 1:
-            raise ValueError(f"batch must be >= 1, got {self.batch}")
 
 
 def run_problems(
