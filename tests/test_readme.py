@@ -112,6 +112,7 @@ def test_readme_commands_run_as_written(tmp_path: Path) -> None:
     assert (tmp_path / "runs" / "freeflyer" / "planner" / "model.safetensors").is_file()
     assert any((tmp_path / "outputs" / "evaluate" / "warmstart-freeflyer").iterdir())
     assert any((tmp_path / "outputs" / "evaluate" / "mpc-freeflyer").iterdir())
+    assert any((tmp_path / "outputs" / "evaluate" / "ours").iterdir())  # another config: its own folder
     assert (tmp_path / "outputs" / "my-zoo" / "my-freeflyer.md").is_file()
     assert (tmp_path / "zoo" / "index.json").read_bytes() == (REPO / "zoo" / "index.json").read_bytes()
     assert not (tmp_path / "zoo" / "my-freeflyer.md").exists()
