@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
@@ -150,19 +151,19 @@ def _compare(args: argparse.Namespace) -> int:
     return 0
 
 
-def _target(args: argparse.Namespace) -> int:
-    """``evaluate target``: checked as ``evaluate mpc`` is (models, scenario, settings, output folder)."""
+def _measured(kind: str, config_cls: Any, runner: Callable[[Any], dict[str, Any]], args: argparse.Namespace) -> int:
+    """``evaluate mpc`` and ``evaluate target``: a closed-loop measurement, checked alike (models, scenario,
+    settings, output folder); ``--print-config`` shows the protocol's resolved settings."""
     from ttompc.evaluation.measurement import with_settings
-    from ttompc.evaluation.target_error import TargetErrorConfig, run_target_error
 
-    cfg = command_config(TargetErrorConfig, args, _FLAGS)
+    cfg = command_config(config_cls, args, _FLAGS)
     if args.print_config:
         print(json.dumps(with_settings(cfg), indent=2))
         return 0
-    _announce("target", cfg)
+    _announce(kind, cfg)
     _resolve_scenario(cfg)
-    _check_output("target", cfg)
-    report = run_target_error(cfg)
+    _check_output(kind, cfg)
+    report = runner(cfg)
     print(report["table"])
     print(f"report: {report['out']}")
     return 0
@@ -208,21 +209,15 @@ def run(args: argparse.Namespace) -> int:
         _check_output("warmstart", cfg)
         report = run_warmstart(cfg)
     elif args.evaluation == "target":
-        return _target(args)
+        from ttompc.evaluation.target_error import TargetErrorConfig, run_target_error
+
+        return _measured("target", TargetErrorConfig, run_target_error, args)
     elif args.evaluation == "loss":
         return _loss(args)
     else:
         from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
-        from ttompc.evaluation.measurement import with_settings
 
-        cfg_m = command_config(ClosedLoopConfig, args, _FLAGS)
-        if args.print_config:  # with the protocol's resolved settings
-            print(json.dumps(with_settings(cfg_m), indent=2))
-            return 0
-        _announce("mpc", cfg_m)
-        _resolve_scenario(cfg_m)
-        _check_output("mpc", cfg_m)
-        report = run_closed_loop(cfg_m)
+        return _measured("mpc", ClosedLoopConfig, run_closed_loop, args)
     print(report["table"])
     print(f"report: {report['out']}")
     return 0
