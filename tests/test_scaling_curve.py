@@ -13,7 +13,8 @@ import pytest
 
 from ttompc.errors import UserError
 from ttompc.evaluation.plots import row_figure
-from ttompc.evaluation.scaling_curve import Selection, curve_figure, measure_point, paired_points
+from ttompc.evaluation.scaling_curve import Selection, curve_figure, measure_point
+from ttompc.evaluation.stats import paired_points
 
 
 def test_paired_points_pairs_only_problems_both_finish() -> None:

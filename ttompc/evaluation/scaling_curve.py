@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 
 from ttompc.data.shards import atomic_write_json
 from ttompc.errors import UserError
+from ttompc.evaluation.stats import paired_points
 
 if TYPE_CHECKING:
     from ttompc.evaluation.measurement import Measurement
@@ -59,24 +59,6 @@ class Selection:
             max_steps=self.max_steps,
             robust_blend=BLEND if learned else 0.0,
         )
-
-
-def paired_points(model: Sequence[float | None], base: Sequence[float | None]) -> dict[str, float]:
-    """Mean and standard error of ``model − base`` over the problems both finished (None/nan: goal missed), in the
-    units given (fractions of J_REL), with ``n`` and each side's goal count."""
-    a = np.array([np.nan if v is None else v for v in model], float)
-    b = np.array([np.nan if v is None else v for v in base], float)
-    if a.shape != b.shape:
-        raise ValueError(f"paired increments need one value per problem on both sides, got {a.shape} vs {b.shape}")
-    both = ~np.isnan(a) & ~np.isnan(b)
-    d = a[both] - b[both]
-    return {
-        "mean": float(d.mean()) if d.size else math.nan,
-        "se": float(d.std(ddof=1) / math.sqrt(d.size)) if d.size > 1 else math.nan,
-        "n": int(d.size),
-        "goals": int((~np.isnan(a)).sum()),
-        "baseline_goals": int((~np.isnan(b)).sum()),
-    }
 
 
 def _increments(episodes: Sequence[Any]) -> list[float | None]:

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ttompc.data.shards import atomic_write_json
+from ttompc.evaluation.stats import paired_points
 from ttompc.mpc.methods import model_method
 
 if TYPE_CHECKING:
@@ -115,8 +116,7 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
     done = {r["iteration"] for r in records}
     state = json.loads((run / "dagger_state.json").read_text())
     seconds = {r["iteration"]: r.get("seconds", {}) for r in state["completed"]}
-    baseline: dict[str, np.ndarray] = {p: np.array(r["increments"][p], float) for r in records if r["iteration"] == -1
-                                       for p in PLANTS}  # fmt: skip
+    baseline = {p: r["increments"][p] for r in records if r["iteration"] == -1 for p in PLANTS}
     sets: dict[str, tuple[Measurement, list[Any]]] = {}
     for iteration, planner_dir in _models(run):
         if iteration in done:
@@ -135,12 +135,8 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
             record[plant] = {k: metrics[k] for k in keys}
             record["increments"][plant] = [None if math.isnan(v) else float(v) for v in inc]
             if iteration == -1:
-                baseline[plant] = inc
-            both = ~np.isnan(inc) & ~np.isnan(baseline[plant])
-            d = inc[both] - baseline[plant][both]
-            se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
-            record[plant]["vs_pretrained"] = {"mean": float(d.mean()) if len(d) else float("nan"), "se": se,
-                                              "n": len(d)}  # fmt: skip
+                baseline[plant] = record["increments"][plant]
+            record[plant]["vs_pretrained"] = paired_points(record["increments"][plant], baseline[plant])
         # one fixed held-out set for every model: the first iteration's val rows (never trained on)
         dirs = [str(run / "dagger" / "iter-000")] if state["completed"] else []
         record["imitation_loss"] = imitation_loss(planner, data, dirs) if dirs and data else float("nan")
