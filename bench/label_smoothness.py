@@ -2,7 +2,7 @@
 
 On held-out problems (the evaluation stream's non-convex ones), x* the problem's open-loop optimum
 (``full_horizon_plan``): at each step t of ``--steps``, ``--draws`` starts x*_t + δ with δ ~ N(0, σ²) per component
-in units of the scenario's ``state_scale``; DAgger's expert (``ttompc.finetune.expert``: REL, then SCP over [t, N)
+in units of the scenario's ``state_scale``; DAgger's expert (``ttompc.mpc.expert``: REL, then SCP over [t, N)
 from the start, under the protocol's settings) plans from each, and the plans are compared pairwise at t + 10:
 ratio = ‖(X_i − X_j)_{t+10} / scale‖₂ / ‖(δ_i − δ_j) / scale‖₂. A smooth label map gives ratios near one value; a
 switch of side around a keep-out zone gives one far above the median. Per σ: the pairs, the median and largest
@@ -27,7 +27,7 @@ from record import Machine, result_path, write_result
 
 from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.problems import EvalProblem
-from ttompc.finetune.expert import Expert, ExpertRollout
+from ttompc.mpc.expert import Expert, ExpertRollout
 from ttompc.mpc.loop import StepPlan
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import full_horizon_plan

@@ -10,7 +10,7 @@ import pytest
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import solve_rel
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+from ttompc.solvers.spec import SubproblemData, SubproblemSpec
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner

@@ -19,7 +19,7 @@ from ttompc.solvers import SCPOptions, SCPProblem, SCPResult, SCPStatus, Termina
 from ttompc.solvers.backends.conic import AssembledSolver
 from ttompc.solvers.backends.riccati import RiccatiSolver
 from ttompc.solvers.naive import NaiveCvxpySolver
-from ttompc.solvers.subproblem import QuadraticTerminalCost, SubproblemData, SubproblemSpec
+from ttompc.solvers.spec import QuadraticTerminalCost, SubproblemData, SubproblemSpec
 
 
 class Expansion(NamedTuple):

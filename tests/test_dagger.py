@@ -87,7 +87,7 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
     not only the measurement): both controllers get them whole, the learner's windows follow the end
     horizon; a decode schedule, which they cannot run, is refused in one line before anything runs."""
     import ttompc.finetune.collect as collect
-    import ttompc.finetune.expert as expert
+    import ttompc.mpc.expert as expert
     import ttompc.mpc.loop as loop_module
     from ttompc.cli import main
 
@@ -127,7 +127,7 @@ def test_rollouts_run_real_time_iteration_for_the_learner_and_converge_the_exper
     """Under ``rti=true`` the learner's windows after its first step are one subproblem each (plan reuse aside),
     while the expert, whose plans are the labels, still solves every plan to convergence."""
     import ttompc.finetune.collect as collect
-    import ttompc.finetune.expert as expert
+    import ttompc.mpc.expert as expert
     import ttompc.mpc.loop as loop_module
 
     sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
@@ -772,7 +772,7 @@ def test_plan_rows_carry_the_costates_of_the_expert_solve(monkeypatch: pytest.Mo
     as the Riccati kernel on the same rollouts."""
     from ttompc.data.schema import model_costates, problem_from_row
     from ttompc.finetune import collect
-    from ttompc.finetune.expert import ExpertController
+    from ttompc.mpc.expert import ExpertController
     from ttompc.mpc.loop import MPCController
     from ttompc.mpc.providers import ShiftProvider
     from ttompc.scenarios.base import Window

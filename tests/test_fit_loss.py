@@ -18,9 +18,9 @@ from ttompc.data.datamodule import TrajectoryDataModule
 from ttompc.data.generate import generate
 from ttompc.data.schema import SOURCE_CODES, make_row, trajectory_features
 from ttompc.data.shards import ShardWriter
-from ttompc.evaluation.fit_loss import LossConfig, fit_losses
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
 from ttompc.scenarios import get_scenario
+from ttompc.training.fit_loss import LossConfig, fit_losses
 
 DAGGER_ROWS = 10
 N = 12  # data-fake's steps

@@ -1,11 +1,12 @@
-"""Each package of ttompc is a DAG of its modules: no import circle among the modules of one package.
+"""ttompc's imports form a DAG: no import circle among the modules of one package, nor among the packages.
 
 The graph is read statically (``ast``), one edge per ``import``/``from ... import`` of a ttompc module that names a
 module of the same package, wherever the statement stands: at module level, under ``if TYPE_CHECKING:`` (a type a
 module names is a module it depends on, and a reader follows it) and inside a function (a function-local import that
 closes a circle only hides it; one that closes none, e.g. to import plotting late, adds an edge and no circle).
-Packages are compared one at a time, as ``farm``-style graphs draw them; imports across packages are not checked here
-(no layer order between the packages is documented; ``docs/design.md`` describes none).
+Packages are compared one at a time, as ``farm``-style graphs draw them, and then against each other: one node per
+subpackage of ``ttompc`` (its nested packages folded into it) and one per top-level module, an edge wherever a module
+of one imports a module of another. No circle is allowed at either level.
 """
 
 from __future__ import annotations
@@ -17,15 +18,6 @@ from pathlib import Path
 import ttompc
 
 ROOT = Path(ttompc.__file__).parent
-
-# Circles that exist today in packages outside this test's change, each to be broken where its package is worked on
-# (issue 56). The test fails when one is gone too, so the list only shrinks.
-KNOWN = {
-    # SCP: the objective's assembly and the conic subproblem import each other (another engineer's area)
-    frozenset({"ttompc.solvers.objective", "ttompc.solvers.subproblem"}),
-    # the target-error report reads the measurement's ERRORS; the measurement writes the report (function-local)
-    frozenset({"ttompc.evaluation.target_error", "ttompc.evaluation.target_error_report"}),
-}
 
 
 def _module_name(path: Path) -> str:
@@ -76,6 +68,21 @@ def package_graph() -> dict[str, set[str]]:
     return graph
 
 
+def top_level(module: str) -> str:
+    """The node of ``module`` in the graph of packages: its subpackage of ``ttompc``, or itself at the top level."""
+    parts = module.split(".")
+    head = ".".join(parts[:2])
+    return head if len(parts) > 2 or MODULES[module].name == "__init__.py" else module
+
+
+def top_level_graph() -> dict[str, set[str]]:
+    """subpackage or top-level module -> those it imports (module doc)."""
+    graph: dict[str, set[str]] = defaultdict(set)
+    for module in MODULES:
+        graph[top_level(module)] |= {top_level(m) for m in imports(module)} - {top_level(module)}
+    return graph
+
+
 def circles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
     """The strongly connected components of more than one module (Tarjan's algorithm)."""
     index: dict[str, int] = {}
@@ -115,7 +122,17 @@ def test_reader_sees_every_kind_of_import() -> None:
 
 
 def test_no_import_circle_within_a_package() -> None:
-    """Every package is a DAG of its modules, but for the circles listed in ``KNOWN`` (which must still exist)."""
+    """Every package is a DAG of its modules."""
     found = circles(package_graph())
-    assert found - KNOWN == set(), f"import circles: {[sorted(c) for c in found - KNOWN]}"
-    assert KNOWN - found == set(), f"gone, remove from KNOWN: {[sorted(c) for c in KNOWN - found]}"
+    assert found == set(), f"import circles: {[sorted(c) for c in found]}"
+
+
+def test_no_import_circle_between_packages() -> None:
+    """The subpackages and top-level modules of ttompc are a DAG (module doc)."""
+    assert top_level("ttompc.solvers.backends.qp") == "ttompc.solvers"
+    assert top_level("ttompc.mpc") == "ttompc.mpc"
+    assert top_level("ttompc.config") == "ttompc.config"
+    graph = top_level_graph()
+    assert "ttompc.evaluation" in graph["ttompc.training"]  # the closed-loop callback measures with evaluation/
+    found = circles(graph)
+    assert found == set(), f"import circles between packages: {[sorted(c) for c in found]}"

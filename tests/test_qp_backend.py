@@ -17,7 +17,7 @@ from ttompc.solvers.backends.base import is_qp
 from ttompc.solvers.backends.conic import AssembledSolver
 from ttompc.solvers.backends.qp import PIQPSolver
 from ttompc.solvers.naive import NaiveCvxpySolver
-from ttompc.solvers.subproblem import SubproblemSpec
+from ttompc.solvers.spec import SubproblemSpec
 
 CASES = [
     ("freeflyer", Window(0, 100, 100), True, True),

@@ -30,7 +30,7 @@ from ttompc.solvers.backends.riccati_qp import (
     StageQPData,
     TerminalCone,
 )
-from ttompc.solvers.subproblem import QuadraticTerminalCost, SubproblemData, SubproblemSpec
+from ttompc.solvers.spec import QuadraticTerminalCost, SubproblemData, SubproblemSpec
 
 
 def _random_stage_qp(seed: int, N: int = 6, n: int = 3, nu: int = 2) -> tuple[Dynamics, StageCost]:

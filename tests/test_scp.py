@@ -12,7 +12,7 @@ from ttompc.scenarios import BlockKind, ConstraintBlock, Window, get_scenario
 from ttompc.solvers import SCPOptions, SCPProblem, SCPStatus, TerminalCost, solve_problem, solve_rel, solve_scp
 from ttompc.solvers.backends.conic import AssembledSolver
 from ttompc.solvers.naive import NaiveCvxpySolver
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+from ttompc.solvers.spec import SubproblemData, SubproblemSpec
 
 
 @pytest.fixture(scope="module")

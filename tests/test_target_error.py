@@ -16,9 +16,9 @@ import pytest
 from ttompc.cli import main
 from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.problems import EvalProblem
-from ttompc.evaluation.target_error import ERRORS, TargetErrorConfig, expert_episodes
-from ttompc.evaluation.target_error_report import bucket_label, correlation, summarize
-from ttompc.finetune.expert import Expert, ExpertRollout
+from ttompc.evaluation.target_error import TargetErrorConfig, expert_episodes
+from ttompc.evaluation.target_error_report import ERRORS, bucket_label, correlation, summarize
+from ttompc.mpc.expert import Expert, ExpertRollout
 from ttompc.mpc.loop import MPCRun
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import WarmStart

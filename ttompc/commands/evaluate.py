@@ -11,7 +11,7 @@
   from the expert's re-solved from the measured state, by steps to go and plant, and its correlation with the
   closed-loop cost (``TargetErrorConfig`` keys; ``ttompc.evaluation.target_error``);
 * ``loss``: a model's training objective on the splits of its datasets, open-loop and DAgger rows apart
-  (``LossConfig`` keys; ``ttompc.evaluation.fit_loss``);
+  (``LossConfig`` keys; ``ttompc.training.fit_loss``);
 * ``compare``: pairs ``mpc`` reports on their common problems (``ttompc.evaluation.compare``), prints a table and
   with ``--json FILE`` writes its rows.
 
@@ -172,9 +172,9 @@ def _measured(kind: str, config_cls: Any, runner: Callable[[Any], dict[str, Any]
 def _loss(args: argparse.Namespace) -> int:
     """``evaluate loss``: the device and the output folder (new, empty or a loss report's) are checked before the
     model and the data are read."""
-    from ttompc.evaluation.fit_loss import LossConfig, run_fit_loss
     from ttompc.outputs import claim_folder
     from ttompc.ranges import check_devices
+    from ttompc.training.fit_loss import LossConfig, run_fit_loss
 
     cfg = command_config(LossConfig, args, ("model", "out"))
     if args.print_config:

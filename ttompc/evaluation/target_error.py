@@ -5,7 +5,7 @@ state will be, along its closed-loop episodes (issue 57's cheap proxy for the cl
 The episodes are those of ``evaluate mpc`` (``ClosedLoopConfig``: protocol and overrides, plants, horizons,
 held-out problems, seed) for one method (``method``; default the robust variant of the model given, R-FT-TTO-MPC
 with ``ft_model``, else R-TTO-MPC; any method of ``ttompc.mpc.methods`` runs, REL-MPC and ORACLE-MPC as references).
-Beside them, at every ``every``-th step t, DAgger's expert (``ttompc.finetune.expert.Expert``: REL, then SCP over
+Beside them, at every ``every``-th step t, DAgger's expert (``ttompc.mpc.expert.Expert``: REL, then SCP over
 [t, N) from the *measured* state x_t) plans the rest of the episode; the method acts at every step, so its episodes
 are the ones ``evaluate mpc`` runs (up to the rounding of a lockstep batch). A step whose expert plan converged
 (``expert_fallback`` false) gives (``step_errors``):
@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -40,9 +40,10 @@ from ttompc.errors import UserError
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, model_sources, tasks
 from ttompc.evaluation.episodes import episode_record
 from ttompc.evaluation.problems import EvalProblem
+from ttompc.evaluation.target_error_report import ERRORS, write_target_report
 from ttompc.evaluation.warmstart import default_workers
-from ttompc.finetune.expert import Expert, ExpertRollout
 from ttompc.mpc.episode import Episode
+from ttompc.mpc.expert import Expert, ExpertRollout
 from ttompc.mpc.loop import MPCRun, StepPlan, run_mpc_batch
 from ttompc.mpc.methods import METHODS, Method, MethodInputs
 from ttompc.mpc.plant import PlantNoise
@@ -56,9 +57,6 @@ from ttompc.scenarios.base import Problem, Scenario, Window
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
-
-ERRORS = ("target_raw", "target_blended", "control", "control_raw")  # a step's errors (module doc)
-
 
 @dataclass
 class TargetErrorConfig(ClosedLoopConfig):
@@ -244,7 +242,6 @@ def run_target_error(cfg: TargetErrorConfig) -> dict[str, Any]:
     """Run the diagnostic; writes ``target_error.json``, ``target_error.md``, ``target_error_steps.csv`` (and with
     ``plot`` ``target_error.png``) into ``cfg.out`` (``target_error_report.write_target_report``)."""
     from ttompc.config import to_container
-    from ttompc.evaluation.target_error_report import write_target_report
 
     if cfg.scenario is None:
         raise ValueError("TargetErrorConfig.scenario is not set (the command takes it from the model)")
@@ -267,4 +264,11 @@ def run_target_error(cfg: TargetErrorConfig) -> dict[str, Any]:
                                scenarios=[scenario_spec(sc)]):  # fmt: skip
             records += rs
             steps += ss
-    return write_target_report(cfg, sc, records, steps, out, time.perf_counter() - t0)
+    run = {
+        "scenario": sc.name,
+        "method": cfg.method_entry().name,
+        "config": to_container(cfg),
+        "settings": asdict(cfg.settings),
+        "seconds": time.perf_counter() - t0,
+    }
+    return write_target_report(run, records, steps, out, cfg.plot)

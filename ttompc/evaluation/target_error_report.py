@@ -12,26 +12,26 @@ records), ``target_error.md`` (the tables), ``target_error_steps.csv`` (one row 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ttompc.evaluation.metrics import write_csv, write_json
-from ttompc.evaluation.target_error import ERRORS
 from ttompc.evaluation.value_error import BUCKETS
-from ttompc.scenarios.base import Scenario
-
-if TYPE_CHECKING:
-    from ttompc.evaluation.target_error import TargetErrorConfig
 
 NORMALISATION = (
     "‖Δ / scale‖₂: each component in units of the scenario's characteristic magnitudes (state_scale for states, "
     "control_scale for controls), then the Euclidean norm"
 )
-LABELS = {"target_raw": "target (raw)", "target_blended": "target (blended)", "control": "first control (window)",
-          "control_raw": "first control (provider)"}  # fmt: skip
+# a step's errors (``target_error.step_errors``, whose module doc defines them) with their labels in the tables
+LABELS = {
+    "target_raw": "target (raw)",
+    "target_blended": "target (blended)",
+    "control": "first control (window)",
+    "control_raw": "first control (provider)",
+}
+ERRORS = tuple(LABELS)
 
 
 def bucket_label(to_go: int) -> str:
@@ -139,25 +139,20 @@ def plot_target_error(summary: Sequence[dict[str, Any]], path: Path) -> Path:
 
 
 def write_target_report(
-    cfg: TargetErrorConfig,
-    scenario: Scenario,
+    run: dict[str, Any],
     records: list[dict[str, Any]],
     steps: list[dict[str, Any]],
     out: Path,
-    seconds: float,
+    plot: bool,
 ) -> dict[str, Any]:
-    """Write the report files into ``out`` (module doc); returns the report with ``table`` and ``out``."""
-    from ttompc.config import to_container
-
-    method = cfg.method_entry().name
+    """Write the report files into ``out`` (module doc); ``run``: what the report says of its run (``scenario``,
+    ``method``, ``config``, ``settings``, ``seconds``). Returns the report with ``table`` and ``out``."""
     summary = summarize(records, steps)
-    table = format_tables(summary, method)
-    report = {"scenario": scenario.name, "method": method, "config": to_container(cfg),
-              "settings": asdict(cfg.settings), "normalisation": NORMALISATION, "seconds": seconds,
-              "summary": summary, "episodes": records}  # fmt: skip
+    table = format_tables(summary, run["method"])
+    report = {**run, "normalisation": NORMALISATION, "summary": summary, "episodes": records}
     write_json(out / "target_error.json", report)
     (out / "target_error.md").write_text(table)
     write_csv(out / "target_error_steps.csv", steps)
-    if cfg.plot:
+    if plot:
         plot_target_error(summary, out / "target_error.png")
     return {**report, "table": table, "out": str(out)}

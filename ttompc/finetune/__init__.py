@@ -1,5 +1,5 @@
 """DAgger fine-tuning of a pretrained trajectory transformer for MPC (paper Alg. 1): ``collect`` (rollouts and their
-labels), ``expert`` (the expert that labels them), ``loop`` (iterations, state, ranks, keep/reject), ``config`` (the
+labels by the expert of ``ttompc.mpc.expert``), ``loop`` (iterations, state, ranks, keep/reject), ``config`` (the
 typed recipe). Importing this package does not import Lightning; ``finetune`` does when it trains."""
 
 from ttompc.finetune.collect import collect_rollout, collect_rollouts, expert_schedule

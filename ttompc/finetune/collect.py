@@ -20,7 +20,7 @@ Labels (``labels.kind``):
   rollout from the visited history; these rows supervise exactly that rollout. Their costates (the value's gradient
   targets) are those of the expert's solve from x_t at steps t+1..N (a reused plan's: those of the solve that
   produced it, shifted; ``Expert.plan_costates``), NaN before, where the backend gives none and where the plan
-  misses the goal (``ExpertController``). The expert is ``ttompc.finetune.expert``.
+  misses the goal (``ExpertController``). The expert is ``ttompc.mpc.expert``.
 The solver columns hold the row's cost, the learner's/expert's compute time (solve_time/solver_time), the keep-out
 violations of the row's trajectory (violation) and "H=..;expert_steps=..;fallbacks=..;plant=..;labels=.." (status;
 plan rows add ";plan_from=t"). Rollouts are kept whether or not they end feasible: their visited states are where
@@ -51,9 +51,9 @@ from ttompc.data.resumable import ShardedFolder
 from ttompc.data.schema import trajectory_features
 from ttompc.evaluation.problems import first_solvable
 from ttompc.finetune.config import DaggerConfig, ExplorationConfig, LabelConfig, check_rollout_settings
-from ttompc.finetune.expert import Expert, ExpertRollout
 from ttompc.finetune.rows import plan_row, trajectory_row
 from ttompc.mpc.episode import Episode
+from ttompc.mpc.expert import Expert, ExpertRollout
 from ttompc.mpc.loop import EpisodeStart, MPCRun, run_mpc_batch
 from ttompc.mpc.methods import MethodInputs, model_method
 from ttompc.mpc.plant import PLANT_STREAM, Plant, PlantNoise

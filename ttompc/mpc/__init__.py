@@ -2,7 +2,8 @@
 their named presets (``MPCSettings``, ``protocol_settings``), pluggable warm-start and terminal-target providers
 (REL-MPC, DIST-MPC, TTO-MPC, PLAN-ONCE, ORACLE-MPC), the closed-loop methods built from them (``METHODS``), the
 terminal terms and rtg modes the settings name (``TERMINALS``, ``RTG_MODES``) and an episode's record and
-feasibility (``Episode``, ``episode_metrics``; summaries over episodes are ``ttompc.evaluation.episodes``). Importing
+feasibility (``Episode``, ``episode_metrics``; summaries over episodes are ``ttompc.evaluation.episodes``), and
+DAgger's expert (``expert``: the full-horizon SCP from the measured state that labels fine-tuning's rollouts). Importing
 this package does not import Lightning (nor torch until TTO is used)."""
 
 from ttompc.mpc.departures import departures

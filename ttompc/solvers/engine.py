@@ -13,7 +13,7 @@ from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, SCPSe
 from ttompc.solvers.backends import SubproblemSolver, default_trust_norm, get_solver
 from ttompc.solvers.problem import SCPOptions, SCPProblem
 from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
-from ttompc.solvers.subproblem import QuadraticTerminalCost, SubproblemData, SubproblemSpec
+from ttompc.solvers.spec import QuadraticTerminalCost, SubproblemData, SubproblemSpec
 
 
 def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SCPOptions) -> SCPResult:

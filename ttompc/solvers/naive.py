@@ -13,7 +13,7 @@ import numpy as np
 
 from ttompc.scenarios.base import BlockKind
 from ttompc.solvers.backends.base import BackendSolution
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+from ttompc.solvers.spec import SubproblemData, SubproblemSpec
 
 
 class NaiveCvxpySolver:

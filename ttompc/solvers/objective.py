@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 if TYPE_CHECKING:
-    from ttompc.solvers.subproblem import QuadraticTerminalCost, SubproblemSpec
+    from ttompc.solvers.spec import QuadraticTerminalCost, SubproblemSpec
 
 
 class ConicValues(NamedTuple):

@@ -10,7 +10,7 @@ from typing import Protocol
 import numpy as np
 
 from ttompc.scenarios.base import BlockKind
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec
+from ttompc.solvers.spec import SubproblemData, SubproblemSpec
 
 
 @dataclass

@@ -12,7 +12,7 @@ from ttompc.solvers.backends.conic import BACKENDS, AssembledSolver
 from ttompc.solvers.backends.qp import PIQPSolver
 from ttompc.solvers.backends.riccati import RiccatiSolver
 from ttompc.solvers.backends.riccati import supports as riccati_supports
-from ttompc.solvers.subproblem import SubproblemSpec
+from ttompc.solvers.spec import SubproblemSpec
 
 # every name ``backend=`` takes: the chains (``backend_chain``), the solvers, and the naive cvxpy baseline
 BACKEND_NAMES = ("auto", "conic", "riccati", "piqp", *BACKENDS, "cvxpy-naive")

@@ -21,7 +21,8 @@ import scipy.sparse as sp
 
 from ttompc.solvers.backends.base import BackendSolution
 from ttompc.solvers.objective import ConicValues
-from ttompc.solvers.subproblem import AssembledSubproblem, SubproblemData, SubproblemSpec
+from ttompc.solvers.spec import SubproblemData, SubproblemSpec
+from ttompc.solvers.subproblem import AssembledSubproblem
 
 
 class ClarabelBackend:

@@ -31,7 +31,7 @@ import scipy.sparse as sp
 
 from ttompc.scenarios.base import BlockKind
 from ttompc.solvers.backends.base import BackendSolution, Fallback, SubproblemSolver, cone_error, is_qp
-from ttompc.solvers.subproblem import SubproblemData, SubproblemSpec, structural_mask
+from ttompc.solvers.spec import SubproblemData, SubproblemSpec, structural_mask
 
 # a sparse-pattern entry: (rows, cols, source index into the flat data vector, coefficient[, keep mask])
 _Entry = tuple[np.ndarray | float, ...]

@@ -44,7 +44,7 @@ from ttompc.solvers.backends.riccati_qp import (
     StageQPData,
     TerminalCone,
 )
-from ttompc.solvers.subproblem import QuadraticTerminalCost, SubproblemData, SubproblemSpec, structural_mask
+from ttompc.solvers.spec import QuadraticTerminalCost, SubproblemData, SubproblemSpec, structural_mask
 
 TOL = 1e-8  # residuals of the scaled problem (PIQP's eps_abs)
 GAP_TOL = 1e-9  # total complementarity = duality gap: the SCP's stopping rule compares merits to 1e-6
