@@ -24,7 +24,7 @@ from ttompc.scenarios import get_scenario
 def test_check_env_passes(env_id: str) -> None:
     env = gymnasium.make(env_id)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unbounded Box spaces are warned about, not errors
+        warnings.simplefilter("ignore")  # RPOD's unbounded action Box is warned about, not an error
         check_env(env.unwrapped)
     assert env.unwrapped.scenario.name == ENV_IDS[env_id]
 
@@ -34,9 +34,32 @@ def test_spaces_and_bounds() -> None:
     assert quad.observation_space.shape == (6,) and quad.action_space.shape == (3,)
     np.testing.assert_array_equal(quad.action_space.high, [10.0] * 3)  # the quadrotor's control box, U_MAX
     np.testing.assert_array_equal(quad.action_space.low, [-10.0] * 3)
-    ff = get_scenario("freeflyer")
-    low, high = control_bounds(ff, ff.sample(np.random.default_rng(0)))
-    assert np.all(np.isinf(low)) and np.all(np.isinf(high))  # its thruster bound depends on the heading
+    rpod = get_scenario("rpod")
+    low, high = control_bounds(rpod, rpod.sample(np.random.default_rng(0)))
+    assert np.all(low == -np.inf) and np.all(high == np.inf)  # RPOD's impulses have no bound
+
+
+def test_freeflyer_action_box_is_its_thruster_bound_over_all_headings() -> None:
+    """The free-flyer's box holds every impulse its heading-dependent thruster bound allows, and no smaller box
+    does: each face is reached by an allowed impulse at some heading."""
+    from ttompc.scenarios.freeflyer import DV_MAX, thruster_dv
+
+    env = gymnasium.make("ttompc/FreeFlyer-v1")
+    box = env.action_space
+    assert isinstance(box, gymnasium.spaces.Box)
+    low, high = box.low, box.high
+    assert np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low < high)
+    rng = np.random.default_rng(0)
+    psi, a = rng.uniform(-np.pi, np.pi, 20000), rng.uniform(2 * low, 2 * high, (20000, 3))
+    # scaled onto the bound (the allowed set is a polytope through 0 at every heading), then just inside it
+    a *= (1 - 1e-9) * DV_MAX / np.abs(thruster_dv(psi, a)).max(axis=1, keepdims=True)
+    assert np.all((low <= a) & (a <= high))
+    faces = [(np.pi / 4, [high[0], 0, 0]), (np.pi / 4, [0, high[1], 0]), (0.0, [0, 0, high[2]])]
+    for heading, u in faces:
+        assert np.abs(thruster_dv(np.array(heading), np.array(u))).max() == pytest.approx(DV_MAX)
+    wrapped = gymnasium.wrappers.RescaleAction(env, -np.ones(3), np.ones(3))  # wrappers that need a finite box
+    wrapped.reset(seed=0)
+    wrapped.step(np.ones(3))
 
 
 def test_episode_reward_info_and_end() -> None:

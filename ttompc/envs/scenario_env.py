@@ -6,9 +6,9 @@ the exact dynamics (``plant="nominal"``) or the evaluations' perturbed plant (``
 actuation error and process noise, ``PlantNoise.perturbed``, seeded from the env's generator).
 
 * observation: the state (n,), in the scenario's optimisation representation (RPOD: scaled ROE), as ``Problem.x0``;
-* action: the control (m,); the space is the box that the scenario's constraints put on single control components
-  (``control_bounds``: the quadrotor's ±10 N per component), unbounded where they put none (the free-flyer's
-  heading-dependent thruster bound, RPOD's impulses);
+* action: the control (m,); the space is the box that holds every control the scenario's constraints allow
+  (``control_bounds``: the quadrotor's ±10 N per component, the free-flyer's thruster bound over all headings,
+  ``Scenario.control_box``), unbounded where they put none (RPOD's impulses: no Δv bound);
 * reward: minus the stage cost c(u) (``Scenario.stage_cost``: the problem's objective, Σ c(u), is minus the return);
 * ``terminated`` after the N-th control (never truncated);
 * info: ``t`` (the step of the observation); at ``reset`` ``problem`` (the ``Problem``: what ``ttompc.Controller.reset``
@@ -36,9 +36,13 @@ PLANTS = ("nominal", "perturbed")
 
 def control_bounds(scenario: Scenario, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     """(low, high) of the controls (m,): the bounds of the scenario's inequality rows on a single control component
-    with no state term (e.g. a control box), from its constraints of ``problem``'s first step; ±inf elsewhere."""
+    with no state term (e.g. a control box), from its constraints of ``problem``'s first step, within its
+    ``control_box`` (e.g. the free-flyer's heading-dependent thruster bound); ±inf where neither bounds one."""
     m = scenario.control_dim
+    box = scenario.control_box()
     low, high = np.full(m, -np.inf), np.full(m, np.inf)
+    if box is not None:
+        low, high = np.maximum(low, box[0]), np.minimum(high, box[1])
     window = Window(0, 1, problem.n_steps)
     X, U = scenario.initial_guess(problem, window, problem.x0)
     for b in scenario.constraints(problem, window, X, U, obstacles=False):

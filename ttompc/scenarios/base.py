@@ -325,6 +325,12 @@ class Scenario(abc.ABC):
         """``control_scale`` as an array (ones where the scenario gives none), as ``state_units``."""
         return units_of(self.control_scale, self.control_dim)
 
+    def control_box(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(low, high) (m,): a box holding every control the constraints allow at any state, for a bound that
+        ``constraints`` does not pose as rows on single control components (those ``ttompc.envs`` reads itself:
+        the environments' action space); None (the default): none beyond those."""
+        return None
+
     @abc.abstractmethod
     def violations(self, problem: Problem, X: np.ndarray, start: int = 0) -> np.ndarray:
         """Number of violated keep-out constraints at each state of X (T, n) whose first index is ``start``: (T,)

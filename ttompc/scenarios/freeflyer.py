@@ -119,6 +119,13 @@ class FreeFlyer(CompiledScenario):
             if np.any(p < TABLE[0]) or np.any(p > TABLE[1]):
                 raise InfeasibleProblemError(f"freeflyer: {label} {p.round(3).tolist()} is off the table")
 
+    def control_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """The thruster bound's box over all headings: the clusters' Δv, 0.5·(body force component) ± a_ψ/(4·lever),
+        within ±Δv_max bound each body component by 2Δv_max and a_ψ by 4·lever·Δv_max; the global impulse, the body
+        one rotated by ψ, by 2√2·Δv_max per axis (attained at ψ = 45°)."""
+        high = np.array([2 * np.sqrt(2) * DV_MAX, 2 * np.sqrt(2) * DV_MAX, 4 * LEVER * DV_MAX])
+        return -high, high
+
     def step(self, problem: Problem, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """``dynamics`` as two matrix products (up to 1.8× faster than the compiled form; checked against it)."""
         return (x + u @ B_IMP.T) @ A_STEP.T
