@@ -164,13 +164,16 @@ from numba.core.dispatcher import Dispatcher
 from ttompc.mpc import loop
 from ttompc.mpc.controller import Controller, sample_problem
 from ttompc.mpc.plant import Plant
+from ttompc.scenarios.dynamics import CompiledStep
 import numpy as np
 
-def overloads():  # compiled (or cache-loaded) specialisations of every numba function of ttompc
+def overloads():  # compiled (or cache-loaded) specialisations of ttompc's numba functions and dynamics steps
     n = 0
     for name, mod in list(sys.modules.items()):
         if name.startswith("ttompc"):
             n += sum(len(v.overloads) for v in vars(mod).values() if isinstance(v, Dispatcher))
+            n += sum(len(v.dynamics._cfuncs) for v in vars(mod).values()
+                     if isinstance(getattr(v, "dynamics", None), CompiledStep))  # a scenario's cfunc per dtype
     return n
 
 if sys.argv[2] == "controller":
@@ -211,7 +214,8 @@ print(json.dumps({"before": before, "after": overloads()}))
 def test_a_first_run_compiles_nothing_inside_a_step(entry: str) -> None:
     """In a fresh process, the Controller's construction or ``run_mpc_batch`` before its first step compiled (or
     loaded) every numba function the steps call: a whole episode adds no specialisation to any of ttompc's numba
-    functions (without the warm-up it adds some)."""
+    functions nor a compiled dynamics step (a ``CompiledStep`` cfunc) to any scenario (without the warm-up it adds
+    some). A property, not a timing: so a first run's step times are a second run's."""
     cmd = [sys.executable, "-c", _NO_COMPILE, str(MODEL), entry]
     out = subprocess.run(cmd, capture_output=True, text=True, check=True)
     result = json.loads(out.stdout.strip().splitlines()[-1])
