@@ -333,7 +333,7 @@ class _Windows:
     """A provider that records the windows it is asked for (wraps another)."""
 
     def __init__(self, inner) -> None:
-        self.inner, self.name, self.learned, self.windows = inner, inner.name, inner.learned, []
+        self.inner, self.name, self.role, self.windows = inner, inner.name, inner.role, []
 
     def reset(self, scenario, problem, rel_cost) -> None:
         self.inner.reset(scenario, problem, rel_cost)
@@ -832,10 +832,13 @@ def test_rti_model_scope_runs_the_learned_windows_only(setup: tuple, monkeypatch
     assert not episodes["REL-MPC"].rti and limits["REL-MPC"] == [None] * 6
     assert episodes["TTO-MPC"].rti and limits["TTO-MPC"] == [None] + [1] * 5
     quad = get_scenario("quadrotor")
-    assert s.rti_for(True, quad) and not s.rti_for(False, quad) and MPCSettings(rti=True).rti_for(False, quad)
+    assert s.rti_for("learned", quad) and not s.rti_for("baseline", quad)
+    everyone = MPCSettings(rti=True)
+    assert everyone.rti_for("baseline", quad) and not everyone.rti_for("expert", quad)  # the expert's are labels
     own = MPCSettings(rti=None)  # the scenario's measured scope (the recommended preset's)
-    assert own.rti_scope(sc) == sc.mpc.rti == "model" and own.rti_for(True, sc) and not own.rti_for(False, sc)
-    assert own.rti_scope(quad) is False and not own.rti_for(True, quad)
+    assert own.rti_scope(sc) == sc.mpc.rti == "model" and own.rti_for("learned", sc)
+    assert not own.rti_for("baseline", sc) and not own.rti_for("expert", sc)
+    assert own.rti_scope(quad) is False and not own.rti_for("learned", quad)
     assert protocol_settings("recommended").rti is None and protocol_settings("paper").rti is False
     with pytest.raises(ValueError, match="rti must be one of"):
         MPCSettings(rti="sometimes")
@@ -856,7 +859,7 @@ class _Timed:
     the fake clock, reporting ``shared`` as work shared with other episodes (None: it shares none)."""
 
     def __init__(self, inner, clock: _Clock, warm: float, own: float, shared: float | None) -> None:
-        self.inner, self.name, self.learned, self.clock = inner, inner.name, inner.learned, clock
+        self.inner, self.name, self.role, self.clock = inner, inner.name, inner.role, clock
         self.warm, self.own, self.shared = warm, own, shared
 
     def reset(self, scenario, problem, rel_cost) -> None:

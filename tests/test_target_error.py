@@ -34,7 +34,7 @@ class ExpertPlanProvider:
     """Plans every window with the expert's own plan from the measured state (a second ``Expert`` beside the
     diagnostic's, fed the same history), its terminal target that plan's state at the window's end + ``offset``."""
 
-    name, learned = "EXPERT-PLAN", False
+    name, role = "EXPERT-PLAN", "baseline"
 
     def __init__(self, ep: EvalProblem, offset: np.ndarray, settings: MPCSettings) -> None:
         self.ep, self.offset, self.settings = ep, offset, settings

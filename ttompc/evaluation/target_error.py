@@ -103,7 +103,7 @@ class WindowRecorder:
     """A provider that is ``inner`` and records each window it gives (``windows``, by step; reset per episode)."""
 
     def __init__(self, inner: Provider) -> None:
-        self.inner, self.name, self.learned = inner, inner.name, inner.learned
+        self.inner, self.name, self.role = inner, inner.name, inner.role
         self.windows: dict[int, RecordedWindow] = {}
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:

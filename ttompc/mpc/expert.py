@@ -13,7 +13,6 @@ reference's expert) lands in worse local optima (measured in docs/scaling.md, "L
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -85,11 +84,12 @@ class ExpertRollout:
         settings: MPCSettings,
     ) -> ExpertRollout:
         """The episode of ``draws`` (index, seed, problem, its REL solution, H) with its expert under ``settings``
-        (mode, backend, plan reuse), whose solves always converge (real-time iteration off: its plans are labels)."""
+        (mode, backend, plan reuse), whose solves always converge (its provider's role is "expert", which
+        ``MPCSettings.rti_for`` never gives real-time iteration: its plans are labels)."""
         index, seed, problem, rel, H = draws
         shift = ShiftProvider()
         shift.reset(scenario, problem, rel.cost)
-        expert = ExpertController(scenario, problem, shift, problem.n_steps, dataclasses.replace(settings, rti=False))
+        expert = ExpertController(scenario, problem, shift, problem.n_steps, settings)
         return cls(index, seed, problem, rel, H, expert_steps, labelled | expert_steps, plant, shift, expert)
 
 

@@ -35,8 +35,9 @@ Two ways a step does less than SCP to convergence from the provider's warm start
   subproblem), so the step applies it without calling the provider or the solver (``StepPlan.reused``). This
   happens on an exact plant in the last windows (all of them with ``end_horizon``) and for the DAgger expert after
   the steps it acted in.
-* *Real-time iteration* (``rti=True``, or ``"model"`` for the controllers of learned providers only,
-  ``Provider.learned``; a departure from the paper, which solves every window to convergence): as acados' RTI, one
+* *Real-time iteration* (``rti=True``, or ``"model"`` for the controllers of learned providers only; never the
+  expert's; one rule, ``MPCSettings.rti_for`` of ``Provider.role``; a departure from the paper, which solves every
+  window to convergence): as acados' RTI, one
   SCP subproblem per step, linearised at this controller's previous solution shifted by one step (its missing last
   step from the provider's warm start; X[0] = the measured state), with the provider's terminal target. The first
   step is solved to convergence. The subproblem's solution is applied even when its nonlinear violation exceeds the
@@ -88,7 +89,7 @@ class MPCController:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         self.scenario, self.problem, self.provider, self.horizon = scenario, problem, provider, horizon
         self.settings = settings or MPCSettings()
-        self.rti = self.settings.rti_for(provider.learned, scenario)  # real-time iteration in its windows
+        self.rti = self.settings.rti_for(provider.role, scenario)  # real-time iteration in its windows
         self._scale = scenario.state_units()
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
         self._last: StepPlan | None = None  # the plan this controller made at the previous step

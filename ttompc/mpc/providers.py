@@ -29,6 +29,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ttompc.mpc.settings import Role
 from ttompc.mpc.terminal import TargetFilter, TerminalTerm
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.scp import SCPOptions, SCPProblem, SCPResult, TerminalCost, solve_problem, solve_rel, solve_scp
@@ -49,7 +50,7 @@ class Provider(Protocol):
     """What the MPC loop asks of a warm-start method."""
 
     name: str
-    learned: bool  # plans from a learned model (TTO-MPC): the windows ``MPCSettings.rti == "model"`` runs RTI in
+    role: Role  # what its plans are: the one input of the RTI rule (``MPCSettings.rti_for``)
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         """Start an episode; ``rel_cost`` is J_REL of the open-loop REL solution (TTO conditioning)."""
@@ -100,7 +101,7 @@ class RELProvider:
     (weight ``mpc.terminal``, the paper's)."""
 
     name = "REL-MPC"
-    learned = False
+    role: Role = "baseline"
 
     def __init__(self, backend: str = "auto") -> None:
         self.backend = backend
@@ -128,7 +129,7 @@ class DISTProvider:
     """DIST-MPC: REL on the window only, terminal cost ‖diag(dist)(x_{t+H} − goal)‖₂ (no look-ahead)."""
 
     name = "DIST-MPC"
-    learned = False
+    role: Role = "baseline"
 
     def __init__(self, backend: str = "auto") -> None:
         self.backend = backend
@@ -157,7 +158,7 @@ class ShiftProvider:
     """The previous plan shifted by one step (DAgger expert); the first plan comes from ``reset_plan``."""
 
     name = "SHIFT"
-    learned = False
+    role: Role = "expert"
 
     def __init__(self) -> None:
         self.X: np.ndarray | None = None
@@ -188,7 +189,7 @@ class PlanProvider:
     terminal target of every window through ``terminal`` (None: the paper's target). ``window_plan`` is the plan a
     window gets (``bench/tto_mpc_robustness.py`` perturbs it: the noisy oracle)."""
 
-    learned = False
+    role: Role = "baseline"
 
     def __init__(
         self,
@@ -274,7 +275,7 @@ class OracleProvider:
     (None: the paper's target) — what a perfect model could give. ``replans`` counts its re-solves."""
 
     name = "ORACLE-MPC"
-    learned = False
+    role: Role = "baseline"
 
     def __init__(
         self,

@@ -38,6 +38,9 @@ PRESETS = Path(__file__).with_name("presets")
 REUSE_TOL = 1e-6
 # real-time iteration: in no window, in every controller's, or in the learned methods' only (MPCSettings.rti)
 RTI_SCOPES: tuple[bool | str, ...] = (False, True, "model")
+# what a provider's plans are (``Provider.role``), the one thing of a provider the RTI rule reads (``rti_for``): a
+# learned model's, a baseline's (solved), or the expert's (labels, ``ttompc.mpc.expert``)
+Role = Literal["learned", "baseline", "expert"]
 # setting -> the names it takes, as their registries hold them (``register_names``: terminal, rtg_mode)
 NAMES: dict[str, Collection[str]] = {}
 
@@ -61,9 +64,9 @@ class MPCSettings(Checked):
     in closed loop (``ttompc.mpc.rtg.RTG_MODES``). ``reuse``: plan reuse in windows that reach the end (same
     results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step: True in every
     controller's windows, ``"model"`` in the windows of the methods that plan from a learned model only (TTO-MPC and
-    its variants, ``Provider.learned``; the baselines REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC then solve every
+    its variants, ``Provider.role``; the baselines REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC then solve every
     window to convergence, as the paper's), False in none; None: the scenario's own scope (``mpc.rti``, measured per
-    scenario, as ``track``).
+    scenario, as ``track``). ``rti_for`` is the one rule that decides a controller; DAgger's expert never runs RTI.
     ``decode_every``: TTO-MPC decodes a plan from its model every k steps and serves the windows in between from
     slices of it (``ttompc.mpc.tto.RolloutGroup``; 1: the paper's, a decode at every step). ``backend``: the
     QP/cone backend of every solve (``ttompc.solvers.backends``). ``decoder``: how TTO-MPC's rollouts decode
@@ -95,17 +98,19 @@ class MPCSettings(Checked):
             raise ValueError(f"decoder must be one of {list(DECODERS)}, got {self.decoder!r}")
 
     def rti_scope(self, scenario: Scenario) -> bool | str:
-        """The real-time-iteration scope on ``scenario``: ``rti``, or the scenario's ``mpc.rti`` where it is None."""
+        """The real-time-iteration scope on ``scenario``: ``rti``, or the scenario's ``mpc.rti`` where it is None
+        (the scenario states its measured scope, the settings choose it or defer to it)."""
         scope = scenario.mpc.rti if self.rti is None else self.rti
         if scope not in RTI_SCOPES:
             raise ValueError(f"{scenario.name}: mpc.rti must be one of {RTI_SCOPES}, got {scope!r}")
         return scope
 
-    def rti_for(self, learned: bool, scenario: Scenario) -> bool:
-        """Whether a controller on ``scenario`` whose provider plans from a learned model (``learned``) runs
-        real-time iteration."""
+    def rti_for(self, role: Role, scenario: Scenario) -> bool:
+        """Whether a controller on ``scenario`` whose provider has ``role`` runs real-time iteration: the one rule,
+        which ``MPCController`` applies and nothing overrides. The expert never does (its plans are labels); in
+        ``rti_scope``'s scope True every other controller does, in "model" the learned ones only."""
         scope = self.rti_scope(scenario)
-        return scope is True or (scope == "model" and learned)
+        return role != "expert" and (scope is True or (scope == "model" and role == "learned"))
 
     @property
     def reuse_tol(self) -> float | None:

@@ -19,6 +19,7 @@ import numpy as np
 
 from ttompc.mpc.providers import WarmStart
 from ttompc.mpc.rtg import RTGFeed, rtg_feed
+from ttompc.mpc.settings import Role
 from ttompc.mpc.terminal import TargetFilter, TerminalTerm
 from ttompc.scenarios.base import Problem, Scenario, Window
 
@@ -56,7 +57,7 @@ class TTOProvider:
     Inside a window the rollout still adds the model's own planned costs to the fed value (the rollout's rule).
     ``use_cache`` configures the provider's own group; a given ``group`` has its own."""
 
-    learned = True
+    role: Role = "learned"
 
     def __init__(
         self,
