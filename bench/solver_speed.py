@@ -16,7 +16,13 @@
    solver per structure, updated in place, restarted per solve) and by the Riccati backend, problem by problem in
    alternating order, the least of 3 repeats: CPU-ms per subproblem, interior-point iterations, the largest
    objective difference.
-4. Naive baseline (every scenario, a few problems): time per SCP iteration of the default (``auto``) vs rebuilding a
+4. Engine (free-flyer, quadrotor; ``--only engine``): REL + SCP with the Riccati backend's per-iteration Python around
+   the kernel as the NumPy reference (``RiccatiSolver.compiled = False``) and compiled (``riccati_build``, the
+   default), the same seeded problems, interleaved: median CPU ms per problem and the ratio, whether both paths give
+   the same statuses and iterates (largest |ΔX|), interior-point iterations per subproblem, and the kernel's
+   distance from its arithmetic: its CPU time per interior-point iteration against the flops one iteration does
+   (``kernel_flops``).
+5. Naive baseline (every scenario, a few problems): time per SCP iteration of the default (``auto``) vs rebuilding a
    cvxpy problem from per-timestep constraint lists every iteration (the reference's approach), and the cost
    difference.
 
@@ -350,8 +356,11 @@ def main() -> None:
     ap.add_argument("--naive-problems", type=int, default=2, help="problems for the (slow) naive baseline")
     ap.add_argument("--robustness", type=int, default=200)
     ap.add_argument("--subproblem-problems", type=int, default=6, help="problems whose subproblems are re-solved")
+    ap.add_argument("--engine-problems", type=int, default=10, help="problems per scenario, reference vs compiled")
     ap.add_argument(
-        "--only", choices=["peer", "robustness", "subproblems", "naive"], help="run one part (merged into --out)"
+        "--only",
+        choices=["peer", "robustness", "subproblems", "engine", "naive"],
+        help="run one part (merged into --out)",
     )
     ap.add_argument("--scenarios", default=",".join(list_scenarios()))
     ap.add_argument("--out", default=str(result_path("solver_speed")))
@@ -384,6 +393,12 @@ def main() -> None:
             name: subproblems(name, args.subproblem_problems) for name in scenarios if name in PEER_SCENARIOS
         }
         loads["subproblems"] = (start, os.getloadavg())
+    if args.only in (None, "engine"):
+        from engine_paths import engine
+
+        start = os.getloadavg()
+        result["engine"] = {name: engine(name, args.engine_problems) for name in scenarios if name in PEER_SCENARIOS}
+        loads["engine"] = (start, os.getloadavg())
     if args.only in (None, "naive"):
         start = os.getloadavg()
         result["naive"] = {name: speed(name, args.naive_problems, args.naive_problems) for name in scenarios}
@@ -414,6 +429,9 @@ def main() -> None:
         headline[f"{name}_riccati_failures_of_{args.robustness}"] = row["penalized"]["failures"]
     for name, row in result.get("subproblems", {}).items():
         headline[f"{name}_riccati_subproblem_speedup"] = row["speedup"]
+    for name, row in result.get("engine", {}).items():
+        headline[f"{name}_compiled_engine_ratio"] = row["ratio"]
+        headline[f"{name}_compiled_engine_same_results"] = row["same_statuses"] and row["max_abs_dX"] == 0.0
     for name, row in result.get("naive", {}).items():
         headline[f"{name}_speedup_per_iter_vs_naive"] = row["speedup_per_iter"]
     result["headline"] = headline

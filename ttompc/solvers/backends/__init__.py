@@ -3,9 +3,9 @@
 * ``base``: the solver protocol (``SubproblemSolver``), its solution (``BackendSolution``) and ``Fallback``;
 * ``conic``: QOCO and Clarabel on the conic assembly (``ttompc.solvers.subproblem``), ``AssembledSolver``;
 * ``qp``: PIQP on the compact QP of subproblems without cones;
-* ``riccati`` (its structs built per iteration) / ``riccati_kernel`` with ``riccati_qp``, ``riccati_rows``,
-  ``riccati_cone`` and ``riccati_jit``: the stage-wise interior point for penalised QP subproblems (numba), with a
-  dense terminal cost-to-go block;
+* ``riccati`` (its structs built per iteration, compiled by ``riccati_build``) / ``riccati_kernel`` with
+  ``riccati_qp``, ``riccati_rows``, ``riccati_cone`` and ``riccati_jit``: the stage-wise interior point for penalised
+  QP subproblems (numba), with a dense terminal cost-to-go block;
 * ``chain``: what a ``backend=`` name runs (``backend_chain``), the trust-region norm it implies and the cache of
   built solver structures (``get_solver``).
 

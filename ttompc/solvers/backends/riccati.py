@@ -30,6 +30,7 @@ import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -132,7 +133,7 @@ class StageQP:
         self.width = max([1] + [int(b.mask.sum(axis=1).max()) for b in self.blocks if len(b.mask)])
         for b in self.blocks:
             order = np.argsort(~b.mask, axis=1, kind="stable")[:, : self.width]  # structural columns first
-            b.cols = order
+            b.cols = np.ascontiguousarray(order)  # the compiled build takes C-contiguous arrays
             b.valid = np.take_along_axis(b.mask, order, axis=1)
 
     def _block_map(self, sig: tuple) -> _BlockMap:
@@ -156,9 +157,11 @@ class StageQP:
             mask=mask,
         )
 
-    def build(self, data: SubproblemData) -> StageQPData:
-        """The kernel's problem for one iteration's data, in the scaled variables."""
-        n, m, sx, su = self.spec.n, self.spec.m, self.sx, self.su
+    def build(self, data: SubproblemData, compiled: bool = True) -> StageQPData:
+        """The kernel's problem for one iteration's data, in the scaled variables; the scenario blocks' constraints
+        by the compiled path (``riccati_build.constraints``) or, ``compiled=False``, the NumPy reference
+        (``_constraints``): the same arrays."""
+        n, m, sx = self.spec.n, self.spec.m, self.sx
         A = np.ascontiguousarray(data.model.A * self.a_scale)
         B = self.B.copy()
         B[:, :, :m] = data.model.B * self.b_scale
@@ -168,6 +171,35 @@ class StageQP:
         ref = data.X_ref[self.tr_steps] / sx  # (T, n); an infinite δ gives infinite bounds, dropped below
         half = data.delta / sx
         d = np.concatenate([np.zeros(self.n_zero), goal, -goal, (ref + half).ravel(), (half - ref).ravel()])
+        if compiled:
+            from ttompc.solvers.backends.riccati_build import constraints  # numba: imported at the first solve
+
+            boxes, rows = constraints(self, data, d)
+        else:
+            boxes, rows = self._constraints(data, d)
+        if self.cone:
+            assert data.terminal_weights is not None and data.terminal_target is not None
+            cone = TerminalCone(np.asarray(data.terminal_weights * sx, np.float64), data.terminal_target / sx)
+        else:
+            cone = TerminalCone.none()
+        cost = StageCost(self.Qd, self.q)
+        if data.terminal_cost is not None:
+            QN, grad = self._terminal_block(data.terminal_cost)
+            q = self.q.copy()
+            q[-1, :n] += grad
+            cost = StageCost(self.Qd, q, QN)
+        return StageQPData(
+            dynamics=Dynamics(A, B, c, data.x_start / sx),
+            cost=cost,
+            boxes=boxes,
+            rows=rows,
+            cone=cone,
+        )
+
+    def _constraints(self, data: SubproblemData, d: np.ndarray) -> tuple[Boxes, Rows]:
+        """The reference form of ``riccati_build.constraints``: the fixed boxes (right-hand sides ``d``), then each
+        scenario block's rows on one variable as boxes and its other rows as sparse rows; bounds not finite dropped."""
+        n, m, sx, su = self.spec.n, self.spec.m, self.sx, self.su
         boxes = [(self._box_k, self._box_j, self._box_s, d, self._box_rho)]
         rows = []
         for b, block in zip(self.blocks, data.blocks, strict=True):
@@ -212,24 +244,7 @@ class StageQP:
         else:
             rk, ri, rg = np.zeros(0, np.int64), np.zeros((0, self.width), np.int64), np.zeros((0, self.width))
             rd, rrho = np.zeros(0), np.zeros(0)
-        if self.cone:
-            assert data.terminal_weights is not None and data.terminal_target is not None
-            cone = TerminalCone(np.asarray(data.terminal_weights * sx, np.float64), data.terminal_target / sx)
-        else:
-            cone = TerminalCone.none()
-        cost = StageCost(self.Qd, self.q)
-        if data.terminal_cost is not None:
-            QN, grad = self._terminal_block(data.terminal_cost)
-            q = self.q.copy()
-            q[-1, :n] += grad
-            cost = StageCost(self.Qd, q, QN)
-        return StageQPData(
-            dynamics=Dynamics(A, B, c, data.x_start / sx),
-            cost=cost,
-            boxes=Boxes(bk, bj, bs, bd, brho),
-            rows=Rows(rk, ri, rg, rd, rrho),
-            cone=cone,
-        )
+        return Boxes(bk, bj, bs, bd, brho), Rows(rk, ri, rg, rd, rrho)
 
     def _terminal_block(self, terminal: QuadraticTerminalCost) -> tuple[np.ndarray, np.ndarray]:
         """½ (x − x̄)ᵀP(x − x̄) + gᵀ(x − x̄) in the scaled state x̃ = x / sx: ½ x̃ᵀ QN x̃ + lᵀx̃ + const with QN = SPS
@@ -239,10 +254,16 @@ class StageQP:
         QN = np.ascontiguousarray(self.sx[:, None] * P * self.sx[None, :])
         return QN, self.sx * (terminal.gradient - P @ terminal.center)
 
-    def objective(self, y: np.ndarray, qp: StageQPData, data: SubproblemData) -> float:
+    def objective(self, y: np.ndarray, qp: StageQPData, data: SubproblemData, compiled: bool = True) -> float:
         """The subproblem's objective at y (the QP's, up to the constant penalties of rows on x_0 alone), with the
-        terminal term's value in place of its epigraph variable τ and the terminal cost-to-go model's constant."""
-        value = qp.objective(y)
+        terminal term's value in place of its epigraph variable τ and the terminal cost-to-go model's constant; the
+        QP's by the compiled path (``riccati_build.objective``) or, ``compiled=False``, ``StageQPData.objective``."""
+        if compiled:
+            from ttompc.solvers.backends.riccati_build import objective
+
+            value = objective(qp, y)
+        else:
+            value = qp.objective(y)
         if self.cone:
             n = self.spec.n
             value += float(np.linalg.norm(qp.cone.w * (y[-1, :n] - qp.cone.center))) - float(y[-1, n])
@@ -253,9 +274,14 @@ class StageQP:
 
 
 class RiccatiSolver:
-    """``StageQP`` + the compiled kernel; a solve that does not converge goes to ``fallback`` (if given)."""
+    """``StageQP`` + the compiled kernel; a solve that does not converge goes to ``fallback`` (if given).
+
+    ``compiled`` (a class setting, default True): the per-iteration Python around the kernel (the scenario blocks'
+    constraints, the objective) runs compiled (``riccati_build``); False runs the NumPy reference, which the tests
+    and ``bench/solver_speed.py --only engine`` compare it against (the same stage QPs, iterates and statuses)."""
 
     name = "riccati"
+    compiled: ClassVar[bool] = True
 
     def __init__(self, spec: SubproblemSpec, fallback: Callable[[], SubproblemSolver] | None = None) -> None:
         self.stage = StageQP(spec)
@@ -269,7 +295,7 @@ class RiccatiSolver:
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         t0 = time.perf_counter()
         st, spec = self.stage, self.stage.spec
-        qp = st.build(data)
+        qp = st.build(data, self.compiled)
         y = np.zeros((spec.H + 1, spec.n + st.nu))
         y[:, : spec.n] = data.X_ref / st.sx
         pi = np.zeros((spec.H, spec.n))
@@ -280,7 +306,7 @@ class RiccatiSolver:
         name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[out.status]
         status = f"{name} ({out.iterations} it, residual {out.residual:.1e}, gap {out.gap:.1e})"
         ok = out.status in (0, 3)
-        sol = BackendSolution(None, st.objective(y, qp, data) if ok else np.nan, ok, False, status,
+        sol = BackendSolution(None, st.objective(y, qp, data, self.compiled) if ok else np.nan, ok, False, status,
                               time.perf_counter() - t0)  # fmt: skip
         if ok:
             sol.costates = pi / st.sx  # multipliers of the scaled dynamics rows x̃_{k+1} = ...: per unit of x_{k+1}

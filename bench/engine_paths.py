@@ -1,0 +1,119 @@
+"""The Riccati backend's per-iteration Python around its kernel, the NumPy reference against the compiled path, in
+one run (``solver_speed.py --only engine``, part 4 there), and the kernel's distance from its arithmetic."""
+
+from __future__ import annotations
+
+import re
+import time
+
+import numpy as np
+
+from ttompc.scenarios import get_scenario
+from ttompc.solvers import solve_problem
+from ttompc.solvers.backends import riccati_kernel
+from ttompc.solvers.backends.riccati import RiccatiSolver
+
+
+def engine(name: str, n: int) -> dict:
+    """REL + SCP per problem with the reference (NumPy) and the compiled per-iteration path of the Riccati backend,
+    interleaved; CPU time, equality of the results, interior-point iterations, the kernel's flop rate."""
+    scenario = get_scenario(name)
+    kernel = {"cpu_s": 0.0}
+    calls: list = []  # (stage QP, interior-point iterations) of every kernel call, counted after the timing
+    original = riccati_kernel.solve
+
+    def timed(qp, y, pi, options):
+        t0 = time.process_time()
+        out = original(qp, y, pi, options)
+        kernel["cpu_s"] += time.process_time() - t0
+        calls.append((qp, out.iterations))
+        return out
+
+    paths = {"reference": False, "compiled": True}
+    rows: dict[str, list] = {k: [] for k in paths}
+    warm = scenario.sample(np.random.default_rng(10_000))
+    for compiled in paths.values():  # imports, structure caches and compiled code outside the timing
+        RiccatiSolver.compiled = compiled
+        solve_problem(scenario, warm)
+    riccati_kernel.solve = timed
+    try:
+        for i in range(n):
+            p = scenario.sample(np.random.default_rng(i))
+            for label in list(paths)[i % 2 :] + list(paths)[: i % 2]:
+                RiccatiSolver.compiled = paths[label]
+                kernel_before = kernel["cpu_s"]
+                c0 = time.process_time()
+                rel, scp = solve_problem(scenario, p)
+                cpu = time.process_time() - c0
+                runs = [rel] if scp is None else [rel, scp]
+                ip = [
+                    int(m.group(1)) for r in runs for h in r.history if (m := re.search(r"\((\d+) it", h.solver_status))
+                ]
+                rows[label].append((cpu, kernel["cpu_s"] - kernel_before, runs, ip))
+    finally:
+        riccati_kernel.solve = original
+        RiccatiSolver.compiled = True
+    out: dict = {"scenario": name, "problems": n}
+    for label, r in rows.items():
+        cpu, kcpu = np.array([x[0] for x in r]), np.array([x[1] for x in r])
+        ip = [k for x in r for k in x[3]]
+        out[label] = {
+            "median_cpu_ms": float(1e3 * np.median(cpu)),
+            "kernel_share": float(kcpu.sum() / cpu.sum()),
+            "subproblems_per_problem": len(ip) / n,
+            "ip_iterations_per_subproblem": float(np.mean(ip)),
+        }
+    ref, comp = rows["reference"], rows["compiled"]
+    out["ratio"] = out["reference"]["median_cpu_ms"] / out["compiled"]["median_cpu_ms"]
+    out["same_statuses"] = all(
+        [x.status for x in a[2]] == [x.status for x in b[2]]
+        and [x.iterations for x in a[2]] == [x.iterations for x in b[2]]
+        for a, b in zip(ref, comp, strict=True)
+    )
+    out["max_abs_dX"] = max(
+        float(np.max(np.abs(x.X - y.X)))
+        for a, b in zip(ref, comp, strict=True)
+        for x, y in zip(a[2], b[2], strict=True)
+    )
+    out["kernel_us_per_ip_iteration"] = (
+        1e6 * kernel["cpu_s"] / sum(len(x[3]) and sum(x[3]) for v in rows.values() for x in v)
+    )
+    out["kernel_flops_per_ip_iteration"] = float(np.mean([kernel_flops(qp) for qp, _ in calls]))
+    out["kernel_gflops"] = sum(its * kernel_flops(qp) for qp, its in calls) / kernel["cpu_s"] / 1e9
+    print(
+        f"[engine {name}, {n} problems] CPU ms per problem (median): reference {out['reference']['median_cpu_ms']:.1f},"
+        f" compiled {out['compiled']['median_cpu_ms']:.1f}: x{out['ratio']:.2f}; same statuses {out['same_statuses']},"
+        f" max |dX| {out['max_abs_dX']:.1e} | kernel {100 * out['compiled']['kernel_share']:.0f}% of the compiled"
+        f" path, {out['compiled']['ip_iterations_per_subproblem']:.1f} IP it. per subproblem,"
+        f" {out['kernel_us_per_ip_iteration']:.0f} us per IP it. ({out['kernel_gflops']:.2f} GFLOP/s)",
+        flush=True,
+    )
+    return out
+
+
+def kernel_flops(qp) -> float:
+    """Floating-point operations (a multiply-add is 2) of one interior-point iteration of the Riccati kernel on
+    ``qp`` (``riccati_kernel._ipm``: residuals, the constraints' weights, the factorisation, predictor and corrector
+    with their step lengths, the update), counted from its loops; the cone's few are left out."""
+    N, n, nu = qp.shape
+    ny = n + nu
+    w = qp.rows.cols.shape[1]
+    nb, nr = qp.boxes.d.shape[0], qp.rows.d.shape[0]
+    stage = (
+        2 * n * ny
+        + 4 * n * n
+        + 2 * nu * n  # residuals: dynamics, Aᵀπ, Bᵀπ
+        + 2 * n**3
+        + 4 * n * n * nu
+        + 2 * nu * nu * n
+        + nu**3 / 3
+        + 2 * n * nu * nu  # PA, PB, Ruu, S, chol, K
+        + n * (n + 1) * (n + nu)  # P
+        + 2 * (4 * n * n + 4 * n * nu + 2 * nu * nu)  # backward passes
+        + 2 * (2 * nu * n + 2 * n * ny)  # forward rollouts
+        + 2 * n * n
+        + 2 * ny
+        + 2 * n  # update
+    )
+    per_row = lambda width: 4 * width + 8 + 2 * width * width + 4 + 2 * (12 + 2 * width) + 2 * (2 * width + 12) + 8 + 8  # noqa: E731
+    return N * stage + nb * per_row(1) + nr * per_row(w)
