@@ -23,3 +23,8 @@ class UserError(Exception):
 
 class ConfigError(UserError, ValueError):
     """A setting, recipe or override that does not match its schema (``ttompc.config``, ``ttompc.ranges``)."""
+
+
+class InputError(UserError, ValueError):
+    """An argument of a library call that cannot be used: another object than the call takes, another scenario's
+    problem, a warm start of the wrong shape or with non-finite values."""

@@ -3,12 +3,13 @@ creating output folders): each raises a ``UserError`` naming the setting and the
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ttompc.errors import UserError
+from ttompc.outputs import writable
+
+__all__ = ["backend", "figure_file", "scenario", "solver", "writable"]  # writable: ttompc.outputs'
 
 if TYPE_CHECKING:
     from ttompc.scenarios import Scenario
@@ -23,11 +24,12 @@ def scenario(spec: str) -> Scenario:
 
 
 def backend(name: str | None) -> None:
-    """``name`` must be one of ``ttompc.solvers.backends.BACKEND_NAMES`` (their solvers are all dependencies)."""
-    from ttompc.solvers.backends import BACKEND_NAMES
+    """``name`` must be one of ``ttompc.solvers.backends.BACKEND_NAMES`` (their solvers are all dependencies):
+    ``check_backend``, which the solvers run too."""
+    from ttompc.solvers.backends.chain import check_backend
 
-    if name is not None and name not in BACKEND_NAMES:
-        raise UserError(f"unknown solver backend {name!r}", f"choose one of: {', '.join(BACKEND_NAMES)}")
+    if name is not None:
+        check_backend(name)
 
 
 def solver(spec: str) -> None:
@@ -45,28 +47,6 @@ def solver(spec: str) -> None:
         raise UserError(f"solver={spec}: cannot import {module} ({err})", example) from None
     if not callable(found):
         raise UserError(f"solver={spec}: {module} has no function {func!r}", example)
-
-
-def writable(path: str | Path) -> None:
-    """The folder ``path`` can be created or written into: its nearest existing ancestor is a folder this process
-    can write in, found by trying (a file created there and removed at once: permission bits do not tell for root,
-    a read-only file system or a kernel file system), so that an output a command may not write is refused (one
-    line, worded as the CLI's error for such a path) before the work, not after it. Leaves nothing behind."""
-    target = Path(path).absolute()
-    existing = next(p for p in (target, *target.parents) if p.exists())
-    reason = "not a directory" if not existing.is_dir() else None
-    if reason is None:
-        try:
-            handle, probe = tempfile.mkstemp(prefix=".ttompc-write-test-", dir=existing)
-        except OSError as err:
-            reason = (err.strerror or type(err).__name__).lower()
-        else:
-            os.close(handle)
-            os.unlink(probe)
-    if reason is not None:
-        raise UserError(
-            f"cannot use {existing} ({reason})", "choose a location you can write to, or fix its permissions"
-        )
 
 
 def figure_file(path: str | Path, key: str) -> None:

@@ -31,7 +31,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ttompc.commands import checks
 from ttompc.config import add_config_arguments, command_config, to_container
 from ttompc.errors import UserError
 from ttompc.evaluation.measurement import Measurement
@@ -43,6 +42,7 @@ if TYPE_CHECKING:
     from ttompc.policy import Planner
 
 SAME = 0.01  # SCP optima of one problem closer than 1% of J_REL count as the same optimum
+DEMO_FILES = ("demo.json", "demo.png")  # what the demo writes into ``out``
 
 
 @dataclass
@@ -106,7 +106,10 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
-    checks.writable(cfg.out)
+    from ttompc.outputs import claim_folder
+
+    # new, empty or an earlier demo's folder (demo.json, demo.png: refreshed), never a folder of other files
+    claim_folder(cfg.out, "demo", lambda folder: all(p.name in DEMO_FILES for p in folder.iterdir()))
     from ttompc.evaluation.plots import save_figure, trajectory_figure
     from ttompc.policy import Planner
 
@@ -133,15 +136,15 @@ def run(args: argparse.Namespace) -> int:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     report = {"config": to_container(cfg), "scenario": scenario.name, "scanned": scanned, "rows": rows}
-    (out / "demo.json").write_text(json.dumps(report, indent=2, default=float))
+    (out / DEMO_FILES[0]).write_text(json.dumps(report, indent=2, default=float))
     heading = (
         f"{cfg.model} (warm starts)" + (f" and {cfg.mpc_model} (MPC)" if cfg.mpc else "") + f" on {scenario.name}. "
         "J: control cost (lower is better).\nREL: the convex relaxation without keep-out zones (a lower bound on J), "
         "so it may cross obstacles."
     )
     fig = trajectory_figure(scenario, panels, heading, rows=2 if mpc is not None else 1)
-    save_figure(fig, out / "demo.png")
-    print(f"saved {out / 'demo.png'} and {out / 'demo.json'}")
+    save_figure(fig, out / DEMO_FILES[1])
+    print(f"saved {out / DEMO_FILES[1]} and {out / DEMO_FILES[0]}")
     return 0
 
 
@@ -191,13 +194,13 @@ def _closed_loop(
     from ttompc.evaluation.episodes import episode_record
     from ttompc.evaluation.plots import Panel
     from ttompc.mpc.loop import run_mpc_batch
-    from ttompc.mpc.methods import METHODS, MethodInputs, model_method
+    from ttompc.mpc.methods import BASELINE, METHODS, MethodInputs, model_method, slot_of
     from ttompc.parallel import single_torch_thread
     from ttompc.progress import Bar
 
     scenario = planner.scenario
-    slot = "FT-TTO" if "finetuned_from" in planner.extra else "TTO"  # as `zoo publish` tells the kind
-    methods = [(model_method(slot, robust=True), cfg.eval, planner), (METHODS["REL-MPC"], cfg.rel_loop(), None)]
+    learned = model_method(slot_of(planner), robust=True)
+    methods = [(learned, cfg.eval, planner), (METHODS[BASELINE], cfg.rel_loop(), None)]
     starts = [ep.start for ep in eps]
     episodes = []
     with single_torch_thread(), Bar(len(methods) * len(eps), "demo: MPC", "episode") as bar:

@@ -118,12 +118,13 @@ def _announce_rtg(source: str, planner: Planner, mode: str) -> None:
 def _check_output(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
     """The report folder (``out``, else ``outputs/evaluate/<kind>-<scenario>`` as the evaluation names it) must be
     writable before any problem is solved, not after the whole evaluation, and new, empty or a report folder of this
-    kind (its files are named ``<kind>*``: ``ttompc.outputs.claim_folder``), never a dataset or a user's folder."""
+    kind (its files are named ``<kind>*``: ``ttompc.outputs.claim_folder``), never a dataset or a user's folder; the
+    evaluation then compares an earlier report's configuration with its own (a sweep's episodes, a warm-start
+    report: ``report_files.check_replaceable``)."""
     from ttompc.outputs import claim_folder
 
     out = cfg.out or f"outputs/evaluate/{kind}-{checks.scenario(str(cfg.scenario)).name}"
     claim_folder(out, f"evaluate {kind}", lambda folder: any(p.name.startswith(kind) for p in folder.iterdir()))
-    checks.writable(out)
 
 
 def _announce(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
@@ -183,7 +184,6 @@ def _loss(args: argparse.Namespace) -> int:
     check_devices(cfg)
     out = cfg.out_dir()
     claim_folder(out, "evaluate loss", lambda folder: any(p.name.startswith("loss") for p in folder.iterdir()))
-    checks.writable(out)
     report = run_fit_loss(cfg)
     print(report["table"])
     print(f"report: {report['out']}")

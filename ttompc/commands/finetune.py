@@ -13,7 +13,6 @@ import argparse
 import json
 from pathlib import Path
 
-from ttompc.commands import checks
 from ttompc.config import add_config_arguments, split_recipe
 from ttompc.errors import ConfigError, UserError
 from ttompc.finetune.config import FinetuneConfig, load_finetune_config
@@ -50,14 +49,9 @@ def _check_against_data(cfg: FinetuneConfig) -> None:
     longer one would be cut to N under its own name) where its manifest is there (``finetune`` checks the data
     against the model, ``ttompc.finetune.loop.check_inputs``)."""
     from ttompc.data.manifests import MANIFEST, load_manifest
-    from ttompc.finetune.loop import SOURCE_PLANNER, STATE_FILE
-    from ttompc.outputs import claim_folder
-    from ttompc.ranges import check_devices
+    from ttompc.finetune.loop import claim_run
 
-    check_devices(cfg)
-    out = cfg.trainer.out_dir
-    claim_folder(out, "finetune", lambda f: (f / STATE_FILE).is_file() or (f / SOURCE_PLANNER).is_dir())
-    checks.writable(out)
+    claim_run(cfg)
     if not (Path(cfg.data.paths[0]) / MANIFEST).is_file():
         return
     n_steps = int(load_manifest(cfg.data.paths[0])["scenario"]["n_steps"])

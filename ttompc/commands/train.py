@@ -9,7 +9,6 @@ import argparse
 import json
 import sys
 
-from ttompc.commands import checks
 from ttompc.config import add_config_arguments, split_recipe
 from ttompc.errors import UserError
 from ttompc.progress import status
@@ -56,16 +55,11 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(with_settings(cfg), indent=2))
         print(f"# {MAX_STEPS_HELP}", file=sys.stderr)  # JSON has no comments; stdout stays the config alone
         return 0
-    from ttompc.data.manifests import check_datasets  # every folder, before anything is created or Lightning imported
-    from ttompc.ranges import check_devices
-    from ttompc.training.preflight import check_model_fits, claim_run
+    from ttompc.training.preflight import prepare_run
 
-    check_devices(cfg)
-    manifests = check_datasets(cfg.data)
-    check_model_fits(cfg, manifests)
-    checks.writable(cfg.trainer.out_dir)
-    # the out_dir is this run's (new, empty or its own checkpoints), claimed before Lightning and the shard checksums
-    claim_run(cfg, manifests)
+    # devices, every dataset folder, and the out_dir as this run's (new, empty or its own checkpoints), checked
+    # before the status line, Lightning and the shard checksums (train() checks them again: a no-op by then)
+    prepare_run(cfg)
     status("ttompc train: loading Lightning and the data")
     from ttompc.data.shards import ShardError
     from ttompc.training.run import train

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 from ttompc import zoo
-from ttompc.commands import checks
 from ttompc.errors import UserError
 from ttompc.zoo.cards import KINDS, ModelCard
 from ttompc.zoo.evaluations import headline_metrics, load_metrics
@@ -228,7 +227,9 @@ def _publish(args: argparse.Namespace) -> int:
     if not hub and args.private:
         raise UserError("--private is for a Hugging Face repository (--to hf://ORG/NAME)")
     if not hub:
-        checks.writable(args.to)
+        from ttompc.zoo.publish import claim_destination
+
+        claim_destination(args.to)  # before a checkpoint is converted
     if hub and args.base_url:
         raise UserError("--base-url is for a folder destination: a Hub card lists the repository's own files")
     given = {

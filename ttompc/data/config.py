@@ -45,7 +45,7 @@ class GenerateConfig(Checked):
     out: str = "data/freeflyer-v1"
     seed: int = setting(0, ge=0)  # root seed; problem i uses SeedSequence(seed, spawn_key=(i,))
     shard_size: int = setting(500, ge=1)  # problems per shard (a fixed contiguous id range)
-    workers: int = setting(0, ge=0, meaning="0: all cores")
+    workers: int = setting(0, ge=0, per_core=4, meaning="0: all cores")
     solver: str = "ttompc.solvers.scp:solve_problem"  # "module:function" with solve_problem's signature
     backend: str | None = None  # convex backend passed to the solver (None = solver default)
     max_shards: int | None = setting(None, ge=1)  # stop after writing this many new shards (resume later); None: all
@@ -74,7 +74,7 @@ class DataConfig(Checked):
     closed_loop_share: ClosedLoopShare = "fixed"
     batch_size: int = setting(64, ge=1)
     eval_batch_size: int | None = setting(None, ge=1)  # default: batch_size
-    num_workers: int = setting(0, ge=0)
+    num_workers: int = setting(0, ge=0, per_core=4)
     shuffle_pool: int = setting(4096, ge=1)  # rows held per source for in-memory shuffling
     read_batch_size: int = setting(256, ge=1)  # rows per ``IterableDataset.iter`` read
     # L ≤ N, random windows of length L when L < N; None: the whole horizon N

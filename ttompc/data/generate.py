@@ -34,9 +34,11 @@ from ttompc.data.manifests import MANIFEST
 from ttompc.data.resumable import META_DIR, ShardedFolder
 from ttompc.data.schema import SCHEMA_VERSION, make_row, model_costates, trajectory_features
 from ttompc.data.shards import SPLITS, atomic_write_json
+from ttompc.errors import UserError
 from ttompc.outputs import claim_folder
 from ttompc.parallel import pool_map
 from ttompc.policy.stats import KEYS, NormStats
+from ttompc.ranges import check_devices
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import InfeasibleProblemError, Scenario
 from ttompc.seeding import problem_seed
@@ -46,8 +48,9 @@ from ttompc.version import code_version
 STAGES = ("validate", "rel", "scp")
 
 
-class GenerationError(RuntimeError):
-    """An output folder that does not match the requested generation (other seed, scenario, shard size...)."""
+class GenerationError(UserError, RuntimeError):
+    """An output folder that does not match the requested generation (other seed, scenario, shard size...), or
+    settings that cannot make a dataset; ``ttompc generate`` prints it as its one error line."""
 
 
 # ------------------------------------------------------------------------------------------------ determinism
@@ -252,6 +255,7 @@ def generate(
     subject to ``TTOMPC_PROGRESS``/``CI``, ``ttompc.progress``)."""
     from ttompc.progress import Bar
 
+    check_devices(cfg)  # its workers within this machine's cores
     check_splits(cfg)
     ranks = ranks or rank_info()
     scenario = get_scenario(cfg.scenario)

@@ -71,7 +71,7 @@ class ClosedLoopConfig(Measurement):
     # rtg_0 = −rtg_scale·J_REL; None: the model's own (Planner.rtg_scale); its range: check_rtg_scale
     rtg_scale: float | None = setting(None)
     batch: int = setting(10, ge=1)  # problems per pool task, their episodes in lockstep (one batched rollout per step)
-    workers: int = setting(0, ge=0, meaning="0: one per CPU core")  # processes
+    workers: int = setting(0, ge=0, per_core=4, meaning="0: one per CPU core")  # processes
     device: str = setting("cpu", device="torch")
     out: str = ""  # default: outputs/evaluate/mpc-<scenario>
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from ttompc.errors import UserError
 from ttompc.evaluation.metrics import write_json
+from ttompc.evaluation.report_files import config_differences
 from ttompc.evaluation.reproduce import INERT
 
 SWEEP_FILE, EPISODES_FILE = "mpc_sweep.json", "mpc_episodes.jsonl"
@@ -59,18 +60,6 @@ def _plain(x: Any) -> Any:
     raise TypeError(f"{type(x).__name__} is not JSON serialisable")
 
 
-def _differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
-    """'key: A here, B there' for every (nested) key whose value differs."""
-    out = []
-    for key in dict.fromkeys([*a, *b]):
-        x, y = a.get(key), b.get(key)
-        if isinstance(x, dict) and isinstance(y, dict):
-            out += _differences(x, y, f"{prefix}{key}.")
-        elif x != y:
-            out.append(f"{prefix}{key}: {json.dumps(x)} here, {json.dumps(y)} there")
-    return out
-
-
 class EpisodeStore:
     """The episodes of one sweep in its report folder (module doc); ``done`` holds the records by key."""
 
@@ -93,7 +82,7 @@ class EpisodeStore:
             there = json.loads(sweep.read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, ValueError) as err:
             raise UserError(f"{sweep} is unreadable ({err})", fresh) from err
-        diff = _differences(fp, there) if isinstance(there, dict) else ["the whole file"]
+        diff = config_differences(fp, there) if isinstance(there, dict) else ["the whole file"]
         if diff:
             raise UserError(f"{out} holds episodes of another configuration ({'; '.join(diff[:3])})", fresh)
         return cls(out, _read_episodes(episodes))

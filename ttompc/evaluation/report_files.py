@@ -6,6 +6,11 @@ recording ``"complete": true`` (``finish``). A folder
 whose JSON is missing or lacks that mark holds an interrupted run (or one of a ttompc before the mark), whatever
 other files it holds: ``read_report`` refuses it, and it is how every consumer of a report opens one
 (``ttompc evaluate compare``, ``make figures``, ``ttompc zoo metrics``).
+
+A report that is computed whole (``warmstart``) is replaced by a run of the same configuration, and a complete report
+of another configuration in the folder is refused before any work (``check_replaceable``), as a closed-loop sweep
+refuses episodes of another configuration (``ttompc.evaluation.episode_store``, whose comparison
+``config_differences`` is).
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from typing import Any
 
 from ttompc.errors import UserError
 from ttompc.evaluation.metrics import write_json
+from ttompc.evaluation.reproduce import INERT
 
 COMPLETE = "complete"
 
@@ -47,3 +53,35 @@ def read_report(path: str | Path, kind: str) -> dict[str, Any]:
             f"{path} is not a complete report (its run stopped before the end, or an older ttompc wrote it)", again
         )
     return report
+
+
+def config_differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
+    """'key: A here, B there' for every (nested) key whose value differs between ``a`` (this run's) and ``b``."""
+    out = []
+    for key in dict.fromkeys([*a, *b]):
+        x, y = a.get(key), b.get(key)
+        if isinstance(x, dict) and isinstance(y, dict):
+            out += config_differences(x, y, f"{prefix}{key}.")
+        elif x != y:
+            out.append(f"{prefix}{key}: {json.dumps(x)} here, {json.dumps(y)} there")
+    return out
+
+
+def check_replaceable(path: Path, kind: str, config: dict[str, Any]) -> None:
+    """``ttompc evaluate KIND`` with ``config`` may write its report over ``path``: there is none, or it is not
+    complete (an interrupted run's, replaced), or it records the same configuration but ``INERT`` settings (where
+    it went, how many processes). Raises ``UserError`` naming up to three settings that differ."""
+    try:
+        there = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return  # no report, or a damaged one: nothing a new run could lose
+    if not isinstance(there, dict) or there.get(COMPLETE) is not True or not isinstance(there.get("config"), dict):
+        return
+    mine = {k: v for k, v in json.loads(json.dumps(config)).items() if k not in INERT}
+    stored = {k: v for k, v in there["config"].items() if k not in INERT}
+    diff = config_differences(mine, stored)
+    if diff:
+        raise UserError(
+            f"{path.parent} holds a `ttompc evaluate {kind}` report of another configuration ({'; '.join(diff[:3])})",
+            "pass another out=, or delete the report to replace it",
+        )

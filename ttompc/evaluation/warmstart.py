@@ -32,7 +32,7 @@ from ttompc.evaluation.metrics import (
     write_csv,
 )
 from ttompc.evaluation.problems import EvalProblem, eval_problem
-from ttompc.evaluation.report_files import finish, retract
+from ttompc.evaluation.report_files import check_replaceable, finish, retract
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import format_interval, interval
 from ttompc.mpc.tto import check_rtg_scale
@@ -68,7 +68,7 @@ class WarmStartConfig(Checked):
     rtg_scale: float | None = setting(None)
     # random detours tried by the oracle (besides REL, models and the straight line)
     oracle_detours: int = setting(4, ge=0)
-    workers: int = setting(0, ge=0, meaning="0: one per CPU core")  # processes
+    workers: int = setting(0, ge=0, per_core=4, meaning="0: one per CPU core")  # processes
     # suboptimality thresholds of the improvement curve
     thresholds: list[float] = setting(
         factory=lambda: [round(0.1 * i, 1) for i in range(10)], ge=0, nonempty=True, unique=True
@@ -236,7 +236,8 @@ def format_table(summary: list[dict[str, Any]]) -> str:
 def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     """Run the evaluation; writes ``warmstart.md`` (the table), ``warmstart_problems.csv``,
     ``warmstart_thresholds.csv``, ``warmstart_bins.csv``, ``warmstart_improvement.png`` and last ``warmstart.json``
-    (marked complete: ``report_files.finish``) into ``cfg.out``; the
+    (marked complete: ``report_files.finish``) into ``cfg.out``, replacing an earlier report of the same
+    configuration and refusing, before any work, one of another (``report_files.check_replaceable``); the
     report records its config and the command line that reproduces it (``command``, ``reproduce.report_command``)."""
     from ttompc.evaluation.plots import plot_warmstart
 
@@ -246,6 +247,8 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     out = Path(cfg.out or f"outputs/evaluate/warmstart-{sc.name}")
     t0 = time.perf_counter()
     workers = default_workers(cfg.workers)
+    config = {**asdict(cfg), "out": str(out), "workers": workers}
+    check_replaceable(out / "warmstart.json", "warmstart", config)  # before any problem is solved
     with Bar(cfg.problems, f"warmstart {sc.name}", "problem") as bar:
         tasks = range(cfg.problems)
         done = pool_map(_run_problem, tasks, workers, _init, (asdict(cfg),), scenarios=[scenario_spec(sc)])
@@ -261,7 +264,6 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     bins = aggregate(rows, ("bin",), fields)
     thresholds = improvement_by_threshold(rows, [*models, ORACLE], BASELINE, cfg.thresholds)
     table = format_table(summary)
-    config = {**asdict(cfg), "out": str(out), "workers": workers}
     report = {
         "config": config,
         # the line that reproduces the report (``reproduce``)

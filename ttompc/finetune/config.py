@@ -86,7 +86,7 @@ class LabelConfig(Checked):
 @dataclass
 class CollectConfig(Checked):
     rollouts: int = setting(2000, ge=1)  # closed-loop rollouts per iteration (all ranks together)
-    workers: int = setting(0, ge=0, meaning="0: all cores")  # processes per rank (spawn pool)
+    workers: int = setting(0, ge=0, per_core=4, meaning="0: all cores")  # processes per rank (spawn pool)
     shard_size: int = setting(50, ge=1)  # rollouts per shard (the unit of resumption and of the rank split)
     batch: int = setting(10, ge=1)  # rollouts a worker runs in lockstep (one batched transformer rollout per step)
     val_fraction: float = setting(0.1, ge=0, lt=1)  # share of rollouts written to the DAgger val split (by hash)

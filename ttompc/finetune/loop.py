@@ -48,7 +48,9 @@ from ttompc.data.shards import atomic_write_json
 from ttompc.errors import UserError
 from ttompc.finetune.collect import collect_iteration, rollout_folder
 from ttompc.finetune.config import FinetuneConfig
+from ttompc.outputs import claim_folder
 from ttompc.progress import status
+from ttompc.ranges import check_devices
 
 if TYPE_CHECKING:
     from ttompc.evaluation.problems import EvalProblem
@@ -156,6 +158,14 @@ def check_value_labels(cfg: FinetuneConfig, planner: Planner) -> None:
             f"dagger.labels.kind={labels.kind} dagger.labels.rtg={labels.rtg} rows carry the learner's running value",
             "use dagger.labels.kind=plan dagger.labels.rtg=expert",
         )
+
+
+def claim_run(cfg: FinetuneConfig) -> None:
+    """The devices ``cfg`` names exist here, and ``trainer.out_dir`` is new, empty or a DAgger run's (its state file
+    or source planner: ``finetune`` checks its source and seed itself); ``ConfigError``/``UserError`` otherwise, in
+    the words of ``ttompc finetune``."""
+    check_devices(cfg)
+    claim_folder(cfg.trainer.out_dir, "finetune", lambda f: (f / STATE_FILE).is_file() or (f / SOURCE_PLANNER).is_dir())
 
 
 def _model_name(iteration: int) -> str:
@@ -289,6 +299,7 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
 
     ranks = ranks or rank_info()
     run = Path(cfg.trainer.out_dir)
+    claim_run(cfg)
     state = _load_state(run)
     if state is not None and state["source"] != str(source):
         raise FinetuneError(f"{run} fine-tunes {state['source']!r}, not {source!r}", "use another trainer.out_dir")

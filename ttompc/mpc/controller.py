@@ -39,6 +39,7 @@ from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.mpc.warmup import warm_up
 from ttompc.scenarios import get_scenario
 from ttompc.scenarios.base import InfeasibleProblemError, Problem, Scenario
+from ttompc.solvers.problem import check_problem
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
@@ -94,19 +95,6 @@ def sample_problem(scenario: Scenario, rng: np.random.Generator, attempts: int =
             continue
         return problem
     raise RuntimeError(f"{scenario.name}: no valid problem in {attempts} draws")
-
-
-def check_problem(scenario: Scenario, problem: Problem) -> None:
-    """Raise a one-line ``UserError`` for a problem ``scenario`` cannot pose: start or goal of another shape, another
-    number of steps, non-finite values, or one without a solution (``Scenario.validate``)."""
-    n = scenario.state_dim
-    shapes = (np.shape(problem.x0), np.shape(problem.goal))
-    if shapes != ((n,), (n,)):
-        raise UserError(f"a {scenario.name} problem has start and goal of shape ({n},), got {shapes}")
-    try:
-        scenario.validate(problem)
-    except ValueError as err:  # InfeasibleProblemError included
-        raise UserError(str(err)) from None
 
 
 def _finite(value: np.ndarray, shape: tuple[int, ...], what: str) -> np.ndarray:

@@ -262,7 +262,8 @@ class Planner:
 
         The scenario defaults to the one the model was trained on (by name, else loaded from the recorded spec:
         ``ttompc.scenarios.find_scenario``); a scenario version different from the training one is an error unless
-        ``check_version=False``."""
+        ``check_version=False``. A ``device`` this machine lacks is a ``ConfigError``, in the CLI's words."""
+        from ttompc.ranges import check_device
         from ttompc.zoo import BundleError, check_bundle, download, download_model, is_hub_ref
         from ttompc.zoo.cards import CardError, validate_name
 
@@ -272,6 +273,7 @@ class Planner:
         )
         if not isinstance(source, (str, Path)) or not str(source):
             raise BundleError(f"no model named by {source!r}", forms)
+        check_device(device)  # before a file is read: safetensors would call a device it lacks a damaged file
         if is_hub_ref(source):
             path, meta = download_model(str(source), progress=progress)  # verified and checked like a bundle
             return cls._from_bundle(path, meta, scenario, device=device, check_version=check_version)

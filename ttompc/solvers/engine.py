@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ttompc.errors import InputError
 from ttompc.scenarios.base import BlockKind, ConstraintBlock, ConvexModel, SCPSettings
 from ttompc.solvers.backends import SubproblemSolver, default_trust_norm, get_solver
 from ttompc.solvers.problem import SCPOptions, SCPProblem
@@ -150,12 +151,12 @@ def _check_guess(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray) -> Non
     sc, H = scp.scenario, scp.window.length
     n, m = sc.state_dim, sc.control_dim
     if X_init.shape != (H + 1, n) or U_init.shape != (H, m):
-        raise ValueError(
+        raise InputError(
             f"{sc.name}: warm start must have shapes ({H + 1}, {n}) and ({H}, {m}) for a window of {H} steps, "
             f"got {X_init.shape} and {U_init.shape}"
         )
     if not (np.all(np.isfinite(X_init)) and np.all(np.isfinite(U_init))):
-        raise ValueError(f"{sc.name}: warm start contains non-finite values")
+        raise InputError(f"{sc.name}: warm start contains non-finite values")
 
 
 def _settings(scp: SCPProblem, options: SCPOptions) -> SCPSettings:

@@ -1,7 +1,11 @@
 """What an SCP solve is asked, in two small frozen descriptions that a caller builds once and updates per solve (as
 with an acados OCP or an OSQP problem): ``SCPProblem``, the problem (the scenario's problem over a window, with its
 terminal condition, relaxation and cost mode), and ``SCPOptions``, how it is solved (backend, formulation,
-trust-region schedule and tolerances). The starting guess is the solve's own argument (``solve_scp``)."""
+trust-region schedule and tolerances). The starting guess is the solve's own argument (``solve_scp``).
+
+What a user passes is checked where it enters (``check_problem``, ``SCPOptions``): another object than a scenario or
+a problem, a problem the scenario cannot pose, an unknown backend or formulation is a one-line ``UserError``
+(``InputError``; ``ConfigError`` for the options), in the words ``ttompc`` prints for it."""
 
 from __future__ import annotations
 
@@ -9,7 +13,11 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Literal
 
+import numpy as np
+
+from ttompc.errors import ConfigError, InputError
 from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
+from ttompc.solvers.backends.chain import check_backend
 from ttompc.solvers.results import TerminalCost
 
 Formulation = Literal["penalized", "reference"]
@@ -92,9 +100,28 @@ class SCPOptions:
     settings: SCPSettings | None = None
 
     def __post_init__(self) -> None:
+        check_backend(self.backend)
         if self.formulation not in ("penalized", "reference"):
-            raise ValueError(f"unknown SCP formulation {self.formulation!r}; choose 'penalized' or 'reference'")
+            raise ConfigError(f"unknown SCP formulation {self.formulation!r}", "choose 'penalized' or 'reference'")
 
     def update(self, **changes: Any) -> SCPOptions:
         """A copy with ``changes`` to any of the fields (e.g. real-time iteration's one-iteration ``settings``)."""
         return dataclasses.replace(self, **changes)
+
+
+def check_problem(scenario: Scenario, problem: Problem) -> None:
+    """Raise a one-line ``InputError`` for what ``scenario`` cannot solve as ``problem``: not a ``Scenario`` or not a
+    ``Problem``, start or goal of another shape (another scenario's problem), another number of steps, non-finite
+    values, or one without a solution (``Scenario.validate``)."""
+    if not isinstance(scenario, Scenario):
+        raise InputError(f"not a scenario: {scenario!r}", "pass ttompc.get_scenario(NAME)")
+    if not isinstance(problem, Problem):
+        raise InputError(f"not a {scenario.name} problem: {problem!r}", "pass scenario.sample(rng) or a Problem")
+    n = scenario.state_dim
+    shapes = (np.shape(problem.x0), np.shape(problem.goal))
+    if shapes != ((n,), (n,)):
+        raise InputError(f"a {scenario.name} problem has start and goal of shape ({n},), got {shapes}")
+    try:
+        scenario.validate(problem)
+    except ValueError as err:  # InfeasibleProblemError included
+        raise InputError(str(err)) from None

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 
 from ttompc.scenarios.base import Problem, Scenario, Window
 from ttompc.solvers.engine import run_scp
-from ttompc.solvers.problem import Formulation, SCPOptions, SCPProblem
+from ttompc.solvers.problem import Formulation, SCPOptions, SCPProblem, check_problem
 from ttompc.solvers.results import IterateRecord, SCPResult, SCPStatus, TerminalCost
 
 __all__ = [
@@ -94,7 +94,9 @@ def solve_problem(
     scenario: Scenario, problem: Problem, *, backend: str = "auto", formulation: Formulation = "penalized"
 ) -> tuple[SCPResult, SCPResult | None]:
     """REL, then SCP warm-started from the REL solution: the two solutions a dataset stores per problem (paper
-    §IV-B, §V). The SCP is skipped (None) when REL fails. ``backend`` and ``formulation`` as in ``SCPOptions``."""
+    §IV-B, §V). The SCP is skipped (None) when REL fails. ``backend`` and ``formulation`` as in ``SCPOptions``;
+    arguments it cannot use are an ``InputError`` or ``ConfigError`` (``check_problem``, ``SCPOptions``)."""
+    check_problem(scenario, problem)
     rel = solve_rel(scenario, problem, backend=backend, formulation=formulation)
     if not rel.success:
         return rel, None

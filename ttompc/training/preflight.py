@@ -1,5 +1,7 @@
-"""Checks of a training run against its data and its output folder, made before Lightning is imported or anything
-is written: the model fits the data's horizon (``check_model_fits``), and ``trainer.out_dir`` is this run's
+"""Checks of a training run against its machine, its data and its output folder, made before Lightning is imported
+or anything is written (``prepare_run``, which ``ttompc.training.run.train`` runs itself, so that the Python entry
+refuses what ``ttompc train`` refuses, in the same words): the devices exist here, the datasets are finished ones of
+one scenario, the model fits the data's horizon (``check_model_fits``), and ``trainer.out_dir`` is this run's
 (``claim_run``).
 
 A run claims its ``out_dir`` with ``run.json``: the identity of what its checkpoints are — the scenario, a
@@ -17,9 +19,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+from ttompc.data.manifests import check_datasets
 from ttompc.data.shards import atomic_write_json
 from ttompc.errors import ConfigError
 from ttompc.outputs import claim_folder
+from ttompc.ranges import check_devices
 from ttompc.training.config import TrainConfig
 
 RUN_FILE = "run.json"
@@ -28,6 +32,17 @@ ARCHITECTURE = (
     "layout", "n_embd", "n_layer", "n_head", "mlp_ratio", "max_steps", "bias", "activation", "value_width",
     "value_form", "value_rank", "value_activation", "state_dim", "control_dim",
 )  # fmt: skip
+
+
+def prepare_run(cfg: TrainConfig) -> list[dict[str, Any]]:
+    """Every check of a run that reads its data from ``cfg.data`` (module doc), in the order the CLI reports them;
+    claims ``trainer.out_dir`` (writes its ``run.json``) and returns the datasets' manifests. Raises ``ConfigError``
+    or ``UserError`` in one line."""
+    check_devices(cfg)
+    manifests = check_datasets(cfg.data)
+    check_model_fits(cfg, manifests)
+    claim_run(cfg, manifests)
+    return manifests
 
 
 def check_model_fits(cfg: TrainConfig, manifests: list[dict[str, Any]]) -> None:
@@ -44,31 +59,37 @@ def check_model_fits(cfg: TrainConfig, manifests: list[dict[str, Any]]) -> None:
         )
 
 
-def run_identity(cfg: TrainConfig, manifests: list[dict[str, Any]]) -> dict[str, Any]:
-    """What this run's checkpoints would be: scenario, data fingerprint, architecture, starting weights."""
-    scenario = manifests[0]["scenario"] if manifests else {}
+def run_identity(
+    cfg: TrainConfig, manifests: list[dict[str, Any]], scenario: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """What this run's checkpoints would be: scenario, data fingerprint, architecture, starting weights. Data that
+    does not come from datasets (a DataModule given to ``train``: no ``manifests``, its ``scenario`` name and token
+    dimensions given) has no fingerprint: the identity leaves ``data`` out, and it is not compared."""
+    scenario = scenario if scenario is not None else manifests[0]["scenario"] if manifests else {}
     model = {
         **{k: getattr(cfg.model, k) for k in ARCHITECTURE},
         "state_dim": scenario.get("state_dim", cfg.model.state_dim),
         "control_dim": scenario.get("control_dim", cfg.model.control_dim),
     }
     shards = json.dumps([m.get("shards") for m in manifests], sort_keys=True)
+    data = {"data": hashlib.sha256(shards.encode()).hexdigest()[:16]} if manifests else {}
     return {
         "scenario": scenario.get("name"),
-        "data": hashlib.sha256(shards.encode()).hexdigest()[:16],
+        **data,
         "architecture": model,
         "init_from": cfg.init_from,
         "trainable": cfg.optim.trainable,
     }
 
 
-def claim_run(cfg: TrainConfig, manifests: list[dict[str, Any]]) -> None:
+def claim_run(cfg: TrainConfig, manifests: list[dict[str, Any]], scenario: dict[str, Any] | None = None) -> None:
     """Make ``trainer.out_dir`` this run's: a new or empty folder, or one of ``train``'s whose checkpoints were made
-    by the same run identity (``run_identity``; with ``trainer.resume=false`` any of ``train``'s folders, whose
-    checkpoints are then replaced). Writes ``run.json``; raises ``ConfigError``/``UserError`` naming what differs."""
+    by the same run identity (``run_identity``, of ``manifests`` or of ``scenario``; with ``trainer.resume=false``
+    any of ``train``'s folders, whose checkpoints are then replaced). Writes ``run.json`` (keeping the stored data
+    fingerprint when this run has none); raises ``ConfigError``/``UserError`` naming what differs."""
     out = Path(cfg.trainer.out_dir)
     claim_folder(out, "train", lambda f: (f / RUN_FILE).is_file() or (f / "checkpoints").is_dir())
-    mine = run_identity(cfg, manifests)
+    mine = run_identity(cfg, manifests, scenario)
     stored = _stored_identity(out) if cfg.trainer.resume else None
     differ = [_difference(k, stored[k], mine[k]) for k in mine if stored and k in stored] if stored else []
     shown = "; ".join(d for d in differ if d)
@@ -79,7 +100,7 @@ def claim_run(cfg: TrainConfig, manifests: list[dict[str, Any]]) -> None:
             "choose a new trainer.out_dir, or pass trainer.resume=false to start over there",
         )
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out / RUN_FILE, mine)
+    atomic_write_json(out / RUN_FILE, {**(stored or {}), **mine})
 
 
 def _stored_identity(out: Path) -> dict[str, Any] | None:

@@ -88,7 +88,21 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
     """Train according to ``cfg``. ``datamodule`` defaults to ``TrajectoryDataModule(cfg.data)``; any
     LightningDataModule that follows the batch contract of ``ttompc.training.module`` and exposes ``stats``
     (NormStats) and ``scenario_name`` after ``setup("fit")`` works. ``callbacks`` are added to the Trainer's (e.g.
-    the closed-loop evaluation configured by ``cfg.callbacks.eval_mpc``)."""
+    the closed-loop evaluation configured by ``cfg.callbacks.eval_mpc``).
+
+    Checked first, as ``ttompc train`` checks them, and refused in its words (``ConfigError``/``UserError``,
+    ``ttompc.training.preflight``): devices this machine lacks, datasets that are missing, unfinished or of mixed
+    scenarios, and a ``trainer.out_dir`` that is not this run's — a folder of other files, or checkpoints of another
+    scenario, data set or architecture (with a ``datamodule``: another scenario or architecture), which would
+    otherwise resume the wrong model."""
+    from ttompc.ranges import check_devices
+    from ttompc.training.preflight import claim_run, prepare_run
+
+    own_data = datamodule is None
+    if own_data:
+        prepare_run(cfg)
+    else:
+        check_devices(cfg)
     import lightning as L
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 
@@ -111,8 +125,12 @@ def train(cfg: TrainConfig, datamodule: Any = None, callbacks: Sequence[Any] = (
 
         datamodule = TrajectoryDataModule(cfg.data)
     datamodule.setup("fit")  # stats and scenario are needed to build the model (setup must be idempotent)
-    out.mkdir(parents=True, exist_ok=True)  # only once the data loads: a typo in data.paths leaves nothing behind
     scenario = get_scenario(datamodule.scenario_name)
+    if not own_data:  # the datasets' runs were claimed by prepare_run; this data is known by its scenario
+        claim_run(
+            cfg, [], {"name": scenario.name, "state_dim": scenario.state_dim, "control_dim": scenario.control_dim}
+        )
+    out.mkdir(parents=True, exist_ok=True)  # only once the data loads: a typo in data.paths leaves nothing behind
     # The data fixes the token dimensions; the recipe fixes everything else.
     model_cfg = replace(cfg.model, state_dim=scenario.state_dim, control_dim=scenario.control_dim)
     if cfg.optim.trainable == "value" and not cfg.init_from:

@@ -11,6 +11,10 @@ without evaluations), each listed in the card with its sha256 and size. Card fie
 ``data_card``, ``code_version``, and ``extra``: ``rtg_scale`` for the inference settings, ``finetuned_from`` for
 ``base_model``) over an existing card's hand-edited fields (body, licence, tags, recipe, ...), and explicit
 ``card_fields`` over both.
+
+A local destination is claimed (``claim_destination``): new, empty, or a folder of published bundle files alone
+(``model.safetensors``, ``config.json``, ``metrics.json``: republishing refreshes them); a folder holding anything
+else is refused before any work, nothing in it overwritten.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ttompc.outputs import claim_folder
 from ttompc.version import code_version
 from ttompc.zoo.cache import check_bundle, inside, sha256_file
 from ttompc.zoo.cards import REQUIRED_FILES, FileEntry, ModelCard, read_card, render_card, validate_name
@@ -59,7 +64,7 @@ def publish(
     """
     validate_name(name)
     zoo = zoo_path(zoo_dir)
-    dest = _destination(to)
+    dest = claim_destination(to)
     card_path = zoo / f"{name}.md"
     bundle = _bundle_dir(Path(source))
     config = check_bundle(bundle)
@@ -294,6 +299,16 @@ def _bundle_dir(source: Path) -> Path:
             "convert it with Planner.from_pretrained(CKPT).save(DIR), or publish it with `ttompc zoo publish`",
         )
     raise PublishError(f"{source} is neither a bundle directory nor a Lightning .ckpt file")
+
+
+def claim_destination(to: str) -> Path:
+    """The local folder ``to`` (a path or ``file://`` URL) that ``publish`` writes, claimed for it (module doc);
+    raises ``PublishError`` for a remote URL and ``UserError`` for a folder of other files or one not writable."""
+    dest = _destination(to)
+    published = {*REQUIRED_FILES, METRICS_FILE}
+    staged = {f".{name}.tmp" for name in published}  # left by an interrupted publish (``_copy_hashed``)
+    claim_folder(dest, "zoo publish", lambda folder: all(p.name in published | staged for p in folder.iterdir()))
+    return dest
 
 
 def _destination(to: str) -> Path:

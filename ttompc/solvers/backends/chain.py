@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from typing import Any
 
+from ttompc.errors import ConfigError
 from ttompc.scenarios.base import Scenario
 from ttompc.solvers.backends.base import SubproblemSolver, is_qp
 from ttompc.solvers.backends.conic import BACKENDS, AssembledSolver
@@ -34,7 +35,7 @@ def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
     * ``qoco``, ``clarabel``, ``cvxpy-naive``: that solver alone.
 
     Every solver is a dependency, so a chain does not depend on what is installed; any other name is a
-    ``ValueError``."""
+    ``ConfigError`` (``check_backend``)."""
     default = list(scenario.auto_backends) if scenario is not None else ["piqp", "qoco", "clarabel"]
     if name in ("auto", "riccati"):
         return ["riccati", *default] if default[0] == "piqp" else default
@@ -42,9 +43,15 @@ def backend_chain(name: str, scenario: Scenario | None = None) -> list[str]:
         return ["piqp", *(b for b in default if b not in ("piqp", "riccati"))]
     if name == "conic":
         return ["qoco", "clarabel"]
-    if name in BACKEND_NAMES:
-        return [name]
-    raise ValueError(f"unknown solver backend {name!r}; choose from {list(BACKEND_NAMES)}")
+    return [check_backend(name)]
+
+
+def check_backend(name: str) -> str:
+    """``name`` when it is one of ``BACKEND_NAMES``, else a ``ConfigError`` (a ``ValueError``) in the words ``ttompc``
+    prints for it."""
+    if name not in BACKEND_NAMES:
+        raise ConfigError(f"unknown solver backend {name!r}", f"choose one of: {', '.join(BACKEND_NAMES)}")
+    return name
 
 
 def default_trust_norm(backend: str, scenario: Scenario | None = None) -> str:
