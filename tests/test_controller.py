@@ -98,7 +98,8 @@ def test_bad_input_is_one_line_and_leaves_the_controller_usable(planner: Planner
     sc = planner.scenario
     _bad(lambda: Controller(sc, "MAGIC-MPC"), "unknown method 'MAGIC-MPC'")
     _bad(lambda: Controller("nonesuch"), "nonesuch")
-    _bad(lambda: Controller(sc, horizon=0), r"horizon must be in \[1, 100\]")
+    _bad(lambda: Controller(sc, horizon=0), r"horizon must be an integer in \[1, 100\]")
+    _bad(lambda: Controller(sc, horizon=10.5), r"horizon must be an integer .* got 10.5")  # type: ignore[arg-type]
     _bad(lambda: Controller(sc, "R-TTO-MPC"), "plans with a model")
     _bad(lambda: Controller(sc, "REL-MPC", protocol="nonesuch"), "unknown protocol 'nonesuch'")
     _bad(lambda: Controller("rpod", "R-TTO-MPC", planner=planner), "trained on 'quadrotor', not 'rpod'")
@@ -113,6 +114,8 @@ def test_bad_input_is_one_line_and_leaves_the_controller_usable(planner: Planner
     _bad(lambda: ctrl.step(np.zeros(5)), r"shape \(6,\), got \(5,\)")
     _bad(lambda: ctrl.step(np.full(6, np.nan)), "NaN or inf")
     _bad(lambda: ctrl.step(np.r_[problem.x0[:5], np.inf]), "NaN or inf")
+    _bad(lambda: ctrl.step(np.array(["a"] * 6)), "must hold real numbers")
+    _bad(lambda: ctrl.step(problem.x0 + 1j), "must hold real numbers")
     _bad(lambda: ctrl.step(problem.x0, applied=np.zeros(3)), "first step")
     assert ctrl.t == 0 and ctrl.last is None  # nothing happened
     u = ctrl.step(problem.x0)

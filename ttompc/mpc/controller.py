@@ -98,10 +98,14 @@ def sample_problem(scenario: Scenario, rng: np.random.Generator, attempts: int =
 
 
 def _finite(value: np.ndarray, shape: tuple[int, ...], what: str) -> np.ndarray:
-    """``value`` as a float64 array of ``shape`` with finite entries, else a one-line ``UserError`` naming ``what``."""
-    a = np.asarray(value, dtype=np.float64)
+    """``value`` as a float64 array of ``shape`` with finite real entries, else a one-line ``UserError`` naming
+    ``what``."""
+    a = np.asarray(value)
     if a.shape != shape:
         raise UserError(f"{what} must have shape {shape}, got {a.shape}")
+    if a.dtype.kind not in "biuf":
+        raise UserError(f"{what} must hold real numbers, got {a.dtype} entries: {a.tolist()}")
+    a = a.astype(np.float64)
     if not np.all(np.isfinite(a)):
         raise UserError(f"{what} has NaN or inf entries: {a.tolist()}")
     return a
@@ -146,8 +150,9 @@ class Controller:
         if planner is not None and planner.model.cfg.max_steps < self.scenario.n_steps:
             raise UserError(f"the model plans {planner.model.cfg.max_steps} steps, {self.scenario.name} has "
                             f"{self.scenario.n_steps}")  # fmt: skip
-        if not 1 <= horizon <= self.scenario.n_steps:
-            raise UserError(f"horizon must be in [1, {self.scenario.n_steps}] for {self.scenario.name}, got {horizon}")
+        N = self.scenario.n_steps
+        if isinstance(horizon, bool) or not isinstance(horizon, int | np.integer) or not 1 <= horizon <= N:
+            raise UserError(f"horizon must be an integer in [1, {N}] for {self.scenario.name}, got {horizon!r}")
         try:
             self.settings: MPCSettings = protocol_settings(protocol, overrides)
             self._inputs = MethodInputs(self.settings, [None], planner, robust_blend, rtg_scale)
