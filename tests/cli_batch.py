@@ -80,8 +80,9 @@ def can_write(folder: Path) -> bool:
 
 def read_only_folder(root: Path) -> Path | None:
     """A folder this process cannot write in: a mode-555 folder under ``root``, or where that does not stop it
-    (root, as CI and these machines run the suite) a folder of a kernel file system that refuses root too; None
-    when there is none."""
+    (root, as CI and these machines run the suite) a folder of a kernel file system: sysfs and procfs let no one
+    create a file, root included, even mounted read-write, so on Linux there is always one; None when there is
+    none (another system, run as root)."""
     folder = root / "read-only"
     folder.mkdir(exist_ok=True)
     folder.chmod(0o555)
@@ -89,7 +90,8 @@ def read_only_folder(root: Path) -> Path | None:
         return folder
     folder.chmod(0o755)
     folder.rmdir()
-    return next((p for p in (Path("/sys/kernel"), Path("/proc/sys")) if p.is_dir() and not can_write(p)), None)
+    kernel = (Path("/sys/kernel"), Path("/sys"), Path("/proc/sys"), Path("/proc"))
+    return next((p for p in kernel if p.is_dir() and not can_write(p)), None)
 
 
 def main() -> None:

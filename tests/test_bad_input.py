@@ -3,9 +3,13 @@
 problem, no traceback, and no file created, changed or removed.
 
 Two tables: the cases of issue 58 (each once a traceback, a silent acceptance or a wrong report), and cases generated
-from the command schemas (every numeric setting at 0, -1 and a huge value, every list empty, every path missing, a
-file, a read-only folder), whose verdicts must match the ranges the schemas declare (``ttompc.ranges``). The
-generated settings cases go through ``--print-config``, which exits before any work once the settings load.
+from the command schemas (every numeric setting at 0, -1 and a huge value, every list empty and, where its items
+are numbers, of one huge item, every path missing, a file, a read-only folder), whose verdicts must match the ranges
+the schemas declare (``ttompc.ranges``). The generated settings cases go through ``--print-config``, which exits
+before any work once the settings load; what depends on the machine or the scenario (processes beyond the cores, a
+horizon beyond N) is listed, run as far as the command's checks. The Python entries (``train``, ``finetune``,
+``generate``, ``Planner.from_pretrained``, ``solve_problem``, ``get_scenario``) refuse the same inputs with the
+project's typed errors, in the words of the CLI's line.
 """
 
 from __future__ import annotations
@@ -14,145 +18,36 @@ import json
 import os
 import subprocess
 import sys
-import typing
-from dataclasses import fields, is_dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import pytest
-from cli_batch import read_only_folder
+from bad_input_cases import (
+    API_CASES,
+    BUNDLE,
+    ENV,
+    LISTED,
+    NEEDS_NO_GPU,
+    REPO,
+    SCHEMAS,
+    TINY,
+    api_call,
+    generated_cases,
+    make_world,
+    path_cases,
+    settings_of,
+)
+from cli_batch import snapshot as cli_snapshot
 
-from ttompc.commands.check_scenario import CheckConfig
-from ttompc.commands.demo import DemoConfig
-from ttompc.commands.solve import SolveConfig
-from ttompc.data.config import GenerateConfig
-from ttompc.evaluation.closed_loop import ClosedLoopConfig
 from ttompc.evaluation.warmstart import WarmStartConfig
-from ttompc.finetune.config import FinetuneConfig
-from ttompc.mpc.settings import MPCSettings
-from ttompc.ranges import ALLOWED, Allowed
-from ttompc.training.config import TrainConfig
-
-REPO = Path(__file__).resolve().parents[1]
-TINY = str(REPO / "recipes/freeflyer/tiny.yaml")
-QUAD_TINY = str(REPO / "recipes/quadrotor/tiny.yaml")
-BUNDLE = str(REPO / "zoo/models/freeflyer-tto-small")  # a model that loads offline
-FINETUNE = str(REPO / "recipes/freeflyer/finetune.yaml")
-SMALL_SPLITS = ["problems=2", "splits.train=1", "splits.val=0", "splits.test=0"]
-# the command line of each schema, up to its settings
-SCHEMAS: dict[str, tuple[type, list[str]]] = {
-    "solve": (SolveConfig, ["solve"]),
-    "generate": (GenerateConfig, ["generate"]),
-    "train": (TrainConfig, ["train", TINY]),
-    "finetune": (FinetuneConfig, ["finetune", FINETUNE]),
-    "evaluate mpc": (ClosedLoopConfig, ["evaluate", "mpc"]),
-    "evaluate warmstart": (WarmStartConfig, ["evaluate", "warmstart"]),
-    "demo": (DemoConfig, ["demo"]),
-    "check-scenario": (CheckConfig, ["check-scenario", "freeflyer"]),
-}
-HUGE = {int: 10**12, float: 1e300}
+from ttompc.ranges import Allowed
 
 
 def _cuda() -> bool:
     import torch
 
     return bool(torch.cuda.is_available())
-
-
-# (id, argv, what the line must say); {name} is a path of the fixture ``world``
-LISTED: list[tuple[str, list[str], list[str]]] = [
-    # a wrong model, silently: free-flyer weights resumed on quadrotor data; another architecture's checkpoints
-    ("train-resumes-another-scenario", ["train", QUAD_TINY, "data.paths=[{quad}]", "trainer.out_dir={ff_run}"],
-     ["holds checkpoints of another run", "scenario freeflyer there, quadrotor here", "trainer.resume=false"]),
-    ("train-resumes-another-architecture", ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={wide_run}"],
-     ["holds checkpoints of another run", "model.n_embd=512 there"]),
-    ("train-into-a-users-folder", ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={user}"],
-     ["{user} holds files that `ttompc train` did not write (README.md, manifest.json)"]),
-    ("finetune-into-a-users-folder", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
-                                      "trainer.out_dir={user}"],
-     ["{user} holds files that `ttompc finetune` did not write"]),
-    # data loss: generate into a user's folder, or into an evaluation report
-    ("generate-into-a-users-folder", ["generate", *SMALL_SPLITS, "out={user}"],
-     ["{user} holds files that `ttompc generate` did not write (README.md, manifest.json)"]),
-    ("generate-into-a-report", ["generate", *SMALL_SPLITS, "out={report}"],
-     ["holds files that `ttompc generate` did not write", "mpc.json"]),
-    ("mpc-max-steps-0", ["evaluate", "mpc", "--scenario", "freeflyer", "max_steps=0"],
-     ["invalid max_steps=0: must be >= 1"]),
-    ("mpc-max-steps-negative", ["evaluate", "mpc", "--scenario", "freeflyer", "max_steps=-1"],
-     ["invalid max_steps=-1: must be >= 1"]),
-    # damaged manifests
-    ("train-truncated-manifest", ["train", TINY, "data.paths=[{truncated}]", "trainer.out_dir=run"],
-     ["manifest.json is damaged (not JSON"]),
-    ("train-manifest-without-scenario", ["train", TINY, "data.paths=[{no_scenario}]", "trainer.out_dir=run"],
-     ["manifest.json is incomplete: it names no scenario"]),
-    ("finetune-truncated-manifest", ["finetune", FINETUNE, "--model", "m", "data.paths=[{truncated}]"],
-     ["manifest.json is damaged (not JSON"]),
-    ("finetune-manifest-without-scenario", ["finetune", FINETUNE, "--model", "m", "data.paths=[{no_scenario}]"],
-     ["manifest.json is incomplete"]),
-    # an unbalanced bracket in key=value, in every command
-    *[(f"unbalanced-bracket-{'-'.join(argv[:2])}", [*argv, "seed=[10,"],
-       ["cannot parse seed=[10,: its value is not valid YAML"])
-      for argv in (["solve"], ["generate"], ["train", TINY], ["finetune", FINETUNE], ["evaluate", "mpc"],
-                   ["evaluate", "warmstart"], ["demo"], ["check-scenario", "freeflyer"])],
-    ("recipe-with-unbalanced-bracket", ["generate", "{bad_yaml}"], ["is not valid YAML", "at line 3"]),
-    ("recipe-that-is-a-list", ["generate", "{list_yaml}"], ["holds a YAML list, not settings"]),
-    ("recipe-that-is-a-folder", ["generate", "{user}"], ["is a folder"]),
-    ("splits-that-do-not-sum-to-1", ["generate", "splits.val=0", "splits.test=0", "out=o"],
-     ["invalid splits: train + val + test must sum to 1, got 0.9 + 0 + 0 = 0.9"]),
-    ("splits-flag-that-does-not-sum-to-1", ["generate", "--splits", "0.5,0.5,0.5", "out=o"],
-     ["must sum to 1", "= 1.5"]),
-    ("trainer-max-steps-0", ["train", TINY, "trainer.max_steps=0"], ["invalid trainer.max_steps=0: must be >= 1"]),
-    ("trainer-max-steps-endless", ["train", TINY, "trainer.max_steps=-1"], ["trainer.max_epochs, which is null"]),
-    ("batch-size-0", ["train", TINY, "data.batch_size=0"], ["invalid data.batch_size=0: must be >= 1"]),
-    ("model-shorter-than-the-data", ["train", TINY, "data.paths=[{ff}]", "model.max_steps=10", "trainer.out_dir=r"],
-     ["invalid model.max_steps=10", "100-step trajectories"]),
-    ("trainer-devices-0", ["train", TINY, "trainer.devices=0"], ["invalid trainer.devices=0"]),
-    ("val-check-interval-0", ["train", TINY, "trainer.val_check_interval=0"],
-     ["invalid trainer.val_check_interval=0.0: must be > 0"]),
-    ("solve-plot-unknown-format", ["solve", "--plot", "x.xyz"], [".xyz is not an image format", ".png"]),
-    ("solve-plot-folder", ["solve", "--plot", "{user}"], ["is a folder", "plot.png"]),
-    ("mpc-plants-repeated", ["evaluate", "mpc", "--scenario", "freeflyer", "plants=[nominal,nominal]"],
-     ["invalid plants=", "without repeats"]),
-    ("mpc-workers-negative", ["evaluate", "mpc", "--scenario", "freeflyer", "workers=-1"],
-     ["invalid workers=-1: must be >= 0"]),
-    ("generate-workers-negative", ["generate", "workers=-1"], ["invalid workers=-1: must be >= 0"]),
-    ("warmstart-thresholds-empty", ["evaluate", "warmstart", "--model", "m", "thresholds=[]"],
-     ["invalid thresholds=[]: must be a non-empty list"]),
-    ("warmstart-thresholds-negative", ["evaluate", "warmstart", "--model", "m", "thresholds=[2,-1]"],
-     ["invalid thresholds=", "each >= 0"]),
-    ("dagger-horizon-beyond-the-data", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
-                                        "dagger.exploration.horizons=[500]"],
-     ["invalid dagger.exploration.horizons=[500]", "100 steps"]),
-    ("generate-max-shards-0", ["generate", "max_shards=0"], ["invalid max_shards=0: must be >= 1"]),
-    ("zoo-that-does-not-exist", ["zoo", "list"], ["no zoo at", "$TTOMPC_ZOO does not exist"]),
-    ("mpc-device-that-does-not-exist", ["evaluate", "mpc", "--scenario", "freeflyer", "device=nosuch"],
-     ["invalid device=\"nosuch\": must be a device of this machine"]),
-    ("mpc-device-cuda-without-a-gpu", ["evaluate", "mpc", "--scenario", "freeflyer", "device=cuda"],
-     ["invalid device=\"cuda\""]),
-    ("train-accelerator-gpu-without-a-gpu", ["train", TINY, "trainer.accelerator=gpu"],
-     ["invalid trainer.accelerator=\"gpu\": must be an accelerator of this machine"]),
-]  # fmt: skip
-NEEDS_NO_GPU = {"mpc-device-cuda-without-a-gpu", "train-accelerator-gpu-without-a-gpu"}
-ENV = {"zoo-that-does-not-exist": {"TTOMPC_ZOO": "{missing}"}}
-
-
-def settings_of(schema: type, prefix: str = "") -> list[tuple[str, type, Allowed | None]]:
-    """(dotted key, value type, declared range) of every numeric or list setting of ``schema``, nested sections and
-    a measurement's ``mpc`` overrides (``MPCSettings``) included."""
-    out: list[tuple[str, type, Allowed | None]] = []
-    hints = typing.get_type_hints(schema)
-    for f in fields(schema):
-        hint = hints[f.name]
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        base = typing.get_origin(hint) or hint
-        if f.name == "mpc" and base is dict:
-            out += settings_of(MPCSettings, f"{prefix}mpc.")
-        elif is_dataclass(hint):
-            out += settings_of(hint, f"{prefix}{f.name}.")  # type: ignore[arg-type]
-        elif base is list or (len(args) == 1 and args[0] in (int, float)) or hint in (int, float):
-            kind = list if base is list else (args[0] if args else hint)
-            out.append((f"{prefix}{f.name}", kind, f.metadata.get(ALLOWED)))
-    return out
 
 
 def test_every_numeric_and_list_setting_declares_its_range() -> None:
@@ -162,99 +57,10 @@ def test_every_numeric_and_list_setting_declares_its_range() -> None:
     assert undeclared == []
 
 
-def generated_cases() -> list[tuple[str, list[str], str, Any, Allowed]]:
-    """(id, argv, key, value, declared range): every numeric setting at 0, -1 and huge, every list empty."""
-    cases = []
-    for cmd, (schema, argv) in SCHEMAS.items():
-        for key, kind, allowed in settings_of(schema):
-            values = [[]] if kind is list else [kind(0), kind(-1), HUGE[kind]]
-            for value in values:
-                shown = json.dumps(value)
-                cases.append((f"{cmd} {key}={shown}", [*argv, f"{key}={shown}", "--print-config"], key, value, allowed))
-    return cases
-
-
-def path_cases() -> list[tuple[str, list[str], list[str]]]:
-    """Every path a command reads (missing, a file) or writes into (a file in the way, a read-only folder)."""
-    cases = []
-    # a recipe that is a file is a recipe (an empty file: no settings), so only a missing one
-    cases.append(("recipe-missing", ["generate", "{missing}"], ["recipe not found"]))
-    for what, bad, said in (("missing", "{missing}", "does not exist"), ("a-file", "{a_file}", "is a file")):
-        cases += [
-            (f"data-paths-{what}", ["train", TINY, f"data.paths=[{bad}]", "trainer.out_dir=r"], ["data.paths", said]),
-            (f"finetune-data-{what}", ["finetune", FINETUNE, "--model", BUNDLE, f"data.paths=[{bad}]"],
-             ["data.paths", said]),
-            (f"mpc-model-{what}", ["evaluate", "mpc", "--model", bad, "problems=1"], [bad]),
-            (f"warmstart-model-{what}", ["evaluate", "warmstart", "--model", bad, "problems=1"], [bad]),
-            (f"demo-model-{what}", ["demo", "--model", bad, "--no-mpc"], [bad]),
-        ]  # fmt: skip
-    for what, parent in (("under-a-file", "{a_file}"), ("in-a-read-only-folder", "{read_only}")):
-        out = f"{parent}/out"
-        cases += [
-            (f"generate-out-{what}", ["generate", *SMALL_SPLITS, f"out={out}"], [f"cannot use {parent}"]),
-            (f"train-out-{what}", ["train", TINY, "data.paths=[{ff}]", f"trainer.out_dir={out}"],
-             [f"cannot use {parent}"]),
-            (f"mpc-out-{what}", ["evaluate", "mpc", "--scenario", "freeflyer", f"out={out}"],
-             [f"cannot use {parent}"]),
-            (f"demo-out-{what}", ["demo", "--no-mpc", f"out={out}"], [f"cannot use {parent}"]),
-            (f"finetune-out-{what}", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
-                                      f"trainer.out_dir={out}"], [f"cannot use {parent}"]),
-            (f"solve-plot-{what}", ["solve", "--plot", f"{out}.png"], [f"cannot use {parent}"]),
-        ]  # fmt: skip
-    return cases
-
-
-def _manifest(scenario: str) -> dict[str, Any]:
-    """What the checks before any work read of a dataset (``ttompc.data.manifests``): no shard is opened."""
-    dims = {"n_steps": 100, "state_dim": 6, "control_dim": 3}
-    return {"scenario": {"name": scenario, **dims}, "shards": [{"index": 0, "files": {"train": scenario}}]}
-
-
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
-    """Folders the cases point at: fake datasets (manifests only), a user's folder, a report, runs of another
-    scenario and architecture, damaged manifests, bad recipes, a file and a read-only folder."""
-    from ttompc.training.config import load_train_config
-    from ttompc.training.preflight import run_identity
-
-    root = tmp_path_factory.mktemp("world")
-    paths: dict[str, Path] = {}
-    for name, scenario in (("ff", "freeflyer"), ("quad", "quadrotor")):
-        paths[name] = root / f"{name}-data"
-        paths[name].mkdir()
-        (paths[name] / "manifest.json").write_text(json.dumps(_manifest(scenario)))
-    for name, text in (("truncated", '{"scenario": {"na'), ("no_scenario", '{"counts": {}}')):
-        paths[name] = root / f"{name}-data"
-        paths[name].mkdir()
-        (paths[name] / "manifest.json").write_text(text)
-    paths["user"] = root / "user-folder"
-    paths["user"].mkdir()
-    (paths["user"] / "README.md").write_text("# my notes\n")
-    (paths["user"] / "manifest.json").write_text('{"mine": true}\n')
-    paths["report"] = root / "report"
-    paths["report"].mkdir()
-    for name in ("mpc.json", "mpc.md", "mpc_runs.csv"):
-        (paths["report"] / name).write_text("{}\n")
-    ff = load_train_config(TINY, [f"data.paths=[{paths['ff']}]"])
-    identity = run_identity(ff, [_manifest("freeflyer")])
-    wide = {**identity, "architecture": {**identity["architecture"], "n_embd": 512}}
-    for name, stored in (("ff_run", identity), ("wide_run", wide)):
-        paths[name] = root / name
-        (paths[name] / "checkpoints").mkdir(parents=True)
-        (paths[name] / "checkpoints" / "last.ckpt").write_bytes(b"")
-        (paths[name] / "run.json").write_text(json.dumps(stored))
-    paths["bad_yaml"] = root / "bad.yaml"
-    paths["bad_yaml"].write_text("problems: 3\nsplits: [1,\n")
-    paths["list_yaml"] = root / "list.yaml"
-    paths["list_yaml"].write_text("- problems\n- 3\n")
-    paths["a_file"] = root / "a-file"
-    paths["a_file"].write_text("")
-    paths["missing"] = root / "no-such-thing"
-    read_only = read_only_folder(root)
-    paths["read_only"] = read_only if read_only is not None else root / "unused"
-    out = {k: str(v) for k, v in paths.items()}
-    out["root"], out["has_read_only"] = str(root), str(read_only is not None)
-    return out
+    """The folders the cases point at (``bad_input_cases.make_world``)."""
+    return make_world(tmp_path_factory.mktemp("world"))
 
 
 def _fill(text: str, world: dict[str, str]) -> str:
@@ -311,6 +117,8 @@ def test_paths_that_are_missing_a_file_or_read_only_are_one_line(
     case: str, argv: list[str], needles: list[str], world: dict[str, str], results: dict[str, dict[str, Any]]
 ) -> None:
     if "read-only" in case and world["has_read_only"] != "True":
+        # on Linux, root included, the kernel's file systems refuse everyone (``cli_batch.read_only_folder``)
+        assert sys.platform != "linux", "no folder refuses this process"
         pytest.skip("no folder here refuses this process")
     assert_one_line(results[case], *(_fill(n, world) for n in needles))
 
@@ -320,15 +128,92 @@ GENERATED = generated_cases()
 
 @pytest.mark.parametrize(("case", "argv", "key", "value", "allowed"), GENERATED, ids=[c[0] for c in GENERATED])
 def test_each_setting_at_its_edges_is_taken_or_refused_as_its_schema_declares(
-    case: str, argv: list[str], key: str, value: Any, allowed: Allowed, results: dict[str, dict[str, Any]]
+    case: str, argv: list[str], key: str, value: Any, allowed: Allowed | None, results: dict[str, dict[str, Any]]
 ) -> None:
     """A value its declared range refuses is one line naming the key and the value; one it admits loads (or a check
     across settings refuses it in one line naming the key), never a traceback."""
     result = results[case]
     leaf = key.rsplit(".", 1)[-1]
+    assert allowed is not None  # test_every_numeric_and_list_setting_declares_its_range
     if not allowed.admits(value):
         assert_one_line(result, f"{leaf}={json.dumps(value)}", "must be")
     elif result["code"] != 0:
         assert_one_line(result, leaf)
     else:
         assert result["traceback"] is None and result["changed"] == []
+
+
+@pytest.mark.parametrize("case", API_CASES)
+def test_the_python_entries_refuse_in_the_clis_words(
+    case: str, world: dict[str, str], results: dict[str, dict[str, Any]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The library call behind a command refuses what the command refuses, before any work, with a ``UserError``
+    (the project's typed errors derive from it) whose text is the CLI's line after ``ttompc CMD: error:``."""
+    from ttompc.errors import UserError
+
+    monkeypatch.chdir(world["root"])
+    before = cli_snapshot(Path(world["root"]))
+    with pytest.raises(UserError) as raised:
+        api_call(case, world)
+    argv = next(argv for i, argv, _ in [*LISTED, *PATHS] if i == case)
+    assert f"ttompc {argv[0]}: error: {raised.value}" == results[case]["stderr"].strip()
+    assert cli_snapshot(Path(world["root"])) == before
+
+
+def test_public_calls_refuse_what_they_cannot_use_with_typed_errors() -> None:
+    """``get_scenario(None)``, a problem that is not one, a warm start of another shape: typed, one line."""
+    import numpy as np
+
+    import ttompc
+    from ttompc.errors import InputError
+    from ttompc.scenarios import ScenarioNotFoundError
+    from ttompc.solvers.scp import SCPProblem, solve_scp
+
+    with pytest.raises(ScenarioNotFoundError, match="unknown scenario None; choose one of: freeflyer"):
+        ttompc.get_scenario(None)  # type: ignore[arg-type]
+    ff = ttompc.get_scenario("freeflyer")
+    problem = ff.sample(np.random.default_rng(0))
+    with pytest.raises(InputError, match="not a freeflyer problem: None"):
+        ttompc.solve_problem(ff, None)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="not a scenario: 'freeflyer'"):
+        ttompc.solve_problem("freeflyer", problem)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"warm start must have shapes \(101, 6\) and \(100, 3\)"):
+        solve_scp(SCPProblem(ff, problem), np.zeros((3, 6)), np.zeros((2, 3)))
+
+
+def test_a_run_of_a_given_datamodule_claims_its_folder_by_scenario(tmp_path: Path) -> None:
+    """``train`` with a DataModule (no manifests) records the scenario and architecture, no data fingerprint, and
+    refuses checkpoints of another scenario there; the same run resumes."""
+    from ttompc.errors import ConfigError
+    from ttompc.training.config import load_train_config
+    from ttompc.training.preflight import RUN_FILE, claim_run
+
+    cfg = load_train_config(TINY, [f"trainer.out_dir={tmp_path}"])
+    dims = {"name": "freeflyer", "state_dim": 6, "control_dim": 3}
+    claim_run(cfg, [], dims)
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"")
+    recorded = json.loads((tmp_path / RUN_FILE).read_text())
+    assert recorded["scenario"] == "freeflyer" and "data" not in recorded
+    claim_run(cfg, [], dims)  # the same run: resumed
+    with pytest.raises(ConfigError, match="scenario freeflyer there, quadrotor here"):
+        claim_run(cfg, [], {"name": "quadrotor", "state_dim": 6, "control_dim": 3})
+
+
+def test_outputs_of_the_same_kind_and_configuration_are_refreshed(tmp_path: Path) -> None:
+    """A warm-start report of the same configuration (but where it went and its processes), or an unfinished one,
+    is replaced; a folder of published bundle files is published into again."""
+    from ttompc.evaluation.report_files import check_replaceable
+    from ttompc.zoo.publish import claim_destination
+
+    config = {**asdict(WarmStartConfig(model=BUNDLE, scenario="freeflyer", problems=2)), "workers": 1}
+    report = tmp_path / "warmstart.json"
+    report.write_text(json.dumps({"config": {**config, "out": "elsewhere", "workers": 8}, "complete": True}))
+    check_replaceable(report, "warmstart", {**config, "out": str(tmp_path)})
+    report.write_text(json.dumps({"config": {**config, "problems": 5}}))  # not complete: an interrupted run's
+    check_replaceable(report, "warmstart", config)
+    bundle = tmp_path / "published"
+    bundle.mkdir()
+    for name in ("model.safetensors", "config.json", "metrics.json", ".model.safetensors.tmp"):
+        (bundle / name).write_bytes(b"")
+    assert claim_destination(str(bundle)) == bundle
