@@ -123,8 +123,8 @@ def test_any_scenario_through_make_env(toy: object) -> None:
 def test_bad_action_is_one_line() -> None:
     env = make_env("quadrotor")
     env.reset(seed=0)
-    for bad in (np.zeros(2), np.array([np.nan, 0.0, 0.0])):
-        with pytest.raises(UserError, match=r"finite array of shape \(3,\)"):
+    for bad in (np.zeros(2), np.array([np.nan, 0.0, 0.0]), np.array(["a", "b", "c"]), np.zeros(3) + 1j):
+        with pytest.raises(UserError, match=r"finite real array of shape \(3,\)"):
             env.step(bad)
     assert env.t == 0
 

@@ -97,9 +97,10 @@ class ScenarioEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         problem, sc = self.problem, self.scenario
         if problem is None or self.t >= problem.n_steps:
             raise UserError("step() outside an episode", "call reset() first")
-        u = np.asarray(action, dtype=np.float64)
-        if u.shape != (sc.control_dim,) or not np.all(np.isfinite(u)):
-            raise UserError(f"the action must be a finite array of shape ({sc.control_dim},), got {u.tolist()}")
+        u = np.asarray(action)
+        if u.shape != (sc.control_dim,) or u.dtype.kind not in "biuf" or not np.all(np.isfinite(u)):
+            raise UserError(f"the action must be a finite real array of shape ({sc.control_dim},), got {u.tolist()}")
+        u = u.astype(np.float64)
         x_next = self.plant.step(problem, self.t, self.x, u)
         violation = sc.path_violation(problem, np.stack([self.x, x_next]), u[None], Window(self.t, 1, problem.n_steps))
         self.t, self.x = self.t + 1, x_next
