@@ -115,14 +115,19 @@ def _block(Gx, Gu, has_u, upper, lower, steps, live, single, cols, valid, two_si
     return nb, nr
 
 
-@KERNEL.jit
 def _scaled(Gx, Gu, has_u, sx, su, n, kk, r, col):  # pragma: no cover - compiled
-    """The scaled coefficient of column ``col`` (of [x, u]) in row r of step kk: Gx·sx or Gu·su (0 without Gu)."""
+    """The scaled coefficient of column ``col`` (of [x, u]) in row r of step kk: Gx·sx or Gu·su (0 without Gu).
+    Inlined into ``_block`` (a call would count references to its arrays each time: 2-3× the loop's cost), so a
+    leaf with one way out (``riccati_jit.jit_inlined``)."""
+    v = 0.0
     if col < n:
-        return Gx[kk, r, col] * sx[col]
-    if has_u:
-        return Gu[kk, r, col - n] * su[col - n]
-    return 0.0
+        v = Gx[kk, r, col] * sx[col]
+    elif has_u:
+        v = Gu[kk, r, col - n] * su[col - n]
+    return v
+
+
+_scaled = KERNEL.jit(_scaled, forceinline=True)
 
 
 @KERNEL.jit
