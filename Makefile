@@ -12,7 +12,7 @@ export HF_HUB_OFFLINE := 1
 export HF_DATASETS_OFFLINE := 1
 export PIP_DISABLE_PIP_VERSION_CHECK := 1
 
-.PHONY: install demo test test-all lint bench figures
+.PHONY: install demo test test-all lint bench figures figures-plan FORCE
 
 install: $(VENV)/.installed
 
@@ -39,28 +39,54 @@ lint: $(VENV)/.installed
 bench: $(VENV)/.installed
 	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done
 
-# The README's figures in docs/figures/ (ttompc.evaluation.figures), each drawn from the report of the command below,
-# which runs only when its report is missing: the warm-start report in about 1.5 CPU-minutes; the closed-loop sweeps
-# (Fig. 5 and 6: H = 10, 20, ..., 100, both plants, 100 problems per scenario) take hours on all cores, store each
-# episode as it finishes and resume where they stopped when run again (docs/evaluation.md, "Sweeps").
+# The README's figures in $(FIG_OUT) (ttompc.evaluation.figures) and the speedup-at-equal-cost table $(FIG_TABLE),
+# each drawn from the report of a command below: the warm-start report (about 1.5 CPU-minutes) when it is missing;
+# the closed-loop sweeps (Fig. 5 and 6, both plants, every scenario of FIG_SCENARIOS) every time: a sweep stores each
+# episode as it finishes, resumes where it stopped and extends to a larger grid or more problems in the same folder
+# (docs/evaluation.md, "Sweeps"); a finished one only writes its report again. Before each sweep its cost is printed
+# ("about N CPU-hours", from docs/sweep-cost.json); `make figures-plan` prints every grid's and what FIG_BUDGET buys.
+# Grids (FIG_GRID): reduced (default, a few CPU-hours per scenario), paper (the paper's H = 10, 20, ..., 100),
+# minimal (H = 10 and 30, the equal-cost table's); e.g. make figures FIG_GRID=paper FIG_PROBLEMS=500.
+# Smoke run: make figures FIG_GRID=minimal FIG_PROBLEMS=2 FIG_RUNS=/tmp/runs FIG_OUT=/tmp/figs FIG_TABLE=/tmp/t.md
+# Run one sweep at a time (no make -j): each uses FIG_WORKERS cores.
+FIG_GRID ?= reduced
+FIG_PROBLEMS ?= 100
+FIG_WORKERS ?= 2
+FIG_PLANTS ?= [nominal,perturbed]
+FIG_BUDGET ?= 3
+FIG_SCENARIOS ?= freeflyer quadrotor rpod
+FIG_RUNS ?= outputs/figures
+FIG_OUT ?= docs/figures
+FIG_TABLE ?= docs/equal-cost.md
+FIG_HORIZONS_minimal := [10,30]
+FIG_HORIZONS_reduced := [10,20,30,50,100]
+FIG_HORIZONS_paper := [10,20,30,40,50,60,70,80,90,100]
+FIG_MODELS_freeflyer ?= --model freeflyer-tto-v3 --ft-model freeflyer-ft-tto-v5
+FIG_MODELS_quadrotor ?= --model quadrotor-tto-v3 --ft-model quadrotor-ft-tto-v6
+FIG_MODELS_rpod ?= --model rpod-tto-v3 --ft-model rpod-ft-tto-v4
+FIG_HORIZONS = $(FIG_HORIZONS_$(FIG_GRID))
+SWEEP = horizons=$(FIG_HORIZONS) problems=$(FIG_PROBLEMS) plants=$(FIG_PLANTS) seed=4242 protocol=recommended \
+	workers=$(FIG_WORKERS)
 # Other reports: make figures FIG_MPC="a/mpc.json b/mpc.json" FIG_WARMSTART=path/warmstart.json
-SWEEP := horizons=[10,20,30,40,50,60,70,80,90,100] problems=100 seed=4242 protocol=recommended
-FIG_MPC ?= outputs/figures/mpc-freeflyer/mpc.json outputs/figures/mpc-quadrotor/mpc.json \
-	outputs/figures/mpc-rpod/mpc.json
-FIG_WARMSTART ?= outputs/figures/warmstart-freeflyer/warmstart.json
+FIG_MPC ?= $(foreach s,$(FIG_SCENARIOS),$(FIG_RUNS)/mpc-$(s)/mpc.json)
+FIG_WARMSTART ?= $(FIG_RUNS)/warmstart-freeflyer/warmstart.json
+FIG_WARMSTART_PROBLEMS ?= 100
 
-outputs/figures/mpc-freeflyer/mpc.json: | $(VENV)/.installed
-	$(BIN)/ttompc evaluate mpc --model freeflyer-tto-v3 --ft-model freeflyer-ft-tto-v5 $(SWEEP) out=$(@D)
+$(FIG_RUNS)/mpc-%/mpc.json: FORCE | $(VENV)/.installed
+	$(if $(FIG_HORIZONS),,$(error FIG_GRID=$(FIG_GRID): not minimal, reduced or paper))
+	-$(BIN)/python -m ttompc.evaluation.sweep_cost estimate --scenario $* --problems $(FIG_PROBLEMS) \
+		--horizons $(FIG_HORIZONS) --plants $(FIG_PLANTS) --workers $(FIG_WORKERS)
+	$(BIN)/ttompc evaluate mpc $(FIG_MODELS_$*) $(SWEEP) out=$(@D)
 
-outputs/figures/mpc-quadrotor/mpc.json: | $(VENV)/.installed
-	$(BIN)/ttompc evaluate mpc --model quadrotor-tto-v3 --ft-model quadrotor-ft-tto-v6 $(SWEEP) out=$(@D)
-
-outputs/figures/mpc-rpod/mpc.json: | $(VENV)/.installed
-	$(BIN)/ttompc evaluate mpc --model rpod-tto-v3 --ft-model rpod-ft-tto-v4 $(SWEEP) out=$(@D)
-
-outputs/figures/warmstart-freeflyer/warmstart.json: | $(VENV)/.installed
-	$(BIN)/ttompc evaluate warmstart --model freeflyer-tto-v3 --ft-model freeflyer-ft-tto-v5 problems=100 seed=4242 \
+$(FIG_WARMSTART): | $(VENV)/.installed
+	$(BIN)/ttompc evaluate warmstart $(FIG_MODELS_freeflyer) problems=$(FIG_WARMSTART_PROBLEMS) seed=4242 \
 		workers=1 out=$(@D)
 
+FORCE:
+
 figures: $(VENV)/.installed $(FIG_MPC) $(FIG_WARMSTART)
-	$(BIN)/python -m ttompc.evaluation.figures --mpc $(FIG_MPC) --warmstart $(FIG_WARMSTART) --out docs/figures
+	$(BIN)/python -m ttompc.evaluation.figures --mpc $(FIG_MPC) --warmstart $(FIG_WARMSTART) --out $(FIG_OUT) \
+		--table $(FIG_TABLE)
+
+figures-plan: $(VENV)/.installed
+	$(BIN)/python -m ttompc.evaluation.sweep_cost plan --budget $(FIG_BUDGET) --plants $(FIG_PLANTS)

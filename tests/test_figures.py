@@ -128,11 +128,13 @@ def test_the_footer_command_reproduces_the_reports_settings(kind: str) -> None:
 
 def test_the_figures_plot_the_reports_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """One column per scenario's report; rows: the paper's normalised cost, (J − J_REL)/J_REL, the failure rate and
-    the largest and mean step; the footer names every report's command."""
+    the largest and mean step; the footer names every report's command, machine, load and workers."""
     reports = [mpc_report("freeflyer"), mpc_report("quadrotor")]
+    reports[1]["machine"] = {"cpu": "CPU X", "cpus": 2, "load_average": [3, 2, 1.2], "load_average_end": [1, 1, 2.5]}
     fig, text = horizon_figures.horizon_figure(reports, "nominal")
     axes = np.array(fig.axes[:10]).reshape(5, 2)  # subplots first, in row order
-    assert text == "From " + "; ".join(f"{r['scenario']['name']}: `{r['command']}`" for r in reports) + "."
+    assert text == (f"From freeflyer: `{reports[0]['command']}` (machine not recorded, workers=1); "
+                    f"quadrotor: `{reports[1]['command']}` (CPU X, 2 cores, load 2.5, workers=1).")  # fmt: skip
 
     def line(ax: Any, label: str) -> np.ndarray:  # the y data of the error bars labelled ``label``
         (found,) = [c.lines[0] for c in ax.containers if c.get_label() == label]
@@ -167,12 +169,16 @@ def test_make_figures_writes_the_images_and_the_equal_cost_table(
     write_json(tmp_path / "warmstart.json", warmstart_report())
     mpc = [str(tmp_path / "ff.json"), str(tmp_path / "quad.json")]
     args = ["--mpc", *mpc, "--warmstart", str(tmp_path / "warmstart.json")]
-    out = tmp_path / "figures"
-    assert figures.main([*args, "--out", str(out), "--model", str(bundle), "--seed", "3", "--problems", "0"]) == 0
+    out, table = tmp_path / "figures", tmp_path / "docs" / "equal-cost.md"
+    argv = [*args, "--out", str(out), "--model", str(bundle), "--seed", "3", "--problems", "0", "--table", str(table)]
+    assert figures.main(argv) == 0
     printed = capsys.readouterr().out
     names = [*figures.FILES, figures.horizon_file("nominal")]
-    assert printed.split("\n")[:3] == [str(out / name) for name in names]
+    assert printed.split("\n")[:4] == [*(str(out / name) for name in names), str(table)]
     assert "Speedup at equal cost" in printed and "| freeflyer | nominal | REL-MPC |" in printed
+    written = table.read_text()
+    assert written.startswith("# Speedup at equal cost") and f"--mpc {' '.join(mpc)} ... --table {table}" in written
+    assert figures.equal_cost_table(mpc) in written  # the printed table, as the docs show it
     for name in names:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         height, width, _ = matplotlib.image.imread(out / name).shape

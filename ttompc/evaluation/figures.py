@@ -13,9 +13,10 @@ drawn from a report that a stated ``ttompc evaluate`` command writes, and each c
   scenario (``--mpc`` takes several): per plant that every report ran, one column per scenario, the paper's
   normalised cost increment, (J − J_REL)/J_REL and the failure rate, and the largest and mean step time, vs H
   (``ttompc.evaluation.horizon_figures``). The speedup at equal cost of every report is printed below the paths
-  (``ttompc.evaluation.equal_cost``).
+  (``ttompc.evaluation.equal_cost``), and written to ``--table`` (a markdown file the docs link, ``write_table``).
 
-    python -m ttompc.evaluation.figures --mpc MPC.json [MPC.json ...] --warmstart WARMSTART.json --out docs/figures
+    python -m ttompc.evaluation.figures --mpc MPC.json [MPC.json ...] --warmstart WARMSTART.json --out docs/figures \
+        [--table docs/equal-cost.md]
 
 ``make figures`` runs the ``ttompc evaluate`` commands whose reports these are (the Makefile names them) when the
 reports are missing, then this. Every report must be complete (``report_files.read_report``).
@@ -237,6 +238,17 @@ def equal_cost_table(mpc: Sequence[str | Path]) -> str:
     return format_equal_cost(rows)
 
 
+def write_table(table: str, mpc: Sequence[str | Path], path: str | Path) -> Path:
+    """The equal-cost ``table`` (``equal_cost_table``) of the reports at ``mpc`` as the markdown file ``path``
+    (the docs link it), headed by the command that wrote it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    command = f"python -m ttompc.evaluation.figures --mpc {' '.join(map(str, mpc))} ... --table {path}"
+    path.write_text(f"# Speedup at equal cost\n\nWritten by `make figures` (`{command}`) from the closed-loop "
+                    f"reports; every number comes from them.\n{table}\n", encoding="utf-8")  # fmt: skip
+    return path
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line of the module doc; prints the figures written (a ``UserError`` as one line, exit 2)."""
     import matplotlib
@@ -255,6 +267,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=list(PROBLEMS),
         help=f"their indices in that stream (default {' '.join(map(str, PROBLEMS))})",
     )
+    p.add_argument("--table", help="also write the equal-cost table to this markdown file (make figures: docs/)")
     args = p.parse_args(argv)
     try:
         paths = make_figures(
@@ -266,6 +279,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             problems=args.problems,
         )
         table = equal_cost_table(args.mpc)
+        if args.table:
+            paths.append(write_table(table, args.mpc, args.table))
     except UserError as err:
         print(f"{p.prog}: error: {err}", file=sys.stderr)
         return 2

@@ -12,7 +12,7 @@ suffix, e.g. ``[rtg=value]``, ignored when matching):
 4. and 5. Fig. 6: the largest step of each episode (the paper's measure) and its mean step, each averaged over the
    episodes ± s.e. (``step_times``), log scale, titled with the machine and its load (the report's ``machine``).
 
-The footer names the command of each column's report.
+The footer names each column's report: its command, and the machine, load and workers its step times ran on.
 """
 
 from __future__ import annotations
@@ -98,7 +98,7 @@ def _log_ms(ax: Any) -> None:
 
 def horizon_figure(reports: Sequence[dict[str, Any]], plant: str) -> tuple[Any, str]:
     """The figure of the module doc for ``plant``, one column per report (of ``paper_rows``), and its footer text
-    (the reports' commands)."""
+    (each report's command and machine, ``_source``)."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(5, len(reports), figsize=(5 * len(reports), 17), squeeze=False)
@@ -116,15 +116,23 @@ def horizon_figure(reports: Sequence[dict[str, Any]], plant: str) -> tuple[Any, 
         _lines(col[2], rows, lambda r: (100 * (1 - r["feasible"] / r["runs"]), np.nan), labels)
         col[2].set_ylabel("runs that missed the goal or\nviolated a constraint [%]")
         col[2].set_ylim(-5, 105)
-        machine = f"{machine_label(report.get('machine'))}, workers={config.get('workers', '?')}"
         for ax, key in zip(col[3:], STEP_KINDS, strict=True):
             _lines(ax, step_times(report, plant), lambda p, k=key: (1e3 * p[k]["mean"], 1e3 * p[k]["se"]), labels)
             _log_ms(ax)
             ax.set_ylabel(f"{STEP_KINDS[key]} [ms]\n(mean ± s.e. over episodes)", fontsize=8)
-        col[3].set_title(f"step time: observe + warm start + solves, CPU\n{machine}", fontsize=8)
+        col[3].set_title(f"step time: observe + warm start + solves, CPU\n{_machine(report)}", fontsize=8)
     fig.suptitle(
         f"Closed loop vs planning horizon H, {plant} plant: cost (Fig. 5, rows 1–3) and step time (Fig. 6, rows 4–5)",
         fontsize=11,
     )
-    commands = "; ".join(f"{r['scenario']['name']}: `{r['command']}`" for r in reports)
-    return fig, f"From {commands}."
+    return fig, "From " + "; ".join(_source(r) for r in reports) + "."
+
+
+def _machine(report: dict[str, Any]) -> str:
+    """What a report's step times ran on: the machine, its load and the workers (``machine.machine_label``)."""
+    return f"{machine_label(report.get('machine'))}, workers={report['config'].get('workers', '?')}"
+
+
+def _source(report: dict[str, Any]) -> str:
+    """A report's part of the footer: its scenario, its command and what its step times ran on."""
+    return f"{report['scenario']['name']}: `{report['command']}` ({_machine(report)})"
