@@ -125,6 +125,8 @@ LISTED: list[tuple[str, list[str], list[str]]] = [
      [f"invalid dagger.collect.workers={MILLION}: must be at most"]),
     ("train-loader-workers-beyond-the-machine", ["train", TINY, "data.paths=[{ff}]", f"data.num_workers={MILLION}",
                                                  "trainer.out_dir=r"], [f"invalid data.num_workers={MILLION}"]),
+    ("train-devices-beyond-the-machine", ["train", TINY, "data.paths=[{ff}]", f"trainer.devices={MILLION}",
+                                          "trainer.out_dir=r"], [f"invalid trainer.devices={MILLION}: must be at"]),
     ("mpc-horizon-beyond-N", ["evaluate", "mpc", "--scenario", "freeflyer", f"horizons=[{MILLION}]"],
      [f"horizons [{MILLION}] exceed the horizon of freeflyer, N = 100 steps"]),
     ("demo-horizon-beyond-N", ["demo", "--horizon", MILLION, "out=o"],

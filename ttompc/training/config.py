@@ -71,7 +71,7 @@ class TrainerConfig(Checked):
     checkpoint_every_n_steps: int = setting(1000, ge=1)  # refreshes last.ckpt and writes step<N>.ckpt
     keep_checkpoints: int = setting(3, ge=0, also=(-1,), meaning="-1: all")  # most recent step<N>.ckpt files kept
     log_every_n_steps: int = setting(50, ge=1)
-    devices: int = setting(1, ge=1, also=(-1,), meaning="-1: all")
+    devices: int = setting(1, ge=1, also=(-1,), per_core=4, meaning="-1: all")  # processes on this machine
     num_nodes: int = setting(1, ge=1)
     accelerator: str = setting("auto", device="lightning")
     strategy: str = "auto"  # e.g. ddp, ddp_spawn, fsdp
