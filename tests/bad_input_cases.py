@@ -279,6 +279,7 @@ def api_call(case: str, world: dict[str, str]) -> None:
     import ttompc
     from ttompc.data.config import GenerateConfig, SplitConfig
     from ttompc.data.generate import generate
+    from ttompc.evaluation.closed_loop import run_closed_loop
     from ttompc.evaluation.warmstart import run_warmstart
     from ttompc.finetune import finetune
     from ttompc.finetune.config import load_finetune_config
@@ -309,6 +310,12 @@ def api_call(case: str, world: dict[str, str]) -> None:
         "warmstart-over-another-configuration": lambda: run_warmstart(
             WarmStartConfig(model=BUNDLE, scenario="freeflyer", problems=1, out=world["ws_report"])
         ),
+        "mpc-workers-beyond-the-machine": lambda: run_closed_loop(
+            ClosedLoopConfig(scenario="freeflyer", workers=int(MILLION))
+        ),
+        "warmstart-workers-beyond-the-machine": lambda: run_warmstart(
+            WarmStartConfig(model="m", scenario="freeflyer", workers=int(MILLION))
+        ),
         "publish-into-a-users-folder": lambda: publish(BUNDLE, "x", world["user"]),
         "demo-model-missing": lambda: ttompc.load_pretrained(world["missing"]),
         "mpc-model-missing": lambda: ttompc.Controller.from_pretrained(world["missing"]),
@@ -324,6 +331,7 @@ def api_call(case: str, world: dict[str, str]) -> None:
 API_CASES = [
     "train-resumes-another-scenario", "train-into-a-users-folder", "train-loader-workers-beyond-the-machine",
     "finetune-into-a-users-folder", "generate-into-a-users-folder", "generate-workers-beyond-the-machine",
-    "warmstart-over-another-configuration", "publish-into-a-users-folder", "demo-model-missing",
+    "warmstart-over-another-configuration", "mpc-workers-beyond-the-machine", "warmstart-workers-beyond-the-machine",
+    "publish-into-a-users-folder", "demo-model-missing",
     "mpc-model-missing", "mpc-device-that-does-not-exist", "solve-unknown-backend",
 ]  # fmt: skip

@@ -48,7 +48,7 @@ from ttompc.mpc.providers import full_horizon_plan
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar, status
-from ttompc.ranges import setting
+from ttompc.ranges import check_devices, setting
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario
 
@@ -207,6 +207,7 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
 
     if cfg.scenario is None:
         raise ValueError("ClosedLoopConfig.scenario is not set (the command takes it from the model)")
+    check_devices(cfg)  # its device and workers exist here, as ``ttompc evaluate mpc`` checks them
     sc = get_scenario(cfg.scenario)
     too_long = sorted({h for h in cfg.horizons if h > sc.n_steps})
     if too_long:  # refused, not clipped: a clipped horizon would report under a number that was never run

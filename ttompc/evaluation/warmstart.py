@@ -38,7 +38,7 @@ from ttompc.evaluation.stats import format_interval, interval
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
-from ttompc.ranges import Checked, setting
+from ttompc.ranges import Checked, check_devices, setting
 from ttompc.scenarios import get_scenario, scenario_spec
 from ttompc.scenarios.base import Scenario, Window
 from ttompc.seeding import rng
@@ -243,6 +243,7 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
 
     if cfg.scenario is None:
         raise ValueError("WarmStartConfig.scenario is not set (the command takes it from the model)")
+    check_devices(cfg)  # its device and workers exist here, as ``ttompc evaluate warmstart`` checks them
     sc = get_scenario(cfg.scenario)
     out = Path(cfg.out or f"outputs/evaluate/warmstart-{sc.name}")
     t0 = time.perf_counter()
