@@ -4,12 +4,15 @@ worker-count-independent."""
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from ttompc.errors import UserError
-from ttompc.parallel import WorkerError, pool_map, single_threaded_env, single_torch_thread
+from ttompc.parallel import WorkerError, _born_deaf, pool_map, single_threaded_env, single_torch_thread
 from ttompc.seeding import DAGGER_STREAM, EVAL_STREAM, derive_seed, eval_seed, problem_seed, rng, rollout_seed
 
 
@@ -90,6 +93,25 @@ def test_workers_get_one_thread_and_the_parent_is_restored() -> None:
     assert all(v // 1_000_000 == 1 for v in spawned)
     if "OMP_NUM_THREADS" not in os.environ:
         assert all(v % 1_000_000 == 1 for v in spawned)
+
+
+def _sigint_state(_: int) -> tuple[bool, bool]:
+    """(ignored, blocked) of SIGINT in the calling process's thread."""
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    return signal.getsignal(signal.SIGINT) == signal.SIG_IGN, signal.SIGINT in blocked
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="no signal masks (Windows)")
+def test_workers_are_born_deaf_to_ctrl_c_and_the_parent_still_hears_it() -> None:
+    """A process the pool spawns starts with SIGINT blocked, so a Ctrl-C that reaches it while it imports is held,
+    not a traceback; a started worker ignores it (unblocked); the parent's mask is as before."""
+    blocked = "import signal; print(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))"
+    with _born_deaf():
+        inside = subprocess.run([sys.executable, "-c", blocked], capture_output=True, text=True, check=True)
+    outside = subprocess.run([sys.executable, "-c", blocked], capture_output=True, text=True, check=True)
+    assert (inside.stdout.strip(), outside.stdout.strip()) == ("True", "False")
+    assert list(pool_map(_sigint_state, [0, 1], 2, pin_torch=False)) == [(True, False), (True, False)]
+    assert _sigint_state(0) == (False, False)  # this process: Ctrl-C still raises KeyboardInterrupt here
 
 
 def test_thread_helpers_restore_state(monkeypatch: pytest.MonkeyPatch) -> None:

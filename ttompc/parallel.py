@@ -103,11 +103,29 @@ def _start_pool_worker(*args: Any) -> None:
     ``_run_task`` to raise: the parent then stops with that error (an exception escaping here would only mark the
     pool broken, after a traceback, without saying why)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):  # born with it blocked (``_born_deaf``); ignored from here on
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     os.environ.pop(_STARTING, None)
     try:
         _start_worker(*args)
     except Exception as err:
         _start_failure.append(err)
+
+
+@contextlib.contextmanager
+def _born_deaf() -> Iterator[None]:
+    """SIGINT blocked in this thread for the block, in which the pool spawns its workers: they inherit the mask, so
+    a Ctrl-C that reaches a worker before ``_start_pool_worker`` ignores it stays pending and is then dropped,
+    instead of raising ``KeyboardInterrupt`` in the worker's imports (a traceback on the terminal). Here a Ctrl-C
+    that arrives in the block is delivered when it ends."""
+    if not hasattr(signal, "pthread_sigmask"):  # Windows: no signal masks
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _run_task(fn: Callable[[Any], Any], task: Any) -> Any:
@@ -181,7 +199,8 @@ def _pool_results(fn: Callable[[Any], Any], tasks: list[Any], n: int, init_args:
     os.environ[_STARTING] = "1"  # inherited by the workers, which clear it once started
     try:
         while True:
-            pending.extend(pool.submit(_run_task, fn, t) for t in itertools.islice(todo, n * _AHEAD - len(pending)))
+            with _born_deaf():  # submit() spawns the workers
+                pending.extend(pool.submit(_run_task, fn, t) for t in itertools.islice(todo, n * _AHEAD - len(pending)))
             if not pending:
                 break
             yield pending.popleft().result()
