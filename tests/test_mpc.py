@@ -674,7 +674,7 @@ def test_methods_are_registered_once_with_what_they_need() -> None:
     """``METHODS``: each closed-loop method once, with its model slot, its robust target and its providers;
     ``evaluate mpc`` runs those its models allow, in registry order, robust variants only with a blend."""
     from ttompc.mpc import METHODS, MethodInputs, methods_for
-    from ttompc.mpc.methods import model_method
+    from ttompc.mpc.methods import base_method, model_method
 
     assert list(METHODS) == ["REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC", "FT-TTO-MPC",
                              "R-FT-TTO-MPC"]  # fmt: skip
@@ -685,13 +685,17 @@ def test_methods_are_registered_once_with_what_they_need() -> None:
     with pytest.raises(ValueError, match="model slots"):
         methods_for(["BIG"])
     assert model_method("FT-TTO", robust=True) is METHODS["R-FT-TTO-MPC"]
+    assert base_method("FT-TTO-MPC[rtg=value]") == "FT-TTO-MPC" and RELProvider().name == "RELProvider"
+    tags = {m.name: m.tag for m in METHODS.values()}
+    assert tags["REL-MPC"] == "rel" and tags["R-TTO-MPC"] == tags["R-FT-TTO-MPC"] == "robust" and not tags["DIST-MPC"]
     planner, settings = mpc_fakes.tiny_planner(), MPCSettings(track=2.5)
     kinds = {"REL-MPC": RELProvider, "DIST-MPC": DISTProvider, "PLAN-ONCE": PlanProvider, "ORACLE-MPC": OracleProvider}
     for name, method in METHODS.items():
         provs = method.providers(MethodInputs(settings, [None, None], planner if method.model else None))
         assert len(provs) == 2 and all(isinstance(p, kinds.get(name, TTOProvider)) for p in provs)
+        assert [p.name for p in provs] == [name, name]  # a provider's name is its method's, stated once
         if method.model is not None:
-            assert provs[0].group is provs[1].group and provs[0].name == name  # one batched rollout per step
+            assert provs[0].group is provs[1].group  # one batched rollout per step
             assert provs[0].target.design.blend == (0.95 if method.robust else 0.0)
             assert provs[0].target.design.weights == (2.5,)
             with pytest.raises(ValueError, match="plans with a model"):

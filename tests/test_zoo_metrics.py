@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from ttompc.errors import UserError
+from ttompc.evaluation.card_metrics import card_metrics
 from ttompc.zoo.evaluations import headline_metrics, validate_evaluations
-from ttompc.zoo.report_metrics import card_metrics
 from ttompc.zoo.rounding import format_with_se, round_to_se, shown
 
 

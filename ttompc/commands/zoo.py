@@ -284,8 +284,8 @@ def _publish(args: argparse.Namespace) -> int:
 
 
 def _metrics(args: argparse.Namespace) -> int:
+    from ttompc.evaluation.card_metrics import card_metrics
     from ttompc.evaluation.report_files import read_report
-    from ttompc.zoo.report_metrics import card_metrics
 
     if not args.warmstart and not args.mpc:
         raise UserError("zoo metrics needs a report", "pass --warmstart FILE and/or --mpc FILE")

@@ -14,6 +14,9 @@ from __future__ import annotations
 from typing import Any
 
 from ttompc.errors import UserError
+from ttompc.evaluation.warmstart import BASELINE as WS_BASELINE
+from ttompc.evaluation.warmstart import ORACLE
+from ttompc.mpc.methods import METHODS, base_method, model_method
 from ttompc.zoo.evaluations import is_metric_value
 
 _REPORTS = {"warmstart": "warm-start", "mpc": "closed-loop"}  # a report's kind -> its name in messages
@@ -57,7 +60,7 @@ def warmstart_metrics(report: dict[str, Any], method: str) -> dict[str, float]:
     if method not in rows:
         raise KeyError(f"the warm-start report has no method {method!r} (it has {sorted(rows)})")
     out: dict[str, float] = {}
-    for tag, name in (("", method), ("_rel", "REL"), ("_oracle", "ORACLE")):
+    for tag, name in (("", method), ("_rel", WS_BASELINE), ("_oracle", ORACLE)):
         row = rows.get(name)
         if row is None:
             continue
@@ -75,19 +78,14 @@ def warmstart_metrics(report: dict[str, Any], method: str) -> dict[str, float]:
 
 
 def mpc_metrics(report: dict[str, Any], method: str, horizon: int = 10) -> dict[str, float]:
-    """Closed-loop metrics at ``horizon`` of ``method``'s TTO-MPC and robust R-TTO-MPC, with REL-MPC, the oracle and
-    plan-once, per plant (nominal, perturbed); with the paper's headline (the methods against REL-MPC at the longest
+    """Closed-loop metrics at ``horizon`` of the model slot ``method``'s methods (TTO-MPC and robust R-TTO-MPC for
+    "TTO") and of the methods without a model that have a card tag (``Method.tag``: REL-MPC, the oracle and
+    plan-once), per plant (nominal, perturbed); with the paper's headline (the methods against REL-MPC at the longest
     horizon) REL-MPC's metrics at that horizon too."""
-    names = {
-        "model": f"{method}-MPC",
-        "robust": f"R-{method}-MPC",
-        "rel": "REL-MPC",
-        "oracle": "ORACLE-MPC",
-        "planonce": "PLAN-ONCE",
-    }
-    tags = {m: t for t, m in names.items()}  # a report's method (without its rtg label) -> the metric's tag
-    if names["model"] not in {base_method(r["method"]) for r in report["summary"]}:
-        raise KeyError(f"the closed-loop report has no method {names['model']!r}")
+    tags = {m.name: m.tag for m in METHODS.values() if m.tag and m.model in (None, method)}  # report name -> tag
+    model = model_method(method).name
+    if model not in {base_method(r["method"]) for r in report["summary"]}:
+        raise KeyError(f"the closed-loop report has no method {model!r}")
     headline = [r for r in report.get("headline", []) if r["horizon"] == horizon]
     baseline_horizons = {r["baseline_horizon"] for r in headline}
     out: dict[str, float] = {}
@@ -113,11 +111,6 @@ def mpc_metrics(report: dict[str, Any], method: str, horizon: int = 10) -> dict[
             _put_paired(out, key, row["vs_baseline"])
         _put(out, f"{key}_step_ratio", row["step_ratio"])
     return out
-
-
-def base_method(name: str) -> str:
-    """A report's method name without its rtg-mode label: ``FT-TTO-MPC[rtg=value]`` -> ``FT-TTO-MPC``."""
-    return name.split("[", 1)[0]
 
 
 def card_metrics(

@@ -113,8 +113,8 @@ def run_problems(
 
 
 def model_sources(cfg: ClosedLoopConfig) -> dict[str, str]:
-    """The models ``cfg`` names, by model slot (``MODEL_SLOTS``): ``model`` in TTO's, ``ft_model`` in FT-TTO's."""
-    return {slot: src for slot, src in zip(MODEL_SLOTS, (cfg.model, cfg.ft_model), strict=True) if src}
+    """The models ``cfg`` names, by model slot (``MODEL_SLOTS``: ``model`` in TTO's, ``ft_model`` in FT-TTO's)."""
+    return {slot: getattr(cfg, key) for slot, key in MODEL_SLOTS.items() if getattr(cfg, key)}
 
 
 def episodes_per_problem(cfg: ClosedLoopConfig, models: Collection[str]) -> int:

@@ -23,18 +23,14 @@ from collections.abc import Hashable, Sequence
 from typing import Any
 
 from ttompc.evaluation.stats import Outcome, format_interval, paired
-from ttompc.mpc.methods import BASELINE
+from ttompc.mpc.methods import BASELINE, base_method, model_method
 
-LEARNED, LEARNED_HORIZON, BASELINE_HORIZON = "R-FT-TTO-MPC", 10, 30
-
-
-def _base(method: str) -> str:
-    return method.split("[")[0]
+LEARNED, LEARNED_HORIZON, BASELINE_HORIZON = model_method("FT-TTO", robust=True).name, 10, 30
 
 
 def _runs(records: Sequence[dict[str, Any]], plant: str, method: str, horizon: int) -> dict[int, dict[str, Any]]:
     return {r["problem"]: r for r in records
-            if r["plant"] == plant and _base(r["method"]) == method and r["horizon"] == horizon}  # fmt: skip
+            if r["plant"] == plant and base_method(r["method"]) == method and r["horizon"] == horizon}  # fmt: skip
 
 
 def _outcomes(runs: dict[int, dict[str, Any]], step: str) -> dict[Hashable, Outcome]:
@@ -49,7 +45,7 @@ def match(
     (moving, fixed, problems both ran) and ``mean_ratio`` / ``largest_ratio`` (REL-MPC's step time / the other's)."""
     row: dict[str, Any] = {"plant": plant, "moving": moving, "fixed": f"{fixed}@{fixed_horizon}", "horizon": None}
     ref = _runs(records, plant, fixed, fixed_horizon)
-    horizons = sorted({r["horizon"] for r in records if r["plant"] == plant and _base(r["method"]) == moving})
+    horizons = sorted({r["horizon"] for r in records if r["plant"] == plant and base_method(r["method"]) == moving})
     if not ref or not horizons:
         row["why"] = f"{fixed}@{fixed_horizon} did not run" if not ref else f"{moving} did not run"
         return row
@@ -110,7 +106,7 @@ def format_equal_cost(rows: Sequence[dict[str, Any]]) -> str:
             f"| {mine}, {other} / {both} | {r['mean_ratio']:.2g}×, {r['largest_ratio']:.2g}× |"
         )
     lines.append(
-        "Not worse: the mean paired difference in (J − J_REL)/J_REL (method − other, over the n problems both reached "
+        "\nNot worse: the mean paired difference in (J − J_REL)/J_REL (method − other, over the n problems both reached "
         "feasibly) is at most one standard error. Step times over the problems both ran; largest: each episode's "
         "largest step, averaged over the episodes."
     )

@@ -38,8 +38,10 @@ from ttompc.evaluation.equal_cost import equal_cost, format_equal_cost
 from ttompc.evaluation.horizon_figures import horizon_figure, model_label
 from ttompc.evaluation.plots import Panel, trajectory_figure
 from ttompc.evaluation.report_files import read_report
+from ttompc.evaluation.warmstart import ORACLE
+from ttompc.mpc.methods import MODEL_SLOTS
 
-WARMSTART_METHODS = ("TTO", "FT-TTO", "ORACLE")
+WARMSTART_METHODS = (*MODEL_SLOTS, ORACLE)  # the warm starts Fig. 4 shows, as the warm-start report names them
 FILES = ("planned_trajectory.png", "warmstart.png")  # then closed_loop_<plant>.png per plant (``horizon_file``)
 # The planned problems of the stream of seed 4242 (the zoo cards'): 0, the first, on which SCP from REL and from
 # freeflyer-ft-tto-v5 reach the same optimum (as on 68 of the 100 problems of the warm-start report that `make figures`
@@ -127,7 +129,7 @@ def warmstart_figure(report: dict[str, Any], path: Path) -> Path:
     width = 0.8 / max(len(methods), 1)
     for ax, key, label in ((axes[0], "subopt", "suboptimality gap"), (axes[1], "iterations", "SCP iterations")):
         for j, m in enumerate(methods):
-            oracle = m == "ORACLE"
+            oracle = m == ORACLE
             ax.bar(
                 x + (j - (len(methods) - 1) / 2) * width,
                 bars[key][m],

@@ -25,39 +25,34 @@ import numpy as np
 from ttompc.errors import UserError
 from ttompc.evaluation.machine import machine_label
 from ttompc.evaluation.plots import horizon_axis, horizon_cost_panel, line_style
-from ttompc.mpc.methods import METHODS
+from ttompc.mpc.methods import METHODS, MODEL_SLOTS, base_method
 
 # the paper's four methods, our headline (the robust fine-tuned method) and the ceiling
 PAPER_METHODS = ("REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC", "R-FT-TTO-MPC", "ORACLE-MPC")
-MODEL_KEYS = {"TTO": "model", "FT-TTO": "ft_model"}  # model slot -> the config key naming its model
 STEP_KINDS = {"max_step_time": "largest step of an episode (the paper's Fig. 6)", "mean_step_time": "mean step"}
-
-
-def _base(method: str) -> str:
-    return method.split("[")[0]
 
 
 def _style(method: str) -> int:
     """A method's line style (``plots.line_style``): its place in ``PAPER_METHODS``, the same in every panel."""
-    return PAPER_METHODS.index(_base(method))
+    return PAPER_METHODS.index(base_method(method))
 
 
 def model_label(method: str, config: dict[str, Any]) -> str:
     """A method's legend label: the method, and for a model's method (TTO…, FT-TTO…, their MPC variants) the model
     the report ran it with."""
-    entry = METHODS.get(_base(method))  # a closed-loop method; a warm-start report names its methods by slot
+    entry = METHODS.get(base_method(method))  # a closed-loop method; a warm-start report names its methods by slot
     slot = entry.model if entry is not None else method
-    model = config.get(MODEL_KEYS.get(slot or "", ""))
+    model = config.get(MODEL_SLOTS.get(slot or "", ""))
     return f"{method} ({model})" if model else method
 
 
 def paper_rows(report: dict[str, Any], plant: str = "nominal") -> list[dict[str, Any]]:
     """The ``summary`` rows of ``PAPER_METHODS`` on ``plant``, in that method order then by H; raises ``UserError``
     if there are none."""
-    rows = [r for r in report["summary"] if r["plant"] == plant and _base(r["method"]) in PAPER_METHODS]
+    rows = [r for r in report["summary"] if r["plant"] == plant and base_method(r["method"]) in PAPER_METHODS]
     if not rows:
         raise UserError(f"the closed-loop report has no run of {', '.join(PAPER_METHODS)} on the {plant} plant")
-    return sorted(rows, key=lambda r: (PAPER_METHODS.index(_base(r["method"])), r["horizon"]))
+    return sorted(rows, key=lambda r: (PAPER_METHODS.index(base_method(r["method"])), r["horizon"]))
 
 
 def step_times(report: dict[str, Any], plant: str = "nominal") -> list[dict[str, Any]]:

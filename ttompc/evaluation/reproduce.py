@@ -15,8 +15,10 @@ from __future__ import annotations
 from dataclasses import asdict
 from typing import Any
 
+from ttompc.mpc.methods import MODEL_SLOTS
+
 INERT = ("out", "workers")  # recorded settings that do not change a report's numbers
-MODELS = (("--model", "model"), ("--ft-model", "ft_model"))
+MODELS = tuple(("--" + key.replace("_", "-"), key) for key in MODEL_SLOTS.values())  # (flag, config key)
 SHOWN = {
     "warmstart": ("problems", "seed", "nonconvex_only", "rtg_scale", "oracle_detours"),
     "mpc": ("problems", "seed", "horizons", "plants", "robust_blend", "rtg_scale", "protocol"),

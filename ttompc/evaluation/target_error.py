@@ -45,7 +45,7 @@ from ttompc.evaluation.warmstart import default_workers
 from ttompc.mpc.episode import Episode
 from ttompc.mpc.expert import Expert, ExpertRollout
 from ttompc.mpc.loop import MPCRun, StepPlan, run_mpc_batch
-from ttompc.mpc.methods import METHODS, Method, MethodInputs
+from ttompc.mpc.methods import METHODS, MODEL_SLOTS, Method, MethodInputs, model_method
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import Provider, WarmStart
 from ttompc.mpc.tto import TTOProvider
@@ -57,6 +57,7 @@ from ttompc.scenarios.base import Problem, Scenario, Window
 
 if TYPE_CHECKING:
     from ttompc.policy import Planner
+
 
 @dataclass
 class TargetErrorConfig(ClosedLoopConfig):
@@ -77,11 +78,10 @@ class TargetErrorConfig(ClosedLoopConfig):
 
     def method_entry(self) -> Method:
         """The method measured; raises ``UserError`` when it plans with a model the config does not name."""
-        robust = "R-" if self.robust_blend > 0 else ""
-        name = self.method or robust + ("FT-TTO-MPC" if self.ft_model else "TTO-MPC")
+        name = self.method or model_method("FT-TTO" if self.ft_model else "TTO", self.robust_blend > 0).name
         m = METHODS[name]
         if m.model is not None and m.model not in model_sources(self):
-            flag = "--ft-model" if m.model == "FT-TTO" else "--model"
+            flag = "--" + MODEL_SLOTS[m.model].replace("_", "-")
             raise UserError(f"method={name} plans with a model and none is given", f"pass {flag} NAME")
         if m.robust and not self.robust_blend > 0:
             raise UserError(f"method={name} needs robust_blend > 0, got {self.robust_blend}", "drop the R- prefix")

@@ -35,6 +35,7 @@ from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.report_files import check_replaceable, finish, retract
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import format_interval, interval
+from ttompc.mpc.methods import MODEL_SLOTS
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar
@@ -169,7 +170,7 @@ def _init(cfg: dict[str, Any]) -> None:
     scenario = get_scenario(cfg["scenario"])
     models = {
         name: Planner.from_pretrained(cfg[key], scenario, device=cfg["device"])
-        for name, key in (("TTO", "model"), ("FT-TTO", "ft_model"))
+        for name, key in MODEL_SLOTS.items()
         if cfg[key]
     }
     _WORKER.set(_Worker(WarmStartConfig(**cfg), scenario, models))
@@ -254,7 +255,7 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
         tasks = range(cfg.problems)
         done = pool_map(_run_problem, tasks, workers, _init, (asdict(cfg),), scenarios=[scenario_spec(sc)])
         rows = list(bar.each(done))
-    models = [m for m, key in (("TTO", cfg.model), ("FT-TTO", cfg.ft_model)) if key]
+    models = [slot for slot, key in MODEL_SLOTS.items() if getattr(cfg, key)]
     cmax = max((r["ctg0"] for r in rows), default=0)
     for r in rows:
         r["nonconvexity"] = r["ctg0"] / cmax if cmax > 0 else 0.0

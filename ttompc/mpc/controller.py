@@ -34,7 +34,7 @@ import numpy as np
 
 from ttompc.errors import UserError
 from ttompc.mpc.loop import EpisodeStart, MPCController, StepPlan, start_controller
-from ttompc.mpc.methods import METHODS, ROBUST_BLEND, Method, MethodInputs, model_method
+from ttompc.mpc.methods import METHODS, ROBUST_BLEND, Method, MethodInputs, model_method, slot_of
 from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.mpc.warmup import warm_up
 from ttompc.scenarios import get_scenario
@@ -192,7 +192,7 @@ class Controller:
         scenario = get_scenario(scenario) if isinstance(scenario, str) else scenario
         planner = Planner.from_pretrained(source, scenario, device=device)
         if method is None:
-            method = model_method("FT-TTO" if "finetuned_from" in planner.extra else "TTO", robust=True).name
+            method = model_method(slot_of(planner), robust=True).name
         return cls(planner.scenario, method, planner=planner, horizon=horizon, protocol=protocol, **kwargs)
 
     def _sample(self) -> Problem:

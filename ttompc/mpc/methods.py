@@ -1,7 +1,10 @@
 """The closed-loop methods, each registered once in ``METHODS``: its report name, whether it plans with a model and
-with which (the model slot: ``TTO``, ``FT-TTO`` for a fine-tuned one, None), whether it uses the robust target, and
-the factory of its providers. ``ttompc evaluate mpc`` (``methods_for``), the closed-loop metrics of the training
-callback and of DAgger's keep/reject decision, DAgger's learners and the demo all take their methods from here.
+with which (the model slot: ``TTO``, ``FT-TTO`` for a fine-tuned one, None), whether it uses the robust target, its
+tag in a model card's metrics (``ttompc.evaluation.card_metrics``), and the factory of its providers (which take their
+name from it). Every other place that names a method derives it from here.
+
+``ttompc evaluate mpc`` (``methods_for``), the closed-loop metrics of the training callback and of DAgger's
+keep/reject decision, DAgger's learners and the demo all take their methods from here.
 
 * REL-MPC and DIST-MPC (the paper's baselines; ``RELProvider``, ``DISTProvider``);
 * PLAN-ONCE: the open-loop SCP optimum solved at t = 0, then MPC tracking it (no model, no re-planning;
@@ -55,11 +58,13 @@ class MethodInputs:
 @dataclass(frozen=True)
 class Method:
     """A closed-loop method (module doc): ``name``, the model slot it plans with (None: no model), whether it uses
-    the robust target, and ``build``, the factory of its providers."""
+    the robust target, ``tag``, its key in a card's metrics (None: not on cards; a model method's is the same for
+    either slot, the card's own), and ``build``, the factory of its providers."""
 
     name: str
     model: str | None
     robust: bool
+    tag: str | None
     build: Callable[[Method, MethodInputs], list[Provider]]
 
     def label(self, settings: MPCSettings, planner: Planner | None = None) -> str:
@@ -81,21 +86,21 @@ class Method:
 
 
 def _rel(method: Method, x: MethodInputs) -> list[Provider]:
-    return [RELProvider(x.settings.backend) for _ in x.plans]
+    return [RELProvider(x.settings.backend, name=method.name) for _ in x.plans]
 
 
 def _dist(method: Method, x: MethodInputs) -> list[Provider]:
-    return [DISTProvider(x.settings.backend) for _ in x.plans]
+    return [DISTProvider(x.settings.backend, name=method.name) for _ in x.plans]
 
 
 def _plan_once(method: Method, x: MethodInputs) -> list[Provider]:
     s = x.settings
-    return [PlanProvider(plan, backend=s.backend, terminal=terminal_term(s)) for plan in x.plans]
+    return [PlanProvider(plan, name=method.name, backend=s.backend, terminal=terminal_term(s)) for plan in x.plans]
 
 
 def _oracle(method: Method, x: MethodInputs) -> list[Provider]:
     s = x.settings
-    return [OracleProvider(plan, backend=s.backend, terminal=terminal_term(s)) for plan in x.plans]
+    return [OracleProvider(plan, name=method.name, backend=s.backend, terminal=terminal_term(s)) for plan in x.plans]
 
 
 def _tto(method: Method, x: MethodInputs) -> list[Provider]:
@@ -103,27 +108,37 @@ def _tto(method: Method, x: MethodInputs) -> list[Provider]:
     assert planner is not None  # Method.providers checked it
     group, name = RolloutGroup(planner, decode_every=s.decode_every, decoder=s.decoder), method.label(s, planner)
     blend = x.robust_blend if method.robust else 0.0
+    terminal = terminal_term(s, blend, planner)
     return [
-        TTOProvider(planner, name, rtg_scale=x.rtg_scale, terminal=terminal_term(s, blend, planner),
-                    rtg_mode=s.rtg_mode, group=group, backend=s.backend, plan=plan)
+        TTOProvider(
+            planner,
+            name,
+            rtg_scale=x.rtg_scale,
+            terminal=terminal,
+            rtg_mode=s.rtg_mode,
+            group=group,
+            backend=s.backend,
+            plan=plan,
+        )
         for plan in x.plans
-    ]  # fmt: skip
+    ]
 
 
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
-        Method("REL-MPC", None, False, _rel),
-        Method("DIST-MPC", None, False, _dist),
-        Method("PLAN-ONCE", None, False, _plan_once),
-        Method("ORACLE-MPC", None, False, _oracle),
-        Method("TTO-MPC", "TTO", False, _tto),
-        Method("R-TTO-MPC", "TTO", True, _tto),
-        Method("FT-TTO-MPC", "FT-TTO", False, _tto),
-        Method("R-FT-TTO-MPC", "FT-TTO", True, _tto),
+        Method("REL-MPC", None, False, "rel", _rel),
+        Method("DIST-MPC", None, False, None, _dist),
+        Method("PLAN-ONCE", None, False, "planonce", _plan_once),
+        Method("ORACLE-MPC", None, False, "oracle", _oracle),
+        Method("TTO-MPC", "TTO", False, "model", _tto),
+        Method("R-TTO-MPC", "TTO", True, "robust", _tto),
+        Method("FT-TTO-MPC", "FT-TTO", False, "model", _tto),
+        Method("R-FT-TTO-MPC", "FT-TTO", True, "robust", _tto),
     )
 }
-MODEL_SLOTS = ("TTO", "FT-TTO")  # the model slots, in METHODS order
+# the model slots, in METHODS order, each with the config key (and --flag) naming its model
+MODEL_SLOTS = {"TTO": "model", "FT-TTO": "ft_model"}
 BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"  # the reports' roles of three methods
 
 
@@ -136,6 +151,18 @@ def methods_for(models: Collection[str], robust_blend: float = ROBUST_BLEND) -> 
     return [
         m for m in METHODS.values() if (m.model is None or m.model in models) and (not m.robust or robust_blend > 0)
     ]
+
+
+def base_method(label: str) -> str:
+    """The method of a report's name (``Method.label``) without its rtg-mode label: ``FT-TTO-MPC[rtg=value]`` ->
+    ``FT-TTO-MPC``."""
+    return label.split("[", 1)[0]
+
+
+def slot_of(planner: Planner) -> str:
+    """The model slot ``planner`` fills: FT-TTO for a fine-tuned model (its checkpoint records what it was fine-tuned
+    from), else TTO."""
+    return "FT-TTO" if "finetuned_from" in planner.extra else "TTO"
 
 
 def model_method(slot: str, robust: bool = False) -> Method:

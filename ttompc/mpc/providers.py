@@ -49,7 +49,7 @@ class WarmStart:
 class Provider(Protocol):
     """What the MPC loop asks of a warm-start method."""
 
-    name: str
+    name: str  # the report name of the method it serves (``Method.providers`` passes it; standalone: the class's)
     role: Role  # what its plans are: the one input of the RTI rule (``MPCSettings.rti_for``)
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
@@ -100,11 +100,10 @@ class RELProvider:
     """REL-MPC: full remaining-horizon REL (``RemainingREL``), truncated; terminal target = REL state at t+H
     (weight ``mpc.terminal``, the paper's)."""
 
-    name = "REL-MPC"
     role: Role = "baseline"
 
-    def __init__(self, backend: str = "auto") -> None:
-        self.backend = backend
+    def __init__(self, backend: str = "auto", *, name: str = "") -> None:
+        self.name, self.backend = name or type(self).__name__, backend
         self.rel = RemainingREL(backend)
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
@@ -128,11 +127,10 @@ class RELProvider:
 class DISTProvider:
     """DIST-MPC: REL on the window only, terminal cost ‖diag(dist)(x_{t+H} − goal)‖₂ (no look-ahead)."""
 
-    name = "DIST-MPC"
     role: Role = "baseline"
 
-    def __init__(self, backend: str = "auto") -> None:
-        self.backend = backend
+    def __init__(self, backend: str = "auto", *, name: str = "") -> None:
+        self.name, self.backend = name or type(self).__name__, backend
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         self.scenario, self.problem = scenario, problem
@@ -157,10 +155,10 @@ class DISTProvider:
 class ShiftProvider:
     """The previous plan shifted by one step (DAgger expert); the first plan comes from ``reset_plan``."""
 
-    name = "SHIFT"
     role: Role = "expert"
 
     def __init__(self) -> None:
+        self.name = type(self).__name__
         self.X: np.ndarray | None = None
         self.U: np.ndarray | None = None
 
@@ -195,11 +193,11 @@ class PlanProvider:
         self,
         plan: tuple[np.ndarray, np.ndarray] | None = None,
         *,
-        name: str = "PLAN-ONCE",
+        name: str = "",
         terminal: TerminalTerm | None = None,
         backend: str = "auto",
     ) -> None:
-        self.name, self.backend = name, backend
+        self.name, self.backend = name or type(self).__name__, backend
         self._given = plan
         self.target = terminal if terminal is not None else TargetFilter()
 
@@ -274,16 +272,17 @@ class OracleProvider:
     (``RemainingOptimum``; the first plan given, or REL → SCP) as warm start and terminal target through ``terminal``
     (None: the paper's target) — what a perfect model could give. ``replans`` counts its re-solves."""
 
-    name = "ORACLE-MPC"
     role: Role = "baseline"
 
     def __init__(
         self,
         plan: tuple[np.ndarray, np.ndarray] | None = None,
         *,
+        name: str = "",
         backend: str = "auto",
         terminal: TerminalTerm | None = None,
     ) -> None:
+        self.name = name or type(self).__name__
         self.optimum = RemainingOptimum(plan, backend)
         self.target = terminal if terminal is not None else TargetFilter()
 

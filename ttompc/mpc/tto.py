@@ -62,7 +62,7 @@ class TTOProvider:
     def __init__(
         self,
         planner: Planner,
-        name: str = "TTO-MPC",
+        name: str = "",
         *,
         use_cache: bool = True,
         rtg_scale: float | None = None,
@@ -73,7 +73,7 @@ class TTOProvider:
         plan: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         mode = rtg_feed(rtg_mode, planner)
-        self.planner, self.name = planner, name
+        self.planner, self.name = planner, name or type(self).__name__
         self.rtg_scale = planner.rtg_scale if rtg_scale is None else rtg_scale
         check_rtg_scale(self.rtg_scale)
         self.rtg_mode = mode.name
