@@ -434,6 +434,34 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     np.testing.assert_array_equal(np.asarray(redo["target_actions"]), np.asarray(rows["target_actions"]))
 
 
+def test_curve_figure_draws_a_row_per_run_from_its_curve_files(tmp_path: Path) -> None:
+    """The DAgger curve's figure from curve files alone (the slow test above draws one from a real run): a row per
+    run, whichever methods were measured; a run with no measured curve is named."""
+    import matplotlib.image
+
+    from ttompc.finetune.curve import CURVE_FILES, curve_figure
+
+    def record(iteration: int) -> dict[str, object]:
+        plant = {"vs_pretrained": {"mean": 0.01 * iteration, "se": 0.002, "n": 3}, "feasible_rate": 0.9}
+        return {"iteration": iteration, "imitation_loss": 0.1 * (iteration + 2), "nominal": plant, "perturbed": plant}
+
+    def run(name: str, files: list[str]) -> Path:
+        folder = tmp_path / name
+        (folder / "source-planner").mkdir(parents=True)
+        (folder / "source-planner" / "config.json").write_text(json.dumps({"scenario": {"name": SHORT}}))
+        for file in files:
+            (folder / file).write_text(json.dumps([record(i) for i in (-1, 0, 1)]))
+        return folder
+
+    plain, both = run("plain", ["curve.json"]), run("both", list(CURVE_FILES.values()))
+    one = matplotlib.image.imread(curve_figure([plain], tmp_path / "one.png"))
+    two = matplotlib.image.imread(curve_figure([plain, both], tmp_path / "two.png"))
+    assert two.shape[1] == one.shape[1] and two.shape[0] == 2 * one.shape[0]
+    with pytest.raises(FileNotFoundError, match="unmeasured has no measured curve"):
+        curve_figure([plain, run("unmeasured", [])], tmp_path / "none.png")
+    assert not (tmp_path / "none.png").exists()
+
+
 def test_run_folder_of_another_fine_tuning_is_refused(tmp_path: Path, dataset: Path) -> None:
     from ttompc.finetune import FinetuneError
 
