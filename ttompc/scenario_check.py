@@ -171,10 +171,19 @@ def _features(ctx: CheckContext) -> str:
 
 def _structure(blocks: Sequence[ConstraintBlock]) -> list[tuple[Any, ...]]:
     return [
-        (b.name, b.kind, b.steps.tolist(), b.Gx.shape, None if b.Gu is None else b.Gu.shape, b.nonconvex,
-         b.obstacle, b.soft, b.lower is None)
+        (
+            b.name,
+            b.kind,
+            b.steps.tolist(),
+            b.Gx.shape,
+            None if b.Gu is None else b.Gu.shape,
+            b.nonconvex,
+            b.obstacle,
+            b.soft,
+            b.lower is None,
+        )
         for b in blocks
-    ]  # fmt: skip
+    ]
 
 
 def _constraints(ctx: CheckContext) -> str:
@@ -190,8 +199,10 @@ def _constraints(ctx: CheckContext) -> str:
                 b1 = sc.constraints(p, w, X1, U1, obstacles=obstacles)
                 b2 = sc.constraints(p, w, X2, U2, obstacles=obstacles)
                 if _structure(b1) != _structure(b2):
-                    fail(f"block shapes or steps change with the reference (window {w.start}+{H}, obstacles="
-                          f"{obstacles}): they may depend only on the window")  # fmt: skip
+                    fail(
+                        f"block shapes or steps change with the reference (window {w.start}+{H}, obstacles="
+                        f"{obstacles}): they may depend only on the window"
+                    )
                 for b in b1:
                     where = f"block {b.name!r} (window {w.start}+{H})"
                     if b.steps.min(initial=0) < 0 or b.steps.max(initial=0) > H:
@@ -228,8 +239,10 @@ def _violations(ctx: CheckContext) -> str:
             Xw, Uw = X[k - 1 : k + 1], np.zeros((1, sc.control_dim))
             depth = sc.path_violation(p, Xw, Uw, w, obstacles=True)
             if depth <= tol:
-                fail(f"state {k} counts {counts[k]} violation(s) but path_violation() is {depth:.2e} <= scp.feas_tol "
-                      f"{tol:g}: SCP would accept it as feasible (problem seed {s})")  # fmt: skip
+                fail(
+                    f"state {k} counts {counts[k]} violation(s) but path_violation() is {depth:.2e} <= scp.feas_tol "
+                    f"{tol:g}: SCP would accept it as feasible (problem seed {s})"
+                )
             blocks = [b for b in sc.constraints(p, w, Xw, Uw, obstacles=True) if b.obstacle]
             rows = [
                 (np.einsum("kmn,kn->km", b.Gx, Xw[b.steps]) - b.h)[b.steps == 1]
@@ -237,8 +250,10 @@ def _violations(ctx: CheckContext) -> str:
                 if b.kind is BlockKind.INEQ
             ]
             if not any(np.any(r > 0) for r in rows):
-                fail(f"state {k} counts {counts[k]} violation(s) but the keep-out rows linearised at it are all "
-                      f"satisfied: SCP cannot see the zone (problem seed {s})")  # fmt: skip
+                fail(
+                    f"state {k} counts {counts[k]} violation(s) but the keep-out rows linearised at it are all "
+                    f"satisfied: SCP cannot see the zone (problem seed {s})"
+                )
     if not seen:
         return "no probe state inside a keep-out zone (declare keepout_zones() to probe them)"
     return f"{seen} violating probe states seen by path_violation() and by the linearised keep-out rows"
@@ -251,16 +266,19 @@ def _solve(ctx: CheckContext) -> str:
     for s, p in ctx.problems():
         rel, scp = solve_problem(sc, p, backend=ctx.backend)
         if scp is None:
-            fail(f"problem seed {s}: REL {rel.status.value} after {rel.iterations} iteration(s) (violation "
-                  f"{rel.violation:.2e}): the relaxed problem has no solution from this start")  # fmt: skip
+            fail(
+                f"problem seed {s}: REL {rel.status.value} after {rel.iterations} iteration(s) (violation "
+                f"{rel.violation:.2e}): the relaxed problem has no solution from this start"
+            )
         if not scp.success:
-            fail(f"problem seed {s}: SCP {scp.status.value} after {scp.iterations} iterations (violation "
-                  f"{scp.violation:.2e} > feas_tol {tol:g})")  # fmt: skip
+            fail(
+                f"problem seed {s}: SCP {scp.status.value} after {scp.iterations} iterations (violation "
+                f"{scp.violation:.2e} > feas_tol {tol:g})"
+            )
         err = float(np.max(np.abs(scp.X[-1] - p.goal)))
         count = int(np.sum(sc.violations(p, scp.X)))
         if err > tol or count:
-            fail(f"problem seed {s}: the SCP solution ends {err:.2e} from the goal with {count} keep-out "
-                  "violation(s)")  # fmt: skip
+            fail(f"problem seed {s}: the SCP solution ends {err:.2e} from the goal with {count} keep-out violation(s)")
         iters.append(scp.iterations)
         times.append(rel.solve_time + scp.solve_time)
     return f"{len(iters)} problems solved (SCP {np.mean(iters):.1f} iterations, {np.mean(times):.2f} s per problem)"

@@ -35,25 +35,34 @@ def convex_model(ctx: CheckContext) -> str:
             X, U = X_all[w.start : w.stop + 1], U_all[w.start : w.stop]
             model = sc.convex_model(p, w, X, U)
             if model.A.shape != (H, n, n) or model.B.shape != (H, n, m) or model.c.shape != (H, n):
-                fail(f"window {w.start}+{H}: A {model.A.shape}, B {model.B.shape}, c {model.c.shape}, expected "
-                      f"({H}, {n}, {n}), ({H}, {n}, {m}), ({H}, {n})")  # fmt: skip
+                fail(
+                    f"window {w.start}+{H}: A {model.A.shape}, B {model.B.shape}, c {model.c.shape}, expected "
+                    f"({H}, {n}, {n}), ({H}, {n}, {m}), ({H}, {n})"
+                )
             for label, M, mask in (("A", model.A, model.A_mask), ("B", model.B, model.B_mask)):
                 if mask is not None and np.any(M[:, ~np.asarray(mask, bool)] != 0):
                     (j, r, c), _ = worst(np.abs(M * ~np.asarray(mask, bool)))
                     fail(f"{label}[{j}][{r}, {c}] is nonzero outside {label}_mask (window {w.start}+{H})")
             (j, i), err = worst(_model_error(ctx, p, w, model, X, U))
             if err > MODEL_TOL:
-                fail(f"A x + B u + c differs from step() at the reference it was built on: step {w.start + j}, "
-                      f"state {i}, {err:.2e} in units of state_scale (problem seed {s})")  # fmt: skip
+                fail(
+                    f"A x + B u + c differs from step() at the reference it was built on: step {w.start + j}, "
+                    f"state {i}, {err:.2e} in units of state_scale (problem seed {s})"
+                )
             Xp = X + ctx.rng.normal(size=X.shape) * ctx.sx * 0.1
             Up = U + ctx.rng.normal(size=U.shape) * ctx.su * 0.1
             away = _model_error(ctx, p, w, model, Xp, Up)
-            rows, what = (np.arange(n), "exact_linear_dynamics is set") if sc.exact_linear_dynamics else (
-                exact_rows, "it is not in approximate_rows")  # fmt: skip
+            rows, what = (
+                (np.arange(n), "exact_linear_dynamics is set")
+                if sc.exact_linear_dynamics
+                else (exact_rows, "it is not in approximate_rows")
+            )
             if len(rows) and away[:, rows].max() > MODEL_TOL:
                 (j, i), err = worst(away[:, rows])
-                fail(f"state row {rows[i]} of the affine model is not exact away from the reference ({err:.2e} "
-                      f"at step {w.start + j}) but {what} (problem seed {s})")  # fmt: skip
+                fail(
+                    f"state row {rows[i]} of the affine model is not exact away from the reference ({err:.2e} "
+                    f"at step {w.start + j}) but {what} (problem seed {s})"
+                )
     return "A x + B u + c reproduces step() at the reference" + (
         "" if not sc.exact_linear_dynamics else ", and everywhere (exact linear dynamics)"
     )
@@ -69,16 +78,28 @@ def jacobian(ctx: CheckContext) -> str:
         for j in sorted({0, p.n_steps // 2, p.n_steps - 1}):
             x, u = X[j], U[j]
             hx, hu = 1e-6 * np.maximum(ctx.sx, np.abs(x)), 1e-6 * np.maximum(ctx.su, np.abs(u))
-            Jx = np.stack([(sc.step(p, j, x + hx[i] * e, u) - sc.step(p, j, x - hx[i] * e, u)) / (2 * hx[i])
-                           for i, e in enumerate(np.eye(n))], axis=1)  # fmt: skip
-            Ju = np.stack([(sc.step(p, j, x, u + hu[i] * e) - sc.step(p, j, x, u - hu[i] * e)) / (2 * hu[i])
-                           for i, e in enumerate(np.eye(m))], axis=1)  # fmt: skip
+            Jx = np.stack(
+                [
+                    (sc.step(p, j, x + hx[i] * e, u) - sc.step(p, j, x - hx[i] * e, u)) / (2 * hx[i])
+                    for i, e in enumerate(np.eye(n))
+                ],
+                axis=1,
+            )
+            Ju = np.stack(
+                [
+                    (sc.step(p, j, x, u + hu[i] * e) - sc.step(p, j, x, u - hu[i] * e)) / (2 * hu[i])
+                    for i, e in enumerate(np.eye(m))
+                ],
+                axis=1,
+            )
             for label, got, fd, col in (("A", model.A[j], Jx, ctx.sx), ("B", model.B[j], Ju, ctx.su)):
                 err = np.abs(got - fd) * col[None, :] / ctx.sx[:, None]  # in units of the scales
                 (r, c), largest = worst(err)
                 if largest > JACOBIAN_TOL:
-                    fail(f"{label}[{r}, {c}] at step {j} is {got[r, c]:.6g} but finite differences of step() "
-                          f"give {fd[r, c]:.6g} (problem seed {s})")  # fmt: skip
+                    fail(
+                        f"{label}[{r}, {c}] at step {j} is {got[r, c]:.6g} but finite differences of step() "
+                        f"give {fd[r, c]:.6g} (problem seed {s})"
+                    )
     return "A and B match central finite differences of step()"
 
 
@@ -104,8 +125,10 @@ def batched_model(ctx: CheckContext) -> str:
         for k in range(len(X)):
             got_count = float(alone.violations(states[k : k + 1], k)[0])
             if got_count != counts[k]:
-                fail(f"violations(S, {k}) counts {got_count:g} but the scenario's violations() {counts[k]} "
-                      f"(problem seed {s})")  # fmt: skip
+                fail(
+                    f"violations(S, {k}) counts {got_count:g} but the scenario's violations() {counts[k]} "
+                    f"(problem seed {s})"
+                )
     return "torch step and violation counts match step() and violations()"
 
 

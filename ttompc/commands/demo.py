@@ -72,13 +72,20 @@ class DemoConfig(Checked):
 
     def rel_loop(self) -> Measurement:
         """REL-MPC's closed loop: ``eval``'s problems at H = ``rel_horizon`` under the paper's protocol."""
-        return Measurement(protocol="paper", problems=self.eval.problems, seed=self.eval.seed,
-                           horizons=[self.rel_horizon])  # fmt: skip
+        return Measurement(
+            protocol="paper", problems=self.eval.problems, seed=self.eval.seed, horizons=[self.rel_horizon]
+        )
 
 
 # shortcut flags: argparse dest -> config key
-_FLAGS = {"model": "model", "mpc_model": "mpc_model", "problems": "problems", "horizon": "eval.horizons",
-          "seed": "eval.seed", "out": "out"}  # fmt: skip
+_FLAGS = {
+    "model": "model",
+    "mpc_model": "mpc_model",
+    "problems": "problems",
+    "horizon": "eval.horizons",
+    "seed": "eval.seed",
+    "out": "out",
+}
 
 
 def _one_horizon(text: str) -> str:
@@ -88,12 +95,16 @@ def _one_horizon(text: str) -> str:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_config_arguments(p, "problems=3 eval.problems=20 eval.horizons=[20]")
-    p.add_argument("--model", help="warm-start model: zoo name, hf://ORG/NAME[@REV], bundle or .ckpt "
-                                   "(default freeflyer-tto-v3)")  # fmt: skip
+    p.add_argument(
+        "--model", help="warm-start model: zoo name, hf://ORG/NAME[@REV], bundle or .ckpt (default freeflyer-tto-v3)"
+    )
     p.add_argument("--mpc-model", help="TTO-MPC model, same forms (default freeflyer-ft-tto-v5)")
     p.add_argument("--problems", type=int, help="problems shown, chosen from the first eval.problems=12 (default 2)")
-    p.add_argument("--horizon", type=_one_horizon, help="TTO-MPC planning horizon H, eval.horizons=[H] (default 10; "
-                                                         "REL-MPC: rel_horizon=30)")  # fmt: skip
+    p.add_argument(
+        "--horizon",
+        type=_one_horizon,
+        help="TTO-MPC planning horizon H, eval.horizons=[H] (default 10; REL-MPC: rel_horizon=30)",
+    )
     p.add_argument("--seed", type=int, help="root seed of the evaluation problem stream, eval.seed (default 4242)")
     p.add_argument("--no-mpc", action="store_true", help="open-loop warm starts only (fast); same as mpc=false")
     p.add_argument("--out", help="folder for demo.png and demo.json (default outputs/demo)")
@@ -148,8 +159,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _open_loop(cfg: DemoConfig, planner: Planner) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[Panel],
-                                                           list[EvalProblem]]:  # fmt: skip
+def _open_loop(
+    cfg: DemoConfig, planner: Planner
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[Panel], list[EvalProblem]]:
     """The scan: every problem of ``cfg.eval`` run open loop (``evaluate_problem``); returns the scanned rows, the rows
     and panels of the ``cfg.problems`` chosen ones (module doc) and those problems, in stream order."""
     from ttompc.evaluation.plots import Panel
@@ -161,8 +173,14 @@ def _open_loop(cfg: DemoConfig, planner: Planner) -> tuple[list[dict[str, Any]],
     found = []  # (problem, its open-loop row, trajectories) of every scanned problem
     with single_torch_thread(), Bar(cfg.eval.problems, "demo: warm starts", "problem") as bar:
         for ep in cfg.eval.problem_set(scenario):
-            found.append((ep, *evaluate_problem(scenario, ep, {"TTO": planner}, oracle_detours=0,
-                                                backend=cfg.eval.settings.backend)))  # fmt: skip
+            found.append(
+                (
+                    ep,
+                    *evaluate_problem(
+                        scenario, ep, {"TTO": planner}, oracle_detours=0, backend=cfg.eval.settings.backend
+                    ),
+                )
+            )
             bar.update()
     chosen = sorted(sorted(found, key=lambda f: _difference(f[1]))[: cfg.problems], key=lambda f: f[0].index)
     rows: list[dict[str, Any]] = []
@@ -305,10 +323,14 @@ def _table(
                 cells.append(f"{goal:<{width - 19}} {cost:>8} {1e3 * c['mean_step']:>7.1f}ms")
             cells.append(f"{r[mpc[1]]['mean_step'] / r[mpc[0]]['mean_step']:>14.1f}×")
             lines.append("  |  ".join(cells))
-        model, rel = ({r["problem"]: Outcome(r[k]["feasible"], r[k]["rel_increment"], r[k]["mean_step"]) for r in rows}
-                      for k in mpc)  # fmt: skip
+        model, rel = (
+            {r["problem"]: Outcome(r[k]["feasible"], r[k]["rel_increment"], r[k]["mean_step"]) for r in rows}
+            for k in mpc
+        )
         pair = paired(rel, model)
-        summary += (f"; MPC goals {pair['other_goals']}/{n} vs REL-MPC {pair['base_goals']}/{n}, "
-                    f"{pair['step_ratio']:.1f}× faster steps")  # fmt: skip
+        summary += (
+            f"; MPC goals {pair['other_goals']}/{n} vs REL-MPC {pair['base_goals']}/{n}, "
+            f"{pair['step_ratio']:.1f}× faster steps"
+        )
         lines.append("goal: reached, every constraint met; step: mean time per MPC step (observe + warm start + solve)")
     return [*lines, "", summary]

@@ -197,9 +197,13 @@ def sharded_folder(cfg: GenerateConfig, scenario: Scenario) -> ShardedFolder:
 
 
 def _write_shard(
-    folder: ShardedFolder, index: int, cfg: GenerateConfig, scenario: Scenario, outcomes: list[dict[str, Any]],
+    folder: ShardedFolder,
+    index: int,
+    cfg: GenerateConfig,
+    scenario: Scenario,
+    outcomes: list[dict[str, Any]],
     seconds: float,
-) -> dict[str, Any]:  # fmt: skip
+) -> dict[str, Any]:
     by_split: dict[str, list[dict[str, Any]]] = {s: [] for s in SPLITS}
     failures = []
     for o in sorted(outcomes, key=lambda o: o["problem_id"]):
@@ -309,8 +313,10 @@ def _check_folder(folder: ShardedFolder, cfg: GenerateConfig, scenario: Scenario
         diff = {k: (stored.get(k), fp[k]) for k in fp if k != "backend" and stored.get(k) != fp[k]}
         if diff:
             hint = ", or a backend with the stored solver_path (older folders, which record none, used backend=piqp's)"
-            raise GenerationError(f"{out} holds another generation (stored vs requested: {diff}); use a new folder"
-                                  + (hint if "solver_path" in diff else ""))  # fmt: skip
+            raise GenerationError(
+                f"{out} holds another generation (stored vs requested: {diff}); use a new folder"
+                + (hint if "solver_path" in diff else "")
+            )
     else:
         atomic_write_json(path, fp)
     beyond = folder.beyond()

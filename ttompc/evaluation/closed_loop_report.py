@@ -70,10 +70,13 @@ def summarize(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, An
                     row["vs_rel_mpc"] = paired(runs[BASELINE], runs[m], seed=seed)["paired"]
                 if m not in (BASELINE, CEILING):
                     cost = {
-                        k: {r["problem"]: (r["cost"] if r["feasible"] else np.nan) for r in recs
-                            if r["method"] == k and r["horizon"] == H}
+                        k: {
+                            r["problem"]: (r["cost"] if r["feasible"] else np.nan)
+                            for r in recs
+                            if r["method"] == k and r["horizon"] == H
+                        }
                         for k in (BASELINE, m, CEILING)
-                    }  # fmt: skip
+                    }
                     probs = sorted(cost[m])
                     row["gain_share"] = gain_share(
                         *(np.array([cost[k].get(p, np.nan) for p in probs]) for k in (BASELINE, m, CEILING)), seed=seed
@@ -97,11 +100,19 @@ def headline(records: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any
         for m in dict.fromkeys(r["method"] for r in records if r["plant"] == plant):
             group = [r for r in records if r["plant"] == plant and r["method"] == m and r["horizon"] == short]
             pair = paired(ref, {r["problem"]: Outcome.of(r) for r in group}, seed=seed)
-            rows.append({
-                "plant": plant, "method": m, "horizon": short, "baseline_horizon": long, "runs": len(group),
-                "feasible": sum(r["feasible"] for r in group), "baseline_feasible": sum(r["feasible"] for r in base),
-                "vs_baseline": pair["paired"], "step_ratio": pair["step_ratio"],
-            })  # fmt: skip
+            rows.append(
+                {
+                    "plant": plant,
+                    "method": m,
+                    "horizon": short,
+                    "baseline_horizon": long,
+                    "runs": len(group),
+                    "feasible": sum(r["feasible"] for r in group),
+                    "baseline_feasible": sum(r["feasible"] for r in base),
+                    "vs_baseline": pair["paired"],
+                    "step_ratio": pair["step_ratio"],
+                }
+            )
     return rows
 
 

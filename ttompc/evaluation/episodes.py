@@ -85,8 +85,9 @@ def closed_loop_metrics(
     provs = model_method("TTO", blend > 0).providers(MethodInputs(run.settings, [None] * len(problems), planner, blend))
     steps = min(run.max_steps or sc.n_steps, sc.n_steps)
     with Bar(len(problems), progress, "episode", show=bool(progress)) as bar:
-        episodes = run_mpc_batch(sc, [ep.start for ep in problems], provs, run,
-                                 on_step=lambda: bar.update(len(provs) / steps))  # fmt: skip
+        episodes = run_mpc_batch(
+            sc, [ep.start for ep in problems], provs, run, on_step=lambda: bar.update(len(provs) / steps)
+        )
     summary = summarize_episodes([episode_record(e) for e in episodes])
     times = np.concatenate([e.step_times for e in episodes])
     metrics = {

@@ -29,8 +29,11 @@ LEARNED, LEARNED_HORIZON, BASELINE_HORIZON = model_method("FT-TTO", robust=True)
 
 
 def _runs(records: Sequence[dict[str, Any]], plant: str, method: str, horizon: int) -> dict[int, dict[str, Any]]:
-    return {r["problem"]: r for r in records
-            if r["plant"] == plant and base_method(r["method"]) == method and r["horizon"] == horizon}  # fmt: skip
+    return {
+        r["problem"]: r
+        for r in records
+        if r["plant"] == plant and base_method(r["method"]) == method and r["horizon"] == horizon
+    }
 
 
 def _outcomes(runs: dict[int, dict[str, Any]], step: str) -> dict[Hashable, Outcome]:
@@ -58,8 +61,13 @@ def match(
         largest = paired(_outcomes(ref, "max_step_time"), _outcomes(runs, "max_step_time"), seed=seed)
         goals = (pair["other_goals"], pair["base_goals"], pair["problems"])
         rel_moving = moving == BASELINE
-        row.update(horizon=H, paired=d, goals=goals, mean_ratio=_ratio(pair, rel_moving),
-                   largest_ratio=_ratio(largest, rel_moving))  # fmt: skip
+        row.update(
+            horizon=H,
+            paired=d,
+            goals=goals,
+            mean_ratio=_ratio(pair, rel_moving),
+            largest_ratio=_ratio(largest, rel_moving),
+        )
         return row
     row["why"] = f"H = {', '.join(map(str, horizons))} tried"
     return row
@@ -97,8 +105,9 @@ def format_equal_cost(rows: Sequence[dict[str, Any]]) -> str:
     for r in rows:
         lead = f"| {r['scenario']} " if scen else ""
         if r["horizon"] is None:
-            lines.append(f"{lead}| {r['plant']} | {r['moving']} | {r['fixed']} | no H matches ({r['why']}) "
-                         "| – | – | – |")  # fmt: skip
+            lines.append(
+                f"{lead}| {r['plant']} | {r['moving']} | {r['fixed']} | no H matches ({r['why']}) | – | – | – |"
+            )
             continue
         d, (mine, other, both) = r["paired"], r["goals"]
         lines.append(
@@ -106,8 +115,8 @@ def format_equal_cost(rows: Sequence[dict[str, Any]]) -> str:
             f"| {mine}, {other} / {both} | {r['mean_ratio']:.2g}×, {r['largest_ratio']:.2g}× |"
         )
     lines.append(
-        "\nNot worse: the mean paired difference in (J − J_REL)/J_REL (method − other, over the n problems both reached "
-        "feasibly) is at most one standard error. Step times over the problems both ran; largest: each episode's "
-        "largest step, averaged over the episodes."
+        "\nNot worse: the mean paired difference in (J − J_REL)/J_REL (method − other, over the n problems both "
+        "reached feasibly) is at most one standard error. Step times over the problems both ran; largest: each "
+        "episode's largest step, averaged over the episodes."
     )
     return "\n".join(lines)

@@ -246,8 +246,11 @@ def write_table(table: str, mpc: Sequence[str | Path], path: str | Path) -> Path
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     command = f"python -m ttompc.evaluation.figures --mpc {' '.join(map(str, mpc))} ... --table {path}"
-    path.write_text(f"# Speedup at equal cost\n\nWritten by `make figures` (`{command}`) from the closed-loop "
-                    f"reports; every number comes from them.\n{table}\n", encoding="utf-8")  # fmt: skip
+    path.write_text(
+        f"# Speedup at equal cost\n\nWritten by `make figures` (`{command}`) from the closed-loop "
+        f"reports; every number comes from them.\n{table}\n",
+        encoding="utf-8",
+    )
     return path
 
 

@@ -248,8 +248,10 @@ def run_target_error(cfg: TargetErrorConfig) -> dict[str, Any]:
     sc = get_scenario(cfg.scenario)
     too_long = sorted({h for h in cfg.horizons if h > sc.n_steps})
     if too_long:
-        raise UserError(f"horizons {too_long} exceed the horizon of {sc.name}, N = {sc.n_steps} steps",
-                        f"pass horizons of at most {sc.n_steps}")  # fmt: skip
+        raise UserError(
+            f"horizons {too_long} exceed the horizon of {sc.name}, N = {sc.n_steps} steps",
+            f"pass horizons of at most {sc.n_steps}",
+        )
     cfg.method_entry()  # a method without its model is one error line before the pool starts
     cfg.horizons = sorted(set(cfg.horizons))
     out = Path(cfg.out or f"outputs/evaluate/target-{sc.name}")
@@ -260,8 +262,9 @@ def run_target_error(cfg: TargetErrorConfig) -> dict[str, Any]:
     total = cfg.problems * len(cfg.plants) * len(cfg.horizons)
     with Bar(total, f"target error {sc.name}", "episode") as bar:
         init = (to_container(cfg), bar.ticker())
-        for rs, ss in pool_map(_run, tasks(cfg.problems, cfg.batch), workers, _init, init,
-                               scenarios=[scenario_spec(sc)]):  # fmt: skip
+        for rs, ss in pool_map(
+            _run, tasks(cfg.problems, cfg.batch), workers, _init, init, scenarios=[scenario_spec(sc)]
+        ):
             records += rs
             steps += ss
     run = {

@@ -76,13 +76,20 @@ def summarize(records: Sequence[dict[str, Any]], steps: Sequence[dict[str, Any]]
             inside = [s for s in rows if bucket_label(s["to_go"]) == label]
             buckets[label] = {"steps": len(inside), **{k: _stats([s[k] for s in inside]) for k in ERRORS}}
         cost = [r["rel_increment"] for r in feasible]
-        out.append({
-            "plant": plant, "horizon": H, "episodes": len(recs), "feasible": len(feasible),
-            "expert_steps": len(rows), "expert_fallbacks": int(sum(r["expert_fallbacks"] for r in recs)),
-            "rel_increment": _stats(cost), "buckets": buckets,
-            "all": {"steps": len(rows), **{k: _stats([s[k] for s in rows]) for k in ERRORS}},
-            "correlation": {k: correlation([r[k] for r in feasible], cost) for k in ERRORS},
-        })  # fmt: skip
+        out.append(
+            {
+                "plant": plant,
+                "horizon": H,
+                "episodes": len(recs),
+                "feasible": len(feasible),
+                "expert_steps": len(rows),
+                "expert_fallbacks": int(sum(r["expert_fallbacks"] for r in recs)),
+                "rel_increment": _stats(cost),
+                "buckets": buckets,
+                "all": {"steps": len(rows), **{k: _stats([s[k] for s in rows]) for k in ERRORS}},
+                "correlation": {k: correlation([r[k] for r in feasible], cost) for k in ERRORS},
+            }
+        )
     return out
 
 
@@ -97,21 +104,31 @@ def _corr(c: dict[str, float]) -> str:
 def format_tables(summary: Sequence[dict[str, Any]], method: str) -> str:
     """The markdown tables: the errors by steps to go (mean (median)), then their correlation with the cost."""
     head = " | ".join(LABELS[k] for k in ERRORS)
-    lines = [f"Errors of {method} against the expert re-solved from the measured state, {NORMALISATION}: mean "
-             "(median) over the expert's steps.", "", f"| plant | H | steps to go | steps | {head} |",
-             "|---|---|---|---|" + "---|" * len(ERRORS)]  # fmt: skip
+    lines = [
+        f"Errors of {method} against the expert re-solved from the measured state, {NORMALISATION}: mean "
+        "(median) over the expert's steps.",
+        "",
+        f"| plant | H | steps to go | steps | {head} |",
+        "|---|---|---|---|" + "---|" * len(ERRORS),
+    ]
     for g in summary:
         for label, b in [*g["buckets"].items(), ("all", g["all"])]:
             cells = " | ".join(_cell(b[k]) for k in ERRORS)
             lines.append(f"| {g['plant']} | {g['horizon']} | {label} | {b['steps']} | {cells} |")
-    lines += ["", "Correlation of each episode's mean error with its closed-loop cost (J − J_REL)/J_REL over the "
-              "feasible episodes: Pearson / Spearman (n).", "",
-              f"| plant | H | feasible / episodes | (J − J_REL)/J_REL | {head} |",
-              "|---|---|---|---|" + "---|" * len(ERRORS)]  # fmt: skip
+    lines += [
+        "",
+        "Correlation of each episode's mean error with its closed-loop cost (J − J_REL)/J_REL over the "
+        "feasible episodes: Pearson / Spearman (n).",
+        "",
+        f"| plant | H | feasible / episodes | (J − J_REL)/J_REL | {head} |",
+        "|---|---|---|---|" + "---|" * len(ERRORS),
+    ]
     for g in summary:
         cells = " | ".join(_corr(g["correlation"][k]) for k in ERRORS)
-        lines.append(f"| {g['plant']} | {g['horizon']} | {g['feasible']} / {g['episodes']} | "
-                     f"{_cell(g['rel_increment'])} | {cells} |")  # fmt: skip
+        lines.append(
+            f"| {g['plant']} | {g['horizon']} | {g['feasible']} / {g['episodes']} | "
+            f"{_cell(g['rel_increment'])} | {cells} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -131,8 +148,12 @@ def plot_target_error(summary: Sequence[dict[str, Any]], path: Path) -> Path:
             for g in (g for g in summary if g["plant"] == plant):
                 labels = list(g["buckets"])
                 for k in kinds:
-                    ax.plot(labels, [g["buckets"][b][k]["mean"] for b in labels], marker="o",
-                            label=f"{LABELS[k]}, H={g['horizon']}")  # fmt: skip
+                    ax.plot(
+                        labels,
+                        [g["buckets"][b][k]["mean"] for b in labels],
+                        marker="o",
+                        label=f"{LABELS[k]}, H={g['horizon']}",
+                    )
             ax.set(title=f"{plant}: {what}", xlabel="steps to go", ylabel="mean error (scaled units)")
             ax.legend(fontsize=7)
     return save_figure(fig, path)

@@ -68,8 +68,11 @@ def value_errors(model: str, data: Sequence[str], split: str = "test", rows: int
     for lo, hi in BUCKETS:
         m = (g >= lo) & (g <= hi)
         if m.any():
-            out["buckets"][f"{lo}-{hi}"] = {"mean_abs_J": float(j[m].mean()), "mae": float(e[m].mean()),
-                                            "relative": float(e[m].mean() / j[m].mean())}  # fmt: skip
+            out["buckets"][f"{lo}-{hi}"] = {
+                "mean_abs_J": float(j[m].mean()),
+                "mae": float(e[m].mean()),
+                "relative": float(e[m].mean() / j[m].mean()),
+            }
         mg = (ge[:, 2] >= lo) & (ge[:, 2] <= hi)
         if mg.any():
             out["buckets"].setdefault(f"{lo}-{hi}", {})["gradient_relative"] = float(ge[mg, 0].sum() / ge[mg, 1].sum())

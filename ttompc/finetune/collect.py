@@ -241,8 +241,14 @@ def _rows(
     learned = ~r.expert_steps[: len(Ua)]
     learner_time = float(np.sum(episode.warm_times[learned] + episode.solve_times[learned]))
     fallbacks = episode.fallbacks - sum(e.fallback for t, e in r.plans.items() if r.expert_steps[t])
-    common = dict(problem_id=rollout_id(iteration, r.index), seed=r.seed, source="dagger", iteration=iteration,
-                  solve_time=learner_time, solver_time=r.expert_time)  # fmt: skip
+    common = dict(
+        problem_id=rollout_id(iteration, r.index),
+        seed=r.seed,
+        source="dagger",
+        iteration=iteration,
+        solve_time=learner_time,
+        solver_time=r.expert_time,
+    )
     n_expert, n_labels = int(r.expert_steps.sum()), int(r.labelled.sum())
     plant = "nominal" if r.plant.nominal else "perturbed"
     status = f"H={r.H};expert_steps={n_expert};fallbacks={fallbacks};plant={plant};labels={n_labels}"

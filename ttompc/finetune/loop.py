@@ -132,8 +132,13 @@ def protocol_record(cfg: FinetuneConfig, scenario: Scenario) -> dict[str, Any]:
     from ttompc.solvers.backends import solver_path
 
     m = cfg.dagger.eval
-    return {"name": m.protocol, "overrides": dict(m.mpc), "settings": asdict(m.settings),
-            "solver": solver_path(m.settings.backend, scenario), "robust_blend": m.robust_blend}  # fmt: skip
+    return {
+        "name": m.protocol,
+        "overrides": dict(m.mpc),
+        "settings": asdict(m.settings),
+        "solver": solver_path(m.settings.backend, scenario),
+        "robust_blend": m.robust_blend,
+    }
 
 
 def measure(cfg: FinetuneConfig, planner: Planner, problems: list[EvalProblem]) -> dict[str, float]:
@@ -250,8 +255,15 @@ def _train_iteration(
     L.seed_everything(cfg.trainer.seed + iteration, workers=True, verbose=False)
     dm = TrajectoryDataModule(replace(cfg.data, dagger_dirs=dagger_dirs, seed=cfg.data.seed + iteration))
     dm.setup("fit")
-    module = build_module(source.model.cfg, cfg.optim, source.scenario, source.stats, recipe=cfg,
-                          plot_trajectories=False, backend=cfg.dagger.eval.settings.backend)  # fmt: skip
+    module = build_module(
+        source.model.cfg,
+        cfg.optim,
+        source.scenario,
+        source.stats,
+        recipe=cfg,
+        plot_trajectories=False,
+        backend=cfg.dagger.eval.settings.backend,
+    )
     if resume_from is None:
         module.model.load_state_dict(source.model.state_dict())
     t = cfg.trainer
@@ -260,8 +272,14 @@ def _train_iteration(
         from ttompc.training.callbacks import ClosedLoopEvalCallback
 
         callbacks.append(ClosedLoopEvalCallback.from_config(cfg.callbacks.eval_mpc, source.scenario.name))
-    trainer = build_trainer(replace(t, max_steps=target), cfg.optim, Path(t.out_dir), logger, callbacks=callbacks,
-                            enable_checkpointing=False)  # fmt: skip
+    trainer = build_trainer(
+        replace(t, max_steps=target),
+        cfg.optim,
+        Path(t.out_dir),
+        logger,
+        callbacks=callbacks,
+        enable_checkpointing=False,
+    )
     fit(trainer, module, dm, resume_from)
     return checkpoint_step(ckpt)
 
@@ -326,8 +344,14 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
         _log(logger, measured, -1, 0)
         baseline = _json_safe(measured)
         best = {"iteration": -1, "planner": str(src_dir), "checkpoint": None, "global_step": 0, "metrics": baseline}
-        state = {"source": str(source), "seed": cfg.dagger.seed, "protocol": protocol_record(cfg, scenario),
-                 "baseline_metrics": baseline, "best": best, "completed": []}  # fmt: skip
+        state = {
+            "source": str(source),
+            "seed": cfg.dagger.seed,
+            "protocol": protocol_record(cfg, scenario),
+            "baseline_metrics": baseline,
+            "best": best,
+            "completed": [],
+        }
         atomic_write_json(run / STATE_FILE, state)
     elif state is None:
         _wait(lambda: (run / STATE_FILE).is_file(), wait_s, "rank 0 to measure the pretrained model")
@@ -366,9 +390,17 @@ def finetune(cfg: FinetuneConfig, source: str, ranks: RankInfo | None = None) ->
             kept, reason = improves(metrics, parent["metrics"])
             # wall seconds of this process's phases (a resumed phase counts from the resume)
             seconds = {"collect": t1 - t0, "train": t2 - t1, "measure": time.perf_counter() - t2}
-            record = {"iteration": i, "checkpoint": str(ckpt), "planner": str(out), "global_step": step,
-                      "metrics": metrics, "parent": parent["iteration"], "kept": kept, "reason": reason,
-                      "seconds": seconds}  # fmt: skip
+            record = {
+                "iteration": i,
+                "checkpoint": str(ckpt),
+                "planner": str(out),
+                "global_step": step,
+                "metrics": metrics,
+                "parent": parent["iteration"],
+                "kept": kept,
+                "reason": reason,
+                "seconds": seconds,
+            }
             state["completed"].append(record)
             if kept:
                 state["best"] = {k: record[k] for k in ("iteration", "planner", "checkpoint", "global_step", "metrics")}

@@ -88,5 +88,17 @@ def plan_row(
     if costates is not None:
         lam[t:] = costates
     status = f"{status};plan_from={t}"
-    return trajectory_row(scenario, problem, Xr, Ur, S, rtg_r, ctg_r, target_actions, target_next, status, common,
-                          model_costates(scenario, problem, lam))  # fmt: skip
+    return trajectory_row(
+        scenario,
+        problem,
+        Xr,
+        Ur,
+        S,
+        rtg_r,
+        ctg_r,
+        target_actions,
+        target_next,
+        status,
+        common,
+        model_costates(scenario, problem, lam),
+    )

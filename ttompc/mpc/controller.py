@@ -148,8 +148,9 @@ class Controller:
         if planner is not None and planner.scenario.name != self.scenario.name:
             raise UserError(f"the model was trained on {planner.scenario.name!r}, not {self.scenario.name!r}")
         if planner is not None and planner.model.cfg.max_steps < self.scenario.n_steps:
-            raise UserError(f"the model plans {planner.model.cfg.max_steps} steps, {self.scenario.name} has "
-                            f"{self.scenario.n_steps}")  # fmt: skip
+            raise UserError(
+                f"the model plans {planner.model.cfg.max_steps} steps, {self.scenario.name} has {self.scenario.n_steps}"
+            )
         N = self.scenario.n_steps
         if isinstance(horizon, bool) or not isinstance(horizon, int | np.integer) or not 1 <= horizon <= N:
             raise UserError(f"horizon must be an integer in [1, {N}] for {self.scenario.name}, got {horizon!r}")
@@ -209,8 +210,9 @@ class Controller:
 
             rel_cost = float(solve_rel(sc, problem, backend=self.settings.backend).cost)
         if rel_cost is not None and not np.isfinite(rel_cost):
-            raise UserError(f"J_REL of the problem is {rel_cost}, not a cost to condition the model on",
-                            "pass rel_cost=")  # fmt: skip
+            raise UserError(
+                f"J_REL of the problem is {rel_cost}, not a cost to condition the model on", "pass rel_cost="
+            )
         [provider] = self.method.providers(self._inputs)  # fresh, as every run of evaluate mpc
         start = EpisodeStart(problem, float("nan") if rel_cost is None else rel_cost)
         self._mpc = start_controller(sc, start, provider, self.horizon, self.settings)
@@ -236,8 +238,19 @@ class Controller:
         observed = 0.0 if acted is None else mpc.observe(acted, acted.u if applied is None else applied, x)[0]
         plan = mpc.plan(self.t, x)
         self._acted = plan
-        self.last = StepRecord(self.t, plan.u.copy(), plan.X, plan.U, plan.target, plan.iterations, _status(plan),
-                               time.perf_counter() - t0, observed, plan.warm_time, plan.solve_time)  # fmt: skip
+        self.last = StepRecord(
+            self.t,
+            plan.u.copy(),
+            plan.X,
+            plan.U,
+            plan.target,
+            plan.iterations,
+            _status(plan),
+            time.perf_counter() - t0,
+            observed,
+            plan.warm_time,
+            plan.solve_time,
+        )
         self.t += 1
         return plan.u.copy()
 

@@ -108,8 +108,9 @@ class Expert:
 
     def before(self, t: int, controllers: Sequence[MPCController], xs: Sequence[np.ndarray]) -> list[StepPlan | None]:
         if self.group is not None:
-            windows = [c.window(t).length for r, c in zip(self.rollouts, controllers, strict=True)
-                       if not r.expert_steps[t]]  # fmt: skip
+            windows = [
+                c.window(t).length for r, c in zip(self.rollouts, controllers, strict=True) if not r.expert_steps[t]
+            ]
             self.group.expect(t, max(windows, default=0))
         acting: list[StepPlan | None] = []
         for r, x in zip(self.rollouts, xs, strict=True):
@@ -120,8 +121,11 @@ class Expert:
     def _label(self, r: ExpertRollout, t: int, x: np.ndarray) -> StepPlan:
         t0 = time.perf_counter()
         N = r.problem.n_steps
-        start = r.rel if t == 0 else solve_rel(self.scenario, r.problem, window=Window(t, N - t, N), x_start=x,
-                                               backend=self.backend)  # fmt: skip
+        start = (
+            r.rel
+            if t == 0
+            else solve_rel(self.scenario, r.problem, window=Window(t, N - t, N), x_start=x, backend=self.backend)
+        )
         r.shift.reset_plan(start.X, start.U)
         r.expert_time += time.perf_counter() - t0
         e = r.plans[t] = r.expert.plan(t, x)

@@ -187,9 +187,17 @@ class MPCController:
         target = None if ws.terminal is None else ws.terminal.target
         warm = t1 - t0 if ws.seconds is None else ws.seconds
         self._last = StepPlan(
-            U[0].copy(), X, np.array(U, dtype=np.float64), warm, t2 - t1, iterations, fallback, target, soft_end,
+            U[0].copy(),
+            X,
+            np.array(U, dtype=np.float64),
+            warm,
+            t2 - t1,
+            iterations,
+            fallback,
+            target,
+            soft_end,
             converged=not fallback and res.status is SCPStatus.OPTIMAL,
-        )  # fmt: skip
+        )
         return self._last
 
     @staticmethod
@@ -321,8 +329,9 @@ def run_mpc_batch(
     T = N if run.max_steps is None else min(run.max_steps, N)
     horizons = [run.horizon if s.horizon is None else s.horizon for s in starts]
     # each episode's plant, None components the scenario's own; None: the exact dynamics
-    noises = [None if n is None else n.resolve(scenario) for n in (run.plant if s.plant is None else s.plant
-                                                                    for s in starts)]  # fmt: skip
+    noises = [
+        None if n is None else n.resolve(scenario) for n in (run.plant if s.plant is None else s.plant for s in starts)
+    ]
     warm_up(scenario, problems[0], providers, max(horizons), run.settings)  # no compilation inside a step
     ctrls, sims = [], []
     for start, provider, horizon, noise in zip(starts, providers, horizons, noises, strict=True):

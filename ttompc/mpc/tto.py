@@ -267,8 +267,9 @@ class RolloutGroup:
             return 0.0
         t0 = time.perf_counter()
         order = range(len(self.members))
-        self.context.advance(np.stack([self._pending[b][0] for b in order]),
-                             np.stack([self._pending[b][1] for b in order]))  # fmt: skip
+        self.context.advance(
+            np.stack([self._pending[b][0] for b in order]), np.stack([self._pending[b][1] for b in order])
+        )
         self._pending.clear()
         self._new_step()
         self._sync()

@@ -59,8 +59,10 @@ def warm_up(
     if done and seconds >= NOTICE_SECONDS:
         from ttompc.progress import status
 
-        status(f"ttompc: {' and '.join(done)} compiled (or loaded from numba's cache) in {seconds:.1f} s before the "
-               "first MPC step")  # fmt: skip
+        status(
+            f"ttompc: {' and '.join(done)} compiled (or loaded from numba's cache) in {seconds:.1f} s before the "
+            "first MPC step"
+        )
     return done
 
 

@@ -129,8 +129,13 @@ class ValueModel:
     def expand(self, goal_model: np.ndarray, x_model: np.ndarray, t: int, M: np.ndarray) -> ValueExpansion:
         """J and its local model at the optimisation state x (whose model state is ``x_model`` = M x) at step t,
         for the problem whose model goal is ``goal_model``."""
-        z = np.concatenate([(goal_model - self.goal_mu) / self.goal_sd, (x_model - self.state_mu) / self.state_sd,
-                            [t / self.max_steps]])  # fmt: skip
+        z = np.concatenate(
+            [
+                (goal_model - self.goal_mu) / self.goal_sd,
+                (x_model - self.state_mu) / self.state_sd,
+                [t / self.max_steps],
+            ]
+        )
         out, Jz = self._forward(z)
         n = self.n
         dz_dx = (1.0 / self.state_sd)[:, None] * M  # (n, n): d z_state / d x

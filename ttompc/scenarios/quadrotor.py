@@ -182,8 +182,13 @@ _B_MASK = np.vstack([np.zeros((3, 3)), np.eye(3)]).astype(bool)
 def _control_box(H: int) -> ConstraintBlock:
     """−U_MAX ≤ u_j ≤ U_MAX componentwise as hard two-sided rows on the controls of window steps 0..H−1 (constant:
     built once per window length, read-only)."""
-    arrays = [np.arange(H), np.zeros((H, 3, 6)), np.broadcast_to(np.eye(3), (H, 3, 3)).copy(),
-              np.full((H, 3), U_MAX), np.full((H, 3), -U_MAX)]  # fmt: skip
+    arrays = [
+        np.arange(H),
+        np.zeros((H, 3, 6)),
+        np.broadcast_to(np.eye(3), (H, 3, 3)).copy(),
+        np.full((H, 3), U_MAX),
+        np.full((H, 3), -U_MAX),
+    ]
     for a in arrays:
         a.flags.writeable = False
     steps, Gx, Gu, h, lower = arrays

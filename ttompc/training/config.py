@@ -22,9 +22,19 @@ from ttompc.ranges import Checked, setting
 
 # what ``lightning.Trainer(precision=...)`` accepts (checked when the recipe loads, not when training starts)
 LightningPrecision = Literal[
-    "64-true", "32-true", "16-true", "bf16-true", "16-mixed", "bf16-mixed", "transformer-engine",
-    "transformer-engine-float16", "64", "32", "16", "bf16",
-]  # fmt: skip
+    "64-true",
+    "32-true",
+    "16-true",
+    "bf16-true",
+    "16-mixed",
+    "bf16-mixed",
+    "transformer-engine",
+    "transformer-engine-float16",
+    "64",
+    "32",
+    "16",
+    "bf16",
+]
 # and "auto": bf16-mixed where the training device computes bf16 natively, else 32-true (ttompc.training.precision)
 Precision = Literal["auto", LightningPrecision]
 

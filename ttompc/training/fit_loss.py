@@ -94,8 +94,11 @@ def _weights(batch: dict[str, Tensor]) -> dict[str, float]:
 
     mask = batch.get("mask", torch.ones_like(batch["timesteps"], dtype=torch.float32))
     value_rows = torch.isin(batch["source"], torch.as_tensor(VALUE_SOURCES)).to(mask.dtype)
-    return {"loss_action": float(mask.sum()), "loss_state": float(batch.get("state_mask", mask).sum()),
-            "loss_value": float((mask * value_rows[:, None]).sum())}  # fmt: skip
+    return {
+        "loss_action": float(mask.sum()),
+        "loss_state": float(batch.get("state_mask", mask).sum()),
+        "loss_value": float((mask * value_rows[:, None]).sum()),
+    }
 
 
 class _TermMeans:
@@ -157,8 +160,9 @@ def row_losses(
             for (lo, hi), means in zip(BUCKETS, buckets.values(), strict=True):
                 part = _within(b, (to_go >= lo) & (to_go <= hi))
                 if part["mask"].any():
-                    means.add(module.validation_losses({k: v.to(module.device) for k, v in part.items()}),
-                              _weights(part))  # fmt: skip
+                    means.add(
+                        module.validation_losses({k: v.to(module.device) for k, v in part.items()}), _weights(part)
+                    )
     by_bucket = {label: m.result() for label, m in buckets.items() if m.steps}
     return {"rows": seen, **total.result(), "buckets": by_bucket}
 
@@ -179,8 +183,11 @@ def fit_losses(cfg: LossConfig) -> list[dict[str, Any]]:
     dm = TrajectoryDataModule(cfg.data)
     dm.setup("validate")
     if dm.scenario_name != planner.scenario.name:
-        raise UserError(f"{cfg.model} is a {planner.scenario.name} model but {cfg.data.paths[0]} holds "
-                        f"{dm.scenario_name} trajectories", "pass the model's datasets")  # fmt: skip
+        raise UserError(
+            f"{cfg.model} is a {planner.scenario.name} model but {cfg.data.paths[0]} holds "
+            f"{dm.scenario_name} trajectories",
+            "pass the model's datasets",
+        )
     dm.use_stats(planner.stats)
     module = loss_module(planner)
     out = []
@@ -192,8 +199,16 @@ def fit_losses(cfg: LossConfig) -> list[dict[str, Any]]:
                 try:
                     loader = dm.eval_dataloader(split, closed_loop=closed)
                 except ShardError:
-                    out.append({"kind": kind, "split": split, "rows": 0, **dict.fromkeys(TERMS, float("nan")),
-                                "steps": 0.0, "buckets": {}})  # fmt: skip
+                    out.append(
+                        {
+                            "kind": kind,
+                            "split": split,
+                            "rows": 0,
+                            **dict.fromkeys(TERMS, float("nan")),
+                            "steps": 0.0,
+                            "buckets": {},
+                        }
+                    )
                     continue
                 assert dm.n_steps is not None  # set by setup
                 out.append({"kind": kind, "split": split, **row_losses(module, loader, cfg.rows, dm.n_steps)})
@@ -213,8 +228,13 @@ def format_losses(rows: list[dict[str, Any]], model: str) -> str:
         terms = " | ".join(_number(r[k]) for k in TERMS)
         lines.append(f"| {r['kind'].replace('_', '-')} | {r['split']} | {r['rows']} | {terms} |")
     labels = list(dict.fromkeys(label for r in rows for label in r["buckets"]))[::-1]  # the longest first
-    lines += ["", "The loss by steps to go:", "", "| rows | split | " + " | ".join(labels) + " |",
-              "|---|---|" + "---|" * len(labels)]  # fmt: skip
+    lines += [
+        "",
+        "The loss by steps to go:",
+        "",
+        "| rows | split | " + " | ".join(labels) + " |",
+        "|---|---|" + "---|" * len(labels),
+    ]
     for r in rows:
         cells = " | ".join(_number(r["buckets"][b]["loss"]) if b in r["buckets"] else "–" for b in labels)
         lines.append(f"| {r['kind'].replace('_', '-')} | {r['split']} | {cells} |")

@@ -29,9 +29,21 @@ from ttompc.training.config import TrainConfig
 RUN_FILE = "run.json"
 # the model fields that shape the weights: a resumed run must keep them
 ARCHITECTURE = (
-    "layout", "n_embd", "n_layer", "n_head", "mlp_ratio", "max_steps", "bias", "activation", "value_width",
-    "value_form", "value_rank", "value_activation", "state_dim", "control_dim",
-)  # fmt: skip
+    "layout",
+    "n_embd",
+    "n_layer",
+    "n_head",
+    "mlp_ratio",
+    "max_steps",
+    "bias",
+    "activation",
+    "value_width",
+    "value_form",
+    "value_rank",
+    "value_activation",
+    "state_dim",
+    "control_dim",
+)
 
 
 def prepare_run(cfg: TrainConfig) -> list[dict[str, Any]]:

@@ -70,8 +70,15 @@ class ClarabelBackend:
         status = str(sol.status)
         ok = status in ("Solved", "AlmostSolved")
         infeasible = "PrimalInfeasible" in status
-        return BackendSolution(np.asarray(sol.x) if ok else None, float(sol.obj_val), ok, infeasible, status, elapsed,
-                               self.sub.costates(sol.z) if ok else None)  # fmt: skip
+        return BackendSolution(
+            np.asarray(sol.x) if ok else None,
+            float(sol.obj_val),
+            ok,
+            infeasible,
+            status,
+            elapsed,
+            self.sub.costates(sol.z) if ok else None,
+        )
 
 
 class QOCOBackend:
@@ -123,8 +130,15 @@ class QOCOBackend:
         status = str(res.status)
         ok = status in ("QOCO_SOLVED", "QOCO_SOLVED_INACCURATE")
         duals = np.concatenate([res.y, res.z]) if ok else None  # the rows' order: A's (zero cone), then G's
-        return BackendSolution(np.asarray(res.x) if ok else None, float(res.obj), ok, "INFEAS" in status, status,
-                               elapsed, None if duals is None else sub.costates(duals))  # fmt: skip
+        return BackendSolution(
+            np.asarray(res.x) if ok else None,
+            float(res.obj),
+            ok,
+            "INFEAS" in status,
+            status,
+            elapsed,
+            None if duals is None else sub.costates(duals),
+        )
 
 
 BACKENDS: dict[str, type[ClarabelBackend | QOCOBackend]] = {"clarabel": ClarabelBackend, "qoco": QOCOBackend}

@@ -404,9 +404,13 @@ class PIQPSolver:
         ok = "PIQP_SOLVED" in status
         res = self.solver.result
         sol = BackendSolution(
-            np.asarray(res.x) if ok else None, float(res.info.primal_obj), ok, "PRIMAL_INFEASIBLE" in status, status,
+            np.asarray(res.x) if ok else None,
+            float(res.info.primal_obj),
+            ok,
+            "PRIMAL_INFEASIBLE" in status,
+            status,
             elapsed,
-        )  # fmt: skip
+        )
         if ok:
             assert sol.z is not None  # PIQP returns its iterate whenever it reports SOLVED
             X, U = qp.split(sol.z)

@@ -142,8 +142,9 @@ class StageQP:
         steps = np.asarray(steps, dtype=np.int64)
         if has_u and len(steps) and steps.max() >= spec.H:
             raise ValueError(f"block {name!r} puts control rows on step {steps.max()} >= window length {spec.H}")
-        mask = np.hstack([structural_mask(gx_mask, (M, n)),
-                          structural_mask(gu_mask, (M, m)) if has_u else np.zeros((M, m), bool)])  # fmt: skip
+        mask = np.hstack(
+            [structural_mask(gx_mask, (M, n)), structural_mask(gu_mask, (M, m)) if has_u else np.zeros((M, m), bool)]
+        )
         is_eq = BlockKind(kind) is BlockKind.EQ
         live = np.ones((len(steps), M), bool)
         live[steps == 0] = mask[:, n:].any(axis=1)  # rows on x_0 alone are constants (x_0 is fixed): dropped
@@ -239,8 +240,13 @@ class StageQP:
         if rows:
             rk, ri, rg, rd, rrho = (np.concatenate(parts) for parts in zip(*rows, strict=True))
             keep = np.isfinite(rd)
-            rk, ri, rg, rd, rrho = (rk[keep].astype(np.int64), np.ascontiguousarray(ri[keep], dtype=np.int64),
-                                    np.ascontiguousarray(rg[keep]), rd[keep], rrho[keep])  # fmt: skip
+            rk, ri, rg, rd, rrho = (
+                rk[keep].astype(np.int64),
+                np.ascontiguousarray(ri[keep], dtype=np.int64),
+                np.ascontiguousarray(rg[keep]),
+                rd[keep],
+                rrho[keep],
+            )
         else:
             rk, ri, rg = np.zeros(0, np.int64), np.zeros((0, self.width), np.int64), np.zeros((0, self.width))
             rd, rrho = np.zeros(0), np.zeros(0)
@@ -306,8 +312,14 @@ class RiccatiSolver:
         name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[out.status]
         status = f"{name} ({out.iterations} it, residual {out.residual:.1e}, gap {out.gap:.1e})"
         ok = out.status in (0, 3)
-        sol = BackendSolution(None, st.objective(y, qp, data, self.compiled) if ok else np.nan, ok, False, status,
-                              time.perf_counter() - t0)  # fmt: skip
+        sol = BackendSolution(
+            None,
+            st.objective(y, qp, data, self.compiled) if ok else np.nan,
+            ok,
+            False,
+            status,
+            time.perf_counter() - t0,
+        )
         if ok:
             sol.costates = pi / st.sx  # multipliers of the scaled dynamics rows x̃_{k+1} = ...: per unit of x_{k+1}
             return y[:, : spec.n] * st.sx, y[: spec.H, spec.n : spec.n + spec.m] * st.su, sol

@@ -70,8 +70,9 @@ class Rows(NamedTuple):
     @classmethod
     def none(cls, width: int = 1) -> Rows:
         """No rows."""
-        return cls(np.zeros(0, np.int64), np.zeros((0, width), np.int64), np.zeros((0, width)), np.zeros(0),
-                   np.zeros(0))  # fmt: skip
+        return cls(
+            np.zeros(0, np.int64), np.zeros((0, width), np.int64), np.zeros((0, width)), np.zeros(0), np.zeros(0)
+        )
 
 
 class TerminalCone(NamedTuple):
