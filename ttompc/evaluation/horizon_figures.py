@@ -17,6 +17,7 @@ The footer names each column's report: its command, and the machine, load and wo
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from typing import Any
 
@@ -116,10 +117,9 @@ def horizon_figure(reports: Sequence[dict[str, Any]], plant: str) -> tuple[Any, 
             _log_ms(ax)
             ax.set_ylabel(f"{STEP_KINDS[key]} [ms]\n(mean ± s.e. over episodes)", fontsize=8)
         col[3].set_title(f"step time: observe + warm start + solves, CPU\n{_machine(report)}", fontsize=8)
-    fig.suptitle(
-        f"Closed loop vs planning horizon H, {plant} plant: cost (Fig. 5, rows 1–3) and step time (Fig. 6, rows 4–5)",
-        fontsize=11,
-    )
+    title = f"Closed loop vs planning horizon H, {plant} plant: cost (Fig. 5, rows 1–3) "
+    title += "and step time (Fig. 6, rows 4–5)"
+    fig.suptitle("\n".join(textwrap.wrap(title, 12 * 5 * len(reports))), fontsize=11)  # ~12 characters per inch
     return fig, "From " + "; ".join(_source(r) for r in reports) + "."
 
 
