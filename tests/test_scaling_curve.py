@@ -1,16 +1,20 @@
 """The closed-loop learning curve (ttompc.evaluation.scaling_curve): the paired statistic against hand arithmetic,
-one selection per curve file, resumable points, and the figure from a curve file."""
+one selection per curve file, resumable points, and the figure (``plots.row_figure``: a row per curve file)."""
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from ttompc.errors import UserError
-from ttompc.evaluation.scaling_curve import Selection, curve_figure, measure_point, paired_points
+from ttompc.evaluation.plots import row_figure
+from ttompc.evaluation.scaling_curve import Selection, curve_figure, measure_point
+from ttompc.evaluation.stats import paired_points
 
 
 def test_paired_points_pairs_only_problems_both_finish() -> None:
@@ -56,5 +60,26 @@ def test_measured_points_are_skipped_and_other_selections_refused(tmp_path: Path
 
 
 def test_figure_is_drawn_from_a_curve_file(tmp_path: Path) -> None:
-    out = curve_figure([_curve(tmp_path, Selection())], tmp_path / "fig.png")
-    assert out.is_file() and out.stat().st_size > 10_000
+    import matplotlib.image
+
+    path = _curve(tmp_path, Selection())
+    one = matplotlib.image.imread(curve_figure([path], tmp_path / "fig.png"))
+    two = matplotlib.image.imread(curve_figure([path, path], tmp_path / "two.png"))
+    assert one.shape[1] == two.shape[1] and two.shape[0] == 2 * one.shape[0]  # a row per curve file
+    assert (one[..., :3] < 0.5).any()  # something drawn, not a blank canvas
+
+
+def test_row_figure_draws_each_row_on_its_own_axes(tmp_path: Path) -> None:
+    import matplotlib.image
+
+    seen: list[tuple[int, int]] = []
+
+    def draw(row: int, axes: Sequence[Any]) -> None:
+        seen.append((row, len(axes)))
+        axes[0].plot([0, 1], [row, row])
+
+    one = row_figure([1], draw, tmp_path / "one.png", size=(6, 2), panels=2)
+    two = row_figure([1, 2], draw, tmp_path / "sub" / "two.png", size=(6, 2), panels=2, footer="the command")
+    assert seen == [(1, 2), (1, 2), (2, 2)]  # every row drawn once, in order, with its panels
+    a, b = matplotlib.image.imread(one), matplotlib.image.imread(two)
+    assert a.shape[1] == b.shape[1] == 6 * 110 and (a.shape[0], b.shape[0]) == (2 * 110, 4 * 110)

@@ -6,6 +6,7 @@ on random states of sampled problems."""
 from __future__ import annotations
 
 import ctypes
+from collections.abc import Callable
 
 import numpy as np
 
@@ -108,15 +109,15 @@ def batched_model(ctx: CheckContext) -> str:
 
     sc = ctx.sc
     pairs = ctx.problems()
-    problems = [p for _, p in pairs]
-    model = sc.batched_model(problems)
-    N = problems[0].n_steps
-    for k in sorted({0, N // 2, N - 1}):
-        S, U, expected = _transitions(ctx, problems, k)
+    model = sc.batched_model([p for _, p in pairs])
+
+    def torch_step(S: np.ndarray, U: np.ndarray, k: int) -> np.ndarray:
         got = model.step(torch.as_tensor(S), torch.as_tensor(U), k)
-        if tuple(got.shape) != expected.shape or got.dtype != torch.float64:
-            fail(f"step(S, A, {k}) returned {tuple(got.shape)} {got.dtype} for float64 states {expected.shape}")
-        _compare("the torch model's step()", got.numpy(), expected, k, pairs, MODEL_TOL)
+        if tuple(got.shape) != S.shape or got.dtype != torch.float64:
+            fail(f"step(S, A, {k}) returned {tuple(got.shape)} {got.dtype} for float64 states {S.shape}")
+        return got.numpy()
+
+    _check_steps(ctx, pairs, "the torch model's step()", torch_step, MODEL_TOL)
     for s, p in pairs:
         X = probe_states(ctx, p)
         states = torch.as_tensor(sc.to_model_states(p, X))
@@ -144,14 +145,15 @@ def fused_step(ctx: CheckContext) -> str:
         shape = f"{params.dtype} {params.shape}"
         fail(f"fused_step() params must be C-contiguous float32 ({len(problems)}, P), got {shape}")
     ptr = ctypes.POINTER(ctypes.c_float)
-    N = problems[0].n_steps
-    for k in sorted({0, N // 2, N - 1}):
-        S, U, expected = _transitions(ctx, problems, k)
-        S, U, got = S.astype(np.float32), U.astype(np.float32), np.full(expected.shape, np.nan, np.float32)
-        for b in range(len(problems)):
+
+    def compiled_step(S: np.ndarray, U: np.ndarray, k: int) -> np.ndarray:
+        S, U, got = S.astype(np.float32), U.astype(np.float32), np.full(S.shape, np.nan, np.float32)
+        for b in range(len(S)):
             x, u, p, out = (a.ctypes.data_as(ptr) for a in (S[b], U[b], params[b], got[b]))
             step.ctypes(x, u, k, p, out)
-        _compare("the fused step", got, expected, k, pairs, FUSED_TOL)
+        return got
+
+    _check_steps(ctx, pairs, "the fused step", compiled_step, FUSED_TOL)
     return "the fused decoder's compiled step matches step() (float32)"
 
 
@@ -166,12 +168,23 @@ def _transitions(ctx: CheckContext, problems: list[Problem], k: int) -> tuple[np
     return S, U, np.stack([sc.to_model_states(p, y, start=k + 1)[0] for p, y in zip(problems, nxt, strict=True)])
 
 
-def _compare(
-    what: str, got: np.ndarray, expected: np.ndarray, k: int, pairs: list[tuple[int, Problem]], tol: float
+def _check_steps(
+    ctx: CheckContext,
+    pairs: list[tuple[int, Problem]],
+    what: str,
+    step: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
+    tol: float,
 ) -> None:
-    """Fail naming the worst entry where ``got`` differs from ``expected`` (B, n) by more than ``tol``, relative to
-    each state's largest magnitude over the batch (plus one)."""
-    (b, i), err = worst(np.abs(got - expected) / (np.abs(expected).max(axis=0) + 1.0))
-    if not err <= tol:
-        where = f"{what} at step {k}, state {i} gives {got[b, i]:.6g}"
-        fail(f"{where} but the scenario's step gives {expected[b, i]:.6g} (problem seed {pairs[b][0]})")
+    """Compare a form's ``step(S, U, k)`` (model states (B, n), controls (B, m) -> next model states (B, n)) with the
+    scenario's ``step`` on one random transition per problem (``_transitions``) at the first, middle and last step;
+    fail naming the worst entry where they differ by more than ``tol``, relative to each state's largest magnitude
+    over the batch (plus one)."""
+    problems = [p for _, p in pairs]
+    N = problems[0].n_steps
+    for k in sorted({0, N // 2, N - 1}):
+        S, U, expected = _transitions(ctx, problems, k)
+        got = step(S, U, k)
+        (b, i), err = worst(np.abs(got - expected) / (np.abs(expected).max(axis=0) + 1.0))
+        if not err <= tol:
+            where = f"{what} at step {k}, state {i} gives {got[b, i]:.6g}"
+            fail(f"{where} but the scenario's step gives {expected[b, i]:.6g} (problem seed {pairs[b][0]})")

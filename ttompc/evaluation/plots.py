@@ -4,10 +4,10 @@ Fig. 5–6 (cost and runtime vs planning horizon) and trajectories."""
 from __future__ import annotations
 
 import textwrap
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -23,13 +23,37 @@ def _plt() -> Any:
     return plt
 
 
-def _save(fig: Any, path: str | Path) -> Path:
+def _save(fig: Any, path: str | Path, footer: str = "") -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
+    if footer:
+        fig.text(0.01, 0.005, footer, fontsize=7)
+    fig.tight_layout(rect=(0, 0.02 if footer else 0, 1, 1))
     fig.savefig(path, dpi=110)
     _plt().close(fig)
     return path
+
+
+Row = TypeVar("Row")
+
+
+def row_figure(
+    rows: Sequence[Row],
+    draw: Callable[[Row, Sequence[Any]], None],
+    out: Path,
+    *,
+    size: tuple[float, float],
+    panels: int = 3,
+    footer: str = "",
+) -> Path:
+    """A figure of one row of ``panels`` axes per item of ``rows`` (e.g. a learning curve, one run or curve file a
+    row), ``draw(row, axes)`` filling each row; ``size``: (width, height of one row) in inches; ``footer``: one line
+    of small text at the bottom (e.g. the command that drew it). Written to ``out`` (folders created, 110 dpi) and
+    closed; returns ``out``."""
+    fig, grid = _plt().subplots(len(rows), panels, figsize=(size[0], size[1] * len(rows)), squeeze=False)
+    for row, axes in zip(rows, grid, strict=True):
+        draw(row, axes)
+    return _save(fig, out, footer)
 
 
 def plot_horizon(summary: list[dict[str, Any]], out_dir: str | Path) -> list[Path]:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 
 from ttompc.data.shards import atomic_write_json
 from ttompc.errors import UserError
+from ttompc.evaluation.stats import paired_points
 
 if TYPE_CHECKING:
     from ttompc.evaluation.measurement import Measurement
@@ -59,24 +59,6 @@ class Selection:
             max_steps=self.max_steps,
             robust_blend=BLEND if learned else 0.0,
         )
-
-
-def paired_points(model: Sequence[float | None], base: Sequence[float | None]) -> dict[str, float]:
-    """Mean and standard error of ``model − base`` over the problems both finished (None/nan: goal missed), in the
-    units given (fractions of J_REL), with ``n`` and each side's goal count."""
-    a = np.array([np.nan if v is None else v for v in model], float)
-    b = np.array([np.nan if v is None else v for v in base], float)
-    if a.shape != b.shape:
-        raise ValueError(f"paired increments need one value per problem on both sides, got {a.shape} vs {b.shape}")
-    both = ~np.isnan(a) & ~np.isnan(b)
-    d = a[both] - b[both]
-    return {
-        "mean": float(d.mean()) if d.size else math.nan,
-        "se": float(d.std(ddof=1) / math.sqrt(d.size)) if d.size > 1 else math.nan,
-        "n": int(d.size),
-        "goals": int((~np.isnan(a)).sum()),
-        "baseline_goals": int((~np.isnan(b)).sum()),
-    }
 
 
 def _increments(episodes: Sequence[Any]) -> list[float | None]:
@@ -173,54 +155,47 @@ def curve_figure(curves: Sequence[Path], out: Path) -> Path:
     """One row per curve file (a scenario each): the learned MPC@H paired against REL-MPC@30 (points of J_REL,
     ± one standard error) against training CPU-hours, nominal and perturbed, a line per model size, the marker's
     fill the data (open: fewer problems than the curve's largest set), and the goals reached."""
-    import matplotlib
+    from ttompc.evaluation.plots import row_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    footer = "python -m ttompc.evaluation.scaling_curve figure " + " ".join(map(str, curves))
+    return row_figure(curves, _curve_row, out, size=(14, 3.8), footer=footer)
 
-    fig, grid = plt.subplots(len(curves), 3, figsize=(14, 3.8 * len(curves)), squeeze=False)
-    for path, axes in zip(curves, grid, strict=True):
-        state = json.loads(path.read_text())
-        sel, pts = state["selection"], state["points"]
-        most = max((p["data_problems"] for p in pts), default=0)
-        sizes = sorted({(p["n_embd"], p["n_layer"], p["params"]) for p in pts}, key=lambda s: s[2])
-        for k, (width, depth, params) in enumerate(sizes):
-            mine = sorted(
-                (p for p in pts if (p["n_embd"], p["n_layer"]) == (width, depth)), key=lambda p: p["cpu_hours"]
-            )
-            color = f"C{k}"
-            name = f"{width}×{depth} ({params / 1e6:.1f}M)"
-            for ax, plant in zip(axes[:2], PLANTS, strict=True):
-                done = [p for p in mine if plant in p]
-                x = [max(p["cpu_hours"], 1e-2) for p in done]
-                y = [100 * p[plant]["vs_baseline"]["mean"] for p in done]
-                e = [100 * np.nan_to_num(p[plant]["vs_baseline"]["se"]) for p in done]
-                ax.errorbar(x, y, yerr=e, color=color, capsize=3, lw=1, label=name)
-                for xi, yi, p in zip(x, y, done, strict=True):
-                    ax.plot(xi, yi, "o", color=color, mfc=color if p["data_problems"] >= most else "white")
-            for p in mine:
-                goals = [p[pl]["vs_baseline"]["goals"] for pl in PLANTS if pl in p]
-                axes[2].plot([max(p["cpu_hours"], 1e-2)] * len(goals), goals, "o", color=color)
-        base_goals = {pl: sum(v is not None for v in state["baseline"].get(pl, [])) for pl in PLANTS}
+
+def _curve_row(path: Path, axes: Sequence[Any]) -> None:
+    """The three panels of ``curve_figure`` of one curve file."""
+    state = json.loads(path.read_text())
+    sel, pts = state["selection"], state["points"]
+    most = max((p["data_problems"] for p in pts), default=0)
+    sizes = sorted({(p["n_embd"], p["n_layer"], p["params"]) for p in pts}, key=lambda s: s[2])
+    for k, (width, depth, params) in enumerate(sizes):
+        mine = sorted((p for p in pts if (p["n_embd"], p["n_layer"]) == (width, depth)), key=lambda p: p["cpu_hours"])
+        color = f"C{k}"
+        name = f"{width}×{depth} ({params / 1e6:.1f}M)"
         for ax, plant in zip(axes[:2], PLANTS, strict=True):
-            ax.axhline(0, color="k", lw=0.6)
-            ax.set_title(
-                f"{state['scenario']}, {plant}: learned@{sel['horizon']} − REL-MPC@{sel['baseline_horizon']}"
-                " (points of J_REL)",
-                fontsize=9,
-            )
-        axes[2].axhline(base_goals["nominal"], color="k", lw=0.6, ls="--", label="REL-MPC, nominal")
-        axes[2].set_title(f"{state['scenario']}: goals reached of {sel['problems']} (both plants)", fontsize=9)
-        for ax in axes:
-            ax.set_xscale("log")
-            ax.set_xlabel("training CPU-hours (open marker: fewer problems)")
-            ax.legend(fontsize=7)
-    fig.text(0.01, 0.005, "python -m ttompc.evaluation.scaling_curve figure " + " ".join(map(str, curves)), fontsize=7)
-    fig.tight_layout(rect=(0, 0.02, 1, 1))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+            done = [p for p in mine if plant in p]
+            x = [max(p["cpu_hours"], 1e-2) for p in done]
+            y = [100 * p[plant]["vs_baseline"]["mean"] for p in done]
+            e = [100 * np.nan_to_num(p[plant]["vs_baseline"]["se"]) for p in done]
+            ax.errorbar(x, y, yerr=e, color=color, capsize=3, lw=1, label=name)
+            for xi, yi, p in zip(x, y, done, strict=True):
+                ax.plot(xi, yi, "o", color=color, mfc=color if p["data_problems"] >= most else "white")
+        for p in mine:
+            goals = [p[pl]["vs_baseline"]["goals"] for pl in PLANTS if pl in p]
+            axes[2].plot([max(p["cpu_hours"], 1e-2)] * len(goals), goals, "o", color=color)
+    base_goals = {pl: sum(v is not None for v in state["baseline"].get(pl, [])) for pl in PLANTS}
+    for ax, plant in zip(axes[:2], PLANTS, strict=True):
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_title(
+            f"{state['scenario']}, {plant}: learned@{sel['horizon']} − REL-MPC@{sel['baseline_horizon']}"
+            " (points of J_REL)",
+            fontsize=9,
+        )
+    axes[2].axhline(base_goals["nominal"], color="k", lw=0.6, ls="--", label="REL-MPC, nominal")
+    axes[2].set_title(f"{state['scenario']}: goals reached of {sel['problems']} (both plants)", fontsize=9)
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.set_xlabel("training CPU-hours (open marker: fewer problems)")
+        ax.legend(fontsize=7)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

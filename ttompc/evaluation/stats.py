@@ -1,7 +1,7 @@
 """Bootstrap statistics of the evaluation reports: means with their standard error and a seeded percentile
 bootstrap interval, so two models can be told apart from noise (``interval``), and their table format; and the one
 paired comparison of two methods on the problems both ran (``paired``), which ``ttompc evaluate compare``, the
-closed-loop report and the demo read."""
+closed-loop report and the demo read; and its per-problem form for curves of fixed problems (``paired_points``)."""
 
 from __future__ import annotations
 
@@ -86,3 +86,23 @@ def paired(
 def _finite_mean(values: Iterable[float]) -> float:
     x = [v for v in values if math.isfinite(v)]
     return float(np.mean(x)) if x else float("nan")
+
+
+def paired_points(model: Sequence[float | None], base: Sequence[float | None]) -> dict[str, float]:
+    """``model − base`` per problem (two lists of one value per problem, None or nan where that side missed the
+    goal) over the problems both finished: mean, standard error and ``n`` (``interval``'s), in the units given (e.g.
+    fractions of J_REL), with ``goals`` / ``baseline_goals``: the problems each side finished. Lists of different
+    lengths raise ``ValueError``."""
+    a = np.array([np.nan if v is None else v for v in model], float)
+    b = np.array([np.nan if v is None else v for v in base], float)
+    if a.shape != b.shape:
+        raise ValueError(f"paired increments need one value per problem on both sides, got {a.shape} vs {b.shape}")
+    both = ~np.isnan(a) & ~np.isnan(b)
+    iv = interval(a[both] - b[both])
+    return {
+        "mean": iv["mean"],
+        "se": iv["se"],
+        "n": int(iv["n"]),
+        "goals": int((~np.isnan(a)).sum()),
+        "baseline_goals": int((~np.isnan(b)).sum()),
+    }

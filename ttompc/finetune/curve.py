@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ttompc.data.shards import atomic_write_json
+from ttompc.evaluation.stats import paired_points
 from ttompc.mpc.methods import model_method
 
 if TYPE_CHECKING:
@@ -115,8 +116,7 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
     done = {r["iteration"] for r in records}
     state = json.loads((run / "dagger_state.json").read_text())
     seconds = {r["iteration"]: r.get("seconds", {}) for r in state["completed"]}
-    baseline: dict[str, np.ndarray] = {p: np.array(r["increments"][p], float) for r in records if r["iteration"] == -1
-                                       for p in PLANTS}  # fmt: skip
+    baseline = {p: r["increments"][p] for r in records if r["iteration"] == -1 for p in PLANTS}
     sets: dict[str, tuple[Measurement, list[Any]]] = {}
     for iteration, planner_dir in _models(run):
         if iteration in done:
@@ -135,12 +135,8 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
             record[plant] = {k: metrics[k] for k in keys}
             record["increments"][plant] = [None if math.isnan(v) else float(v) for v in inc]
             if iteration == -1:
-                baseline[plant] = inc
-            both = ~np.isnan(inc) & ~np.isnan(baseline[plant])
-            d = inc[both] - baseline[plant][both]
-            se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
-            record[plant]["vs_pretrained"] = {"mean": float(d.mean()) if len(d) else float("nan"), "se": se,
-                                              "n": len(d)}  # fmt: skip
+                baseline[plant] = record["increments"][plant]
+            record[plant]["vs_pretrained"] = paired_points(record["increments"][plant], baseline[plant])
         # one fixed held-out set for every model: the first iteration's val rows (never trained on)
         dirs = [str(run / "dagger" / "iter-000")] if state["completed"] else []
         record["imitation_loss"] = imitation_loss(planner, data, dirs) if dirs and data else float("nan")
@@ -153,43 +149,39 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
 def curve_figure(runs: Sequence[Path], out: Path) -> Path:
     """One row per run (a scenario per run, each on its own cost scale): the closed-loop cost paired against the
     pretrained model (± one standard error) and the goals per iteration on both plants, for each method measured
-    (``CURVE_FILES``), and the imitation loss on held-out closed-loop rows."""
-    import matplotlib
+    (``CURVE_FILES``), and the imitation loss on held-out closed-loop rows. A run with no measured curve file
+    raises ``FileNotFoundError``."""
+    from ttompc.evaluation.plots import row_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    return row_figure(runs, _run_row, out, size=(13, 3.6))
+
+
+def _run_row(run: Path, axes: Sequence[Any]) -> None:
+    """The three panels of ``curve_figure`` of one run."""
     from matplotlib.ticker import MaxNLocator
 
-    fig, grid = plt.subplots(len(runs), 3, figsize=(13, 3.6 * len(runs)), squeeze=False)
-    for run, axes in zip(runs, grid, strict=True):
-        scenario = json.loads((run / "source-planner" / "config.json").read_text())["scenario"]["name"]
-        files = {method: run / name for method, name in CURVE_FILES.items() if (run / name).is_file()}
-        if not files:
-            raise FileNotFoundError(f"{run} has no measured curve ({', '.join(CURVE_FILES.values())})")
-        for (method, path), marker in zip(files.items(), ("o", "s"), strict=False):
-            recs = json.loads(path.read_text())
-            it = np.array([r["iteration"] for r in recs]) + 1  # 0: the pretrained model
-            for plant, style in zip(PLANTS, ("-", "--"), strict=True):
-                mean = np.array([r[plant]["vs_pretrained"]["mean"] for r in recs]) * 100
-                se = np.array([r[plant]["vs_pretrained"]["se"] for r in recs]) * 100
-                axes[0].errorbar(it, mean, yerr=np.nan_to_num(se), ls=style, marker=marker, capsize=3,
-                                 label=f"{method}, {plant}")  # fmt: skip
-                axes[1].plot(it, [r[plant]["feasible_rate"] for r in recs], ls=style, marker=marker,
-                             label=f"{method}, {plant}")  # fmt: skip
-        axes[2].plot(it, [r["imitation_loss"] for r in recs], marker="o")
-        axes[0].axhline(0, color="k", lw=0.5)
-        titles = ("closed-loop cost vs pretrained, points of J_REL", "goals reached", "imitation loss, held-out rows")
-        for ax, title in zip(axes, titles, strict=True):
-            ax.set_title(f"{scenario}: {title}", fontsize=10)
-            ax.set_xlabel("DAgger iteration (0: pretrained)")
-            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-        for ax in axes[:2]:
-            ax.legend(fontsize=7)
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    scenario = json.loads((run / "source-planner" / "config.json").read_text())["scenario"]["name"]
+    files = {method: run / name for method, name in CURVE_FILES.items() if (run / name).is_file()}
+    if not files:
+        raise FileNotFoundError(f"{run} has no measured curve ({', '.join(CURVE_FILES.values())})")
+    for (method, path), marker in zip(files.items(), ("o", "s"), strict=False):
+        recs = json.loads(path.read_text())
+        it = np.array([r["iteration"] for r in recs]) + 1  # 0: the pretrained model
+        for plant, style in zip(PLANTS, ("-", "--"), strict=True):
+            mean = np.array([r[plant]["vs_pretrained"]["mean"] for r in recs]) * 100
+            se = np.array([r[plant]["vs_pretrained"]["se"] for r in recs]) * 100
+            label = f"{method}, {plant}"
+            axes[0].errorbar(it, mean, yerr=np.nan_to_num(se), ls=style, marker=marker, capsize=3, label=label)
+            axes[1].plot(it, [r[plant]["feasible_rate"] for r in recs], ls=style, marker=marker, label=label)
+    axes[2].plot(it, [r["imitation_loss"] for r in recs], marker="o")
+    axes[0].axhline(0, color="k", lw=0.5)
+    titles = ("closed-loop cost vs pretrained, points of J_REL", "goals reached", "imitation loss, held-out rows")
+    for ax, title in zip(axes, titles, strict=True):
+        ax.set_title(f"{scenario}: {title}", fontsize=10)
+        ax.set_xlabel("DAgger iteration (0: pretrained)")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    for ax in axes[:2]:
+        ax.legend(fontsize=7)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
