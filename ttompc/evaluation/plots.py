@@ -120,11 +120,27 @@ def horizon_cost_panel(
             else:  # no cost to show: a marker at the top edge of the panel
                 y, transform, marker = 0.97, ax.get_xaxis_transform(), "^"
             ax.plot(
-                [r["horizon"]], [y], marker, transform=transform, mfc="none", mec=color, mew=1.5, ms=8,
-                clip_on=False, zorder=10, label=f"_{m} {count} feasible",
-            )  # fmt: skip
-            ax.annotate(count, (r["horizon"], y), xycoords=transform, xytext=(6, 3),
-                        textcoords="offset points", fontsize=6, color=color)  # fmt: skip
+                [r["horizon"]],
+                [y],
+                marker,
+                transform=transform,
+                mfc="none",
+                mec=color,
+                mew=1.5,
+                ms=8,
+                clip_on=False,
+                zorder=10,
+                label=f"_{m} {count} feasible",
+            )
+            ax.annotate(
+                count,
+                (r["horizon"], y),
+                xycoords=transform,
+                xytext=(6, 3),
+                textcoords="offset points",
+                fontsize=6,
+                color=color,
+            )
     horizon_axis(ax, rows)
     ax.set_ylabel("(J − J_REL)/J_REL of feasible runs [%]")
     keys = [

@@ -101,9 +101,16 @@ def _closed_loop(planner: Planner, measurement: Any, problems: list[Any]) -> tup
     return metrics, inc
 
 
-def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed: int = 1001,
-                  protocol: str = "recommended", horizon: int = 10, max_steps: int | None = None,
-                  robust_blend: float = 0.0) -> list[dict[str, Any]]:  # fmt: skip
+def measure_curve(
+    run: Path,
+    data: Sequence[str] = (),
+    problems: int = 50,
+    seed: int = 1001,
+    protocol: str = "recommended",
+    horizon: int = 10,
+    max_steps: int | None = None,
+    robust_blend: float = 0.0,
+) -> list[dict[str, Any]]:
     """Measure every model of ``run`` not yet in its method's curve file (TTO-MPC, or R-TTO-MPC when
     ``robust_blend`` > 0; see the module doc; ``data``: the run's
     open-loop dataset folders, for the imitation loss, nan without them or without held-out closed-loop rows;
@@ -122,12 +129,24 @@ def measure_curve(run: Path, data: Sequence[str] = (), problems: int = 50, seed:
         if iteration in done:
             continue
         planner = Planner.from_pretrained(planner_dir)
-        record: dict[str, Any] = {"iteration": iteration, "planner": str(planner_dir), "increments": {},
-                                  "seconds": seconds.get(iteration, {}), **_labels(run, iteration)}  # fmt: skip
+        record: dict[str, Any] = {
+            "iteration": iteration,
+            "planner": str(planner_dir),
+            "increments": {},
+            "seconds": seconds.get(iteration, {}),
+            **_labels(run, iteration),
+        }
         for plant in PLANTS:
             if plant not in sets:
-                m = Measurement(protocol=protocol, problems=problems, seed=seed, horizons=[horizon], plants=[plant],
-                                max_steps=max_steps, robust_blend=robust_blend)  # fmt: skip
+                m = Measurement(
+                    protocol=protocol,
+                    problems=problems,
+                    seed=seed,
+                    horizons=[horizon],
+                    plants=[plant],
+                    max_steps=max_steps,
+                    robust_blend=robust_blend,
+                )
                 sets[plant] = (m, m.problem_set(planner.scenario))
             m, probs = sets[plant]
             metrics, inc = _closed_loop(planner, m, probs)
