@@ -190,9 +190,10 @@ def _plan(args: argparse.Namespace) -> str:
         buy = f"FIG_GRID={p['grid']} FIG_PROBLEMS={p['problems']} ({p['hours']:.1f} h)" if p["problems"] else "–"
         lines.append(f"| {scenario} | {' | '.join(cells)} | {buy} |")
     machines = sorted({machine_label(e["machine"]) for e in costs.values()})
+    grids = "; ".join(f"{name} H = {', '.join(map(str, grid))}" for name, grid in GRIDS.items())
     lines.append(
-        f"\nCPU-hours per scenario, plants {args.plants}, grids {GRIDS}; measured on {'; '.join(machines)} "
-        f"({args.costs}). Wall hours: divide by the idle cores (workers=)."
+        f"\nCPU-hours per scenario on the {' and '.join(args.plants)} plants, every method; grids: {grids}; "
+        f"measured on {'; '.join(machines)} ({args.costs}). Wall hours: divide by the idle cores (workers=)."
     )
     return "\n".join(lines)
 
