@@ -24,12 +24,18 @@ from ttompc.solvers.backends.riccati_qp import Boxes, Rows, StageQPData
 from ttompc.solvers.spec import SubproblemData
 
 KERNEL = Kernel("the riccati backend's stage-QP build", [Path(__file__)], error_model="numpy")
+_LOADED: set[str] = set()  # "build" once its first call in this process has compiled it or loaded it from the cache
 
 
 def constraints(stage: Any, data: SubproblemData, d_fixed: np.ndarray) -> tuple[Boxes, Rows]:
     """The boxes and rows of ``stage`` (a ``riccati.StageQP``, which imports this module) for one iteration's
     ``data``: the fixed boxes with right-hand sides ``d_fixed`` (those not finite dropped), then each scenario block's
     boxes and rows (``_block``), as ``StageQP._constraints`` orders them."""
+    if not _LOADED:
+        from ttompc.progress import status
+
+        status("riccati backend: loading its stage-QP build (compiled once per machine, ~15 s)")
+        _LOADED.add("build")
     n, m = stage.spec.n, stage.spec.m
     cap = sum(2 * b.live.size for b in stage.blocks)
     bk, bj = np.empty(len(d_fixed) + cap, np.int64), np.empty(len(d_fixed) + cap, np.int64)
