@@ -1,5 +1,6 @@
 """The Riccati backend's per-iteration Python around its kernel, the NumPy reference against the compiled path, in
-one run (``solver_speed.py --only engine``, part 4 there), and the kernel's distance from its arithmetic."""
+one run (``solver_speed.py --only engine``, part 4 there): REL + SCP per problem and MPC windows (H = 10, 30) from
+their solutions, and the kernel's distance from its arithmetic."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ import time
 
 import numpy as np
 
-from ttompc.scenarios import get_scenario
-from ttompc.solvers import solve_problem
+from ttompc.scenarios import Window, get_scenario
+from ttompc.solvers import SCPProblem, TerminalCost, solve_problem, solve_scp
 from ttompc.solvers.backends import riccati_kernel
 from ttompc.solvers.backends.riccati import RiccatiSolver
 
@@ -31,6 +32,8 @@ def engine(name: str, n: int) -> dict:
 
     paths = {"reference": False, "compiled": True}
     rows: dict[str, list] = {k: [] for k in paths}
+    solved: list = []  # (problem, its last solve by the second path)
+    out: dict = {"scenario": name, "problems": n}
     warm = scenario.sample(np.random.default_rng(10_000))
     for compiled in paths.values():  # imports, structure caches and compiled code outside the timing
         RiccatiSolver.compiled = compiled
@@ -50,10 +53,11 @@ def engine(name: str, n: int) -> dict:
                     int(m.group(1)) for r in runs for h in r.history if (m := re.search(r"\((\d+) it", h.solver_status))
                 ]
                 rows[label].append((cpu, kernel["cpu_s"] - kernel_before, runs, ip))
+            solved.append((p, runs[-1]))
     finally:
         riccati_kernel.solve = original
         RiccatiSolver.compiled = True
-    out: dict = {"scenario": name, "problems": n}
+    out["windows"] = {H: windows(scenario, solved, H) for H in (10, 30)}
     for label, r in rows.items():
         cpu, kcpu = np.array([x[0] for x in r]), np.array([x[1] for x in r])
         ip = [k for x in r for k in x[3]]
@@ -75,9 +79,7 @@ def engine(name: str, n: int) -> dict:
         for a, b in zip(ref, comp, strict=True)
         for x, y in zip(a[2], b[2], strict=True)
     )
-    out["kernel_us_per_ip_iteration"] = (
-        1e6 * kernel["cpu_s"] / sum(len(x[3]) and sum(x[3]) for v in rows.values() for x in v)
-    )
+    out["kernel_us_per_ip_iteration"] = 1e6 * kernel["cpu_s"] / sum(its for _, its in calls)
     out["kernel_flops_per_ip_iteration"] = float(np.mean([kernel_flops(qp) for qp, _ in calls]))
     out["kernel_gflops"] = sum(its * kernel_flops(qp) for qp, its in calls) / kernel["cpu_s"] / 1e9
     print(
@@ -85,10 +87,39 @@ def engine(name: str, n: int) -> dict:
         f" compiled {out['compiled']['median_cpu_ms']:.1f}: x{out['ratio']:.2f}; same statuses {out['same_statuses']},"
         f" max |dX| {out['max_abs_dX']:.1e} | kernel {100 * out['compiled']['kernel_share']:.0f}% of the compiled"
         f" path, {out['compiled']['ip_iterations_per_subproblem']:.1f} IP it. per subproblem,"
-        f" {out['kernel_us_per_ip_iteration']:.0f} us per IP it. ({out['kernel_gflops']:.2f} GFLOP/s)",
+        f" {out['kernel_us_per_ip_iteration']:.0f} us per IP it. ({out['kernel_gflops']:.2f} GFLOP/s) | MPC windows "
+        + ", ".join(f"H = {H}: x{w['ratio']:.2f} (same {w['same']})" for H, w in out["windows"].items()),
         flush=True,
     )
     return out
+
+
+def windows(scenario, solved: list, H: int) -> dict:
+    """MPC windows of H steps at steps 10, 40 and 70 of each solution (soft mode, a 2-norm terminal term of weight 10
+    on the solution's state at the window's end, from the solution: a converged receding-horizon step) by both
+    paths, alternating, the least of 3: CPU ms per window, the ratio, equal statuses and iterates."""
+    cases = []
+    for problem, sol in solved:
+        for t in (10, 40, 70):
+            window = Window(t, H, len(sol.U))
+            scp = SCPProblem(scenario, problem, window, TerminalCost(sol.X[t + H], 10.0), soft=True)
+            cases.append((scp, sol.X[t : t + H + 1].copy(), sol.U[t : t + H].copy()))
+    cpu: dict[bool, list[float]] = {False: [], True: []}
+    results: dict[bool, list] = {}
+    try:
+        for rep in range(3):
+            for compiled in (False, True)[rep % 2 :] + (False, True)[: rep % 2]:
+                RiccatiSolver.compiled = compiled
+                c0 = time.process_time()
+                results[compiled] = [solve_scp(*case) for case in cases]
+                cpu[compiled].append((time.process_time() - c0) / len(cases))
+    finally:
+        RiccatiSolver.compiled = True
+    same = all(
+        a.status == b.status and np.array_equal(a.X, b.X) for a, b in zip(results[False], results[True], strict=True)
+    )
+    ref, comp = 1e3 * min(cpu[False]), 1e3 * min(cpu[True])
+    return {"windows": len(cases), "reference_cpu_ms": ref, "compiled_cpu_ms": comp, "ratio": ref / comp, "same": same}
 
 
 def kernel_flops(qp) -> float:

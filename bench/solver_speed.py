@@ -19,9 +19,9 @@
 4. Engine (free-flyer, quadrotor; ``--only engine``): REL + SCP with the Riccati backend's per-iteration Python around
    the kernel as the NumPy reference (``RiccatiSolver.compiled = False``) and compiled (``riccati_build``, the
    default), the same seeded problems, interleaved: median CPU ms per problem and the ratio, whether both paths give
-   the same statuses and iterates (largest |ΔX|), interior-point iterations per subproblem, and the kernel's
-   distance from its arithmetic: its CPU time per interior-point iteration against the flops one iteration does
-   (``kernel_flops``).
+   the same statuses and iterates (largest |ΔX|), interior-point iterations per subproblem, the kernel's distance
+   from its arithmetic (CPU time per interior-point iteration against its flops, ``engine_paths.kernel_flops``),
+   and MPC windows (H = 10, 30) cut from the solutions, by both paths (``bench/engine_paths.py``).
 5. Naive baseline (every scenario, a few problems): time per SCP iteration of the default (``auto``) vs rebuilding a
    cvxpy problem from per-timestep constraint lists every iteration (the reference's approach), and the cost
    difference.
@@ -432,6 +432,8 @@ def main() -> None:
     for name, row in result.get("engine", {}).items():
         headline[f"{name}_compiled_engine_ratio"] = row["ratio"]
         headline[f"{name}_compiled_engine_same_results"] = row["same_statuses"] and row["max_abs_dX"] == 0.0
+        for H, w in row.get("windows", {}).items():
+            headline[f"{name}_compiled_window{H}_ratio"] = w["ratio"]
     for name, row in result.get("naive", {}).items():
         headline[f"{name}_speedup_per_iter_vs_naive"] = row["speedup_per_iter"]
     result["headline"] = headline
