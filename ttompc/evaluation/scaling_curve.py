@@ -104,6 +104,7 @@ def measure_point(
     cpu_hours: float,
     plants: Sequence[str] = PLANTS,
     note: str = "",
+    dagger_iterations: int = 0,
 ) -> dict[str, Any]:
     """Measure the planner at ``planner_dir`` as point ``label`` of ``curve`` (skipped when already there) and
     return its record. A curve file holds one selection; a planner of another scenario is refused."""
@@ -129,6 +130,7 @@ def measure_point(
         **meta,
         "data_problems": data_problems,
         "cpu_hours": cpu_hours,
+        "dagger_iterations": dagger_iterations,
         "note": note,
     }
     base = state.setdefault("baseline", {})
@@ -154,7 +156,8 @@ def measure_point(
 def curve_figure(curves: Sequence[Path], out: Path) -> Path:
     """One row per curve file (a scenario each): the learned MPC@H paired against REL-MPC@30 (points of J_REL,
     ± one standard error) against training CPU-hours, nominal and perturbed, a line per model size, the marker's
-    fill the data (open: fewer problems than the curve's largest set), and the goals reached."""
+    fill the data (open: fewer problems than the curve's largest set), its shape the training (circle: open-loop
+    only, square: with DAgger), and the goals reached (circle: nominal, triangle: perturbed)."""
     from ttompc.evaluation.plots import row_figure
 
     footer = "python -m ttompc.evaluation.scaling_curve figure " + " ".join(map(str, curves))
@@ -163,6 +166,8 @@ def curve_figure(curves: Sequence[Path], out: Path) -> Path:
 
 def _curve_row(path: Path, axes: Sequence[Any]) -> None:
     """The three panels of ``curve_figure`` of one curve file."""
+    from matplotlib.ticker import ScalarFormatter
+
     state = json.loads(path.read_text())
     sel, pts = state["selection"], state["points"]
     most = max((p["data_problems"] for p in pts), default=0)
@@ -178,10 +183,12 @@ def _curve_row(path: Path, axes: Sequence[Any]) -> None:
             e = [100 * np.nan_to_num(p[plant]["vs_baseline"]["se"]) for p in done]
             ax.errorbar(x, y, yerr=e, color=color, capsize=3, lw=1, label=name)
             for xi, yi, p in zip(x, y, done, strict=True):
-                ax.plot(xi, yi, "o", color=color, mfc=color if p["data_problems"] >= most else "white")
+                shape = "s" if p.get("dagger_iterations", 0) else "o"
+                ax.plot(xi, yi, shape, color=color, mfc=color if p["data_problems"] >= most else "white")
         for p in mine:
-            goals = [p[pl]["vs_baseline"]["goals"] for pl in PLANTS if pl in p]
-            axes[2].plot([max(p["cpu_hours"], 1e-2)] * len(goals), goals, "o", color=color)
+            for plant, shape in zip(PLANTS, "o^", strict=True):
+                if plant in p:
+                    axes[2].plot(max(p["cpu_hours"], 1e-2), p[plant]["vs_baseline"]["goals"], shape, color=color)
     base_goals = {pl: sum(v is not None for v in state["baseline"].get(pl, [])) for pl in PLANTS}
     for ax, plant in zip(axes[:2], PLANTS, strict=True):
         ax.axhline(0, color="k", lw=0.6)
@@ -190,10 +197,13 @@ def _curve_row(path: Path, axes: Sequence[Any]) -> None:
             " (points of J_REL)",
             fontsize=9,
         )
-    axes[2].axhline(base_goals["nominal"], color="k", lw=0.6, ls="--", label="REL-MPC, nominal")
-    axes[2].set_title(f"{state['scenario']}: goals reached of {sel['problems']} (both plants)", fontsize=9)
+    for plant, style in zip(PLANTS, ("--", ":"), strict=True):
+        axes[2].axhline(base_goals[plant], color="k", lw=0.6, ls=style, label=f"REL-MPC@30, {plant}")
+    axes[2].set_title(f"{state['scenario']}: goals reached of {sel['problems']} (○ nominal, △ perturbed)", fontsize=9)
     for ax in axes:
         ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(ScalarFormatter())
         ax.set_xlabel("training CPU-hours (open marker: fewer problems)")
         ax.legend(fontsize=7)
 
@@ -208,6 +218,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     m.add_argument("--data-problems", type=int, required=True, help="problems of the data it was trained on")
     m.add_argument("--cpu-hours", type=float, required=True, help="training CPU-hours to reach it")
     m.add_argument("--note", default="")
+    m.add_argument("--dagger-iterations", type=int, default=0, help="DAgger iterations in its training (0: none)")
     m.add_argument("--problems", type=int, default=50)
     m.add_argument("--seed", type=int, default=1001)
     m.add_argument("--horizon", type=int, default=10)
@@ -230,6 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         cpu_hours=a.cpu_hours,
         plants=a.plants,
         note=a.note,
+        dagger_iterations=a.dagger_iterations,
     )
     print(json.dumps({"label": r["label"], **{pl: r[pl]["vs_baseline"] for pl in PLANTS if pl in r}}))
     return 0
