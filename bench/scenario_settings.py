@@ -115,8 +115,8 @@ def closed_loop(base: type[Scenario], n: int, horizon: int = 10) -> list[dict[st
     cases: list[tuple[str, Any, MPCWeights]] = [
         ("REL-MPC, shipped", RELProvider, w),
         ("REL-MPC, end 0.1 (too weak)", RELProvider, replace(w, end=0.1)),
-        ("REL-MPC, terminal 0.3 (too weak)", RELProvider, replace(w, terminal=0.3)),
-        ("REL-MPC, terminal 30 (too strong)", RELProvider, replace(w, terminal=30.0)),
+        ("REL-MPC, target 0.3 (too weak)", RELProvider, replace(w, target=0.3)),
+        ("REL-MPC, target 30 (too strong)", RELProvider, replace(w, target=30.0)),
         ("REL-MPC, fuel 100 (too strong)", RELProvider, replace(w, fuel=100.0)),
         ("DIST-MPC, shipped", DISTProvider, w),
         ("DIST-MPC, dist 0.1 (too weak)", DISTProvider, replace(w, dist=(0.1,) * base.state_dim)),

@@ -100,7 +100,7 @@ def main() -> None:
             print(f"{name:>10} {i:>7} {row['max']:>8.3g} {row['at']:>5} {row['median']:>7.3g} "
                   f"{sc.mpc.tracking:>8.3g}")  # fmt: skip
         largest = max(r["max"] for r in per_problem)
-        results[name] = {"max": largest, "tracking": sc.mpc.tracking, "terminal": sc.mpc.terminal,
+        results[name] = {"max": largest, "tracking": sc.mpc.tracking, "target": sc.mpc.target,
                          "exact": bool(sc.mpc.tracking > largest), "problems": per_problem}  # fmt: skip
         verdict = "exceeds" if results[name]["exact"] else "does NOT exceed"
         print(f"{name}: tracking weight {sc.mpc.tracking:g} {verdict} the largest multiplier {largest:.3g}")

@@ -64,9 +64,9 @@ class DoubleIntegrator2D(compiled.CompiledScenario):
     # Δ bounds every state entry's change per SCP iteration, in state units: 2 m lets the first iteration swing
     # the straight line around the disc; 1e-3 m is where it stops. docs/scenarios.md measures other choices.
     scp: ClassVar[SCPSettings] = SCPSettings(tr_start=2.0, tr_end=1e-3, max_iters=20, penalty=1e2, feas_tol=1e-4)
-    # soft MPC: weights of the norms ‖x_N − goal‖ (end), ‖x_{t+H} − x̄‖ (terminal, REL-/TTO-MPC) and
+    # soft MPC: weights of the norms ‖x_N − goal‖ (end), ‖x_{t+H} − x̄‖ (target, REL-/TTO-MPC) and
     # ‖diag(dist)(x_{t+H} − goal)‖ (DIST-MPC) against the fuel Σ ½‖u‖²; chosen by bench/scenario_settings.py
-    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, terminal=3.0, dist=(1.0, 1.0, 1.0, 1.0))
+    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, target=3.0, dist=(1.0, 1.0, 1.0, 1.0))
     state_scale: ClassVar[tuple[float, ...]] = (1.0, 1.0, 0.5, 0.5)  # m, m, m/s, m/s: typical magnitudes
     control_scale: ClassVar[tuple[float, ...]] = (0.2, 0.2)  # m/s²
     terminal_tol: ClassVar[float] = 5e-2

@@ -49,7 +49,7 @@ class ToyScenario(Scenario):
     n_steps: ClassVar[int] = TOY_STEPS
     cost_norm = "l1"
     scp: ClassVar[SCPSettings] = SCPSettings(tr_start=1.0, tr_end=0.01)
-    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, terminal=1.0, dist=(1,) * 6)
+    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, target=1.0, dist=(1,) * 6)
     state_labels = ("x", "y", "z", "vx", "vy", "vz")
     control_labels = ("ux", "uy", "uz")
 

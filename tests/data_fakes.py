@@ -37,7 +37,7 @@ class FakeScenario(Scenario):
     n_steps: ClassVar[int] = 12
     cost_norm = "l1"
     scp: ClassVar[SCPSettings] = SCPSettings(tr_start=1.0, tr_end=0.01)
-    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, terminal=1.0, dist=(1, 1, 1, 1, 1, 1))
+    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, target=1.0, dist=(1, 1, 1, 1, 1, 1))
     state_labels = ("x [m]", "y [m]", "ψ [rad]", "vx [m/s]", "vy [m/s]", "ω [rad/s]")
     control_labels = ("Δvx [m/s]", "Δvy [m/s]", "Δω [rad/s]")
     SCALE: ClassVar[np.ndarray] = np.array([2.0, 2.0, 1.0, 10.0, 10.0, 1.0])  # model representation = scaled

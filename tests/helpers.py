@@ -70,7 +70,7 @@ def qp_subproblem(name: str, seed: int, window: Window, obstacles: bool, penaliz
         virtual_control=penalized and not sc.exact_linear_dynamics,
         vc_rows=tuple(sc.approximate_rows),
         trust="linf",
-        terminal="hard",
+        end_form="hard",
         soft_equalities=False,
         penalty=sc.scp.penalty,
         blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),

@@ -57,9 +57,9 @@ def _model(rng: np.random.Generator, center: np.ndarray, units: np.ndarray, size
 
 def _window(name: str, terminal: str, seed: int) -> tuple[SubproblemSpec, SubproblemData, np.ndarray]:
     """(spec, data, state units) of an H = 10 window subproblem with a terminal model (and the target's cone for
-    ``terminal="soft"``)."""
+    ``end_form="soft"``)."""
     sc, spec, data = qp_subproblem(name, 5, Window(20, 10, 100), True, True, delta=0.3)
-    spec = dataclasses.replace(spec, terminal=terminal, tr_states=tuple(range(1, 11)), terminal_value=True)
+    spec = dataclasses.replace(spec, end_form=terminal, tr_states=tuple(range(1, 11)), terminal_value=True)
     sx, rng = sc.state_units(), np.random.default_rng(seed)
     size = 1e-3 if name == "rpod" else 1.0  # RPOD's fuel is in m/s, its costates ~1e-3 per metre
     data = dataclasses.replace(data, terminal_cost=_model(rng, data.X_ref[-1], sx, size))
@@ -108,7 +108,7 @@ def test_a_model_without_its_block_is_refused() -> None:
     with pytest.raises(ValueError, match="terminal_value=True"):
         AssembledSolver(dataclasses.replace(spec, terminal_value=False), ["clarabel"]).solve(data)
     with pytest.raises(ValueError, match="terminal_value=True"):
-        AssembledSolver(dataclasses.replace(spec, terminal="value", terminal_value=False), ["clarabel"])
+        AssembledSolver(dataclasses.replace(spec, end_form="value", terminal_value=False), ["clarabel"])
 
 
 @pytest.fixture(scope="module")

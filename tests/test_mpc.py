@@ -102,7 +102,7 @@ def test_providers_respect_the_window(setup: tuple) -> None:
             np.testing.assert_array_equal(ws.terminal.weights, np.asarray(sc.mpc.dist, float))
         else:  # the target is the warm start's own state at t+H; a model's plan is tracked with mpc.tracking
             np.testing.assert_array_equal(ws.terminal.target, ws.X[-1])
-            weight = sc.mpc.tracking if isinstance(prov, TTOProvider) else sc.mpc.terminal
+            weight = sc.mpc.tracking if isinstance(prov, TTOProvider) else sc.mpc.target
             np.testing.assert_array_equal(ws.terminal.weights, np.full(6, weight))
     # REL-MPC: REL over the whole remaining horizon from x, truncated
     w = Window(5, 10, N)
@@ -298,7 +298,7 @@ def test_plan_once_and_oracle_mpc_reproduce_the_open_loop_optimum(setup: tuple) 
     1 is below them while braking at the thrust bound) tracking the exact optimum on the exact plant gives it back:
     its cost within 0.1% and the goal. The oracle never leaves its plan, so it never re-plans."""
     sc, problem, rel, scp = setup
-    assert sc.mpc.tracking > sc.mpc.terminal
+    assert sc.mpc.tracking > sc.mpc.target
     oracle = OracleProvider((scp.X, scp.U))
     for provider in (PlanProvider((scp.X, scp.U)), oracle):
         e = run_mpc(sc, problem, provider, 10, rel_cost=rel.cost)
@@ -600,8 +600,8 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
     from ttompc.mpc.departures import departures
 
     sc = get_scenario(mpc_fakes.FreeFlyerShort.name)
-    paper = ClosedLoopConfig(scenario=sc.name, mpc={"track": sc.mpc.terminal})
-    assert departures(paper.settings, sc) == [] and protocol_label(paper) == f"paper mpc.track={sc.mpc.terminal}"
+    paper = ClosedLoopConfig(scenario=sc.name, mpc={"track": sc.mpc.target})
+    assert departures(paper.settings, sc) == [] and protocol_label(paper) == f"paper mpc.track={sc.mpc.target}"
     zoo = ClosedLoopConfig(scenario=sc.name, protocol="zoo", mpc={"rtg_mode": "reanchor"})
     assert zoo.settings == MPCSettings(end_horizon=30, rtg_mode="reanchor")
     notes = departures(zoo.settings, sc)
@@ -653,7 +653,7 @@ def test_settings_name_self_describing_rtg_modes_and_terminal_terms() -> None:
         assert preset["rtg_mode"] in RTG_MODES and preset["terminal"] in TERMINALS, path
     for name, mode in RTG_MODES.items():
         MPCSettings(rtg_mode=name)
-        notes = departures(MPCSettings(rtg_mode=name, track=sc.mpc.terminal), sc)
+        notes = departures(MPCSettings(rtg_mode=name, track=sc.mpc.target), sc)
         assert (notes == []) == mode.paper == (mode.label() == "") and (not notes or name in notes[0])
         assert mode.rollouts  # every mode runs in DAgger's rollouts so far
         check_rollout_settings(MPCSettings(rtg_mode=name))
@@ -667,7 +667,7 @@ def test_settings_name_self_describing_rtg_modes_and_terminal_terms() -> None:
     for kind in ("value", "value+target"):
         assert "curvature" in str(TERMINALS[kind].refusal(mpc_fakes.tiny_planner()))
         assert isinstance(terminal_term(MPCSettings(terminal=kind)), TERMINALS["target"])
-        assert departures(MPCSettings(terminal=kind, track=sc.mpc.terminal), sc)[0].startswith(f"terminal {kind}")
+        assert departures(MPCSettings(terminal=kind, track=sc.mpc.target), sc)[0].startswith(f"terminal {kind}")
 
 
 def test_methods_are_registered_once_with_what_they_need() -> None:

@@ -277,7 +277,7 @@ def test_mpc_windows_soft_terminal_cone_matches_clarabel(name) -> None:
     from ttompc.solvers.naive import NaiveCvxpySolver
 
     sc, spec, data = qp_subproblem(name, 5, Window(20, 10, 100), True, True, delta=0.3)
-    spec = dataclasses.replace(spec, terminal="soft", tr_states=tuple(range(1, 11)))
+    spec = dataclasses.replace(spec, end_form="soft", tr_states=tuple(range(1, 11)))
     assert supports(spec)
     rng = np.random.default_rng(9)
     weights = np.linspace(1.0, 4.0, sc.state_dim)
@@ -300,7 +300,7 @@ def _window_with_terminal_cost(name: str, seed: int) -> tuple[SubproblemSpec, Su
     """(spec, data, state units) of an MPC window (H = 10, the soft terminal cone, a target slightly off) whose data
     carries a quadratic terminal cost-to-go model with a positive definite P, O(1) in the scaled variables."""
     sc, spec, data = qp_subproblem(name, 5, Window(20, 10, 100), True, True, delta=0.3)
-    spec = dataclasses.replace(spec, terminal="soft", tr_states=tuple(range(1, 11)))
+    spec = dataclasses.replace(spec, end_form="soft", tr_states=tuple(range(1, 11)))
     n, (sx, _) = sc.state_dim, spec.units()
     rng = np.random.default_rng(seed)
     M = rng.normal(size=(n, n))

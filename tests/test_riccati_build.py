@@ -81,7 +81,7 @@ def test_window_with_terminal_cone_and_cost_model(name) -> None:
     from ttompc.solvers.spec import QuadraticTerminalCost
 
     sc, spec, data = qp_subproblem(name, 5, Window(20, 10, 100), True, True, delta=0.3)
-    spec = dataclasses.replace(spec, terminal="soft", tr_states=tuple(range(1, 11)))
+    spec = dataclasses.replace(spec, end_form="soft", tr_states=tuple(range(1, 11)))
     n, rng = sc.state_dim, np.random.default_rng(2)
     M = rng.normal(size=(n, n))
     model = QuadraticTerminalCost(hessian=M @ M.T, gradient=rng.normal(size=n), center=data.X_ref[-1])

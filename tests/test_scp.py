@@ -154,7 +154,7 @@ def test_assembled_subproblem_matches_cvxpy(ff, terminal, trust) -> None:
             penalized=True,
             virtual_control=True,
             trust=trust,
-            terminal=terminal,
+            end_form=terminal,
             soft_equalities=soft_eq,
             penalty=100.0,
             blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
@@ -200,7 +200,7 @@ def test_mpc_window_with_terminal_cost(ff) -> None:
     rel = solve_rel(ff, p)
     w = Window(0, 20, 100)
     X0, U0 = rel.X[:21], rel.U[:20]
-    res = solve_scp(SCPProblem(ff, p, w, TerminalCost(rel.X[20], ff.mpc.terminal)), X0, U0)
+    res = solve_scp(SCPProblem(ff, p, w, TerminalCost(rel.X[20], ff.mpc.target)), X0, U0)
     assert res.success and res.X.shape == (21, 6)
     assert np.linalg.norm(res.X[-1] - rel.X[20]) < 0.05  # pulled to the REL state at t+H
 

@@ -112,7 +112,7 @@ def _interface(ctx: CheckContext) -> str:
         fail(f"scp needs 0 < tr_end <= tr_start, max_iters >= 1, penalty > 0 and feas_tol > 0, got {scp}")
     mpc = getattr(sc, "mpc", None)
     if not isinstance(mpc, MPCWeights):
-        fail("mpc must be an MPCWeights (fuel, end, terminal, dist)")
+        fail("mpc must be an MPCWeights (fuel, end, target, dist)")
     if len(mpc.dist) != n:
         fail(f"mpc.dist has {len(mpc.dist)} weights for {n} states")
     for attr, size in (("state_labels", n), ("control_labels", m), ("state_scale", n), ("control_scale", m)):

@@ -5,7 +5,7 @@ A provider fills the window [t, t+H) with a warm start in the *optimisation* rep
 first row is the measured state, controls (H, m)) and, for windows that stop before the end, the terminal cost:
 
 * ``RELProvider`` (REL-MPC): REL over the whole remaining horizon [t, N) from x_t, truncated to the window; the
-  terminal target x̄ is the REL state at t+H (weights ``mpc.terminal``).
+  terminal target x̄ is the REL state at t+H (weights ``MPCWeights.target``).
 * ``DISTProvider`` (DIST-MPC): REL over the window only, with the distance-to-goal terminal cost diag(``mpc.dist``).
 * ``TTOProvider`` (TTO-MPC / FT-TTO-MPC) and its batching (``RolloutGroup``): ``ttompc.mpc.tto``.
 * ``ShiftProvider`` (the DAgger expert): the previous plan shifted by one step (first row replaced by the measured
@@ -98,7 +98,7 @@ class RemainingREL:
 
 class RELProvider:
     """REL-MPC: full remaining-horizon REL (``RemainingREL``), truncated; terminal target = REL state at t+H
-    (weight ``mpc.terminal``, the paper's)."""
+    (weight ``MPCWeights.target``, the paper's)."""
 
     role: Role = "baseline"
 
@@ -118,7 +118,7 @@ class RELProvider:
         else:  # an unconverged REL is still a usable guess; the straight line is the last resort
             X, U = sc.initial_guess(p, window, x)
         X[0] = x
-        return WarmStart(X, U, _terminal(window, X[-1], sc.mpc.terminal))
+        return WarmStart(X, U, _terminal(window, X[-1], sc.mpc.target))
 
     def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
         return None
@@ -176,7 +176,7 @@ class ShiftProvider:
         else:
             X, U = self.X[: window.length + 1].copy(), self.U[: window.length].copy()
         X[0] = x
-        return WarmStart(X, U, _terminal(window, X[-1], self.scenario.mpc.terminal))
+        return WarmStart(X, U, _terminal(window, X[-1], self.scenario.mpc.target))
 
     def observe(self, u: np.ndarray, x_next: np.ndarray, plan_X: np.ndarray, plan_U: np.ndarray) -> None:
         self.X, self.U = plan_X[1:], plan_U[1:]

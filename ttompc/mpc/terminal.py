@@ -19,9 +19,9 @@ window's plan (``__call__``). Adding a kind is a class here, its entry in ``TERM
 variant measured in ``docs/evaluation.md`` (the new target blended with the previous target shifted by one step,
 ``TerminalDesign.blend``), weighted by ``mpc.tracking`` on every component (``MPCSettings.track`` replaces it). That
 weight must exceed the multiplier of the window's terminal constraint for a window to keep an exact plan
-(``MPCWeights``); the paper's ``mpc.terminal`` does not on the free-flyer and the quadrotor, so the tracking weight (3
-and 2 there) is a departure from the paper for TTO-MPC, which PLAN-ONCE and ORACLE-MPC share so that they stay its
-ceilings.
+(``MPCWeights``); the paper's weight (``MPCWeights.target``) does not on the free-flyer and the quadrotor, so the
+tracking weight (3 and 2 there) is a departure from the paper for TTO-MPC, which PLAN-ONCE and ORACLE-MPC share so
+that they stay its ceilings.
 
 ``value`` and ``value+target`` price what finishing costs (a departure): the model's learned cost-to-go
 V(x_{t+H}, t+H) at the window's end state, alone or beside the target pull. The value output's ``gauss_newton`` form
@@ -121,11 +121,11 @@ class TargetFilter(TerminalTerm):
     @classmethod
     def departures(cls, settings: MPCSettings, scenario: Scenario) -> list[str]:
         track = scenario.mpc.tracking if settings.track is None else settings.track
-        if track == scenario.mpc.terminal:
+        if track == scenario.mpc.target:
             return []
         return [
             f"plan-tracking terminal weight {track:g} for TTO-MPC, PLAN-ONCE and ORACLE-MPC (the paper: "
-            f"{scenario.mpc.terminal:g}, below the terminal multipliers of optimal plans; docs/evaluation.md)"
+            f"{scenario.mpc.target:g}, below the terminal multipliers of optimal plans; docs/evaluation.md)"
         ]
 
     @classmethod

@@ -11,8 +11,8 @@ robot's first control step.
 
 ``warm_up`` solves a throwaway REL and two throwaway windows of the scenario (the first window and one that reaches
 the end) as the run's settings pose them, and for every TTO provider whose rollouts decode with the fused kernel
-one throwaway rollout, context advance and rollout of its model; once per process and key (scenario, backend and
-mode; scenario, the model's number of layers and decoder), so only a process's first run pays it.
+one throwaway rollout, two context advances and a rollout of its model; once per process and key (scenario, backend
+and mode; scenario, the model's number of layers and decoder), so only a process's first run pays it.
 ``run_mpc_batch`` calls it before its first step (``evaluate mpc``, the training callback, DAgger and the demo),
 ``ttompc.mpc.controller.Controller`` when it is built. A warm-up of ``NOTICE_SECONDS`` or more says so on stderr
 (``ttompc.progress.status``: unless progress is off).
@@ -79,20 +79,22 @@ def _solve(scenario: Scenario, problem: Problem, horizon: int, settings: MPCSett
         if window.reaches_end:
             terminal = TerminalCost(problem.goal, scenario.mpc.end) if soft else None
         else:
-            terminal = TerminalCost(X[-1], np.asarray(scenario.mpc.terminal, dtype=np.float64))
+            terminal = TerminalCost(X[-1], np.asarray(scenario.mpc.target, dtype=np.float64))
         solve_scp(scp.update(window=window, terminal=terminal, soft=soft), X, U, options)
 
 
 def _decode(scenario: Scenario, problem: Problem, provider: TTOProvider, horizon: int) -> bool:
-    """One rollout, context advance and rollout of ``provider``'s model on ``problem`` when its rollouts decode with
-    the fused kernel (the torch path compiles nothing); returns whether they do."""
+    """A rollout, two context advances (the first claims the rollout's token, the second, with no rollout before
+    it, runs the extension kernel: ``ttompc.policy.fused``) and a rollout of ``provider``'s model on ``problem`` when
+    its rollouts decode with the fused kernel (the torch path compiles nothing); returns whether they do."""
     planner, group = provider.planner, provider.group
     ctx = planner.context([problem], rtg0=-1.0, use_cache=group.use_cache, decoder=group.decoder)
     if ctx.decoder != "fused":
         return False
-    H = max(1, min(horizon, problem.n_steps - 1, planner.model.cfg.max_steps - 1))
+    H = max(1, min(horizon, problem.n_steps - 2, planner.model.cfg.max_steps - 2))
     ctx.rollout(H)
-    s1 = scenario.to_model_states(problem, problem.x0[None], start=1)
-    ctx.advance(np.zeros((1, scenario.control_dim)), s1)
+    for k in (1, 2):
+        s = scenario.to_model_states(problem, problem.x0[None], start=k)
+        ctx.advance(np.zeros((1, scenario.control_dim)), s)
     ctx.rollout(H)
     return True

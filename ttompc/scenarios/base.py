@@ -174,10 +174,10 @@ class MPCWeights:
     """Soft-mode receding-horizon weights (paper §V: terminal cost ‖x_{t+H} − x̄‖_P; values from the authors' code).
 
     cost = fuel·Σc(u) + end·‖x_N − goal‖₂ (window reaches the end) or ‖P (x_{t+H} − x̄)‖₂ otherwise, with
-    P = terminal·I for REL-MPC's target, P = track·I for the targets of plan-tracking providers (TTO-MPC,
+    P = target·I for REL-MPC's target, P = track·I for the targets of plan-tracking providers (TTO-MPC,
     PLAN-ONCE, ORACLE-MPC) and P = diag(dist) towards the goal for DIST-MPC.
 
-    ``track`` (None: ``terminal``, the paper's weight for TTO-MPC too): ‖x_{t+H} − x̄‖₂ is an exact penalty of the
+    ``track`` (None: ``target``, the paper's weight for TTO-MPC too): ‖x_{t+H} − x̄‖₂ is an exact penalty of the
     window's terminal constraint x_{t+H} = x̄ only when the weight exceeds the 2-norm of that constraint's multiplier
     (the marginal cost of moving x̄); below it the window leaves an optimal plan it is given. Measure the
     multipliers along the scenario's open-loop optima with ``bench/tracking_weight.py`` and set ``track`` above
@@ -190,7 +190,7 @@ class MPCWeights:
 
     fuel: float
     end: float
-    terminal: float
+    target: float  # the weight of the window's terminal target term (the paper's; ``mpc.terminal`` names its kind)
     dist: tuple[float, ...]
     waypoint: float = 1.0
     track: float | None = None
@@ -198,8 +198,8 @@ class MPCWeights:
 
     @property
     def tracking(self) -> float:
-        """The terminal weight of plan-tracking windows: ``track``, or ``terminal`` when unset."""
-        return self.terminal if self.track is None else self.track
+        """The target weight of plan-tracking windows: ``track``, or ``target`` when unset."""
+        return self.target if self.track is None else self.track
 
 
 class BatchedModel(Protocol):

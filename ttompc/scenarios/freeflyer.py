@@ -91,7 +91,7 @@ class FreeFlyer(CompiledScenario):
     # track: above the terminal multipliers of H = 10 windows along open-loop optima, which exceed the paper's 1
     # (bench/tracking_weight.py; measured in docs/evaluation.md, "Tracking weight")
     mpc: ClassVar[MPCWeights] = MPCWeights(
-        fuel=1.0, end=9.9, terminal=1.0, dist=(1, 1, 1, 7, 7, 7), track=3.0, rti="model"
+        fuel=1.0, end=9.9, target=1.0, dist=(1, 1, 1, 7, 7, 7), track=3.0, rti="model"
     )
     state_scale: ClassVar[tuple[float, ...]] = (1.0, 1.0, 1.0, 0.1, 0.1, 0.1)
     control_scale: ClassVar[tuple[float, ...]] = (0.01, 0.01, 0.01)  # Δv [m/s]

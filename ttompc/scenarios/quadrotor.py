@@ -80,7 +80,7 @@ class Quadrotor(CompiledScenario):
     )
     # track: above the terminal multipliers of H = 10 windows along open-loop optima, which exceed the paper's 1 at
     # the end of the braking phase (bench/tracking_weight.py; measured in docs/evaluation.md, "Tracking weight")
-    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, terminal=1.0, dist=(0.08,) * 6, track=2.0)
+    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, target=1.0, dist=(0.08,) * 6, track=2.0)
     state_scale: ClassVar[tuple[float, ...]] = (1.0, 1.0, 1.0, 0.1, 0.1, 0.1)
     control_scale: ClassVar[tuple[float, ...]] = (0.1, 0.1, 0.1)  # N
     state_labels = ("x [m]", "y [m]", "z [m]", "vx [m/s]", "vy [m/s]", "vz [m/s]")

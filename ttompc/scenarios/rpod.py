@@ -144,7 +144,7 @@ class Rpod(Scenario):
     # component toward the goal (the reference aims at the waypoint's ROE, 30 m further along δλ).
     # track unset (= terminal): the terminal multipliers of H = 10 windows along open-loop optima are far below 0.1
     # (bench/tracking_weight.py; measured in docs/evaluation.md, "Tracking weight")
-    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=0.1, end=1.0, terminal=0.1, dist=(0.1,) * 6, waypoint=1.0)
+    mpc: ClassVar[MPCWeights] = MPCWeights(fuel=0.1, end=1.0, target=0.1, dist=(0.1,) * 6, waypoint=1.0)
     state_scale: ClassVar[tuple[float, ...]] = (10.0, 100.0, 100.0, 100.0, 100.0, 100.0)  # ROE [m]
     control_scale: ClassVar[tuple[float, ...]] = (0.01, 0.01, 0.01)  # Δv [m/s]
     # Clarabel alone: QOCO fails on some RPOD problems (numerical errors on the cone/waypoint rows; docs/design.md)

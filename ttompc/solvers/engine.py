@@ -214,7 +214,7 @@ def _subproblem_solver(
         virtual_control=penalized and not sc.exact_linear_dynamics,
         vc_rows=tuple(sc.approximate_rows),
         trust=trust_norm if np.isfinite(settings.tr_start) else "none",
-        terminal=_terminal_kind(terminal),
+        end_form=_end_form(terminal),
         soft_equalities=scp.soft,
         penalty=float(settings.penalty),
         blocks=tuple(SubproblemSpec.block_signature(b) for b in blocks),
@@ -265,9 +265,9 @@ def _subproblem_data(
     )
 
 
-def _terminal_kind(terminal: TerminalCost | None) -> str:
-    """The subproblem's terminal structure: "hard" (x_N = goal), "soft" (the 2-norm term's cone, with a cost-to-go
-    model where the term has a value) or "value" (the cost-to-go model alone)."""
+def _end_form(terminal: TerminalCost | None) -> str:
+    """The subproblem's end form (``SubproblemSpec.end_form``): "hard" (x_N = goal), "soft" (the 2-norm term's
+    cone, with a cost-to-go model where the term has a value) or "value" (the cost-to-go model alone)."""
     if terminal is None:
         return "hard"
     return "soft" if terminal.has_norm else "value"

@@ -46,14 +46,14 @@ class NaiveCvxpySolver:
                 cost += spec.penalty * cp.norm1(nu)
                 rhs = rhs + np.eye(n)[:, rows] @ nu
             cons.append(x[j + 1] == rhs)
-        if spec.terminal == "hard":
+        if spec.end_form == "hard":
             if spec.penalized:
                 s = cp.Variable(n)
                 cost += spec.penalty * cp.norm1(s)
                 cons.append(x[H] - s == data.goal)
             else:
                 cons.append(x[H] == data.goal)
-        elif spec.terminal == "soft":
+        elif spec.end_form == "soft":
             cost += cp.norm(cp.multiply(data.terminal_weights, x[H] - data.terminal_target), 2)
         if data.terminal_cost is not None:  # ½ eᵀPe + gᵀe, e = x_H − x̄ (P positive semidefinite)
             tc = data.terminal_cost

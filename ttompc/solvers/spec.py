@@ -52,7 +52,8 @@ class SubproblemSpec:
     penalized: bool
     virtual_control: bool  # ν on the dynamics rows ``vc_rows`` (empty: all rows), with an exact L1 penalty
     trust: str  # "l2", "linf" or "none"
-    terminal: str  # "hard", "soft" (the 2-norm term's cone) or "value" (a cost-to-go model alone)
+    # the window end's form: "hard" (x_H = goal), "soft" (the 2-norm term's cone) or "value" (a cost-to-go model alone)
+    end_form: str
     soft_equalities: bool
     penalty: float
     blocks: tuple[tuple[Any, ...], ...]

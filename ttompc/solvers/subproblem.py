@@ -4,7 +4,7 @@
 
 z stacks the window states X (H+1, n), controls U (H, m), the cost epigraph variables and the slacks. The matrix
 *structure* (sparsity, cone sizes) depends only on a key — window length, cost norm, formulation, trust-region norm,
-terminal mode and the shapes/steps of the scenario's constraint blocks — so it is built once per key and cached;
+end form and the shapes/steps of the scenario's constraint blocks — so it is built once per key and cached;
 each SCP iteration only rewrites the numeric values (dynamics A_k/B_k/c_k, linearised rows, trust-region centre
 and radius, targets, a terminal cost-to-go model in P and q: ``objective.py``) through precomputed index maps. No
 modelling layer runs inside the loop. The dynamics rows x_{j+1} − A_j x_j − B_j u_j − ν_j = c_j stay in the state's
@@ -99,7 +99,7 @@ class AssembledSubproblem:
         spec = self.spec
         H, n = spec.H, spec.n
         # terminal condition
-        if spec.terminal == "hard":
+        if spec.end_form == "hard":
             r = zero.add_rows(n)
             self._entries(zero, r, self.ix[H], ("const", np.ones(n)))
             zero.b.append((r, ("goal", np.arange(n), 1.0)))
@@ -109,7 +109,7 @@ class AssembledSubproblem:
                 self._entries(zero, r, sm_, ("const", np.ones(n)))
                 self._nonneg_vars(nonneg, np.concatenate([sp_, sm_]))
                 q_parts.append((np.concatenate([sp_, sm_]), spec.penalty))
-        elif spec.terminal == "value":  # the cost-to-go model alone: x_H free, its block in P (``objective.py``)
+        elif spec.end_form == "value":  # the cost-to-go model alone: x_H free, its block in P (``objective.py``)
             if not spec.terminal_value:
                 raise ValueError("a spec with terminal 'value' needs terminal_value=True")
         else:  # τ ≥ ‖W (x_H − x̄)‖₂

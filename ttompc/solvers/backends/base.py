@@ -39,7 +39,7 @@ def is_qp(spec: SubproblemSpec) -> bool:
     return (
         spec.cost_norm in ("l1", "quad")
         and spec.trust in ("linf", "none")
-        and spec.terminal == "hard"
+        and spec.end_form == "hard"
         and not soft_eq
         and not any(BlockKind(sig[1]) is BlockKind.SOC for sig in spec.blocks)
     )

@@ -57,8 +57,8 @@ def supports(spec: SubproblemSpec) -> bool:
     rows besides the dynamics. Its one cone is an MPC window's soft terminal term ‖W(x_H − x̄)‖₂."""
     if not spec.penalized:
         return False
-    soft_end = spec.terminal in ("soft", "value")  # the 2-norm term's cone, or a cost-to-go model alone
-    return is_qp(spec) or (soft_end and is_qp(dataclasses.replace(spec, terminal="hard")))
+    soft_end = spec.end_form in ("soft", "value")  # the 2-norm term's cone, or a cost-to-go model alone
+    return is_qp(spec) or (soft_end and is_qp(dataclasses.replace(spec, end_form="hard")))
 
 
 @dataclass
@@ -97,7 +97,7 @@ class StageQP:
         self.B[:, self.vr, m + np.arange(len(self.vr))] = 1.0
         self.Qd = np.zeros((H + 1, ny))
         self.Qd[H, n:] = 1.0  # the last stage's dummy controls
-        self.cone = spec.terminal == "soft"  # τ ≥ ‖W(x_H − x̄)‖₂ at cost τ, τ the last stage's first dummy control
+        self.cone = spec.end_form == "soft"  # τ ≥ ‖W(x_H − x̄)‖₂ at cost τ, τ the last stage's first dummy control
         if self.cone:
             self.Qd[H, n] = 0.0
         if spec.cost_norm == "quad":
@@ -168,7 +168,7 @@ class StageQP:
         B[:, :, :m] = data.model.B * self.b_scale
         c = data.model.c / sx
         # the terminal condition's boxes (none for the soft terminal term: its cone)
-        goal = data.goal / sx if self.spec.terminal == "hard" else np.full(n, np.inf)
+        goal = data.goal / sx if self.spec.end_form == "hard" else np.full(n, np.inf)
         ref = data.X_ref[self.tr_steps] / sx  # (T, n); an infinite δ gives infinite bounds, dropped below
         half = data.delta / sx
         d = np.concatenate([np.zeros(self.n_zero), goal, -goal, (ref + half).ravel(), (half - ref).ravel()])
