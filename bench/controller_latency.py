@@ -76,8 +76,14 @@ def measure(scenario: str, problems: int, seed: int) -> dict[str, dict[str, floa
     out = {}
     for key, t in times.items():
         a = 1e3 * np.asarray(t)
-        out[key] = {"mean_ms": float(a.mean()), "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max()),
-                    "steps": len(a), "goals": goals[key], "episodes": problems}  # fmt: skip
+        out[key] = {
+            "mean_ms": float(a.mean()),
+            "p99_ms": float(np.percentile(a, 99)),
+            "max_ms": float(a.max()),
+            "steps": len(a),
+            "goals": goals[key],
+            "episodes": problems,
+        }
     base = out[BASELINE]
     for row in out.values():
         row["ratio_mean"] = base["mean_ms"] / row["mean_ms"]
@@ -97,8 +103,10 @@ def main() -> None:
     result: dict[str, Any] = {"bench": "controller_latency", "problems": args.problems, "seed": args.seed}
     result["scenarios"] = {sc: measure(sc, args.problems, args.seed) for sc in args.scenarios}
     result["machine"] = machine.record()
-    line = {sc: {k: [round(r["mean_ms"], 2), round(r["p99_ms"], 2), round(r["ratio_mean"], 2)] for k, r in rows.items()}
-            for sc, rows in result["scenarios"].items()}  # fmt: skip
+    line = {
+        sc: {k: [round(r["mean_ms"], 2), round(r["p99_ms"], 2), round(r["ratio_mean"], 2)] for k, r in rows.items()}
+        for sc, rows in result["scenarios"].items()
+    }
     write_result(result, args.out, {"bench": "controller_latency", "mean_p99_ms_ratio": line})
 
 

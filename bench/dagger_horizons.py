@@ -110,8 +110,9 @@ def main() -> None:
         for name in VARIANTS:  # alternating, so that machine drift hits all alike
             with variant(name, runs[name]):
                 t0 = time.process_time()
-                rows[name] = collect_rollouts(scenario, planner, 0, chunk, dagger.seed, dagger.exploration, labels,
-                                              settings=dagger.eval.settings)  # fmt: skip
+                rows[name] = collect_rollouts(
+                    scenario, planner, 0, chunk, dagger.seed, dagger.exploration, labels, settings=dagger.eval.settings
+                )
                 cpu[name] += time.process_time() - t0
         for name in VARIANTS[:-1]:
             for a, b in zip(rows[name], rows["batched"], strict=True):

@@ -49,8 +49,16 @@ def expert_plan(scenario: Scenario, ep: EvalProblem, t: int, x: np.ndarray, sett
     return rollout.plans[t]
 
 
-def ratios(scenario: Scenario, ep: EvalProblem, X_star: np.ndarray, t: int, sigma: float, draws: int,
-           settings: MPCSettings, seed: int) -> tuple[list[dict[str, Any]], int]:  # fmt: skip
+def ratios(
+    scenario: Scenario,
+    ep: EvalProblem,
+    X_star: np.ndarray,
+    t: int,
+    sigma: float,
+    draws: int,
+    settings: MPCSettings,
+    seed: int,
+) -> tuple[list[dict[str, Any]], int]:
     """The pairs (module doc) of ``draws`` starts about x*_t of ``ep`` (``X_star``: its optimum's states) at noise
     ``sigma`` — problem, t, ‖δ_i − δ_j‖ and ‖X_i − X_j‖ at t + 10 (scaled) and their ratio — and how many starts
     fell back."""
@@ -78,11 +86,20 @@ def summary(pairs: Sequence[dict[str, Any]], failed: int, starts: int) -> dict[s
     r = np.asarray([p["ratio"] for p in pairs], dtype=np.float64)
     med = float(np.median(r)) if len(r) else float("nan")
     over = float(np.mean(r > OUTLIER * med)) if len(r) else float("nan")
-    by_t = {str(t): float(np.mean([p["ratio"] > OUTLIER * med for p in pairs if p["t"] == t]))
-            for t in sorted({p["t"] for p in pairs})}  # fmt: skip
-    return {"pairs": len(r), "median": med, "max": float(r.max()) if len(r) else float("nan"),
-            "share_over_5x_median": over, "share_over_5x_median_by_t": by_t, "starts": starts, "fell_back": failed,
-            "largest": sorted(pairs, key=lambda p: -p["ratio"])[:10]}  # fmt: skip
+    by_t = {
+        str(t): float(np.mean([p["ratio"] > OUTLIER * med for p in pairs if p["t"] == t]))
+        for t in sorted({p["t"] for p in pairs})
+    }
+    return {
+        "pairs": len(r),
+        "median": med,
+        "max": float(r.max()) if len(r) else float("nan"),
+        "share_over_5x_median": over,
+        "share_over_5x_median_by_t": by_t,
+        "starts": starts,
+        "fell_back": failed,
+        "largest": sorted(pairs, key=lambda p: -p["ratio"])[:10],
+    }
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -112,13 +129,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows.append({"sigma": sigma, **summary(pairs, failed, len(eps) * len(steps) * a.draws)})
         s = rows[-1]
         over = 100 * s["share_over_5x_median"]
-        print(f"sigma {sigma:g}: {s['pairs']} pairs, median {s['median']:.3g}x, max {s['max']:.3g}x, "
-              f"{over:.1f}% over 5x the median, {failed}/{s['starts']} starts fell back")  # fmt: skip
-    result = {"scenario": sc.name, "problems": a.problems, "seed": a.seed, "steps": steps, "draws": a.draws,
-              "protocol": a.protocol, "ahead": AHEAD, "rows": rows, "machine": machine.record()}  # fmt: skip
+        print(
+            f"sigma {sigma:g}: {s['pairs']} pairs, median {s['median']:.3g}x, max {s['max']:.3g}x, "
+            f"{over:.1f}% over 5x the median, {failed}/{s['starts']} starts fell back"
+        )
+    result = {
+        "scenario": sc.name,
+        "problems": a.problems,
+        "seed": a.seed,
+        "steps": steps,
+        "draws": a.draws,
+        "protocol": a.protocol,
+        "ahead": AHEAD,
+        "rows": rows,
+        "machine": machine.record(),
+    }
     out = None if a.no_write else result_path(f"label_smoothness_{sc.name}")
-    write_result(result, out, {"scenario": sc.name, "rows": [{k: v for k, v in r.items() if k != "largest"}
-                                                             for r in rows]})  # fmt: skip
+    write_result(
+        result, out, {"scenario": sc.name, "rows": [{k: v for k, v in r.items() if k != "largest"} for r in rows]}
+    )
     return 0
 
 

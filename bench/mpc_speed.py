@@ -69,8 +69,9 @@ def random_planner(scenario_name: str, size: str, device: str) -> Planner:
 
     sc = get_scenario(scenario_name)
     torch.manual_seed(0)
-    model = TrajectoryGPT(ModelConfig(state_dim=sc.state_dim, control_dim=sc.control_dim, max_steps=sc.n_steps,
-                                      **SIZES[size]))  # fmt: skip
+    model = TrajectoryGPT(
+        ModelConfig(state_dim=sc.state_dim, control_dim=sc.control_dim, max_steps=sc.n_steps, **SIZES[size])
+    )
     n, m = sc.state_dim, sc.control_dim
     stats = NormStats(
         mean={"states": np.zeros(n), "actions": np.zeros(m), "goals": np.zeros(n), "rtg": [0.0], "ctg": [0.0]},
@@ -89,8 +90,13 @@ def episode_cost(
 ) -> dict[str, float]:
     """CPU- and wall-seconds per closed-loop episode of the protocol: one problem at a time re-solving every step
     (no batching, no plan reuse) vs batched with plan reuse, and batched with real-time iteration (module doc)."""
-    cfg = ClosedLoopConfig(scenario=scenario.name, horizons=[horizon], max_steps=max_steps, batch=len(problems),
-                           mpc={"end_horizon": end_horizon})  # fmt: skip
+    cfg = ClosedLoopConfig(
+        scenario=scenario.name,
+        horizons=[horizon],
+        max_steps=max_steps,
+        batch=len(problems),
+        mpc={"end_horizon": end_horizon},
+    )
     models = {"TTO": planner}
     episodes = len(problems) * episodes_per_problem(cfg, models)
     out: dict[str, float] = {"episodes": episodes, "end_horizon": end_horizon}
@@ -177,18 +183,28 @@ def main() -> None:
     # (provider factory, solver backend, loop options); the bracketed variants run at the first horizon only:
     # "[conic]" the previous default solver path (QOCO/Clarabel, 2-norm trust region), "[today]" re-solving every
     # step (no plan reuse), "[rti]" real-time iteration
-    providers = {"REL-MPC": (lambda: RELProvider(), "auto", {}), "DIST-MPC": (lambda: DISTProvider(), "auto", {}),
-                 name: (lambda: TTOProvider(planner, name), "auto", {}),
-                 "REL-MPC[today]": (lambda: RELProvider(), "auto", {"reuse": False}),
-                 "REL-MPC[rti]": (lambda: RELProvider(), "auto", {"rti": True}),
-                 f"{name}[rti]": (lambda: TTOProvider(planner, name), "auto", {"rti": True}),
-                 "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic", {})}  # fmt: skip
+    providers = {
+        "REL-MPC": (lambda: RELProvider(), "auto", {}),
+        "DIST-MPC": (lambda: DISTProvider(), "auto", {}),
+        name: (lambda: TTOProvider(planner, name), "auto", {}),
+        "REL-MPC[today]": (lambda: RELProvider(), "auto", {"reuse": False}),
+        "REL-MPC[rti]": (lambda: RELProvider(), "auto", {"rti": True}),
+        f"{name}[rti]": (lambda: TTOProvider(planner, name), "auto", {"rti": True}),
+        "REL-MPC[conic]": (lambda: RELProvider(backend="conic"), "conic", {}),
+    }
     # "[piqp]": the PIQP path, the default chain without the kernel (the default runs the Riccati kernel where it can)
     providers["REL-MPC[piqp]"] = (lambda: RELProvider(backend="piqp"), "piqp", {})
     # warm-up (imports, solver structure caches, torch kernels) outside the timing
     for make, backend, opts in providers.values():
-        run_mpc(sc, problems[0].problem, make(), horizons[0], rel_cost=problems[0].rel.cost, max_steps=2,
-                settings=MPCSettings(backend=backend, **opts))  # fmt: skip
+        run_mpc(
+            sc,
+            problems[0].problem,
+            make(),
+            horizons[0],
+            rel_cost=problems[0].rel.cost,
+            max_steps=2,
+            settings=MPCSettings(backend=backend, **opts),
+        )
     results: dict[str, dict[str, float]] = {}
     print(f"{sc.name}: {len(problems)} problems, model {model_desc} ({n_params / 1e6:.2f}M params, {args.device})")
     print(f"{'method':>11} {'H':>4} {'mean step [ms]':>15} {'max step [ms]':>14} {'warm [ms]':>10} {'cost':>9}")
@@ -221,8 +237,10 @@ def main() -> None:
                 "cpu_s_per_step": (time.process_time() - cpu) / sum(len(e.U) for e in eps),
             }
             results[f"{method}@{H}"] = r
-            print(f"{method:>11} {H:>4} {r['mean_step_s'] * 1e3:>15.1f} {r['max_step_s'] * 1e3:>14.1f} "
-                  f"{r['mean_warm_s'] * 1e3:>10.1f} {r['cost']:>9.4f}")  # fmt: skip
+            print(
+                f"{method:>11} {H:>4} {r['mean_step_s'] * 1e3:>15.1f} {r['max_step_s'] * 1e3:>14.1f} "
+                f"{r['mean_warm_s'] * 1e3:>10.1f} {r['cost']:>9.4f}"
+            )
     ratio = {}
     if "REL-MPC@30" in results and f"{name}@10" in results:
         ratio = {
@@ -239,27 +257,35 @@ def main() -> None:
         ref = results.get(f"{name if variant.startswith(name) else 'REL-MPC[today]'}@{h0}")
         if ref and f"{variant}@{h0}" in results:
             today[variant] = results[f"{variant}@{h0}"]["cpu_s_per_step"] / ref["cpu_s_per_step"]
-            print(f"{variant}@{h0} CPU-s per step / {'converged' if variant.startswith(name) else 'today'}: "
-                  f"{today[variant]:.2f}x")  # fmt: skip
+            print(
+                f"{variant}@{h0} CPU-s per step / {'converged' if variant.startswith(name) else 'today'}: "
+                f"{today[variant]:.2f}x"
+            )
     cost = None
     if args.episode_cost:
         cost = episode_cost(sc, problems, planner, h0, args.max_steps, args.end_horizon)
         before = cost["before_cpu_s_per_episode"]
-        print(f"closed-loop episode of the protocol (H = {h0}, end_horizon {args.end_horizon}, "
-              f"{cost['episodes']:.0f} episodes): {before:.2f} CPU-s one problem at a time re-solving every step, "
-              f"{cost['after_cpu_s_per_episode']:.2f} batched with reuse ({cost['cpu_ratio_after_over_before']:.2f}x), "
-              f"{cost['after_rti_cpu_s_per_episode']:.2f} batched RTI "
-              f"({cost['cpu_ratio_after_rti_over_before']:.2f}x)")  # fmt: skip
+        print(
+            f"closed-loop episode of the protocol (H = {h0}, end_horizon {args.end_horizon}, "
+            f"{cost['episodes']:.0f} episodes): {before:.2f} CPU-s one problem at a time re-solving every step, "
+            f"{cost['after_cpu_s_per_episode']:.2f} batched with reuse ({cost['cpu_ratio_after_over_before']:.2f}x), "
+            f"{cost['after_rti_cpu_s_per_episode']:.2f} batched RTI "
+            f"({cost['cpu_ratio_after_rti_over_before']:.2f}x)"
+        )
     dagger = None
     if args.dagger:
         dagger = dagger_cost(sc, planner, args.dagger, args.seed)
-        print(f"DAgger rollout with labels ({args.dagger} rollouts): {dagger['before_cpu_s_per_rollout']:.2f} CPU-s "
-              f"re-solving every step, {dagger['after_cpu_s_per_rollout']:.2f} with plan reuse "
-              f"({dagger['cpu_ratio_after_over_before']:.2f}x; labels differ by <= "
-              f"{dagger['max_label_difference']:.1e})")  # fmt: skip
-        print(f"  with backend piqp: {dagger['piqp_cpu_s_per_rollout']:.2f} CPU-s "
-              f"({dagger['cpu_ratio_piqp_over_before']:.2f}x; labels differ by <= "
-              f"{dagger['max_label_difference_piqp']:.1e})")  # fmt: skip
+        print(
+            f"DAgger rollout with labels ({args.dagger} rollouts): {dagger['before_cpu_s_per_rollout']:.2f} CPU-s "
+            f"re-solving every step, {dagger['after_cpu_s_per_rollout']:.2f} with plan reuse "
+            f"({dagger['cpu_ratio_after_over_before']:.2f}x; labels differ by <= "
+            f"{dagger['max_label_difference']:.1e})"
+        )
+        print(
+            f"  with backend piqp: {dagger['piqp_cpu_s_per_rollout']:.2f} CPU-s "
+            f"({dagger['cpu_ratio_piqp_over_before']:.2f}x; labels differ by <= "
+            f"{dagger['max_label_difference_piqp']:.1e})"
+        )
     summary = {
         f"rel_mpc{h0}_speedup_vs_conic": speedup,
         "bench": "mpc_speed",

@@ -109,8 +109,17 @@ SCENARIOS = ("freeflyer", "quadrotor", "rpod")
 # the shipped model of each scenario's headline, and the role ``ttompc evaluate mpc`` gives it (its method names)
 MODELS = {"freeflyer": "freeflyer-ft-tto-v5", "quadrotor": "quadrotor-ft-tto-v6", "rpod": "rpod-ft-tto-v4"}
 BASELINE = "REL-MPC"
-PARTS = ("rollout", "conditioning", "terminal", "rel_warm_start", "scp_setup", "scp_solve", "scp_bookkeeping",
-         "overhead", "observe")  # fmt: skip
+PARTS = (
+    "rollout",
+    "conditioning",
+    "terminal",
+    "rel_warm_start",
+    "scp_setup",
+    "scp_solve",
+    "scp_bookkeeping",
+    "overhead",
+    "observe",
+)
 MODEL_REGIONS = ("rollout", "value", "advance")  # the model's calls in a step (none nests in another)
 
 
@@ -130,15 +139,20 @@ def part_of(path: str) -> str | None:
     if names[0] != "step":
         return None
     inner = names[1:]
-    for name, part in (("rollout", "rollout"), ("conditioning", "conditioning"), ("value", "conditioning"),
-                       ("terminal", "terminal")):  # fmt: skip
+    for name, part in (
+        ("rollout", "rollout"),
+        ("conditioning", "conditioning"),
+        ("value", "conditioning"),
+        ("terminal", "terminal"),
+    ):
         if name in inner:
             return part
     if inner[:1] == ["warm_start"] and "rel" in inner:
         return "rel_warm_start"
     if inner[:1] == ["scp"]:
-        return {"linearise": "scp_setup", "subproblem": "scp_solve"}.get(inner[1] if len(inner) > 1 else "",
-                                                                         "scp_bookkeeping")  # fmt: skip
+        return {"linearise": "scp_setup", "subproblem": "scp_solve"}.get(
+            inner[1] if len(inner) > 1 else "", "scp_bookkeeping"
+        )
     return "overhead"  # the step itself, the provider's warm start outside the parts above
 
 
@@ -239,8 +253,12 @@ def run_method(
     out: list[Episode] = []
     for chunk in tasks(len(eps), batch):
         sub = [eps[i] for i in chunk]
-        out += run_mpc_batch(sc, [ep.start for ep in sub], method_providers(name, cfg, [plans[i] for i in chunk],
-                             models), MPCRun(horizon, cfg.settings, max_steps))  # fmt: skip
+        out += run_mpc_batch(
+            sc,
+            [ep.start for ep in sub],
+            method_providers(name, cfg, [plans[i] for i in chunk], models),
+            MPCRun(horizon, cfg.settings, max_steps),
+        )
     return out
 
 
@@ -312,22 +330,40 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
     sc = get_scenario(name)
     planner = Planner.from_pretrained(source, sc, device=args.device)
     models = {role(source): planner}
-    tto_cfg = ClosedLoopConfig(scenario=name, protocol=args.protocol, mpc=dict(args.mpc), horizons=[args.horizon],
-                               batch=args.batch, workers=1, device=args.device)  # fmt: skip
-    rel_cfg = ClosedLoopConfig(scenario=name, protocol=args.rel_protocol, horizons=[args.rel_horizon],
-                               batch=args.batch, workers=1, device=args.device)  # fmt: skip
+    tto_cfg = ClosedLoopConfig(
+        scenario=name,
+        protocol=args.protocol,
+        mpc=dict(args.mpc),
+        horizons=[args.horizon],
+        batch=args.batch,
+        workers=1,
+        device=args.device,
+    )
+    rel_cfg = ClosedLoopConfig(
+        scenario=name,
+        protocol=args.rel_protocol,
+        horizons=[args.rel_horizon],
+        batch=args.batch,
+        workers=1,
+        device=args.device,
+    )
     backend = tto_cfg.settings.backend
     t0 = time.perf_counter()
     eps = [eval_problem(sc, args.seed, i, nonconvex_only=True, backend=backend) for i in range(args.problems)]
     plans = [full_horizon_plan(sc, ep.problem, backend) for ep in eps]  # PLAN-ONCE/ORACLE's, as run_problems
     setup_s = time.perf_counter() - t0
-    tto_names = [m.label(tto_cfg.settings, models[m.model]) for m in methods_for(models, tto_cfg.robust_blend)
-                 if m.model is not None]  # fmt: skip
+    tto_names = [
+        m.label(tto_cfg.settings, models[m.model])
+        for m in methods_for(models, tto_cfg.robust_blend)
+        if m.model is not None
+    ]
     methods = [(BASELINE, rel_cfg, args.rel_horizon)] + [(m, tto_cfg, args.horizon) for m in tto_names]
     prof = Profiler(cuda=planner.device.type == "cuda")
     rows: dict[str, dict[str, Any]] = {}
-    print(f"{name}: {source} ({sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M params), "
-          f"{len(eps)} problems, batch {args.batch}, setup {setup_s:.1f} s")  # fmt: skip
+    print(
+        f"{name}: {source} ({sum(p.numel() for p in planner.model.parameters()) / 1e6:.2f}M params), "
+        f"{len(eps)} problems, batch {args.batch}, setup {setup_s:.1f} s"
+    )
     with instrumented(prof, sc):
         for method, cfg, H in methods:
             # warm-up outside the timing: one episode on problem 0 (every window shape's solver structure)
@@ -373,18 +409,30 @@ def profile_scenario(name: str, source: str, args: argparse.Namespace) -> dict[s
 def print_table(
     name: str, rows: dict[str, dict[str, Any]], ratios: dict[str, float], ceilings: dict[str, float]
 ) -> None:
-    short = {"rollout": "roll", "conditioning": "cond", "terminal": "term", "rel_warm_start": "REL",
-             "scp_setup": "setup", "scp_solve": "solve", "scp_bookkeeping": "scp-py", "overhead": "py",
-             "observe": "obs"}  # fmt: skip
+    short = {
+        "rollout": "roll",
+        "conditioning": "cond",
+        "terminal": "term",
+        "rel_warm_start": "REL",
+        "scp_setup": "setup",
+        "scp_solve": "solve",
+        "scp_bookkeeping": "scp-py",
+        "overhead": "py",
+        "observe": "obs",
+    }
     head = " ".join(f"{short[p]:>6}" for p in PARTS)
     print(f"{'method':>28} {'step ms':>8} {head} {'model':>6} {'it/step':>7} {'sub ms':>6} {'ratio':>6} {'ceil':>6}")
     for key, r in rows.items():
         shares = " ".join(f"{100 * r['shares'][p]:>5.1f}%" for p in PARTS)
         ratio, ceil = (f"{x[key]:>5.2f}x" if key in x else f"{'':>6}" for x in (ratios, ceilings))
-        print(f"{key:>28} {r['mean_step_ms']:>8.2f} {shares} {100 * r['model_share']:>5.1f}% "
-              f"{r['scp_iterations_per_step']:>7.2f} {r['subproblem_ms_per_call']:>6.2f} {ratio} {ceil}")  # fmt: skip
-    print(f"  ({name}: shares of the mean step, the model's calls among them; ratio = {BASELINE}@30 mean step / the "
-          "method's; ceil = the same over the method's step without its model time)")  # fmt: skip
+        print(
+            f"{key:>28} {r['mean_step_ms']:>8.2f} {shares} {100 * r['model_share']:>5.1f}% "
+            f"{r['scp_iterations_per_step']:>7.2f} {r['subproblem_ms_per_call']:>6.2f} {ratio} {ceil}"
+        )
+    print(
+        f"  ({name}: shares of the mean step, the model's calls among them; ratio = {BASELINE}@30 mean step / the "
+        "method's; ceil = the same over the method's step without its model time)"
+    )
 
 
 def main() -> None:
@@ -397,8 +445,14 @@ def main() -> None:
     ap.add_argument("--rel-horizon", type=int, default=30, help="H of REL-MPC")
     ap.add_argument("--protocol", default="recommended", help="protocol of the TTO methods")
     ap.add_argument("--rel-protocol", default="paper", help="protocol of REL-MPC")
-    ap.add_argument("--mpc", action="append", default=[], type=mpc_override, metavar="KEY=VALUE",
-                    help="repeatable: an MPC setting over the TTO methods' protocol, e.g. --mpc rti=true")  # fmt: skip
+    ap.add_argument(
+        "--mpc",
+        action="append",
+        default=[],
+        type=mpc_override,
+        metavar="KEY=VALUE",
+        help="repeatable: an MPC setting over the TTO methods' protocol, e.g. --mpc rti=true",
+    )
     ap.add_argument("--batch", type=int, default=ClosedLoopConfig.batch, help="problems in lockstep (evaluate's)")
     ap.add_argument("--max-steps", type=int, default=None, help="MPC steps per episode (default: all N)")
     ap.add_argument("--warmup-steps", type=int, default=None, help="steps of the warm-up episode (default: all N)")
@@ -407,8 +461,11 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--model-batches", type=int, nargs="+", default=[1, 10, 40], help="batches of the model calls")
     ap.add_argument("--model-reps", type=int, default=20, help="timed repetitions of each model call")
-    ap.add_argument("--quick", action="store_true",
-                    help="smoke run: 1 problem, 4 steps, --verify, 3 model-call reps, no result file")  # fmt: skip
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run: 1 problem, 4 steps, --verify, 3 model-call reps, no result file",
+    )
     ap.add_argument("--out", default=str(result_path("step_profile")))
     args = ap.parse_args()
     if args.quick:

@@ -200,8 +200,13 @@ def main() -> None:
     planner = Planner.from_pretrained(args.model)
     sc = planner.scenario
     curvature = args.curvature or ("gramian" if sc.cost_norm == "quad" else "differences")
-    m = Measurement(protocol=args.protocol, problems=2 if args.quick else args.problems, seed=args.seed,
-                    horizons=[args.horizon], max_steps=12 if args.quick else None)  # fmt: skip
+    m = Measurement(
+        protocol=args.protocol,
+        problems=2 if args.quick else args.problems,
+        seed=args.seed,
+        horizons=[args.horizon],
+        max_steps=12 if args.quick else None,
+    )
     problems = m.problem_set(sc)
     optima = [solve_scp(SCPProblem(sc, ep.problem), ep.rel.X, ep.rel.U) for ep in problems]
     models = [CostToGo(sc, ep.problem, o, curvature) for ep, o in zip(problems, optima, strict=True)]
@@ -211,9 +216,12 @@ def main() -> None:
 
     def row(name: str, outcomes: dict[int, Outcome]) -> None:
         inc = np.array([o.rel_increment for o in outcomes.values() if o.feasible]) * 100
-        rows[name] = {"goals": len(inc), "mean": float(np.mean(inc)) if len(inc) else None,
-                      "se": float(np.std(inc, ddof=1) / np.sqrt(len(inc))) if len(inc) > 1 else None,
-                      **{f"vs {b}": paired(base[b], outcomes, scale=100)["paired"] for b in base}}  # fmt: skip
+        rows[name] = {
+            "goals": len(inc),
+            "mean": float(np.mean(inc)) if len(inc) else None,
+            "se": float(np.std(inc, ddof=1) / np.sqrt(len(inc))) if len(inc) > 1 else None,
+            **{f"vs {b}": paired(base[b], outcomes, scale=100)["paired"] for b in base},
+        }
         vs = "  ".join(
             f"vs {b}: {rows[name][f'vs {b}']['mean']:+.1f} ± {rows[name][f'vs {b}']['se']:.1f}" for b in base
         )
@@ -225,9 +233,17 @@ def main() -> None:
         rng = np.random.default_rng(0)
         oracles = [OracleValue(c, directions(o.X.shape, rng), eps) for c, o in zip(models, optima, strict=True)]
         row(f"TTO-MPC (oracle value, ε={eps:g})", run(planner, "TTO-MPC", problems, mpc, oracles))
-    summary = {"bench": "terminal_ceiling", "model": args.model, "protocol": args.protocol, "seed": args.seed,
-               "problems": len(problems), "horizon": args.horizon, "curvature": curvature, "rows": rows,
-               **machine.record()}  # fmt: skip
+    summary = {
+        "bench": "terminal_ceiling",
+        "model": args.model,
+        "protocol": args.protocol,
+        "seed": args.seed,
+        "problems": len(problems),
+        "horizon": args.horizon,
+        "curvature": curvature,
+        "rows": rows,
+        **machine.record(),
+    }
     out = args.out or (None if args.quick else results_file(sc.name))
     write_result(summary, out, {"bench": "terminal_ceiling", "rows": rows})
 

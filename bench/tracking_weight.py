@@ -94,14 +94,23 @@ def main() -> None:
             ts = list(range(0, ep.problem.n_steps - H, args.stride))
             nu = np.array([terminal_multiplier(sc, ep.problem, best.X, best.U, t, H) for t in ts])
             k = int(np.nanargmax(nu))
-            row = {"problem": i, "max": float(nu[k]), "at": ts[k], "median": float(np.nanmedian(nu)),
-                   "failed": int(np.sum(np.isnan(nu)))}  # fmt: skip
+            row = {
+                "problem": i,
+                "max": float(nu[k]),
+                "at": ts[k],
+                "median": float(np.nanmedian(nu)),
+                "failed": int(np.sum(np.isnan(nu))),
+            }
             per_problem.append(row)
-            print(f"{name:>10} {i:>7} {row['max']:>8.3g} {row['at']:>5} {row['median']:>7.3g} "
-                  f"{sc.mpc.tracking:>8.3g}")  # fmt: skip
+            print(f"{name:>10} {i:>7} {row['max']:>8.3g} {row['at']:>5} {row['median']:>7.3g} {sc.mpc.tracking:>8.3g}")
         largest = max(r["max"] for r in per_problem)
-        results[name] = {"max": largest, "tracking": sc.mpc.tracking, "target": sc.mpc.target,
-                         "exact": bool(sc.mpc.tracking > largest), "problems": per_problem}  # fmt: skip
+        results[name] = {
+            "max": largest,
+            "tracking": sc.mpc.tracking,
+            "target": sc.mpc.target,
+            "exact": bool(sc.mpc.tracking > largest),
+            "problems": per_problem,
+        }
         verdict = "exceeds" if results[name]["exact"] else "does NOT exceed"
         print(f"{name}: tracking weight {sc.mpc.tracking:g} {verdict} the largest multiplier {largest:.3g}")
     summary = {

@@ -185,9 +185,14 @@ def plot(tables: dict[str, list[dict[str, Any]]], path: Path) -> None:
             zero = t["oracle" if design == "paper" else "robust_noise0"]
             ivs = [zero, *(t[f"{design}_{kind}_{cm}cm"] for cm in NOISE_CM)]
             ax.errorbar(
-                x, [v["mean"] for v in ivs], yerr=[np.nan_to_num(v["se"]) for v in ivs], capsize=3,
-                marker="os^v"[i], linestyle="-" if design == "robust" else "--", label=f"{design} target, {kind}",
-            )  # fmt: skip
+                x,
+                [v["mean"] for v in ivs],
+                yerr=[np.nan_to_num(v["se"]) for v in ivs],
+                capsize=3,
+                marker="os^v"[i],
+                linestyle="-" if design == "robust" else "--",
+                label=f"{design} target, {kind}",
+            )
         for name, style in (("REL-MPC", "k:"), ("DIST-MPC", "k-.")):
             ax.axhline(t[name]["mean"], color=style[0], linestyle=style[1:], label=name)
         ax.set_xscale("symlog", linthresh=1)

@@ -46,106 +46,220 @@ MILLION = "1000000"  # processes beyond any machine's cores (4 per core: ``ttomp
 # (id, argv, what the line must say); {name} is a path of the fixture ``world``
 LISTED: list[tuple[str, list[str], list[str]]] = [
     # a wrong model, silently: free-flyer weights resumed on quadrotor data; another architecture's checkpoints
-    ("train-resumes-another-scenario", ["train", QUAD_TINY, "data.paths=[{quad}]", "trainer.out_dir={ff_run}"],
-     ["holds checkpoints of another run", "scenario freeflyer there, quadrotor here", "trainer.resume=false"]),
-    ("train-resumes-another-architecture", ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={wide_run}"],
-     ["holds checkpoints of another run", "model.n_embd=512 there"]),
-    ("train-into-a-users-folder", ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={user}"],
-     ["{user} holds files that `ttompc train` did not write (README.md, manifest.json)"]),
-    ("finetune-into-a-users-folder", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
-                                      "trainer.out_dir={user}"],
-     ["{user} holds files that `ttompc finetune` did not write"]),
+    (
+        "train-resumes-another-scenario",
+        ["train", QUAD_TINY, "data.paths=[{quad}]", "trainer.out_dir={ff_run}"],
+        ["holds checkpoints of another run", "scenario freeflyer there, quadrotor here", "trainer.resume=false"],
+    ),
+    (
+        "train-resumes-another-architecture",
+        ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={wide_run}"],
+        ["holds checkpoints of another run", "model.n_embd=512 there"],
+    ),
+    (
+        "train-into-a-users-folder",
+        ["train", TINY, "data.paths=[{ff}]", "trainer.out_dir={user}"],
+        ["{user} holds files that `ttompc train` did not write (README.md, manifest.json)"],
+    ),
+    (
+        "finetune-into-a-users-folder",
+        ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]", "trainer.out_dir={user}"],
+        ["{user} holds files that `ttompc finetune` did not write"],
+    ),
     # data loss: generate into a user's folder, or into an evaluation report
-    ("generate-into-a-users-folder", ["generate", *SMALL_SPLITS, "out={user}"],
-     ["{user} holds files that `ttompc generate` did not write (README.md, manifest.json)"]),
-    ("generate-into-a-report", ["generate", *SMALL_SPLITS, "out={report}"],
-     ["holds files that `ttompc generate` did not write", "mpc.json"]),
-    ("mpc-max-steps-0", ["evaluate", "mpc", "--scenario", "freeflyer", "max_steps=0"],
-     ["invalid max_steps=0: must be >= 1"]),
-    ("mpc-max-steps-negative", ["evaluate", "mpc", "--scenario", "freeflyer", "max_steps=-1"],
-     ["invalid max_steps=-1: must be >= 1"]),
+    (
+        "generate-into-a-users-folder",
+        ["generate", *SMALL_SPLITS, "out={user}"],
+        ["{user} holds files that `ttompc generate` did not write (README.md, manifest.json)"],
+    ),
+    (
+        "generate-into-a-report",
+        ["generate", *SMALL_SPLITS, "out={report}"],
+        ["holds files that `ttompc generate` did not write", "mpc.json"],
+    ),
+    (
+        "mpc-max-steps-0",
+        ["evaluate", "mpc", "--scenario", "freeflyer", "max_steps=0"],
+        ["invalid max_steps=0: must be >= 1"],
+    ),
+    (
+        "mpc-max-steps-negative",
+        ["evaluate", "mpc", "--scenario", "freeflyer", "max_steps=-1"],
+        ["invalid max_steps=-1: must be >= 1"],
+    ),
     # damaged manifests
-    ("train-truncated-manifest", ["train", TINY, "data.paths=[{truncated}]", "trainer.out_dir=run"],
-     ["manifest.json is damaged (not JSON"]),
-    ("train-manifest-without-scenario", ["train", TINY, "data.paths=[{no_scenario}]", "trainer.out_dir=run"],
-     ["manifest.json is incomplete: it names no scenario"]),
-    ("finetune-truncated-manifest", ["finetune", FINETUNE, "--model", "m", "data.paths=[{truncated}]"],
-     ["manifest.json is damaged (not JSON"]),
-    ("finetune-manifest-without-scenario", ["finetune", FINETUNE, "--model", "m", "data.paths=[{no_scenario}]"],
-     ["manifest.json is incomplete"]),
+    (
+        "train-truncated-manifest",
+        ["train", TINY, "data.paths=[{truncated}]", "trainer.out_dir=run"],
+        ["manifest.json is damaged (not JSON"],
+    ),
+    (
+        "train-manifest-without-scenario",
+        ["train", TINY, "data.paths=[{no_scenario}]", "trainer.out_dir=run"],
+        ["manifest.json is incomplete: it names no scenario"],
+    ),
+    (
+        "finetune-truncated-manifest",
+        ["finetune", FINETUNE, "--model", "m", "data.paths=[{truncated}]"],
+        ["manifest.json is damaged (not JSON"],
+    ),
+    (
+        "finetune-manifest-without-scenario",
+        ["finetune", FINETUNE, "--model", "m", "data.paths=[{no_scenario}]"],
+        ["manifest.json is incomplete"],
+    ),
     # an unbalanced bracket in key=value, in every command
-    *[(f"unbalanced-bracket-{'-'.join(argv[:2])}", [*argv, "seed=[10,"],
-       ["cannot parse seed=[10,: its value is not valid YAML"])
-      for argv in (["solve"], ["generate"], ["train", TINY], ["finetune", FINETUNE], ["evaluate", "mpc"],
-                   ["evaluate", "warmstart"], ["demo"], ["check-scenario", "freeflyer"])],
+    *[
+        (
+            f"unbalanced-bracket-{'-'.join(argv[:2])}",
+            [*argv, "seed=[10,"],
+            ["cannot parse seed=[10,: its value is not valid YAML"],
+        )
+        for argv in (
+            ["solve"],
+            ["generate"],
+            ["train", TINY],
+            ["finetune", FINETUNE],
+            ["evaluate", "mpc"],
+            ["evaluate", "warmstart"],
+            ["demo"],
+            ["check-scenario", "freeflyer"],
+        )
+    ],
     ("recipe-with-unbalanced-bracket", ["generate", "{bad_yaml}"], ["is not valid YAML", "at line 3"]),
     ("recipe-that-is-a-list", ["generate", "{list_yaml}"], ["holds a YAML list, not settings"]),
     ("recipe-that-is-a-folder", ["generate", "{user}"], ["is a folder"]),
-    ("splits-that-do-not-sum-to-1", ["generate", "splits.val=0", "splits.test=0", "out=o"],
-     ["invalid splits: train + val + test must sum to 1, got 0.9 + 0 + 0 = 0.9"]),
-    ("splits-flag-that-does-not-sum-to-1", ["generate", "--splits", "0.5,0.5,0.5", "out=o"],
-     ["must sum to 1", "= 1.5"]),
+    (
+        "splits-that-do-not-sum-to-1",
+        ["generate", "splits.val=0", "splits.test=0", "out=o"],
+        ["invalid splits: train + val + test must sum to 1, got 0.9 + 0 + 0 = 0.9"],
+    ),
+    (
+        "splits-flag-that-does-not-sum-to-1",
+        ["generate", "--splits", "0.5,0.5,0.5", "out=o"],
+        ["must sum to 1", "= 1.5"],
+    ),
     ("trainer-max-steps-0", ["train", TINY, "trainer.max_steps=0"], ["invalid trainer.max_steps=0: must be >= 1"]),
     ("trainer-max-steps-endless", ["train", TINY, "trainer.max_steps=-1"], ["trainer.max_epochs, which is null"]),
     ("batch-size-0", ["train", TINY, "data.batch_size=0"], ["invalid data.batch_size=0: must be >= 1"]),
-    ("model-shorter-than-the-data", ["train", TINY, "data.paths=[{ff}]", "model.max_steps=10", "trainer.out_dir=r"],
-     ["invalid model.max_steps=10", "100-step trajectories"]),
+    (
+        "model-shorter-than-the-data",
+        ["train", TINY, "data.paths=[{ff}]", "model.max_steps=10", "trainer.out_dir=r"],
+        ["invalid model.max_steps=10", "100-step trajectories"],
+    ),
     ("trainer-devices-0", ["train", TINY, "trainer.devices=0"], ["invalid trainer.devices=0"]),
-    ("val-check-interval-0", ["train", TINY, "trainer.val_check_interval=0"],
-     ["invalid trainer.val_check_interval=0.0: must be > 0"]),
+    (
+        "val-check-interval-0",
+        ["train", TINY, "trainer.val_check_interval=0"],
+        ["invalid trainer.val_check_interval=0.0: must be > 0"],
+    ),
     ("solve-plot-unknown-format", ["solve", "--plot", "x.xyz"], [".xyz is not an image format", ".png"]),
     ("solve-plot-folder", ["solve", "--plot", "{user}"], ["is a folder", "plot.png"]),
-    ("mpc-plants-repeated", ["evaluate", "mpc", "--scenario", "freeflyer", "plants=[nominal,nominal]"],
-     ["invalid plants=", "without repeats"]),
-    ("mpc-workers-negative", ["evaluate", "mpc", "--scenario", "freeflyer", "workers=-1"],
-     ["invalid workers=-1: must be >= 0"]),
+    (
+        "mpc-plants-repeated",
+        ["evaluate", "mpc", "--scenario", "freeflyer", "plants=[nominal,nominal]"],
+        ["invalid plants=", "without repeats"],
+    ),
+    (
+        "mpc-workers-negative",
+        ["evaluate", "mpc", "--scenario", "freeflyer", "workers=-1"],
+        ["invalid workers=-1: must be >= 0"],
+    ),
     ("generate-workers-negative", ["generate", "workers=-1"], ["invalid workers=-1: must be >= 0"]),
-    ("warmstart-thresholds-empty", ["evaluate", "warmstart", "--model", "m", "thresholds=[]"],
-     ["invalid thresholds=[]: must be a non-empty list"]),
-    ("warmstart-thresholds-negative", ["evaluate", "warmstart", "--model", "m", "thresholds=[2,-1]"],
-     ["invalid thresholds=", "each >= 0"]),
-    ("dagger-horizon-beyond-the-data", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
-                                        "dagger.exploration.horizons=[500]"],
-     ["invalid dagger.exploration.horizons=[500]", "100 steps"]),
+    (
+        "warmstart-thresholds-empty",
+        ["evaluate", "warmstart", "--model", "m", "thresholds=[]"],
+        ["invalid thresholds=[]: must be a non-empty list"],
+    ),
+    (
+        "warmstart-thresholds-negative",
+        ["evaluate", "warmstart", "--model", "m", "thresholds=[2,-1]"],
+        ["invalid thresholds=", "each >= 0"],
+    ),
+    (
+        "dagger-horizon-beyond-the-data",
+        ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]", "dagger.exploration.horizons=[500]"],
+        ["invalid dagger.exploration.horizons=[500]", "100 steps"],
+    ),
     ("generate-max-shards-0", ["generate", "max_shards=0"], ["invalid max_shards=0: must be >= 1"]),
     ("zoo-that-does-not-exist", ["zoo", "list"], ["no zoo at", "$TTOMPC_ZOO does not exist"]),
-    ("mpc-device-that-does-not-exist", ["evaluate", "mpc", "--scenario", "freeflyer", "device=nosuch"],
-     ["invalid device=\"nosuch\": must be a device of this machine"]),
+    (
+        "mpc-device-that-does-not-exist",
+        ["evaluate", "mpc", "--scenario", "freeflyer", "device=nosuch"],
+        ['invalid device="nosuch": must be a device of this machine'],
+    ),
     # huge values: beyond the integers' bound, the machine's cores (4 per core), the scenario's N
-    ("generate-problems-huge", ["generate", "problems=1000000000000"],
-     ["invalid problems=1000000000000: must be in [1, 2147483647]"]),
-    ("generate-workers-beyond-the-machine", ["generate", *SMALL_SPLITS, f"workers={MILLION}", "out=o"],
-     [f"invalid workers={MILLION}: must be at most", "on this machine (4 per CPU core)"]),
-    ("mpc-workers-beyond-the-machine", ["evaluate", "mpc", "--scenario", "freeflyer", f"workers={MILLION}"],
-     [f"invalid workers={MILLION}: must be at most"]),
-    ("warmstart-workers-beyond-the-machine", ["evaluate", "warmstart", "--model", "m", f"workers={MILLION}"],
-     [f"invalid workers={MILLION}: must be at most"]),
-    ("finetune-workers-beyond-the-machine", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
-                                             f"dagger.collect.workers={MILLION}"],
-     [f"invalid dagger.collect.workers={MILLION}: must be at most"]),
-    ("train-loader-workers-beyond-the-machine", ["train", TINY, "data.paths=[{ff}]", f"data.num_workers={MILLION}",
-                                                 "trainer.out_dir=r"], [f"invalid data.num_workers={MILLION}"]),
-    ("train-devices-beyond-the-machine", ["train", TINY, "data.paths=[{ff}]", f"trainer.devices={MILLION}",
-                                          "trainer.out_dir=r"], [f"invalid trainer.devices={MILLION}: must be at"]),
-    ("mpc-horizon-beyond-N", ["evaluate", "mpc", "--scenario", "freeflyer", f"horizons=[{MILLION}]"],
-     [f"horizons [{MILLION}] exceed the horizon of freeflyer, N = 100 steps"]),
-    ("demo-horizon-beyond-N", ["demo", "--horizon", MILLION, "out=o"],
-     [f"horizon {MILLION} exceeds the horizon of freeflyer, N = 100 steps"]),
+    (
+        "generate-problems-huge",
+        ["generate", "problems=1000000000000"],
+        ["invalid problems=1000000000000: must be in [1, 2147483647]"],
+    ),
+    (
+        "generate-workers-beyond-the-machine",
+        ["generate", *SMALL_SPLITS, f"workers={MILLION}", "out=o"],
+        [f"invalid workers={MILLION}: must be at most", "on this machine (4 per CPU core)"],
+    ),
+    (
+        "mpc-workers-beyond-the-machine",
+        ["evaluate", "mpc", "--scenario", "freeflyer", f"workers={MILLION}"],
+        [f"invalid workers={MILLION}: must be at most"],
+    ),
+    (
+        "warmstart-workers-beyond-the-machine",
+        ["evaluate", "warmstart", "--model", "m", f"workers={MILLION}"],
+        [f"invalid workers={MILLION}: must be at most"],
+    ),
+    (
+        "finetune-workers-beyond-the-machine",
+        ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]", f"dagger.collect.workers={MILLION}"],
+        [f"invalid dagger.collect.workers={MILLION}: must be at most"],
+    ),
+    (
+        "train-loader-workers-beyond-the-machine",
+        ["train", TINY, "data.paths=[{ff}]", f"data.num_workers={MILLION}", "trainer.out_dir=r"],
+        [f"invalid data.num_workers={MILLION}"],
+    ),
+    (
+        "train-devices-beyond-the-machine",
+        ["train", TINY, "data.paths=[{ff}]", f"trainer.devices={MILLION}", "trainer.out_dir=r"],
+        [f"invalid trainer.devices={MILLION}: must be at"],
+    ),
+    (
+        "mpc-horizon-beyond-N",
+        ["evaluate", "mpc", "--scenario", "freeflyer", f"horizons=[{MILLION}]"],
+        [f"horizons [{MILLION}] exceed the horizon of freeflyer, N = 100 steps"],
+    ),
+    (
+        "demo-horizon-beyond-N",
+        ["demo", "--horizon", MILLION, "out=o"],
+        [f"horizon {MILLION} exceeds the horizon of freeflyer, N = 100 steps"],
+    ),
     # output folders: only new, empty or the command's own; a report of another configuration is not replaced
     ("demo-into-a-users-folder", ["demo", "--no-mpc", "out={user}"], ["{user} holds files that `ttompc demo` did not"]),
-    ("publish-into-a-users-folder", ["zoo", "publish", BUNDLE, "--name", "x", "--to", "{user}"],
-     ["{user} holds files that `ttompc zoo publish` did not write (README.md, manifest.json)"]),
-    ("warmstart-over-another-configuration", ["evaluate", "warmstart", "--model", BUNDLE, "problems=1",
-                                              "out={ws_report}"],
-     ["{ws_report} holds a `ttompc evaluate warmstart` report of another configuration (problems: 1 here, 2 there)"]),
+    (
+        "publish-into-a-users-folder",
+        ["zoo", "publish", BUNDLE, "--name", "x", "--to", "{user}"],
+        ["{user} holds files that `ttompc zoo publish` did not write (README.md, manifest.json)"],
+    ),
+    (
+        "warmstart-over-another-configuration",
+        ["evaluate", "warmstart", "--model", BUNDLE, "problems=1", "out={ws_report}"],
+        ["{ws_report} holds a `ttompc evaluate warmstart` report of another configuration (problems: 1 here, 2 there)"],
+    ),
     # the Python entries say the same (``test_the_python_entries_refuse_in_the_clis_words``)
     ("solve-unknown-scenario", ["solve", "scenario=nosuch"], ["unknown scenario 'nosuch'"]),
     ("solve-unknown-backend", ["solve", "backend=nosuch"], ["unknown solver backend 'nosuch'; choose one of: auto"]),
-    ("mpc-device-cuda-without-a-gpu", ["evaluate", "mpc", "--scenario", "freeflyer", "device=cuda"],
-     ["invalid device=\"cuda\""]),
-    ("train-accelerator-gpu-without-a-gpu", ["train", TINY, "trainer.accelerator=gpu"],
-     ["invalid trainer.accelerator=\"gpu\": must be an accelerator of this machine"]),
-]  # fmt: skip
+    (
+        "mpc-device-cuda-without-a-gpu",
+        ["evaluate", "mpc", "--scenario", "freeflyer", "device=cuda"],
+        ['invalid device="cuda"'],
+    ),
+    (
+        "train-accelerator-gpu-without-a-gpu",
+        ["train", TINY, "trainer.accelerator=gpu"],
+        ['invalid trainer.accelerator="gpu": must be an accelerator of this machine'],
+    ),
+]
 NEEDS_NO_GPU = {"mpc-device-cuda-without-a-gpu", "train-accelerator-gpu-without-a-gpu"}
 ENV = {"zoo-that-does-not-exist": {"TTOMPC_ZOO": "{missing}"}}
 
@@ -194,25 +308,33 @@ def path_cases() -> list[tuple[str, list[str], list[str]]]:
     for what, bad, said in (("missing", "{missing}", "does not exist"), ("a-file", "{a_file}", "is a file")):
         cases += [
             (f"data-paths-{what}", ["train", TINY, f"data.paths=[{bad}]", "trainer.out_dir=r"], ["data.paths", said]),
-            (f"finetune-data-{what}", ["finetune", FINETUNE, "--model", BUNDLE, f"data.paths=[{bad}]"],
-             ["data.paths", said]),
+            (
+                f"finetune-data-{what}",
+                ["finetune", FINETUNE, "--model", BUNDLE, f"data.paths=[{bad}]"],
+                ["data.paths", said],
+            ),
             (f"mpc-model-{what}", ["evaluate", "mpc", "--model", bad, "problems=1"], [bad]),
             (f"warmstart-model-{what}", ["evaluate", "warmstart", "--model", bad, "problems=1"], [bad]),
             (f"demo-model-{what}", ["demo", "--model", bad, "--no-mpc"], [bad]),
-        ]  # fmt: skip
+        ]
     for what, parent in (("under-a-file", "{a_file}"), ("in-a-read-only-folder", "{read_only}")):
         out = f"{parent}/out"
         cases += [
             (f"generate-out-{what}", ["generate", *SMALL_SPLITS, f"out={out}"], [f"cannot use {parent}"]),
-            (f"train-out-{what}", ["train", TINY, "data.paths=[{ff}]", f"trainer.out_dir={out}"],
-             [f"cannot use {parent}"]),
-            (f"mpc-out-{what}", ["evaluate", "mpc", "--scenario", "freeflyer", f"out={out}"],
-             [f"cannot use {parent}"]),
+            (
+                f"train-out-{what}",
+                ["train", TINY, "data.paths=[{ff}]", f"trainer.out_dir={out}"],
+                [f"cannot use {parent}"],
+            ),
+            (f"mpc-out-{what}", ["evaluate", "mpc", "--scenario", "freeflyer", f"out={out}"], [f"cannot use {parent}"]),
             (f"demo-out-{what}", ["demo", "--no-mpc", f"out={out}"], [f"cannot use {parent}"]),
-            (f"finetune-out-{what}", ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]",
-                                      f"trainer.out_dir={out}"], [f"cannot use {parent}"]),
+            (
+                f"finetune-out-{what}",
+                ["finetune", FINETUNE, "--model", "m", "data.paths=[{ff}]", f"trainer.out_dir={out}"],
+                [f"cannot use {parent}"],
+            ),
             (f"solve-plot-{what}", ["solve", "--plot", f"{out}.png"], [f"cannot use {parent}"]),
-        ]  # fmt: skip
+        ]
     return cases
 
 
@@ -321,17 +443,27 @@ def api_call(case: str, world: dict[str, str]) -> None:
         "mpc-model-missing": lambda: ttompc.Controller.from_pretrained(world["missing"]),
         "mpc-device-that-does-not-exist": lambda: ttompc.load_pretrained(BUNDLE, device="nosuch"),
         "solve-unknown-backend": lambda: ttompc.solve_problem(
-            ttompc.get_scenario("freeflyer"), ttompc.get_scenario("freeflyer").sample(np.random.default_rng(0)),
+            ttompc.get_scenario("freeflyer"),
+            ttompc.get_scenario("freeflyer").sample(np.random.default_rng(0)),
             backend="nosuch",
         ),
-    }  # fmt: skip
+    }
     calls[case]()
 
 
 API_CASES = [
-    "train-resumes-another-scenario", "train-into-a-users-folder", "train-loader-workers-beyond-the-machine",
-    "finetune-into-a-users-folder", "generate-into-a-users-folder", "generate-workers-beyond-the-machine",
-    "warmstart-over-another-configuration", "mpc-workers-beyond-the-machine", "warmstart-workers-beyond-the-machine",
-    "publish-into-a-users-folder", "demo-model-missing",
-    "mpc-model-missing", "mpc-device-that-does-not-exist", "solve-unknown-backend",
-]  # fmt: skip
+    "train-resumes-another-scenario",
+    "train-into-a-users-folder",
+    "train-loader-workers-beyond-the-machine",
+    "finetune-into-a-users-folder",
+    "generate-into-a-users-folder",
+    "generate-workers-beyond-the-machine",
+    "warmstart-over-another-configuration",
+    "mpc-workers-beyond-the-machine",
+    "warmstart-workers-beyond-the-machine",
+    "publish-into-a-users-folder",
+    "demo-model-missing",
+    "mpc-model-missing",
+    "mpc-device-that-does-not-exist",
+    "solve-unknown-backend",
+]

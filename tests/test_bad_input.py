@@ -52,8 +52,12 @@ def _cuda() -> bool:
 
 def test_every_numeric_and_list_setting_declares_its_range() -> None:
     """The schemas state what each number and list may be (``ttompc.ranges.setting``), so none is left unchecked."""
-    undeclared = [f"{cmd}: {key}" for cmd, (schema, _) in SCHEMAS.items()
-                  for key, _, allowed in settings_of(schema) if allowed is None]  # fmt: skip
+    undeclared = [
+        f"{cmd}: {key}"
+        for cmd, (schema, _) in SCHEMAS.items()
+        for key, _, allowed in settings_of(schema)
+        if allowed is None
+    ]
     assert undeclared == []
 
 
@@ -70,9 +74,14 @@ def _fill(text: str, world: dict[str, str]) -> str:
 @pytest.fixture(scope="module")
 def results(world: dict[str, str], tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
     """Every case of the three tables, run in one subprocess in the world's folder."""
-    cases = [{"id": i, "argv": [_fill(a, world) for a in argv],
-              "env": {k: _fill(v, world) for k, v in ENV.get(i, {}).items()}}
-             for i, argv, _ in [*LISTED, *path_cases()]]  # fmt: skip
+    cases = [
+        {
+            "id": i,
+            "argv": [_fill(a, world) for a in argv],
+            "env": {k: _fill(v, world) for k, v in ENV.get(i, {}).items()},
+        }
+        for i, argv, _ in [*LISTED, *path_cases()]
+    ]
     cases += [{"id": i, "argv": argv, "env": {}} for i, argv, *_ in generated_cases()]
     spool = tmp_path_factory.mktemp("spool")
     (spool / "cases.json").write_text(json.dumps(cases))
@@ -81,8 +90,12 @@ def results(world: dict[str, str], tmp_path_factory: pytest.TempPathFactory) -> 
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
     done = subprocess.run(
         [sys.executable, str(REPO / "tests" / "cli_batch.py"), str(spool / "cases.json"), str(spool / "out.json")],
-        cwd=world["root"], env=env, capture_output=True, text=True, timeout=900,
-    )  # fmt: skip
+        cwd=world["root"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     return dict(json.loads((spool / "out.json").read_text()))
 

@@ -158,9 +158,18 @@ def test_damaged_safetensors_from_zoo_publish(tmp_path: Path) -> None:
     (bundle / "model.safetensors").write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{not json")
     (bundle / "config.json").write_text("{}")
     res = ttompc(
-        "zoo", "publish", str(bundle), "--name", "m", "--to", str(tmp_path / "to"), "--skip-eval",
-        "--zoo-dir", str(tmp_path / "zoo"), cwd=tmp_path,
-    )  # fmt: skip
+        "zoo",
+        "publish",
+        str(bundle),
+        "--name",
+        "m",
+        "--to",
+        str(tmp_path / "to"),
+        "--skip-eval",
+        "--zoo-dir",
+        str(tmp_path / "zoo"),
+        cwd=tmp_path,
+    )
     assert_user_error(res, "model.safetensors is damaged or not a safetensors file", "re-export")
     assert not (tmp_path / "to").exists() and not (tmp_path / "zoo").exists()
 
@@ -289,21 +298,42 @@ def test_full_disk_during_generate_names_the_path_and_keeps_finished_shards(tmp_
 def test_ctrl_c_during_train_says_how_to_resume_and_the_rerun_resumes(tmp_path: Path) -> None:
     data = tmp_path / "data"
     made = ttompc(
-        "generate", "problems=4", "shard_size=2", "workers=1", "--splits", "0.5,0.25,0.25", f"out={data}",
-        "--no-progress", cwd=tmp_path,
-    )  # fmt: skip
+        "generate",
+        "problems=4",
+        "shard_size=2",
+        "workers=1",
+        "--splits",
+        "0.5,0.25,0.25",
+        f"out={data}",
+        "--no-progress",
+        cwd=tmp_path,
+    )
     assert made.returncode == 0, made.stderr
     run = tmp_path / "run"
     argv = [
-        "train", str(REPO / "recipes/freeflyer/tiny.yaml"), f"data.paths=[{data}]", f"trainer.out_dir={run}",
-        "model.n_embd=32", "model.n_layer=1", "model.n_head=2", "data.batch_size=4", "logger.kind=none",
-        "trainer.checkpoint_every_n_steps=2", "trainer.val_check_interval=1000", "trainer.export_planner=false",
-    ]  # fmt: skip
+        "train",
+        str(REPO / "recipes/freeflyer/tiny.yaml"),
+        f"data.paths=[{data}]",
+        f"trainer.out_dir={run}",
+        "model.n_embd=32",
+        "model.n_layer=1",
+        "model.n_head=2",
+        "data.batch_size=4",
+        "logger.kind=none",
+        "trainer.checkpoint_every_n_steps=2",
+        "trainer.val_check_interval=1000",
+        "trainer.export_planner=false",
+    ]
     proc = subprocess.Popen(
         [sys.executable, "-m", "ttompc.cli", *argv, "trainer.max_steps=10000"],
-        cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True, preexec_fn=_terminal_sigint,
-    )  # fmt: skip
+        cwd=tmp_path,
+        env=cli_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=_terminal_sigint,
+    )
     deadline = time.monotonic() + 240
     while not (run / "checkpoints" / "last.ckpt").exists():
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
@@ -371,23 +401,26 @@ def test_evaluate_with_a_model_not_in_the_zoo_stops_before_any_worker(
     [
         (  # before: the 100-problem measurement and 1,000 rollouts (~40 CPU-minutes), then the first training step
             "freeflyer-tto-v3",
-            ["the model freeflyer-tto-v3 is a freeflyer model but the recipe is for quadrotor (data.scenario)",
-             "recipes/freeflyer/"],
+            [
+                "the model freeflyer-tto-v3 is a freeflyer model but the recipe is for quadrotor (data.scenario)",
+                "recipes/freeflyer/",
+            ],
         ),
         (  # the right model, but the recipe's data folder is not here: refused before the measurement too
             "quadrotor-tto-v3",
             ["data.paths: dataset folder data/quadrotor-v3 does not exist", "the open-loop dataset the model was"],
         ),
     ],
-)  # fmt: skip
+)
 def test_finetune_checks_model_recipe_and_data_before_it_measures_or_collects(
     tmp_path: Path, model: str, needles: list[str]
 ) -> None:
     """`ttompc finetune recipes/quadrotor/finetune.yaml --model M`, run as a new user runs it (no data here)."""
     work, cache = tmp_path / "work", str(tmp_path / "cache")
     work.mkdir()
-    res = ttompc("finetune", str(REPO / "recipes/quadrotor/finetune.yaml"), "--model", model, cwd=work,
-                 TTOMPC_HOME=cache)  # fmt: skip
+    res = ttompc(
+        "finetune", str(REPO / "recipes/quadrotor/finetune.yaml"), "--model", model, cwd=work, TTOMPC_HOME=cache
+    )
     assert_user_error(res, "ttompc finetune: error: ", *needles)
     assert not (work / "runs" / "quadrotor-ft-tto-v5" / "dagger").exists()  # no rollout shard
     assert list(work.iterdir()) == []  # no run folder, no source planner, no state file
@@ -403,9 +436,17 @@ def test_finetune_checks_model_recipe_and_data_before_it_measures_or_collects(
 def test_zoo_publish_without_metrics_says_how_to_make_them(tmp_path: Path, bundle: str, needles: list[str]) -> None:
     """Before: "the standard evaluation is not wired into publish yet"."""
     res = ttompc(
-        "zoo", "publish", str(REPO / "zoo" / "models" / bundle), "--name", "m", "--to", str(tmp_path / "to"),
-        "--zoo-dir", str(tmp_path / "zoo"), cwd=tmp_path,
-    )  # fmt: skip
+        "zoo",
+        "publish",
+        str(REPO / "zoo" / "models" / bundle),
+        "--name",
+        "m",
+        "--to",
+        str(tmp_path / "to"),
+        "--zoo-dir",
+        str(tmp_path / "zoo"),
+        cwd=tmp_path,
+    )
     line = assert_user_error(res, "ttompc zoo: error: no metrics for the card of m", *needles)
     assert "--card-metrics metrics.json" in line and "--skip-eval" in line and "wired" not in line, line
     assert list(tmp_path.iterdir()) == []
@@ -436,9 +477,19 @@ def two_scenarios(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     for scenario in ("freeflyer", "quadrotor"):
         out[scenario] = root / f"{scenario}-v1"
         res = ttompc(
-            "generate", f"scenario={scenario}", "problems=4", "shard_size=2", "workers=1", "splits.train=0.5",
-            "splits.val=0.5", "splits.test=0", f"out={out[scenario]}", "--no-progress", cwd=root, timeout=300,
-        )  # fmt: skip
+            "generate",
+            f"scenario={scenario}",
+            "problems=4",
+            "shard_size=2",
+            "workers=1",
+            "splits.train=0.5",
+            "splits.val=0.5",
+            "splits.test=0",
+            f"out={out[scenario]}",
+            "--no-progress",
+            cwd=root,
+            timeout=300,
+        )
         assert res.returncode == 0, res.stderr
     return out
 
@@ -447,29 +498,44 @@ def two_scenarios(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     ("recipe", "paths", "extra", "needles"),
     [
         (  # before: trained silently on the free-flyer data under the quadrotor recipe's name
-            "quadrotor/tiny.yaml", ["freeflyer"], [],
-            ["the recipe is for quadrotor (data.scenario) but", "freeflyer-v1 holds freeflyer trajectories",
-             "recipes/freeflyer/"],
+            "quadrotor/tiny.yaml",
+            ["freeflyer"],
+            [],
+            [
+                "the recipe is for quadrotor (data.scenario) but",
+                "freeflyer-v1 holds freeflyer trajectories",
+                "recipes/freeflyer/",
+            ],
         ),
         (  # before: ValueError: open-loop datasets mix scenarios
-            "freeflyer/tiny.yaml", ["freeflyer", "quadrotor"], [],
+            "freeflyer/tiny.yaml",
+            ["freeflyer", "quadrotor"],
+            [],
             ["data.paths mixes scenarios:", "freeflyer-v1 holds freeflyer", "quadrotor-v1 quadrotor"],
         ),
         (  # before: ValueError from the batcher, after Lightning had started
-            "freeflyer/tiny.yaml", ["freeflyer"], ["data.context_length=500"],
+            "freeflyer/tiny.yaml",
+            ["freeflyer"],
+            ["data.context_length=500"],
             ["data.context_length=500 does not fit the 100-step freeflyer trajectories", "within [1, 100]"],
         ),
     ],
-)  # fmt: skip
+)
 def test_train_on_data_that_does_not_fit_the_recipe_is_one_line(
     tmp_path: Path, two_scenarios: dict[str, Path], recipe: str, paths: list[str], extra: list[str], needles: list[str]
 ) -> None:
     data = ",".join(str(two_scenarios[p]) for p in paths)
     smoke = ["trainer.max_steps=1", "trainer.val_check_interval=1", "trainer.limit_val_batches=1", "logger.kind=none"]
     res = ttompc(
-        "train", str(REPO / "recipes" / recipe), f"data.paths=[{data}]", "trainer.out_dir=run", *smoke, *extra,
-        cwd=tmp_path, timeout=300,
-    )  # fmt: skip
+        "train",
+        str(REPO / "recipes" / recipe),
+        f"data.paths=[{data}]",
+        "trainer.out_dir=run",
+        *smoke,
+        *extra,
+        cwd=tmp_path,
+        timeout=300,
+    )
     assert_user_error(res, "ttompc train: error: ", *needles)
     assert list(tmp_path.iterdir()) == []
 
@@ -506,19 +572,52 @@ def test_an_output_the_command_may_not_write_is_one_line(
     out = _unusable_output(tmp_path, kind)
     bundle = str(REPO / "zoo" / "models" / "freeflyer-tto-small")
     argv = {
-        "generate": ["generate", "problems=4", "shard_size=2", "workers=1", "splits.train=0.5", "splits.val=0.5",
-                     "splits.test=0", f"out={out}", "--no-progress"],
+        "generate": [
+            "generate",
+            "problems=4",
+            "shard_size=2",
+            "workers=1",
+            "splits.train=0.5",
+            "splits.val=0.5",
+            "splits.test=0",
+            f"out={out}",
+            "--no-progress",
+        ],
         "solve --plot": ["solve", "--plot", str(out / "solve.png")],
-        "zoo publish": ["zoo", "publish", bundle, "--name", "m", "--to", str(out), "--skip-eval", "--zoo-dir",
-                        str(tmp_path / "zoo")],
+        "zoo publish": [
+            "zoo",
+            "publish",
+            bundle,
+            "--name",
+            "m",
+            "--to",
+            str(out),
+            "--skip-eval",
+            "--zoo-dir",
+            str(tmp_path / "zoo"),
+        ],
         "demo": ["demo", "--model", bundle, "--no-mpc", f"out={out}"],  # before: refused after planning
-        "evaluate": ["evaluate", "warmstart", "--model", bundle, "problems=1", "workers=1", "oracle_detours=0",
-                     f"out={out}"],
-    }.get(command)  # fmt: skip
+        "evaluate": [
+            "evaluate",
+            "warmstart",
+            "--model",
+            bundle,
+            "problems=1",
+            "workers=1",
+            "oracle_detours=0",
+            f"out={out}",
+        ],
+    }.get(command)
     if argv is None:
         data = request.getfixturevalue("two_scenarios")["freeflyer"]
-        argv = ["train", TINY, f"data.paths=[{data}]", f"trainer.out_dir={out}", "trainer.max_steps=1",
-                "logger.kind=none"]  # fmt: skip
+        argv = [
+            "train",
+            TINY,
+            f"data.paths=[{data}]",
+            f"trainer.out_dir={out}",
+            "trainer.max_steps=1",
+            "logger.kind=none",
+        ]
     try:
         res = ttompc(*argv, cwd=tmp_path, timeout=300)
     finally:

@@ -51,8 +51,11 @@ def _psd(rng: np.random.Generator, units: np.ndarray, size: float) -> np.ndarray
 
 
 def _model(rng: np.random.Generator, center: np.ndarray, units: np.ndarray, size: float) -> QuadraticTerminalCost:
-    return QuadraticTerminalCost(_psd(rng, units, size), size * rng.normal(size=len(units)) / units,
-                                 center + 0.1 * rng.normal(size=len(units)) * units)  # fmt: skip
+    return QuadraticTerminalCost(
+        _psd(rng, units, size),
+        size * rng.normal(size=len(units)) / units,
+        center + 0.1 * rng.normal(size=len(units)) * units,
+    )
 
 
 def _window(name: str, terminal: str, seed: int) -> tuple[SubproblemSpec, SubproblemData, np.ndarray]:

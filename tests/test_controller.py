@@ -37,8 +37,16 @@ def test_controller_reproduces_evaluate_mpc(planner: Planner, plant: str, monkey
     """One problem (evaluate mpc's batch of one): every method's controls and cost through the Controller on our
     plant equal the episode ``evaluate mpc`` runs."""
     sc = planner.scenario
-    cfg = ClosedLoopConfig(ft_model=str(MODEL), scenario=sc.name, protocol="recommended", problems=1, seed=4242,
-                           horizons=[10], plants=[plant], batch=1)  # fmt: skip
+    cfg = ClosedLoopConfig(
+        ft_model=str(MODEL),
+        scenario=sc.name,
+        protocol="recommended",
+        problems=1,
+        seed=4242,
+        horizons=[10],
+        plants=[plant],
+        batch=1,
+    )
     [ep] = cfg.problem_set(sc)
     seen: list[Any] = []
 

@@ -233,8 +233,7 @@ def _config(dataset: Path, run: Path) -> FinetuneConfig:
     d.exploration = ExplorationConfig(horizons=[10], windows=[1, 1], window_length=[5, 8])
     d.collect.rollouts, d.collect.shard_size, d.collect.workers, d.collect.val_fraction = 2, 1, 1, 0.0
     d.eval.problems, d.eval.horizons, d.eval.max_steps = 1, [5], 3
-    cfg.data = DataConfig(paths=[str(dataset)], batch_size=4, shuffle_pool=8, context_length=10,
-                          open_loop_fraction=0.5)  # fmt: skip
+    cfg.data = DataConfig(paths=[str(dataset)], batch_size=4, shuffle_pool=8, context_length=10, open_loop_fraction=0.5)
     cfg.trainer.out_dir, cfg.trainer.val_check_interval, cfg.trainer.limit_val_batches = str(run), 2, 1
     cfg.trainer.log_every_n_steps, cfg.trainer.accelerator, cfg.trainer.checkpoint_every_n_steps = 1, "cpu", 1
     cfg.logger.kind = "csv"
@@ -330,8 +329,9 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     with pytest.raises(KeyboardInterrupt):  # Lightning's sys.exit(1) on Ctrl-C is turned back into the interrupt
         finetune(cfg, source)
     assert fits == [str(run / "checkpoints" / "iter-000.ckpt")]  # iteration 1 starts from its kept parent
-    assert {p: t for p, t in (_mtimes(run / "dagger" / "iter-000") | _mtimes(run / "checkpoints")).items()
-            if p in it0} == it0  # fmt: skip
+    assert {
+        p: t for p, t in (_mtimes(run / "dagger" / "iter-000") | _mtimes(run / "checkpoints")).items() if p in it0
+    } == it0
     assert {p: t for p, t in _mtimes(run / "dagger" / "iter-001").items() if p in shard0} == shard0  # not redone
     step = torch.load(run / "checkpoints" / "iter-001.ckpt", map_location="cpu", weights_only=True)["global_step"]
     assert step == 3
@@ -398,8 +398,16 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
 
     # the DataModule reads the DAgger shards back: source, iteration, consistent expert labels
     folder = run / "dagger" / "iter-000"
-    dm = TrajectoryDataModule(DataConfig(paths=[str(dataset)], dagger_dirs=[str(folder)], batch_size=6,
-                                         shuffle_pool=6, context_length=40, open_loop_fraction=0.0))  # fmt: skip
+    dm = TrajectoryDataModule(
+        DataConfig(
+            paths=[str(dataset)],
+            dagger_dirs=[str(folder)],
+            batch_size=6,
+            shuffle_pool=6,
+            context_length=40,
+            open_loop_fraction=0.0,
+        )
+    )
     dm.setup("fit")
     batch = next(iter(dm.train_dataloader()))
     assert set(batch["source"].tolist()) == {2}
@@ -412,8 +420,13 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     np.testing.assert_allclose(S_next, sc.step(None, 0, S, A), atol=2e-5)  # label = f(x_t, u*_t)
     # the paper's mix: 9:1 open loop at the first iteration ("grow"), or fixed
     for share in ("fixed", "grow"):
-        mix = DataConfig(paths=[str(dataset)], dagger_dirs=[str(folder)], context_length=40,
-                         open_loop_fraction=0.9, closed_loop_share=share)  # fmt: skip
+        mix = DataConfig(
+            paths=[str(dataset)],
+            dagger_dirs=[str(folder)],
+            context_length=40,
+            open_loop_fraction=0.9,
+            closed_loop_share=share,
+        )
         mixed = TrajectoryDataModule(mix)
         mixed.setup("fit")
         assert mixed.open_loop_fraction() == pytest.approx(0.9)
@@ -421,8 +434,7 @@ def test_two_iterations_interrupted_and_resumed_keep_only_improvements(
     # a lost shard is recollected identically (seeded rollouts), by the rank that owns it
     import datasets
 
-    rows = datasets.load_dataset("parquet", data_files=[str(folder / "train" / "dagger-00001.parquet")],
-                                 split="train")  # fmt: skip
+    rows = datasets.load_dataset("parquet", data_files=[str(folder / "train" / "dagger-00001.parquet")], split="train")
     assert set(rows["iteration"]) == {0} and set(rows["source"]) == {"dagger"} and rows["status"][0].startswith("H=10;")
     (folder / "meta" / "shard-00001.json").unlink()
     shards = rollout_folder(folder, sc, cfg.dagger.collect.rollouts, cfg.dagger.collect.shard_size)
@@ -777,8 +789,14 @@ def test_datamodule_masks_unlabelled_steps(tmp_path: Path, dataset: Path) -> Non
     rows = collect_rollout(sc, planner, 0, 1, 0, explore, LabelConfig(kind="plan", per_rollout=3))
     folder = rollout_folder(tmp_path / "iter-000", sc, 1, 1)
     folder.write(0, {"train": rows, "val": rows})
-    data = DataConfig(paths=[str(dataset)], dagger_dirs=[str(tmp_path / "iter-000")], batch_size=3, shuffle_pool=3,
-                      context_length=sc.n_steps, open_loop_fraction=0.0)  # fmt: skip
+    data = DataConfig(
+        paths=[str(dataset)],
+        dagger_dirs=[str(tmp_path / "iter-000")],
+        batch_size=3,
+        shuffle_pool=3,
+        context_length=sc.n_steps,
+        open_loop_fraction=0.0,
+    )
     dm = TrajectoryDataModule(data)
     dm.setup("fit")
     batch = next(iter(dm.train_dataloader()))
@@ -855,12 +873,17 @@ def test_plan_rows_carry_the_costates_of_the_expert_solve(monkeypatch: pytest.Mo
         return sc.cost(res.U)
 
     units = sc.state_units()
-    fd = np.array([(cost_to_go(X[k] + 1e-4 * u * e) - cost_to_go(X[k] - 1e-4 * u * e)) / (2e-4 * u)
-                   for e, u in zip(np.eye(sc.state_dim), units, strict=True)])  # fmt: skip
+    fd = np.array(
+        [
+            (cost_to_go(X[k] + 1e-4 * u * e) - cost_to_go(X[k] - 1e-4 * u * e)) / (2e-4 * u)
+            for e, u in zip(np.eye(sc.state_dim), units, strict=True)
+        ]
+    )
     np.testing.assert_allclose(row["costates"][k], fd, rtol=0.02, atol=1e-3 * np.abs(fd).max())
     monkeypatch.undo()
-    conic = collect.collect_rollout(sc, planner, 0, 2, 5, explore, LabelConfig(kind="plan", per_rollout=2),
-                                    settings=MPCSettings(backend="conic"))  # fmt: skip
+    conic = collect.collect_rollout(
+        sc, planner, 0, 2, 5, explore, LabelConfig(kind="plan", per_rollout=2), settings=MPCSettings(backend="conic")
+    )
     assert len(conic) == len(rows)
     for r, c in zip(rows, conic, strict=True):
         lam, lam_conic = np.asarray(r["costates"]), np.asarray(c["costates"])
@@ -886,18 +909,27 @@ def test_dagger_shards_with_and_without_costates_load(tmp_path: Path, dataset: P
     for f in dirs[1].glob("*/*.parquet"):
         pq.write_table(pq.read_table(f).drop_columns(["costates"]), f)  # as written before the column
     N = sc.n_steps
-    expected = {(r["problem_id"], int(r["status"].rsplit("plan_from=", 1)[1])): np.isfinite(r["costates"][:N]).all(1)
-                for r in new}  # fmt: skip
+    expected = {
+        (r["problem_id"], int(r["status"].rsplit("plan_from=", 1)[1])): np.isfinite(r["costates"][:N]).all(1)
+        for r in new
+    }
     expected |= {(r["problem_id"], int(r["status"].rsplit("plan_from=", 1)[1])): np.zeros(N, bool) for r in old}
     assert any(m.any() for m in expected.values()) and any(np.isfinite(r["costates"]).any() for r in old)
-    data = DataConfig(paths=[str(dataset)], dagger_dirs=[str(d) for d in dirs], batch_size=3, shuffle_pool=3,
-                      context_length=N, open_loop_fraction=0.0)  # fmt: skip
+    data = DataConfig(
+        paths=[str(dataset)],
+        dagger_dirs=[str(d) for d in dirs],
+        batch_size=3,
+        shuffle_pool=3,
+        context_length=N,
+        open_loop_fraction=0.0,
+    )
     dm = TrajectoryDataModule(data)
     dm.setup("fit")
     seen = set()
     for batch in dm.dagger_val_dataloader():
-        for pid, mask, grad_mask, grad in zip(*(batch[k].numpy() for k in ("problem_id", "mask", "grad_mask",
-                                                                             "value_grad")), strict=True):  # fmt: skip
+        for pid, mask, grad_mask, grad in zip(
+            *(batch[k].numpy() for k in ("problem_id", "mask", "grad_mask", "value_grad")), strict=True
+        ):
             key = (int(pid), int(np.argmax(mask)))
             seen.add(key)
             np.testing.assert_array_equal(grad_mask.astype(bool), expected[key])

@@ -306,8 +306,11 @@ def test_cli_refuses_empty_split_in_one_line(tmp_path: Path) -> None:
     out = tmp_path / "twenty"
     res = subprocess.run(
         [sys.executable, "-m", "ttompc.cli", "generate", "scenario=freeflyer", "problems=20", f"out={out}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert res.returncode == 2, res.stderr
     assert "Traceback" not in res.stderr and "split(s) test would get no problem" in res.stderr
     assert "splits.test=0" in res.stderr and not out.exists()
@@ -347,8 +350,16 @@ def test_scp_rows_carry_costates_and_shards_without_them_still_load(tmp_path: Pa
     from ttompc.data.datamodule import TrajectoryDataModule
 
     out = tmp_path / "q"
-    cfg = GenerateConfig(scenario="quadrotor", problems=2, out=str(out), shard_size=2, workers=1, seed=5,
-                         splits=SplitConfig(train=1.0, val=0.0, test=0.0), card_dir=None)  # fmt: skip
+    cfg = GenerateConfig(
+        scenario="quadrotor",
+        problems=2,
+        out=str(out),
+        shard_size=2,
+        workers=1,
+        seed=5,
+        splits=SplitConfig(train=1.0, val=0.0, test=0.0),
+        card_dir=None,
+    )
     assert generate(cfg, progress=False) is not None
     (path,) = sorted((out / "train").glob("*.parquet"))
     rows = read_shard(path)

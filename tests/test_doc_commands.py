@@ -25,13 +25,27 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT
 
 # subcommands that take --print-config (their command lines run with it) ...
 PRINT_CONFIG = {
-    "solve", "generate", "train", "finetune", "demo", "check-scenario", "evaluate warmstart", "evaluate mpc",
-    "evaluate target", "evaluate loss",
-}  # fmt: skip
+    "solve",
+    "generate",
+    "train",
+    "finetune",
+    "demo",
+    "check-scenario",
+    "evaluate warmstart",
+    "evaluate mpc",
+    "evaluate target",
+    "evaluate loss",
+}
 # ... and those that do not (their command lines are only parsed): every subcommand is in one of the two
 PARSE_ONLY = {
-    "evaluate compare", "zoo list", "zoo info", "zoo download", "zoo publish", "zoo metrics", "zoo index",
-}  # fmt: skip
+    "evaluate compare",
+    "zoo list",
+    "zoo info",
+    "zoo download",
+    "zoo publish",
+    "zoo metrics",
+    "zoo index",
+}
 NESTED = ("evaluate", "zoo")  # subcommands with actions of their own
 
 FENCE = re.compile(r"^```[^\n]*\n(.*?)^```", re.DOTALL | re.MULTILINE)

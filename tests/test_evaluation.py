@@ -47,15 +47,36 @@ def test_interval_mean_standard_error_and_bootstrap() -> None:
 
 
 def test_infeasible_runs_are_counted_apart_not_averaged() -> None:
-    common = {"mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0, "target_change": 0.1,
-              "mean_iterations": 1.0, "mean_iterations_solved": 2.0, "complete": True}  # fmt: skip
+    common = {
+        "mean_step_time": 0.01,
+        "max_step_time": 0.02,
+        "fallbacks": 0,
+        "target_change": 0.1,
+        "mean_iterations": 1.0,
+        "mean_iterations_solved": 2.0,
+        "complete": True,
+    }
     recs = [
         {**common, "feasible": True, "cost": 1.2, "rel_increment": 0.2, "terminal_error": 0.01},
-        {**common, "feasible": True, "cost": 1.4, "rel_increment": 0.4, "terminal_error": 0.02, "max_step_time": 0.03,
-         "fallbacks": 1},
-        {**common, "feasible": False, "cost": 0.5, "rel_increment": float("nan"), "terminal_error": 0.7,
-         "mean_iterations": 2.5, "mean_iterations_solved": 3.5},
-    ]  # fmt: skip
+        {
+            **common,
+            "feasible": True,
+            "cost": 1.4,
+            "rel_increment": 0.4,
+            "terminal_error": 0.02,
+            "max_step_time": 0.03,
+            "fallbacks": 1,
+        },
+        {
+            **common,
+            "feasible": False,
+            "cost": 0.5,
+            "rel_increment": float("nan"),
+            "terminal_error": 0.7,
+            "mean_iterations": 2.5,
+            "mean_iterations_solved": 3.5,
+        },
+    ]
     s = summarize_episodes(recs)
     assert (s["runs"], s["feasible"], s["infeasible"], s["truncated"]) == (3, 2, 1, 0)
     assert s["rel_increment"]["mean"] == pytest.approx(0.3) and s["cost"]["mean"] == pytest.approx(1.3)
@@ -66,18 +87,31 @@ def test_infeasible_runs_are_counted_apart_not_averaged() -> None:
 
 
 def _rec(problem: int, method: str, cost: float, feasible: bool = True, horizon: int = 10) -> dict[str, Any]:
-    return {"problem": problem, "method": method, "horizon": horizon, "cost": cost, "rel_cost": 1.0,
-            "feasible": feasible}  # fmt: skip
+    return {
+        "problem": problem,
+        "method": method,
+        "horizon": horizon,
+        "cost": cost,
+        "rel_cost": 1.0,
+        "feasible": feasible,
+    }
 
 
 def test_the_papers_normalised_cost_rests_on_every_feasible_run() -> None:
     """(J − LB)/(maxcost − LB) per feasible run, LB = J_REL and maxcost its problem's worst feasible cost over every
     method and H (an infeasible run's cost is not a maxcost); runs that failed are left out, not their problems."""
     recs = [
-        _rec(0, "A", 1.5), _rec(0, "A", 1.2, horizon=20), _rec(0, "B", 3.0), _rec(0, "B", 5.0, False, horizon=20),
-        _rec(1, "A", 2.5), _rec(1, "A", 9.0, False, horizon=20), _rec(1, "B", 2.2), _rec(1, "B", 4.0, horizon=20),
-        _rec(2, "A", 3.0, False), _rec(2, "B", 3.0, False),  # no feasible run: no value, no maxcost
-    ]  # fmt: skip
+        _rec(0, "A", 1.5),
+        _rec(0, "A", 1.2, horizon=20),
+        _rec(0, "B", 3.0),
+        _rec(0, "B", 5.0, False, horizon=20),
+        _rec(1, "A", 2.5),
+        _rec(1, "A", 9.0, False, horizon=20),
+        _rec(1, "B", 2.2),
+        _rec(1, "B", 4.0, horizon=20),
+        _rec(2, "A", 3.0, False),
+        _rec(2, "B", 3.0, False),  # no feasible run: no value, no maxcost
+    ]
     for r in recs:
         r["rel_cost"] = 2.0 if r["problem"] == 1 else 1.0
     rows = {(r["method"], r["horizon"]): r["paper_norm"] for r in normalized_cost(recs)}
@@ -94,15 +128,27 @@ def test_closed_loop_rows_pair_each_method_with_rel_mpc_on_the_problems_both_ran
     """The per-method means average different feasible sets; the paired column does not."""
     from ttompc.evaluation.closed_loop_report import format_table, summarize
 
-    common = {"mean_step_time": 0.01, "max_step_time": 0.02, "fallbacks": 0, "target_change": 0.1,
-              "terminal_error": 0.0, "plant": "perturbed", "mean_iterations": 1.25,
-              "mean_iterations_solved": 1.75, "complete": True}  # fmt: skip
+    common = {
+        "mean_step_time": 0.01,
+        "max_step_time": 0.02,
+        "fallbacks": 0,
+        "target_change": 0.1,
+        "terminal_error": 0.0,
+        "plant": "perturbed",
+        "mean_iterations": 1.25,
+        "mean_iterations_solved": 1.75,
+        "complete": True,
+    }
     costs = {"REL-MPC": [2.0, 2.0, None, 3.0], "TTO-MPC": [1.5, 2.5, 9.0, 2.0], "ORACLE-MPC": [1.2, 1.4, 1.5, 1.3]}
     recs = [
-        {**common, **_rec(p, m, c if c is not None else 0.5, feasible=c is not None),
-         "rel_increment": (c - 1.0) if c is not None else float("nan")}
-        for m, cs in costs.items() for p, c in enumerate(cs)
-    ]  # fmt: skip
+        {
+            **common,
+            **_rec(p, m, c if c is not None else 0.5, feasible=c is not None),
+            "rel_increment": (c - 1.0) if c is not None else float("nan"),
+        }
+        for m, cs in costs.items()
+        for p, c in enumerate(cs)
+    ]
     rows = {r["method"]: r for r in summarize(recs)}
     # TTO's own mean (3.75 - 1) counts problem 2, which REL-MPC missed; paired: (-0.5 + 0.5 - 1) / 3 on 0, 1, 3
     assert rows["TTO-MPC"]["rel_increment"]["mean"] == pytest.approx(2.75)
@@ -120,14 +166,27 @@ def test_headline_pairs_the_short_horizon_with_rel_mpc_at_the_long_one() -> None
     from ttompc.evaluation.closed_loop_report import format_headline, headline
 
     def rec(p: int, m: str, H: int, inc: float | None, step: float) -> dict:
-        return {"problem": p, "method": m, "horizon": H, "plant": "nominal", "feasible": inc is not None,
-                "rel_increment": float("nan") if inc is None else inc, "mean_step_time": step}  # fmt: skip
+        return {
+            "problem": p,
+            "method": m,
+            "horizon": H,
+            "plant": "nominal",
+            "feasible": inc is not None,
+            "rel_increment": float("nan") if inc is None else inc,
+            "mean_step_time": step,
+        }
 
     recs = [
-        rec(0, "REL-MPC", 30, 0.5, 0.04), rec(1, "REL-MPC", 30, 0.7, 0.02), rec(2, "REL-MPC", 30, None, 0.03),
-        rec(0, "REL-MPC", 10, 1.5, 0.01), rec(1, "REL-MPC", 10, 1.0, 0.01), rec(2, "REL-MPC", 10, 2.0, 0.01),
-        rec(0, "TTO-MPC", 10, 0.4, 0.006), rec(1, "TTO-MPC", 10, None, 0.006), rec(2, "TTO-MPC", 10, 0.1, 0.006),
-    ]  # fmt: skip
+        rec(0, "REL-MPC", 30, 0.5, 0.04),
+        rec(1, "REL-MPC", 30, 0.7, 0.02),
+        rec(2, "REL-MPC", 30, None, 0.03),
+        rec(0, "REL-MPC", 10, 1.5, 0.01),
+        rec(1, "REL-MPC", 10, 1.0, 0.01),
+        rec(2, "REL-MPC", 10, 2.0, 0.01),
+        rec(0, "TTO-MPC", 10, 0.4, 0.006),
+        rec(1, "TTO-MPC", 10, None, 0.006),
+        rec(2, "TTO-MPC", 10, 0.1, 0.006),
+    ]
     rows = {r["method"]: r for r in headline(recs)}
     tto = rows["TTO-MPC"]
     assert (tto["horizon"], tto["baseline_horizon"], tto["feasible"], tto["baseline_feasible"]) == (10, 30, 2, 2)
@@ -174,11 +233,22 @@ def test_share_of_a_gain_within_noise_is_undefined_not_a_number(
     assert g["n"] == 40 and g["reachable_gain"]["n"] == 40  # what there was to gain is still reported
     assert json.loads(write_json(tmp_path / "r.json", g).read_text())["mean"] is None
     rows = [
-        {"problem": i, **{f"{m}_{k}": v for m, c in (("REL", base), ("TTO", model), (ORACLE, ceiling))
-                          for k, v in (("success", True), ("cost", c[i]), ("suboptimality", c[i] - 1),
-                                       ("iterations", 5), ("time", 0.1))}}
+        {
+            "problem": i,
+            **{
+                f"{m}_{k}": v
+                for m, c in (("REL", base), ("TTO", model), (ORACLE, ceiling))
+                for k, v in (
+                    ("success", True),
+                    ("cost", c[i]),
+                    ("suboptimality", c[i] - 1),
+                    ("iterations", 5),
+                    ("time", 0.1),
+                )
+            },
+        }
         for i in range(40)
-    ]  # fmt: skip
+    ]
     table = format_table(method_summary(rows, ["REL", "TTO", ORACLE]))
     assert "| undefined (reachable gain within noise) |" in table and "nan" not in table, table
     assert gain_share(base[:1], model[:1], ceiling[:1])["undefined"] == "one problem: no standard error"
@@ -186,13 +256,37 @@ def test_share_of_a_gain_within_noise_is_undefined_not_a_number(
 
 def test_improvement_by_threshold() -> None:
     rows = [
-        {"nonconvexity": 0.0, "rel_cost": 1.0, "REL_cost": 2.0, "REL_iterations": 10, "REL_success": True,
-         "TTO_cost": 1.5, "TTO_iterations": 5, "TTO_success": True},
-        {"nonconvexity": 1.0, "rel_cost": 1.0, "REL_cost": 3.0, "REL_iterations": 10, "REL_success": True,
-         "TTO_cost": 2.0, "TTO_iterations": 10, "TTO_success": True},
-        {"nonconvexity": 1.0, "rel_cost": 1.0, "REL_cost": 9.0, "REL_iterations": 1, "REL_success": True,
-         "TTO_cost": 9.0, "TTO_iterations": 1, "TTO_success": False},
-    ]  # fmt: skip
+        {
+            "nonconvexity": 0.0,
+            "rel_cost": 1.0,
+            "REL_cost": 2.0,
+            "REL_iterations": 10,
+            "REL_success": True,
+            "TTO_cost": 1.5,
+            "TTO_iterations": 5,
+            "TTO_success": True,
+        },
+        {
+            "nonconvexity": 1.0,
+            "rel_cost": 1.0,
+            "REL_cost": 3.0,
+            "REL_iterations": 10,
+            "REL_success": True,
+            "TTO_cost": 2.0,
+            "TTO_iterations": 10,
+            "TTO_success": True,
+        },
+        {
+            "nonconvexity": 1.0,
+            "rel_cost": 1.0,
+            "REL_cost": 9.0,
+            "REL_iterations": 1,
+            "REL_success": True,
+            "TTO_cost": 9.0,
+            "TTO_iterations": 1,
+            "TTO_success": False,
+        },
+    ]
     out = improvement_by_threshold(rows, ["TTO"], "REL", [0.0, 0.5])
     assert out[0]["count"] == 2 and out[0]["TTO_subopt_improvement"] == pytest.approx(100 * (1 - 0.75 / 1.5))
     assert out[0]["TTO_iterations_improvement"] == pytest.approx(25.0)
@@ -238,8 +332,19 @@ def test_open_loop_oracle_is_the_best_of_its_warm_starts(bundle: Path) -> None:
 
 def test_warmstart_command_default_folder_and_report(tmp_path: Path, bundle: Path, monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)
-    rc = main(["evaluate", "warmstart", "--model", str(bundle), "problems=2", "seed=3", "workers=1",
-               "oracle_detours=1", "thresholds=[0,0.5]"])  # fmt: skip
+    rc = main(
+        [
+            "evaluate",
+            "warmstart",
+            "--model",
+            str(bundle),
+            "problems=2",
+            "seed=3",
+            "workers=1",
+            "oracle_detours=1",
+            "thresholds=[0,0.5]",
+        ]
+    )
     assert rc == 0
     out = tmp_path / "outputs" / "evaluate" / f"warmstart-{SHORT}"
     report = json.loads((out / "warmstart.json").read_text())
@@ -295,14 +400,29 @@ def test_closed_loop_report_nominal_and_perturbed(tmp_path: Path, bundle: Path) 
 
 def test_evaluate_mpc_command_and_bad_settings(tmp_path: Path) -> None:
     out = tmp_path / "mpc"
-    rc = main(["evaluate", "mpc", f"scenario={SHORT}", "problems=1", "workers=1", "max_steps=2", "plants=[nominal]",
-               "robust_blend=0", "protocol=zoo", "mpc.mode=hard", f"out={out}"])  # fmt: skip
+    rc = main(
+        [
+            "evaluate",
+            "mpc",
+            f"scenario={SHORT}",
+            "problems=1",
+            "workers=1",
+            "max_steps=2",
+            "plants=[nominal]",
+            "robust_blend=0",
+            "protocol=zoo",
+            "mpc.mode=hard",
+            f"out={out}",
+        ]
+    )
     assert rc == 0
     report = json.loads((out / "mpc.json").read_text())
     methods = {r["method"] for r in report["summary"]}
     assert methods == {"REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC"}
-    assert report["protocol"] == {"name": "zoo mpc.mode=hard", "settings": {**asdict(MPCSettings(end_horizon=30)),
-                                                                           "mode": "hard"}}  # fmt: skip
+    assert report["protocol"] == {
+        "name": "zoo mpc.mode=hard",
+        "settings": {**asdict(MPCSettings(end_horizon=30)), "mode": "hard"},
+    }
     assert "Protocol: zoo mpc.mode=hard." in (out / "mpc.md").read_text()
     # SCP iterations per solved step: in every run (JSON and CSV) and the report's rows (each step solved here)
     for r in report["runs"]:
@@ -398,11 +518,17 @@ def _random_batches(n_batches: int, B: int = 2, L: int = 8) -> Any:
         r = lambda *s: torch.randn(*s, generator=g)  # noqa: E731
         out.append(
             {
-                "states": r(B, L, 6), "actions": r(B, L, 3), "goals": r(B, L, 6), "rtg": r(B, L, 1),
-                "ctg": r(B, L, 1), "timesteps": torch.arange(L).expand(B, L).clone(),
-                "target_actions": r(B, L, 3), "target_next_states": r(B, L, 6), "mask": torch.ones(B, L),
+                "states": r(B, L, 6),
+                "actions": r(B, L, 3),
+                "goals": r(B, L, 6),
+                "rtg": r(B, L, 1),
+                "ctg": r(B, L, 1),
+                "timesteps": torch.arange(L).expand(B, L).clone(),
+                "target_actions": r(B, L, 3),
+                "target_next_states": r(B, L, 6),
+                "mask": torch.ones(B, L),
             }
-        )  # fmt: skip
+        )
     return DataLoader(out, batch_size=None)
 
 
@@ -472,13 +598,24 @@ def test_recipe_section_wires_the_callback_into_training(tmp_path: Path) -> None
     m = planner.model.cfg
     cfg = load_train_config(
         overrides=[
-            f"model.n_embd={m.n_embd}", f"model.n_layer={m.n_layer}", f"model.n_head={m.n_head}",
-            f"model.max_steps={m.max_steps}", "trainer.max_steps=2", "trainer.max_epochs=1", "trainer.accelerator=cpu",
-            f"trainer.out_dir={tmp_path}", "trainer.export_planner=false", "trainer.log_every_n_steps=1",
-            "logger.kind=csv", "logger.plot_trajectories=false", "callbacks.eval_mpc.enabled=true",
-            "callbacks.eval_mpc.problems=1", "callbacks.eval_mpc.horizons=[5]", "callbacks.eval_mpc.max_steps=2",
+            f"model.n_embd={m.n_embd}",
+            f"model.n_layer={m.n_layer}",
+            f"model.n_head={m.n_head}",
+            f"model.max_steps={m.max_steps}",
+            "trainer.max_steps=2",
+            "trainer.max_epochs=1",
+            "trainer.accelerator=cpu",
+            f"trainer.out_dir={tmp_path}",
+            "trainer.export_planner=false",
+            "trainer.log_every_n_steps=1",
+            "logger.kind=csv",
+            "logger.plot_trajectories=false",
+            "callbacks.eval_mpc.enabled=true",
+            "callbacks.eval_mpc.problems=1",
+            "callbacks.eval_mpc.horizons=[5]",
+            "callbacks.eval_mpc.max_steps=2",
         ]
-    )  # fmt: skip
+    )
     train(cfg, RandomData())
     assert "mpc/feasible_rate" in (tmp_path / "logs" / "session-0" / "metrics.csv").read_text()
 
@@ -511,14 +648,25 @@ def test_demo_command_tiny(
     monkeypatch.chdir(tmp_path)  # short names, as `make demo` prints them (a zoo name, outputs/demo)
     Path("model").symlink_to(bundle)
     out = tmp_path / "demo"
-    argv = ["demo", "--model", "model", "mpc_model=model", "eval.problems=2", "problems=1", "--horizon", "5",
-            "rel_horizon=6", "out=demo"]  # fmt: skip
+    argv = [
+        "demo",
+        "--model",
+        "model",
+        "mpc_model=model",
+        "eval.problems=2",
+        "problems=1",
+        "--horizon",
+        "5",
+        "rel_horizon=6",
+        "out=demo",
+    ]
     assert main(argv) == 0
     printed = capsys.readouterr().out.splitlines()
     assert max(len(line) for line in printed) <= 100, printed
-    assert {"warm start: full-horizon SCP from REL and from model (time: warm start + SCP)",
-            "goal: reached, every constraint met; step: mean time per MPC step (observe + warm start + solve)"
-            } <= set(printed)  # fmt: skip
+    assert {
+        "warm start: full-horizon SCP from REL and from model (time: warm start + SCP)",
+        "goal: reached, every constraint met; step: mean time per MPC step (observe + warm start + solve)",
+    } <= set(printed)
     assert printed[-2].startswith("summary: warm start beats REL on ") and "; MPC goals " in printed[-2]
     report = json.loads((out / "demo.json").read_text())
     rows, scanned = report["rows"], report["scanned"]
@@ -578,8 +726,15 @@ def test_mpc_cost_plot_keeps_infeasible_methods_and_ticks_at_the_horizons() -> N
 
     def row(method: str, horizon: int, feasible: int, mean: float) -> dict[str, Any]:
         increment = {"mean": mean if feasible else float("nan"), "se": 0.01}
-        return {"plant": "nominal", "method": method, "horizon": horizon, "runs": 4, "feasible": feasible,
-                "rel_increment": increment, "max_step_time": 0.01}  # fmt: skip
+        return {
+            "plant": "nominal",
+            "method": method,
+            "horizon": horizon,
+            "runs": 4,
+            "feasible": feasible,
+            "rel_increment": increment,
+            "max_step_time": 0.01,
+        }
 
     summary = [row("REL-MPC", 10, 4, 0.2), row("REL-MPC", 15, 4, 0.1)]
     summary += [row("TTO-MPC", 10, 4, 0.3), row("TTO-MPC", 15, 0, 0.0)]
@@ -633,8 +788,15 @@ def test_a_measurement_resolves_its_protocol_once_and_builds_its_problems(monkey
         return protocol_settings(protocol, overrides)
 
     monkeypatch.setattr(measurement, "protocol_settings", counting)
-    m = Measurement(protocol="zoo", mpc={"mode": "hard"}, problems=2, seed=3, horizons=[5, 10],
-                    plants=["nominal", "perturbed"], max_steps=4)  # fmt: skip
+    m = Measurement(
+        protocol="zoo",
+        mpc={"mode": "hard"},
+        problems=2,
+        seed=3,
+        horizons=[5, 10],
+        plants=["nominal", "perturbed"],
+        max_steps=4,
+    )
     for _ in range(3):
         assert m.settings == MPCSettings(end_horizon=30, mode="hard")
     assert calls == ["zoo"]

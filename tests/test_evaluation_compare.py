@@ -34,12 +34,21 @@ def write_report(folder: Path, runs: list[dict[str, Any]], config: dict[str, Any
         w.writeheader()
         for r in runs:
             inc = r["rel_increment"] if r["feasible"] else float("nan")
-            w.writerow({
-                "problem": r["problem"], "seed": r.get("seed", 1000 + r["problem"]), "method": r["method"],
-                "horizon": r["horizon"], "cost": 0.2 * (1 + inc), "rel_cost": 0.2, "plant": r.get("plant", "nominal"),
-                "mean_step_time": r["mean_step_time"], "terminal_error": 0.0, "feasible": r["feasible"],
-                "rel_increment": inc,
-            })  # fmt: skip
+            w.writerow(
+                {
+                    "problem": r["problem"],
+                    "seed": r.get("seed", 1000 + r["problem"]),
+                    "method": r["method"],
+                    "horizon": r["horizon"],
+                    "cost": 0.2 * (1 + inc),
+                    "rel_cost": 0.2,
+                    "plant": r.get("plant", "nominal"),
+                    "mean_step_time": r["mean_step_time"],
+                    "terminal_error": 0.0,
+                    "feasible": r["feasible"],
+                    "rel_increment": inc,
+                }
+            )
     report = {"summary": [], "complete": True} | ({"config": config} if config is not None else {})
     (folder / "mpc.json").write_text(json.dumps(report))
     return folder
@@ -51,11 +60,15 @@ def runs(
     rng = np.random.default_rng(seed)
     return [
         {
-            "problem": p, "method": method, "horizon": horizon, "feasible": feasible[p],
-            "rel_increment": float(rng.uniform(0, 0.5)), "mean_step_time": float(rng.uniform(0.005, 0.02)),
+            "problem": p,
+            "method": method,
+            "horizon": horizon,
+            "feasible": feasible[p],
+            "rel_increment": float(rng.uniform(0, 0.5)),
+            "mean_step_time": float(rng.uniform(0.005, 0.02)),
         }
         for p in problems
-    ]  # fmt: skip
+    ]
 
 
 BASE_FEASIBLE = [True, True, True, False, True, True]
@@ -184,10 +197,24 @@ def test_the_report_and_compare_pair_alike(
     from ttompc.evaluation.stats import Outcome, paired
 
     _, _, base_runs, _ = reports
-    recs = [{**r, "plant": "nominal", "cost": 1.0, "rel_cost": 1.0, "max_step_time": 0.1, "fallbacks": 0,
-             "target_change": 0.1, "terminal_error": 0.0, "mean_iterations": 1.0, "mean_iterations_solved": 1.0,
-             "complete": True, "rel_increment": r["rel_increment"] if r["feasible"] else float("nan")}
-            for r in base_runs if r["horizon"] == 10 and r["method"] != "PLAN-ONCE"]  # fmt: skip
+    recs = [
+        {
+            **r,
+            "plant": "nominal",
+            "cost": 1.0,
+            "rel_cost": 1.0,
+            "max_step_time": 0.1,
+            "fallbacks": 0,
+            "target_change": 0.1,
+            "terminal_error": 0.0,
+            "mean_iterations": 1.0,
+            "mean_iterations_solved": 1.0,
+            "complete": True,
+            "rel_increment": r["rel_increment"] if r["feasible"] else float("nan"),
+        }
+        for r in base_runs
+        if r["horizon"] == 10 and r["method"] != "PLAN-ONCE"
+    ]
     (row,) = [r for r in summarize(recs) if r["method"] == "TTO-MPC"]
     rel = {r["problem"]: Outcome.of(r) for r in recs if r["method"] == "REL-MPC"}
     tto = {r["problem"]: Outcome.of(r) for r in recs if r["method"] == "TTO-MPC"}

@@ -32,12 +32,27 @@ def _episode(problem: int, plant: str, horizon: int, method: str) -> dict[str, A
     """A deterministic stand-in for an episode's record (every field the report reads)."""
     cost = 1.0 + 0.1 * problem + 0.001 * horizon + 0.01 * len(method) + (0.05 if plant == "perturbed" else 0.0)
     feasible = (problem + horizon // 10 + len(method)) % 4 != 0
-    return {"problem": problem, "seed": 100 + problem, "ctg0": 1, "method": method, "horizon": horizon,
-            "plant": plant, "cost": cost, "rel_cost": 1.0, "steps": 3, "feasible": feasible,
-            "rel_increment": cost - 1.0 if feasible else float("nan"), "target_change": 0.01 * problem,
-            "mean_step_time": 0.001 * (1 + problem), "max_step_time": 0.002 * (1 + problem), "mean_iterations": 2.0,
-            "mean_iterations_solved": 2.0, "fallbacks": 0, "terminal_error": 0.0 if feasible else 0.3,
-            "complete": True}  # fmt: skip
+    return {
+        "problem": problem,
+        "seed": 100 + problem,
+        "ctg0": 1,
+        "method": method,
+        "horizon": horizon,
+        "plant": plant,
+        "cost": cost,
+        "rel_cost": 1.0,
+        "steps": 3,
+        "feasible": feasible,
+        "rel_increment": cost - 1.0 if feasible else float("nan"),
+        "target_change": 0.01 * problem,
+        "mean_step_time": 0.001 * (1 + problem),
+        "max_step_time": 0.002 * (1 + problem),
+        "mean_iterations": 2.0,
+        "mean_iterations_solved": 2.0,
+        "fallbacks": 0,
+        "terminal_error": 0.0 if feasible else 0.3,
+        "complete": True,
+    }
 
 
 @pytest.fixture
@@ -66,8 +81,17 @@ def fake_episodes(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
 
 
 def _config(out: Path, **overrides: Any) -> ClosedLoopConfig:
-    settings = {"scenario": SHORT, "problems": 5, "batch": 2, "horizons": [10, 20], "robust_blend": 0.0,
-                "plants": ["nominal", "perturbed"], "workers": 1, "out": str(out), **overrides}  # fmt: skip
+    settings = {
+        "scenario": SHORT,
+        "problems": 5,
+        "batch": 2,
+        "horizons": [10, 20],
+        "robust_blend": 0.0,
+        "plants": ["nominal", "perturbed"],
+        "workers": 1,
+        "out": str(out),
+        **overrides,
+    }
     return ClosedLoopConfig(**settings)
 
 
@@ -156,9 +180,19 @@ def test_the_store_keeps_nan_and_refuses_a_damaged_line(tmp_path: Path) -> None:
 
 
 def _runs(method: str, horizon: int, increments: list[float], step: float, largest: float) -> list[dict[str, Any]]:
-    return [{"problem": p, "plant": "nominal", "method": method, "horizon": horizon, "feasible": inc is not None,
-             "rel_increment": float("nan") if inc is None else inc, "mean_step_time": step, "max_step_time": largest}
-            for p, inc in enumerate(increments)]  # fmt: skip
+    return [
+        {
+            "problem": p,
+            "plant": "nominal",
+            "method": method,
+            "horizon": horizon,
+            "feasible": inc is not None,
+            "rel_increment": float("nan") if inc is None else inc,
+            "mean_step_time": step,
+            "max_step_time": largest,
+        }
+        for p, inc in enumerate(increments)
+    ]
 
 
 FT = "R-FT-TTO-MPC[rtg=value]"
@@ -197,8 +231,16 @@ def test_no_matching_horizon_is_said() -> None:
 def test_real_episodes_resume_to_the_same_report(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The baselines' real episodes (3 steps each) on the short scenario: stopped after the first stored task, the
     sweep resumes with the other and reports the runs of an uninterrupted sweep, step times aside."""
-    settings = {"scenario": SHORT, "problems": 2, "batch": 1, "horizons": [10], "plants": ["nominal"],
-                "max_steps": 3, "workers": 1, "robust_blend": 0.0}  # fmt: skip
+    settings = {
+        "scenario": SHORT,
+        "problems": 2,
+        "batch": 1,
+        "horizons": [10],
+        "plants": ["nominal"],
+        "max_steps": 3,
+        "workers": 1,
+        "robust_blend": 0.0,
+    }
     monkeypatch.setattr(plots, "plot_horizon", lambda summary, out: [])
     whole = run_closed_loop(ClosedLoopConfig(**settings, out=str(tmp_path / "whole")))
     add = EpisodeStore.add

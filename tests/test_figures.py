@@ -36,18 +36,37 @@ def mpc_report(scenario: str = "freeflyer") -> dict[str, Any]:
             for i, method in enumerate(METHODS):
                 feasible = not (method == "TTO-MPC" and H == 10 and problem < 2)
                 cost = 1.0 + 0.1 * i + 0.01 * problem + (0.05 if H == 10 else 0.0)
-                runs.append({
-                    "problem": problem, "method": method, "horizon": H, "plant": "nominal", "cost": cost,
-                    "rel_cost": 1.0, "feasible": feasible, "rel_increment": cost - 1.0 if feasible else float("nan"),
-                    "target_change": 0.1, "mean_step_time": float(rng.uniform(0.001, 0.01)),
-                    "max_step_time": float(rng.uniform(0.01, 0.1)),
-                    "fallbacks": 0, "terminal_error": 0.0 if feasible else 0.5, "mean_iterations": 1.0,
-                    "mean_iterations_solved": 1.0, "complete": True,
-                })  # fmt: skip
+                runs.append(
+                    {
+                        "problem": problem,
+                        "method": method,
+                        "horizon": H,
+                        "plant": "nominal",
+                        "cost": cost,
+                        "rel_cost": 1.0,
+                        "feasible": feasible,
+                        "rel_increment": cost - 1.0 if feasible else float("nan"),
+                        "target_change": 0.1,
+                        "mean_step_time": float(rng.uniform(0.001, 0.01)),
+                        "max_step_time": float(rng.uniform(0.01, 0.1)),
+                        "fallbacks": 0,
+                        "terminal_error": 0.0 if feasible else 0.5,
+                        "mean_iterations": 1.0,
+                        "mean_iterations_solved": 1.0,
+                        "complete": True,
+                    }
+                )
     config = asdict(ClosedLoopConfig(model="tto-x", ft_model="ft-y", horizons=[10, 20], problems=3, seed=7, workers=1))
     command = report_command("mpc", config, ClosedLoopConfig())
-    return {"config": config, "command": command, "scenario": {"name": scenario},
-            "protocol": {"name": "paper"}, "summary": summarize(runs), "runs": runs, "complete": True}  # fmt: skip
+    return {
+        "config": config,
+        "command": command,
+        "scenario": {"name": scenario},
+        "protocol": {"name": "paper"},
+        "summary": summarize(runs),
+        "runs": runs,
+        "complete": True,
+    }
 
 
 def warmstart_report() -> dict[str, Any]:
@@ -56,8 +75,13 @@ def warmstart_report() -> dict[str, Any]:
     for k in range(4):
         row: dict[str, Any] = {"problem": k, "rel_cost": 1.0, "nonconvexity": 0.25 * k}
         for m, (gap, iterations) in {"REL": (0.4, 6), "TTO": (0.3, 5), "FT-TTO": (0.35, 7), "ORACLE": (0.2, 6)}.items():
-            row |= {f"{m}_success": True, f"{m}_cost": 1.0 + gap + 0.1 * k, f"{m}_iterations": iterations + k,
-                    f"{m}_suboptimality": gap + 0.1 * k, f"{m}_time": 0.1}  # fmt: skip
+            row |= {
+                f"{m}_success": True,
+                f"{m}_cost": 1.0 + gap + 0.1 * k,
+                f"{m}_iterations": iterations + k,
+                f"{m}_suboptimality": gap + 0.1 * k,
+                f"{m}_time": 0.1,
+            }
         problems.append(row)
     config = asdict(WarmStartConfig(model="tto-x", ft_model="ft-y", problems=4, seed=7, workers=1))
     return {
@@ -74,8 +98,14 @@ def warmstart_report() -> dict[str, Any]:
 def test_the_paper_methods_are_picked_in_the_papers_order() -> None:
     rows = horizon_figures.paper_rows(mpc_report())
     names = [r["method"] for r in rows]
-    assert list(dict.fromkeys(names)) == ["REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC[rtg=value]",
-                                          "R-FT-TTO-MPC[rtg=value]", "ORACLE-MPC"]  # fmt: skip
+    assert list(dict.fromkeys(names)) == [
+        "REL-MPC",
+        "DIST-MPC",
+        "TTO-MPC",
+        "FT-TTO-MPC[rtg=value]",
+        "R-FT-TTO-MPC[rtg=value]",
+        "ORACLE-MPC",
+    ]
     assert [r["horizon"] for r in rows] == [10, 20] * 6
     with pytest.raises(UserError, match="perturbed plant"):
         horizon_figures.paper_rows(mpc_report(), "perturbed")
@@ -86,8 +116,9 @@ def test_step_times_average_each_episodes_largest_and_mean_step() -> None:
     for point in horizon_figures.step_times(report):
         assert point["runs"] == 3
         for key in ("max_step_time", "mean_step_time"):
-            times = [r[key] for r in report["runs"]
-                     if r["method"] == point["method"] and r["horizon"] == point["horizon"]]  # fmt: skip
+            times = [
+                r[key] for r in report["runs"] if r["method"] == point["method"] and r["horizon"] == point["horizon"]
+            ]
             assert point[key]["mean"] == pytest.approx(np.mean(times))
             assert point[key]["se"] == pytest.approx(np.std(times, ddof=1) / np.sqrt(3))
 
@@ -133,8 +164,10 @@ def test_the_figures_plot_the_reports_numbers(tmp_path: Path, monkeypatch: pytes
     reports[1]["machine"] = {"cpu": "CPU X", "cpus": 2, "load_average": [3, 2, 1.2], "load_average_end": [1, 1, 2.5]}
     fig, text = horizon_figures.horizon_figure(reports, "nominal")
     axes = np.array(fig.axes[:10]).reshape(5, 2)  # subplots first, in row order
-    assert text == (f"From freeflyer: `{reports[0]['command']}` (machine not recorded, workers=1); "
-                    f"quadrotor: `{reports[1]['command']}` (CPU X, 2 cores, load 2.5, workers=1).")  # fmt: skip
+    assert text == (
+        f"From freeflyer: `{reports[0]['command']}` (machine not recorded, workers=1); "
+        f"quadrotor: `{reports[1]['command']}` (CPU X, 2 cores, load 2.5, workers=1)."
+    )
 
     def line(ax: Any, label: str) -> np.ndarray:  # the y data of the error bars labelled ``label``
         (found,) = [c.lines[0] for c in ax.containers if c.get_label() == label]
@@ -229,8 +262,16 @@ def test_the_written_report_records_the_command_of_its_config(kind: str, tmp_pat
         write_report(cfg, get_scenario("freeflyer"), mpc_report()["runs"], tmp_path, 1, time.perf_counter())
     else:
         bundle = mpc_fakes.tiny_planner().save(tmp_path / "bundle")
-        run_warmstart(WarmStartConfig(model=str(bundle), scenario=mpc_fakes.FreeFlyerShort.name, problems=1,
-                                      workers=1, oracle_detours=0, out=str(tmp_path)))  # fmt: skip
+        run_warmstart(
+            WarmStartConfig(
+                model=str(bundle),
+                scenario=mpc_fakes.FreeFlyerShort.name,
+                problems=1,
+                workers=1,
+                oracle_detours=0,
+                out=str(tmp_path),
+            )
+        )
     report = figures.load_report(tmp_path / f"{kind}.json", kind)
     defaults = ClosedLoopConfig() if kind == "mpc" else WarmStartConfig()
     assert report["command"] == report_command(kind, report["config"], defaults)

@@ -33,8 +33,20 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("loss")
     ol = root / "ol"
     splits = SplitConfig(0.6, 0.2, 0.2)
-    generate(GenerateConfig(scenario="data-fake", problems=30, out=str(ol), shard_size=10, workers=1, seed=1,
-                            solver=fakes.SOLVER, card_dir=None, splits=splits), progress=False)  # fmt: skip
+    generate(
+        GenerateConfig(
+            scenario="data-fake",
+            problems=30,
+            out=str(ol),
+            shard_size=10,
+            workers=1,
+            seed=1,
+            solver=fakes.SOLVER,
+            card_dir=None,
+            splits=splits,
+        ),
+        progress=False,
+    )
     sc = get_scenario("data-fake")
     writer = ShardWriter(root / "dagger", trajectory_features(sc))
     rng = np.random.default_rng(0)
@@ -43,8 +55,19 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         p = sc.sample(rng)
         U = rng.normal(scale=0.05, size=(sc.n_steps, sc.control_dim))
         X = sc.rollout(p, U)
-        rows.append(make_row(sc, p, problem_id=10_000 + i, seed=i, source="dagger", iteration=0,
-                             states=sc.to_model_states(p, X), actions=U, states_opt=X))  # fmt: skip
+        rows.append(
+            make_row(
+                sc,
+                p,
+                problem_id=10_000 + i,
+                seed=i,
+                source="dagger",
+                iteration=0,
+                states=sc.to_model_states(p, X),
+                actions=U,
+                states_opt=X,
+            )
+        )
     writer.write(rows, 0)
     writer.write(rows[:3], 0, split="val")
     dm = TrajectoryDataModule(DataConfig(paths=[str(ol)]))
@@ -95,7 +118,8 @@ def _by_hand(
 def test_losses_by_kind_and_split_are_the_masked_mse_over_all_steps(data: dict[str, Path]) -> None:
     rows = {(r["kind"], r["split"]): r for r in fit_losses(_config(data, batch_size=4))}
     assert list(rows) == [("open_loop", s) for s in ("train", "val", "test")] + [
-        ("dagger", s) for s in ("train", "val", "test")]  # fmt: skip
+        ("dagger", s) for s in ("train", "val", "test")
+    ]
     assert rows[("dagger", "train")]["rows"] == DAGGER_ROWS and rows[("dagger", "val")]["rows"] == 3
     assert rows[("dagger", "test")]["rows"] == 0 and np.isnan(rows[("dagger", "test")]["loss"])
     for kind, split in [("open_loop", "train"), ("open_loop", "test"), ("dagger", "train")]:
@@ -127,12 +151,26 @@ def test_losses_by_kind_and_split_are_the_masked_mse_over_all_steps(data: dict[s
 
 def test_evaluate_loss_command(tmp_path: Path, data: dict[str, Path]) -> None:
     out = tmp_path / "loss"
-    rc = main(["evaluate", "loss", "--model", str(data["bundle"]), f"data.paths=[{data['ol']}]",
-               f"data.dagger_dirs=[{data['dagger']}]", "splits=[train,val]", f"--out={out}"])  # fmt: skip
+    rc = main(
+        [
+            "evaluate",
+            "loss",
+            "--model",
+            str(data["bundle"]),
+            f"data.paths=[{data['ol']}]",
+            f"data.dagger_dirs=[{data['dagger']}]",
+            "splits=[train,val]",
+            f"--out={out}",
+        ]
+    )
     assert rc == 0
     report = json.loads((out / "loss.json").read_text())
     assert [(r["kind"], r["split"]) for r in report["rows"]] == [
-        ("open_loop", "train"), ("open_loop", "val"), ("dagger", "train"), ("dagger", "val")]  # fmt: skip
+        ("open_loop", "train"),
+        ("open_loop", "val"),
+        ("dagger", "train"),
+        ("dagger", "val"),
+    ]
     assert "| dagger | val | 3 |" in (out / "loss.md").read_text()
     assert main(["evaluate", "loss", f"data.paths=[{data['ol']}]", f"--out={out}"]) == 2  # no model
     assert main(["evaluate", "loss", "--model", str(data["bundle"]), f"--out={out}"]) == 2  # no data

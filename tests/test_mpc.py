@@ -404,8 +404,9 @@ def test_batched_tto_episodes_equal_single_ones(setup: tuple, monkeypatch: pytes
     together = {k: list(v) for k, v in plans.items()}
     for e, p, c, seed in zip(batched, problems, costs, (3, 4), strict=True):
         plans.clear()
-        alone = run_mpc(sc, p, TTOProvider(planner), 5, rel_cost=c, max_steps=3, plant=PlantNoise.perturbed(sc),
-                        plant_seed=seed)  # fmt: skip
+        alone = run_mpc(
+            sc, p, TTOProvider(planner), 5, rel_cost=c, max_steps=3, plant=PlantNoise.perturbed(sc), plant_seed=seed
+        )
         (b, *_), (a, *_) = together[id(p)], plans[id(p)]
         assert b.target is not None and a.target is not None
         np.testing.assert_allclose(b.target, a.target, rtol=0, atol=1e-6)  # the batch's rollout, up to rounding
@@ -439,8 +440,9 @@ def test_batched_episodes_of_a_unique_optimum_are_the_lone_ones(
     run = MPCRun(5, max_steps=3, plant=PlantNoise.perturbed(sc))
     batched = run_mpc_batch(sc, starts, [TTOProvider(planner, group=group) for _ in problems], run)
     for e, p, c, seed in zip(batched, problems, costs, (3, 4), strict=True):
-        alone = run_mpc(sc, p, TTOProvider(planner), 5, rel_cost=c, max_steps=3, plant=PlantNoise.perturbed(sc),
-                        plant_seed=seed)  # fmt: skip
+        alone = run_mpc(
+            sc, p, TTOProvider(planner), 5, rel_cost=c, max_steps=3, plant=PlantNoise.perturbed(sc), plant_seed=seed
+        )
         np.testing.assert_allclose(e.X, alone.X, rtol=0, atol=1e-6)
 
 
@@ -676,8 +678,16 @@ def test_methods_are_registered_once_with_what_they_need() -> None:
     from ttompc.mpc import METHODS, MethodInputs, methods_for
     from ttompc.mpc.methods import base_method, model_method
 
-    assert list(METHODS) == ["REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC", "TTO-MPC", "R-TTO-MPC", "FT-TTO-MPC",
-                             "R-FT-TTO-MPC"]  # fmt: skip
+    assert list(METHODS) == [
+        "REL-MPC",
+        "DIST-MPC",
+        "PLAN-ONCE",
+        "ORACLE-MPC",
+        "TTO-MPC",
+        "R-TTO-MPC",
+        "FT-TTO-MPC",
+        "R-FT-TTO-MPC",
+    ]
     names = lambda methods: [m.name for m in methods]  # noqa: E731
     assert names(methods_for([])) == ["REL-MPC", "DIST-MPC", "PLAN-ONCE", "ORACLE-MPC"]
     assert names(methods_for(["FT-TTO"], 0.0))[4:] == ["FT-TTO-MPC"]
@@ -759,8 +769,16 @@ def test_plan_reuse_applies_the_own_plan_tail_and_keeps_the_results(setup: tuple
     assert warm.feasible == cold.feasible and warm.terminal_error == pytest.approx(cold.terminal_error, abs=1e-6)
     np.testing.assert_allclose(warm.X, cold.X, atol=1e-4)  # the heading's L1 optimum is flat: 1e-5 rad apart
     assert warm.cost == pytest.approx(cold.cost, rel=1e-5)
-    noisy = run_mpc(sc, problem, RELProvider(), 10, plant=PlantNoise(0.05, 0.02, 0.002), plant_seed=3,
-                    settings=MPCSettings(end_horizon=15), **kw)  # fmt: skip
+    noisy = run_mpc(
+        sc,
+        problem,
+        RELProvider(),
+        10,
+        plant=PlantNoise(0.05, 0.02, 0.002),
+        plant_seed=3,
+        settings=MPCSettings(end_horizon=15),
+        **kw,
+    )
     assert noisy.reuses == 0
 
 
@@ -889,15 +907,18 @@ def test_a_step_time_includes_the_observe_of_the_previous_outcome(
     clock = _Clock()
     monkeypatch.setattr(loop_module, "time", clock)  # the SCP takes no time on this clock: solve_times are 0
     T = 4
-    alone = run_mpc(sc, problem, _Timed(PlanProvider((scp.X, scp.U)), clock, 0.25, 1.0, None), 5,
-                    rel_cost=rel.cost, max_steps=T)  # fmt: skip
+    alone = run_mpc(
+        sc, problem, _Timed(PlanProvider((scp.X, scp.U)), clock, 0.25, 1.0, None), 5, rel_cost=rel.cost, max_steps=T
+    )
     np.testing.assert_array_equal(alone.observe_times, [0.0, 1.0, 1.0, 1.0])
     np.testing.assert_array_equal(alone.warm_times, [0.25] * T)
     np.testing.assert_array_equal(alone.step_times, [0.25, 1.25, 1.25, 1.25])
     assert alone.summary()["mean_step_time"] == pytest.approx(1.0)
     # two episodes share work (one reports all of it, the other only queued its part: 0.0), a third shares none
-    provs = [_Timed(PlanProvider((scp.X, scp.U)), clock, 0.25, own, shared)
-             for own, shared in ((0.125, 0.0), (0.125, 1.0), (0.5, None))]  # fmt: skip
+    provs = [
+        _Timed(PlanProvider((scp.X, scp.U)), clock, 0.25, own, shared)
+        for own, shared in ((0.125, 0.0), (0.125, 1.0), (0.5, None))
+    ]
     episodes = run_mpc_batch(sc, [EpisodeStart(problem, rel.cost)] * 3, provs, MPCRun(5, max_steps=T))
     for e, charged in zip(episodes, (0.625, 0.625, 0.5), strict=True):
         np.testing.assert_array_equal(e.observe_times, [0.0] + [charged] * (T - 1))
@@ -952,8 +973,15 @@ def test_iterations_are_the_window_solves_per_step(setup: tuple, monkeypatch: py
 
     monkeypatch.setattr(MPCController, "solve", spy)
     # windows reach the end from t = 3: step 3 solves one, step 4 reuses its tail (the exact plant)
-    e = run_mpc(sc, problem, PlanProvider((scp.X, scp.U)), 10, rel_cost=rel.cost, max_steps=T,
-                settings=MPCSettings(end_horizon=N - 3))  # fmt: skip
+    e = run_mpc(
+        sc,
+        problem,
+        PlanProvider((scp.X, scp.U)),
+        10,
+        rel_cost=rel.cost,
+        max_steps=T,
+        settings=MPCSettings(end_horizon=N - 3),
+    )
     expected = [sum(k for t, k in solves if t == step) for step in range(T)]
     np.testing.assert_array_equal(e.iterations, expected)
     assert e.reuses == 1 and e.iterations[-1] == 0 and min(e.iterations[:-1]) >= 1
@@ -970,8 +998,9 @@ def _valued_planner(scenario_name: str) -> Any:
 
     tiny = mpc_fakes.tiny_planner(scenario_name)
     torch.manual_seed(0)
-    planner = Planner(TrajectoryGPT(ModelConfig(**{**tiny.model.cfg.__dict__, "value_width": 8})), tiny.scenario,
-                      tiny.stats)  # fmt: skip
+    planner = Planner(
+        TrajectoryGPT(ModelConfig(**{**tiny.model.cfg.__dict__, "value_width": 8})), tiny.scenario, tiny.stats
+    )
     for layer in planner.model.value_head:  # torch's default initialisation, not the model's small one
         if isinstance(layer, torch.nn.Linear):
             layer.reset_parameters()

@@ -133,9 +133,12 @@ def test_a_damaged_bundle_fails_by_name_and_old_bundles_still_load(tmp_path: Pat
     env = {k: v for k, v in os.environ.items() if k != "TTOMPC_DEBUG"}
     res = subprocess.run(
         [sys.executable, "-m", "ttompc.cli", "evaluate", "warmstart", "--model", str(bundle), "problems=1"],
-        cwd=tmp_path, env={**env, "TTOMPC_PROGRESS": "0", "WANDB_MODE": "offline"}, capture_output=True, text=True,
+        cwd=tmp_path,
+        env={**env, "TTOMPC_PROGRESS": "0", "WANDB_MODE": "offline"},
+        capture_output=True,
+        text=True,
         timeout=600,
-    )  # fmt: skip
+    )
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
     assert f"{weights} is damaged" in lines[0] and "re-export the bundle" in lines[0], lines[0]

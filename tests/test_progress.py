@@ -118,8 +118,14 @@ def test_a_broken_stderr_never_stops_or_hangs_the_command(tmp_path: Path) -> Non
         """
     )
     read, write = os.pipe()
-    proc = subprocess.Popen([sys.executable, "-c", script], cwd=tmp_path, env={**cli_env(), "TTOMPC_PROGRESS": "1"},
-                            stdout=subprocess.PIPE, stderr=write, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script],
+        cwd=tmp_path,
+        env={**cli_env(), "TTOMPC_PROGRESS": "1"},
+        stdout=subprocess.PIPE,
+        stderr=write,
+        text=True,
+    )
     os.close(write)
     os.close(read)  # the reader has gone before the first line
     out, _ = proc.communicate(timeout=120)
@@ -168,11 +174,25 @@ def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_evaluate_shows_progress_on_stderr_at_once(tmp_path: Path, bundle: Path) -> None:
     """`evaluate mpc` printed nothing for minutes: now a line at once, then a bar over episodes that pool workers
     advance as each episode ends (one problem is many episodes); stdout is the table."""
-    argv = ["evaluate", "mpc", "--model", str(bundle), "problems=2", "workers=2", "max_steps=2", "plants=[nominal]",
-            "robust_blend=0", f"out={tmp_path / 'mpc'}"]  # fmt: skip
+    argv = [
+        "evaluate",
+        "mpc",
+        "--model",
+        str(bundle),
+        "problems=2",
+        "workers=2",
+        "max_steps=2",
+        "plants=[nominal]",
+        "robust_blend=0",
+        f"out={tmp_path / 'mpc'}",
+    ]
     # TQDM_MININTERVAL=0: every count is drawn, so the granularity below does not depend on how fast episodes end
-    out, err, cpu = run_watching_stderr(driver(f"from ttompc.cli import main; sys.exit(main({argv!r}))"), tmp_path,
-                                        TTOMPC_PROGRESS="1", TQDM_MININTERVAL="0")  # fmt: skip
+    out, err, cpu = run_watching_stderr(
+        driver(f"from ttompc.cli import main; sys.exit(main({argv!r}))"),
+        tmp_path,
+        TTOMPC_PROGRESS="1",
+        TQDM_MININTERVAL="0",
+    )
     assert cpu < FIRST_OUTPUT_CPU_S, (cpu, err)
     shown = frames(err)
     assert shown[0] == f"ttompc evaluate mpc: 2 problems; loading {bundle}", shown
@@ -182,10 +202,19 @@ def test_evaluate_shows_progress_on_stderr_at_once(tmp_path: Path, bundle: Path)
     assert len(counts) > 3, episodes  # counted per episode, not per problem (0, 5 and 10 only)
     assert "\r" not in out and out.startswith("| plant | method |") and "report: " in out
 
-    argv = ["evaluate", "warmstart", "--model", str(bundle), "problems=2", "workers=1", "oracle_detours=0",
-            f"out={tmp_path / 'ws'}"]  # fmt: skip
-    out, err, cpu = run_watching_stderr(driver(f"from ttompc.cli import main; sys.exit(main({argv!r}))"), tmp_path,
-                                        TTOMPC_PROGRESS="1")  # fmt: skip
+    argv = [
+        "evaluate",
+        "warmstart",
+        "--model",
+        str(bundle),
+        "problems=2",
+        "workers=1",
+        "oracle_detours=0",
+        f"out={tmp_path / 'ws'}",
+    ]
+    out, err, cpu = run_watching_stderr(
+        driver(f"from ttompc.cli import main; sys.exit(main({argv!r}))"), tmp_path, TTOMPC_PROGRESS="1"
+    )
     assert cpu < FIRST_OUTPUT_CPU_S, (cpu, err)
     assert frames(err)[0] == f"ttompc evaluate warmstart: 2 problems; loading {bundle}"
     assert "2/2" in [f for f in frames(err) if f.startswith(f"warmstart {SHORT}:")][-1], err
@@ -204,25 +233,45 @@ def test_finetune_shows_every_phase_on_stderr_and_names_the_pretrained_model(tmp
 
     data = tmp_path / "data"
     splits = SplitConfig(train=0.5, val=0.5, test=0.0)
-    cfg = GenerateConfig(scenario=SHORT, problems=4, out=str(data), shard_size=4, workers=1, splits=splits,
-                         card_dir=None)  # fmt: skip
+    cfg = GenerateConfig(
+        scenario=SHORT, problems=4, out=str(data), shard_size=4, workers=1, splits=splits, card_dir=None
+    )
     assert generate(cfg, progress=False) is not None
     planner = mpc_fakes.tiny_planner()
     stats = NormStats.from_dict(load_manifest(data)["norm_stats"])
     source = Planner(planner.model, planner.scenario, stats).save(tmp_path / "pretrained")
     argv = [
-        "finetune", "--model", str(source), "dagger.iterations=1", "dagger.steps_per_iteration=2",
-        "dagger.exploration.horizons=[10]", "dagger.exploration.windows=[1,1]",
-        "dagger.exploration.window_length=[5,8]", "dagger.collect.rollouts=1", "dagger.collect.shard_size=1",
-        "dagger.collect.workers=1", "dagger.collect.val_fraction=0.0", "dagger.eval.problems=1",
-        "dagger.eval.horizons=[5]", "dagger.eval.max_steps=3", f"data.paths=[{data}]", "data.batch_size=4",
-        "data.shuffle_pool=8", "data.context_length=10", "data.open_loop_fraction=0.5",
-        f"trainer.out_dir={tmp_path / 'run'}", "trainer.val_check_interval=2", "trainer.limit_val_batches=1",
-        "trainer.log_every_n_steps=1", "trainer.accelerator=cpu", "trainer.checkpoint_every_n_steps=1",
+        "finetune",
+        "--model",
+        str(source),
+        "dagger.iterations=1",
+        "dagger.steps_per_iteration=2",
+        "dagger.exploration.horizons=[10]",
+        "dagger.exploration.windows=[1,1]",
+        "dagger.exploration.window_length=[5,8]",
+        "dagger.collect.rollouts=1",
+        "dagger.collect.shard_size=1",
+        "dagger.collect.workers=1",
+        "dagger.collect.val_fraction=0.0",
+        "dagger.eval.problems=1",
+        "dagger.eval.horizons=[5]",
+        "dagger.eval.max_steps=3",
+        f"data.paths=[{data}]",
+        "data.batch_size=4",
+        "data.shuffle_pool=8",
+        "data.context_length=10",
+        "data.open_loop_fraction=0.5",
+        f"trainer.out_dir={tmp_path / 'run'}",
+        "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1",
+        "trainer.log_every_n_steps=1",
+        "trainer.accelerator=cpu",
+        "trainer.checkpoint_every_n_steps=1",
         "logger.kind=csv",
-    ]  # fmt: skip
-    out, err, cpu = run_watching_stderr(driver(f"from ttompc.cli import main; sys.exit(main({argv!r}))"), tmp_path,
-                                        TTOMPC_PROGRESS="1")  # fmt: skip
+    ]
+    out, err, cpu = run_watching_stderr(
+        driver(f"from ttompc.cli import main; sys.exit(main({argv!r}))"), tmp_path, TTOMPC_PROGRESS="1"
+    )
     assert cpu < FIRST_OUTPUT_CPU_S, (cpu, err)
     assert json.loads(out)["best_iteration"] in (-1, 0)
     shown = frames(err)

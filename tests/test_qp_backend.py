@@ -112,8 +112,9 @@ def test_the_piqp_path_uses_the_qp_where_there_is_no_cone() -> None:
     assert rel.success and all("PIQP" in h.solver_status for h in rel.history)
     # an MPC window's soft terminal term is a 2-norm: the conic chain takes it, with the ∞-norm trust region
     w = Window(0, 10, 100)
-    res = solve_scp(SCPProblem(ff, p, w, TerminalCost(rel.X[10], 1.0)), rel.X[:11], rel.U[:10],
-                    SCPOptions(backend="piqp"))  # fmt: skip
+    res = solve_scp(
+        SCPProblem(ff, p, w, TerminalCost(rel.X[10], 1.0)), rel.X[:11], rel.U[:10], SCPOptions(backend="piqp")
+    )
     assert res.success and not any("PIQP" in h.solver_status for h in res.history)
     # RPOD's 2-norm cost needs cones: its auto chain is conic only
     rp = get_scenario("rpod")
@@ -126,8 +127,20 @@ def _rpod_spec(rp) -> SubproblemSpec:
     p = rp.sample(np.random.default_rng(0))
     X, U = rp.initial_guess(p)
     blocks = rp.constraints(p, Window.full(p), X, U, obstacles=True)
-    return SubproblemSpec(100, 6, 3, "l2", 1.0, True, False, "l2", "hard", False, 100.0,
-                          tuple(SubproblemSpec.block_signature(b) for b in blocks))  # fmt: skip
+    return SubproblemSpec(
+        100,
+        6,
+        3,
+        "l2",
+        1.0,
+        True,
+        False,
+        "l2",
+        "hard",
+        False,
+        100.0,
+        tuple(SubproblemSpec.block_signature(b) for b in blocks),
+    )
 
 
 def test_piqp_alone_rejects_cones() -> None:

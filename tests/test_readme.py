@@ -24,18 +24,37 @@ REPO = Path(__file__).resolve().parents[1]
 SMOKE: dict[str, list[str]] = {
     "solve": [],
     "generate": [
-        "problems=4", "shard_size=2", "workers=1", "splits.train=0.5", "splits.val=0.25", "splits.test=0.25",
+        "problems=4",
+        "shard_size=2",
+        "workers=1",
+        "splits.train=0.5",
+        "splits.val=0.25",
+        "splits.test=0.25",
         "--no-progress",
     ],
     "train": [
-        "trainer.max_steps=2", "trainer.val_check_interval=2", "trainer.limit_val_batches=1",
-        "trainer.checkpoint_every_n_steps=2", "model.n_embd=32", "model.n_layer=1", "model.n_head=2",
-        "data.batch_size=4", "logger.kind=none",
+        "trainer.max_steps=2",
+        "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1",
+        "trainer.checkpoint_every_n_steps=2",
+        "model.n_embd=32",
+        "model.n_layer=1",
+        "model.n_head=2",
+        "data.batch_size=4",
+        "logger.kind=none",
     ],
     "finetune": [
-        "dagger.iterations=1", "dagger.steps_per_iteration=2", "dagger.collect.rollouts=1", "dagger.collect.workers=1",
-        "dagger.collect.shard_size=1", "dagger.exploration.horizons=[10]", "dagger.eval.problems=1",
-        "dagger.eval.max_steps=3", "trainer.val_check_interval=2", "trainer.limit_val_batches=1", "data.batch_size=4",
+        "dagger.iterations=1",
+        "dagger.steps_per_iteration=2",
+        "dagger.collect.rollouts=1",
+        "dagger.collect.workers=1",
+        "dagger.collect.shard_size=1",
+        "dagger.exploration.horizons=[10]",
+        "dagger.eval.problems=1",
+        "dagger.eval.max_steps=3",
+        "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1",
+        "data.batch_size=4",
         "logger.kind=none",
     ],
     "evaluate warmstart": ["problems=1", "workers=1", "oracle_detours=0"],
@@ -44,7 +63,7 @@ SMOKE: dict[str, list[str]] = {
     "zoo info": [],
     "zoo download": ["--no-progress"],
     "zoo publish": [],
-}  # fmt: skip
+}
 
 
 def readme_block(language: str, heading: str = "## What you can do") -> str:

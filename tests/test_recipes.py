@@ -207,8 +207,9 @@ def test_a_required_dataset_left_out_is_one_line(command: str, capsys: pytest.Ca
     from ttompc.cli import main
 
     model = ["--model", "no-such-model"] if command == "finetune" else []
-    assert main([command, str(RECIPES / "generic" / f"{'pretrain' if command == 'train' else command}.yaml"),
-                 *model]) == 2  # fmt: skip
+    assert (
+        main([command, str(RECIPES / "generic" / f"{'pretrain' if command == 'train' else command}.yaml"), *model]) == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "data.paths" in err and "pass data.paths=[" in err and "generate" in err, err
 
@@ -227,8 +228,15 @@ def test_finetuning_recipe_mixes_the_source_models_dataset(path: Path) -> None:
 
 def test_every_named_recipe_exists() -> None:
     """Cards, README, docs, scripts and code name recipes by path: each of those paths is a file."""
-    texts = [ROOT / "README.md", ROOT / "Makefile", *(ROOT / "docs").glob("*.md"), *(ROOT / "zoo").glob("*.md"),
-             *(ROOT / "scripts").glob("*"), *(ROOT / "ttompc").rglob("*.py"), *ALL]  # fmt: skip
+    texts = [
+        ROOT / "README.md",
+        ROOT / "Makefile",
+        *(ROOT / "docs").glob("*.md"),
+        *(ROOT / "zoo").glob("*.md"),
+        *(ROOT / "scripts").glob("*"),
+        *(ROOT / "ttompc").rglob("*.py"),
+        *ALL,
+    ]
     named = {m for t in texts for m in re.findall(r"(?<![\w:/])recipes/[\w.-]+/[\w.-]+\.yaml", t.read_text())}
     assert named, "the pattern finds recipe paths"
     assert sorted(n for n in named if not (ROOT / n).is_file()) == []
@@ -261,8 +269,14 @@ def test_gpu_pretrain_script_builds_a_loadable_config(scenario: str, tmp_path: P
     import sys
 
     env = {**os.environ, "DRY_RUN": "1", "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
-    out = subprocess.run(["bash", "scripts/gpu_pretrain.sh", scenario, str(tmp_path)], cwd=ROOT, env=env,
-                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    out = subprocess.run(
+        ["bash", "scripts/gpu_pretrain.sh", scenario, str(tmp_path)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     assert f"config OK (recipes/{scenario}/paper-pretrain.yaml" in out.stdout
 
@@ -270,7 +284,8 @@ def test_gpu_pretrain_script_builds_a_loadable_config(scenario: str, tmp_path: P
 def test_gpu_pretrain_script_rejects_an_unknown_scenario(tmp_path: Path) -> None:
     import subprocess
 
-    out = subprocess.run(["bash", "scripts/gpu_pretrain.sh", "nope", str(tmp_path)], cwd=ROOT, capture_output=True,
-                         text=True, timeout=60)  # fmt: skip
+    out = subprocess.run(
+        ["bash", "scripts/gpu_pretrain.sh", "nope", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
     assert out.returncode == 2 and out.stderr.count("\n") == 1
     assert "no recipe recipes/nope/paper-pretrain.yaml" in out.stderr

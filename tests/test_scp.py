@@ -309,8 +309,12 @@ def test_costates_are_the_gradient_of_the_optimal_cost_to_go() -> None:
         return sc.cost(solve_scp(SCPProblem(sc, p, Window(k, N - k, N)), X0, full.U[k:]).U)
 
     units = sc.state_units()
-    fd = np.array([(cost_to_go(full.X[k] + 1e-4 * u * e) - cost_to_go(full.X[k] - 1e-4 * u * e)) / (2e-4 * u)
-                   for e, u in zip(np.eye(sc.state_dim), units, strict=True)])  # fmt: skip
+    fd = np.array(
+        [
+            (cost_to_go(full.X[k] + 1e-4 * u * e) - cost_to_go(full.X[k] - 1e-4 * u * e)) / (2e-4 * u)
+            for e, u in zip(np.eye(sc.state_dim), units, strict=True)
+        ]
+    )
     np.testing.assert_allclose(res.costates[1], fd, rtol=0.02, atol=1e-3 * np.abs(fd).max())
 
 

@@ -22,8 +22,10 @@ ROOT = Path(__file__).resolve().parents[1]
 def _entry(cpu: str = "a test CPU") -> dict[str, Any]:
     """Two methods: A costs 1 s at H = 10 and 3 s at H = 30 (nominal), 2 and 4 s perturbed; B 0.5 s at every H,
     nominal only; building a problem 2 s."""
-    episodes = {"A": {"nominal": {"10": 1.0, "30": 3.0}, "perturbed": {"10": 2.0, "30": 4.0}},
-                "B": {"nominal": {"10": 0.5}}}  # fmt: skip
+    episodes = {
+        "A": {"nominal": {"10": 1.0, "30": 3.0}, "perturbed": {"10": 2.0, "30": 4.0}},
+        "B": {"nominal": {"10": 0.5}},
+    }
     machine = {"cpu": cpu, "cpus": 2, "load_average": [1.0, 1.0, 1.0], "load_average_end": [1.0, 1.0, 1.5]}
     return {"problem_s": 2.0, "episode_s": episodes, "machine": machine}
 
@@ -98,8 +100,14 @@ def test_missing_costs_are_one_line(
 
 def test_measure_times_every_method_at_every_horizon_and_plant() -> None:
     """Baselines only, on the short scenario, three steps an episode: every method has a cost at each H and plant."""
-    cfg = ClosedLoopConfig(scenario=mpc_fakes.FreeFlyerShort.name, problems=1, horizons=[5, 10], max_steps=3,
-                           robust_blend=0.0, plants=["nominal", "perturbed"])  # fmt: skip
+    cfg = ClosedLoopConfig(
+        scenario=mpc_fakes.FreeFlyerShort.name,
+        problems=1,
+        horizons=[5, 10],
+        max_steps=3,
+        robust_blend=0.0,
+        plants=["nominal", "perturbed"],
+    )
     entry = sweep_cost.measure(cfg)
     assert set(entry["episode_s"]) == {m.name for m in methods_for({}, 0.0)}
     for by_plant in entry["episode_s"].values():

@@ -42,8 +42,9 @@ class ExpertPlanProvider:
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         N = problem.n_steps
         draws = (self.ep.index, self.ep.seed, problem, self.ep.rel, 10)
-        self.rollout = ExpertRollout.start(scenario, draws, np.zeros(N, bool), np.ones(N, bool), PlantNoise(),
-                                           self.settings)  # fmt: skip
+        self.rollout = ExpertRollout.start(
+            scenario, draws, np.zeros(N, bool), np.ones(N, bool), PlantNoise(), self.settings
+        )
         self.expert = Expert(scenario, [self.rollout], None, self.settings.backend)
         self.scenario = scenario
 
@@ -94,7 +95,15 @@ def test_windows_that_reach_the_end_have_no_target() -> None:
 
 def test_summary_buckets_and_correlations_by_hand() -> None:
     assert [bucket_label(k) for k in (1, 5, 6, 11, 50, 51, 100, 101)] == [
-        "1-5", "1-5", "6-10", "11-20", "21-50", "51-100", "51-100", "101+"]  # fmt: skip
+        "1-5",
+        "1-5",
+        "6-10",
+        "11-20",
+        "21-50",
+        "51-100",
+        "51-100",
+        "101+",
+    ]
     c = correlation([1.0, 2.0, 3.0, 4.0], [1.0, 8.0, 27.0, 64.0])  # monotone, not linear
     assert c["spearman"] == pytest.approx(1.0) and 0.9 < c["pearson"] < 1.0 and c["n"] == 4
     assert np.isnan(correlation([1.0, 2.0], [3.0, 4.0])["pearson"])  # n < 3
@@ -103,14 +112,36 @@ def test_summary_buckets_and_correlations_by_hand() -> None:
     nan = float("nan")
 
     def step(p: int, t: int, raw: float) -> dict[str, Any]:
-        return {"problem": p, "plant": "nominal", "horizon": 10, "t": t, "to_go": 40 - t, "expert_fallback": False,
-                "target_raw": raw, "target_blended": raw / 2, "control": 1.0, "control_raw": nan}  # fmt: skip
+        return {
+            "problem": p,
+            "plant": "nominal",
+            "horizon": 10,
+            "t": t,
+            "to_go": 40 - t,
+            "expert_fallback": False,
+            "target_raw": raw,
+            "target_blended": raw / 2,
+            "control": 1.0,
+            "control_raw": nan,
+        }
 
     steps = [step(0, 0, 1.0), step(0, 25, 3.0), step(1, 0, 2.0), step(1, 25, 6.0), step(2, 0, 4.0)]
-    recs = [{"problem": p, "plant": "nominal", "horizon": 10, "feasible": p < 2, "rel_increment": inc,
-             "expert_fallbacks": 0, **{k: m for k, m in zip(ERRORS, means, strict=True)}}
-            for p, inc, means in [(0, 0.1, (2.0, 1.0, 1.0, nan)), (1, 0.3, (4.0, 2.0, 1.0, nan)),
-                                  (2, nan, (4.0, 2.0, 1.0, nan))]]  # fmt: skip
+    recs = [
+        {
+            "problem": p,
+            "plant": "nominal",
+            "horizon": 10,
+            "feasible": p < 2,
+            "rel_increment": inc,
+            "expert_fallbacks": 0,
+            **{k: m for k, m in zip(ERRORS, means, strict=True)},
+        }
+        for p, inc, means in [
+            (0, 0.1, (2.0, 1.0, 1.0, nan)),
+            (1, 0.3, (4.0, 2.0, 1.0, nan)),
+            (2, nan, (4.0, 2.0, 1.0, nan)),
+        ]
+    ]
     (g,) = summarize(recs, steps)
     assert (g["episodes"], g["feasible"], g["expert_steps"]) == (3, 2, 5)
     assert list(g["buckets"]) == ["21-50", "11-20"]  # by steps to go, the longest first
@@ -130,14 +161,30 @@ def test_evaluate_target_command(tmp_path: Path, bundle: Path) -> None:
     """The command on both plants with a (random) model: a report per plant, its files, the expert steps every
     ``every``; bad input is one line, exit code 2."""
     out = tmp_path / "target"
-    rc = main(["evaluate", "target", "--model", str(bundle), "problems=2", "max_steps=6", "every=2", "workers=1",
-               "plants=[nominal,perturbed]", "plot=true", f"out={out}"])  # fmt: skip
+    rc = main(
+        [
+            "evaluate",
+            "target",
+            "--model",
+            str(bundle),
+            "problems=2",
+            "max_steps=6",
+            "every=2",
+            "workers=1",
+            "plants=[nominal,perturbed]",
+            "plot=true",
+            f"out={out}",
+        ]
+    )
     assert rc == 0
     report = json.loads((out / "target_error.json").read_text())
     assert report["method"] == "R-TTO-MPC" and [(g["plant"], g["horizon"]) for g in report["summary"]] == [
-        ("nominal", 10), ("perturbed", 10)]  # fmt: skip
-    assert len(report["episodes"]) == 4 and all(g["expert_steps"] + g["expert_fallbacks"] == 6
-                                                for g in report["summary"])  # fmt: skip
+        ("nominal", 10),
+        ("perturbed", 10),
+    ]
+    assert len(report["episodes"]) == 4 and all(
+        g["expert_steps"] + g["expert_fallbacks"] == 6 for g in report["summary"]
+    )
     assert "| nominal | 10 | 51-100 |" not in (out / "target_error.md").read_text()  # N = 40: no such bucket
     assert "| perturbed | 10 | all |" in (out / "target_error.md").read_text()
     assert (out / "target_error_steps.csv").stat().st_size > 0 and (out / "target_error.png").stat().st_size > 0

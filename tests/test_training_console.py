@@ -77,12 +77,38 @@ def test_train_command_stdout_is_json_and_its_one_bar_is_on_stderr(tmp_path: Pat
     from test_progress import FIRST_OUTPUT_CPU_S, frames, run_watching_stderr
 
     data = tmp_path / "data"
-    run_watching_stderr(["-m", "ttompc.cli", "generate", "problems=4", "shard_size=2", "workers=1", "--splits",
-                         "0.5,0.25,0.25", f"out={data}"], tmp_path, TTOMPC_PROGRESS="0")  # fmt: skip
-    argv = ["-m", "ttompc.cli", "train", str(Path(__file__).resolve().parents[1] / "recipes/freeflyer/tiny.yaml"),
-            f"data.paths=[{data}]", f"trainer.out_dir={tmp_path / 'run'}", "model.n_embd=32", "model.n_layer=1",
-            "model.n_head=2", "data.batch_size=4", "trainer.max_steps=4", "trainer.val_check_interval=2",
-            "trainer.limit_val_batches=1", "trainer.export_planner=false", "logger.kind=wandb"]  # fmt: skip
+    run_watching_stderr(
+        [
+            "-m",
+            "ttompc.cli",
+            "generate",
+            "problems=4",
+            "shard_size=2",
+            "workers=1",
+            "--splits",
+            "0.5,0.25,0.25",
+            f"out={data}",
+        ],
+        tmp_path,
+        TTOMPC_PROGRESS="0",
+    )
+    argv = [
+        "-m",
+        "ttompc.cli",
+        "train",
+        str(Path(__file__).resolve().parents[1] / "recipes/freeflyer/tiny.yaml"),
+        f"data.paths=[{data}]",
+        f"trainer.out_dir={tmp_path / 'run'}",
+        "model.n_embd=32",
+        "model.n_layer=1",
+        "model.n_head=2",
+        "data.batch_size=4",
+        "trainer.max_steps=4",
+        "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1",
+        "trainer.export_planner=false",
+        "logger.kind=wandb",
+    ]
     out, err, cpu = run_watching_stderr(argv, tmp_path, TTOMPC_PROGRESS="1", WANDB_MODE="offline")
     assert cpu < FIRST_OUTPUT_CPU_S, (cpu, err)
     piped = subprocess.run([sys.executable, "-m", "json.tool"], input=out, capture_output=True, text=True)

@@ -285,11 +285,22 @@ def test_cards_of_the_first_format_still_load(env: Path) -> None:
         },
         "headline_metrics": ["ws_suboptimality"],
         "inference": {"rtg_scale": 1.0, "protocol": [ws, mpc]},
-        "model-index": [{"name": "old", "results": [{"task": {"type": "trajectory-optimization"},
-                         "dataset": {"type": "ttompc/toy", "name": "toy"},
-                         "metrics": [{"type": "ws_suboptimality", "value": 0.25},
-                                     {"type": "ws_iterations", "value": 4.0}]}]}],
-    }  # fmt: skip
+        "model-index": [
+            {
+                "name": "old",
+                "results": [
+                    {
+                        "task": {"type": "trajectory-optimization"},
+                        "dataset": {"type": "ttompc/toy", "name": "toy"},
+                        "metrics": [
+                            {"type": "ws_suboptimality", "value": 0.25},
+                            {"type": "ws_iterations", "value": 4.0},
+                        ],
+                    }
+                ],
+            }
+        ],
+    }
     card = cards.parse_card(f"---\n{yaml.safe_dump(first)}---\nText.\n")
     assert card.evaluations == {
         "warmstart": {"command": ws, "metrics": {"ws_suboptimality": 0.25, "ws_iterations": 4.0}},
@@ -315,8 +326,15 @@ def test_a_card_with_numbers_in_its_front_matter_loads_and_publishing_moves_them
     src, to = make_bundle(env / "b"), str(env / "zoo" / "models" / "m")
     zoo.publish(src, "m", to, skip_eval=True)
     numbers = {"warmstart": {"command": "ttompc evaluate warmstart --model m", "metrics": {"ws_suboptimality": 0.4328}}}
-    front = zoo.model_info("m").front_matter() | {"evaluations": numbers, "model-index": [{"name": "m", "results": [
-        {"task": {}, "dataset": {}, "metrics": [{"type": "ws_suboptimality", "value": 0.4328}]}]}]}  # fmt: skip
+    front = zoo.model_info("m").front_matter() | {
+        "evaluations": numbers,
+        "model-index": [
+            {
+                "name": "m",
+                "results": [{"task": {}, "dataset": {}, "metrics": [{"type": "ws_suboptimality", "value": 0.4328}]}],
+            }
+        ],
+    }
     (env / "zoo" / "m.md").write_text(f"---\n{yaml.safe_dump(front)}---\nNotes.\n")
     old = zoo.model_info("m")
     assert old.evaluations == numbers and old.evaluations_file == ""

@@ -154,9 +154,19 @@ def test_a_card_published_before_the_metrics_file_still_loads(hub: hub_server.Hu
     front = card.front_matter() | {
         "files": [f.to_dict() for f in card.files if f.filename != METRICS_FILE],
         "evaluations": METRICS,
-        "model-index": [{"name": "old", "results": [{"task": {}, "dataset": {"config": "warmstart"},
-                         "metrics": [{"type": "ws_suboptimality", "value": 0.25}]}]}],
-    }  # fmt: skip
+        "model-index": [
+            {
+                "name": "old",
+                "results": [
+                    {
+                        "task": {},
+                        "dataset": {"config": "warmstart"},
+                        "metrics": [{"type": "ws_suboptimality", "value": 0.25}],
+                    }
+                ],
+            }
+        ],
+    }
     readme = tmp_path / "README.md"
     readme.write_text(f"---\n{yaml.safe_dump(front, sort_keys=False)}---\nAn earlier card.\n")
     files = {"README.md": readme, **{f: bundle / f for f in ("model.safetensors", "config.json")}}
@@ -277,9 +287,16 @@ def test_dataset_folder_publishes_in_one_commit_and_loads_with_datasets(
 
     out = tmp_path / "fake-v1"
     cfg = GenerateConfig(
-        scenario="data-fake", problems=12, out=str(out), shard_size=6, workers=1, seed=7, solver=fakes.SOLVER,
-        card_dir=None, splits=SplitConfig(0.5, 0.25, 0.25),
-    )  # fmt: skip
+        scenario="data-fake",
+        problems=12,
+        out=str(out),
+        shard_size=6,
+        workers=1,
+        seed=7,
+        solver=fakes.SOLVER,
+        card_dir=None,
+        splits=SplitConfig(0.5, 0.25, 0.25),
+    )
     manifest = generate(cfg, progress=False)
     assert manifest is not None
     assert main(["zoo", "publish", str(out), "--to", "hf://datasets/org/fake-v1"]) == 0
@@ -324,7 +341,9 @@ def test_shipped_cards_give_the_hub_their_results() -> None:
             assert {"ws_suboptimality", "ws_suboptimality_rel", "ws_iterations", "ws_iterations_rel"} <= types
         if "mpc10_nominal_model_feasible_rate" in ours.metrics:
             assert "mpc10_nominal_rel_feasible_rate" in types and types & {
-                "mpc10_nominal_model_feasible_rate", "mpc10_nominal_robust_feasible_rate"}  # fmt: skip
+                "mpc10_nominal_model_feasible_rate",
+                "mpc10_nominal_robust_feasible_rate",
+            }
         per_evaluation = Counter(r.dataset_config for r in results)
         assert types and max(per_evaluation.values()) <= 6, path.name  # the headline, not every number
         assert ours.inference["rtg_scale"] > 0 and set(ours.inference) == {"rtg_scale", "conditioning"}, path.name

@@ -27,19 +27,40 @@ WS = {
     "command": "ttompc evaluate warmstart --model m-tto --ft-model m-ft problems=10 seed=4242 nonconvex_only=True",
     "methods": [
         {"method": "REL", "runs": 10, "failures": 0, "suboptimality": _iv(0.40), "iterations": _iv(5.8)},
-        {"method": "TTO", "runs": 10, "failures": 1, "suboptimality": _iv(0.35), "iterations": _iv(5.0),
-         "gain_share": _iv(0.5), "vs_rel": {"suboptimality": _iv(-0.04, 0.02), "iterations": _iv(-0.5, 0.3)}},
-        {"method": "FT-TTO", "runs": 10, "failures": 0, "suboptimality": _iv(0.45), "iterations": _iv(7.0),
-         "gain_share": _iv(-0.5)},
+        {
+            "method": "TTO",
+            "runs": 10,
+            "failures": 1,
+            "suboptimality": _iv(0.35),
+            "iterations": _iv(5.0),
+            "gain_share": _iv(0.5),
+            "vs_rel": {"suboptimality": _iv(-0.04, 0.02), "iterations": _iv(-0.5, 0.3)},
+        },
+        {
+            "method": "FT-TTO",
+            "runs": 10,
+            "failures": 0,
+            "suboptimality": _iv(0.45),
+            "iterations": _iv(7.0),
+            "gain_share": _iv(-0.5),
+        },
         {"method": "ORACLE", "runs": 10, "failures": 0, "suboptimality": _iv(0.30), "iterations": _iv(6.0)},
     ],
     "complete": True,
-}  # fmt: skip
+}
 
 
 def _row(plant: str, method: str, feasible: int, inc: float, **extra: object) -> dict[str, object]:
-    return {"plant": plant, "method": method, "horizon": 10, "feasible": feasible, "runs": 4,
-            "rel_increment": _iv(inc), "mean_step_time": 0.05, **extra}  # fmt: skip
+    return {
+        "plant": plant,
+        "method": method,
+        "horizon": 10,
+        "feasible": feasible,
+        "runs": 4,
+        "rel_increment": _iv(inc),
+        "mean_step_time": 0.05,
+        **extra,
+    }
 
 
 MPC = {
@@ -108,16 +129,38 @@ def test_metrics_read_rtg_labelled_rows_and_the_headline() -> None:
         "config": {**MPC["config"], "ft_model": "m-ft", "horizons": [10, 30], "protocol": "recommended", "mpc": {}},
         "command": "ttompc evaluate mpc --model m-tto --ft-model m-ft problems=4 seed=4242 horizons=[10,30] "
         "plants=[nominal,perturbed] protocol=recommended",
-        "summary": [_row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.3), _row("nominal", "REL-MPC", 4, 0.9),
-                    _row("nominal", "R-FT-TTO-MPC[rtg=value]", 2, 0.1), _row("nominal", "REL-MPC", 4, 0.2, horizon=30),
-                    _row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.25, horizon=30)],
-        "headline": [
-            {"plant": "nominal", "method": "R-FT-TTO-MPC[rtg=value]", "horizon": 10, "baseline_horizon": 30,
-             "runs": 4, "feasible": 4, "baseline_feasible": 4, "vs_baseline": _iv(0.05, 0.02), "step_ratio": 3.5},
-            {"plant": "nominal", "method": "REL-MPC", "horizon": 10, "baseline_horizon": 30, "runs": 4,
-             "feasible": 4, "baseline_feasible": 4, "vs_baseline": _iv(0.9), "step_ratio": 1.5},
+        "summary": [
+            _row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.3),
+            _row("nominal", "REL-MPC", 4, 0.9),
+            _row("nominal", "R-FT-TTO-MPC[rtg=value]", 2, 0.1),
+            _row("nominal", "REL-MPC", 4, 0.2, horizon=30),
+            _row("nominal", "FT-TTO-MPC[rtg=value]", 4, 0.25, horizon=30),
         ],
-    }  # fmt: skip
+        "headline": [
+            {
+                "plant": "nominal",
+                "method": "R-FT-TTO-MPC[rtg=value]",
+                "horizon": 10,
+                "baseline_horizon": 30,
+                "runs": 4,
+                "feasible": 4,
+                "baseline_feasible": 4,
+                "vs_baseline": _iv(0.05, 0.02),
+                "step_ratio": 3.5,
+            },
+            {
+                "plant": "nominal",
+                "method": "REL-MPC",
+                "horizon": 10,
+                "baseline_horizon": 30,
+                "runs": 4,
+                "feasible": 4,
+                "baseline_feasible": 4,
+                "vs_baseline": _iv(0.9),
+                "step_ratio": 1.5,
+            },
+        ],
+    }
     evaluation = validate_evaluations(card_metrics("FT-TTO", mpc=report))["mpc"]
     m = evaluation["metrics"]
     assert m["mpc10_nominal_model_rel_increment"] == pytest.approx(0.3)
@@ -210,8 +253,9 @@ def test_an_undefined_gain_share_is_left_off_the_card(tmp_path: Path) -> None:
     from ttompc.evaluation.metrics import gain_share, write_json
 
     cost = np.full(10, 1.123)
-    methods = [dict(m, gain_share=gain_share(cost + 1e-9, cost, cost)) if m["method"] == "TTO" else m
-               for m in WS["methods"]]  # fmt: skip
+    methods = [
+        dict(m, gain_share=gain_share(cost + 1e-9, cost, cost)) if m["method"] == "TTO" else m for m in WS["methods"]
+    ]
     report = json.loads(write_json(tmp_path / "warmstart.json", {**WS, "methods": methods}).read_text())
     assert report["methods"][1]["gain_share"]["mean"] is None
     m = validate_evaluations(card_metrics("TTO", warmstart=report))["warmstart"]["metrics"]
