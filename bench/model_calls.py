@@ -19,11 +19,19 @@ and scenario allow it (else ``fused`` is None and ``fused_reason`` says why): ``
 ``ms_per_generated_step`` as above, ``call_ms`` its per-call part independent of H (the line through its H = 1 and
 H-step rollouts: what a rollout costs besides its generated steps: the torch window maps, the weight check, numba's
 dispatch), ``floor_share`` = the torch rollout's arithmetic floor / the fused rollout, ``speedup`` = torch rollout /
-fused rollout, and ``advance_ms`` (the fused KV-cache extension).
+fused rollout, ``advance_ms`` (the fused KV-cache extension by a step no rollout started from: computed) and
+``step_ms``: the model's part of one MPC step, as TTO-MPC makes its calls (the value output of the measured states
+where the model has one, the rollout, then the advance by the plan's first step, which claims the rollout's token:
+``ttompc.policy.fused``), the median of ``reps`` successive steps.
 
 ``fit``: the least-squares line through (B, ms per generated step): ``fixed_ms`` is the part of a generated step
 that does not grow with the batch (the per-call overhead), ``ms_per_row`` what each episode adds; ``fused_fit`` the
 same for the fused decode.
+
+Alone (``python bench/model_calls.py``, one torch thread): the calls of ``--model`` (default the quadrotor's shipped
+model) at ``--batches`` (default 1), or, with ``--random WIDTHxLAYERSxHEADS``, of a randomly initialised stacked
+model of that size with the shipped model's scenario, statistics and value output (a larger model's cost before one
+is trained); one JSON line, also written to bench/results/model_calls.json (``--out``).
 """
 
 from __future__ import annotations
@@ -97,7 +105,25 @@ def fused_calls(
         "floor_share": floor_ms / rollout_ms,
         "speedup": torch_ms / rollout_ms,
         "advance_ms": advance_ms(ctx, reps),
+        "step_ms": mpc_step_ms(planner, problems, t, horizon, reps),
     }
+
+
+def mpc_step_ms(planner: Planner, problems: Sequence[Problem], t: int, horizon: int, reps: int) -> float:
+    """The model's calls of one fused MPC step from step ``t`` on (module doc: ``step_ms``), the median of ``reps``."""
+    ctx = mid_context(planner, problems, t, decoder="fused")
+    plan = ctx.rollout(reps + 2)  # the executed steps
+    steps = iter(range(reps + 1))
+    X = np.stack([p.x0 for p in problems])
+
+    def step() -> None:
+        k = next(steps)
+        if planner.has_value:
+            planner.cost_to_go(problems, X, t + k)
+        ctx.rollout(horizon)
+        ctx.advance(plan.actions[:, k], plan.states[:, k + 1])
+
+    return median_ms(step, reps)
 
 
 def batch_calls(planner: Planner, problems: Sequence[Problem], t: int, horizon: int, reps: int) -> dict[str, Any]:
@@ -108,7 +134,7 @@ def batch_calls(planner: Planner, problems: Sequence[Problem], t: int, horizon: 
     with FlopCounterMode(display=False) as counter:
         ctx.rollout(horizon)
     flops = float(counter.get_total_flops())
-    hidden, width = model.blocks[0].mlp[0].weight.shape
+    width, hidden = model.cfg.n_embd, model.cfg.mlp_ratio * model.cfg.n_embd
     rows = len(problems) * model.cfg.tokens_per_step
     gflops = mm_gflops(rows, width, hidden, next(model.parameters()).dtype, 20 * reps)
     floor_ms = flops / (1e6 * gflops)
@@ -166,7 +192,8 @@ def print_calls(name: str, calls: dict[str, Any]) -> None:
         if f is not None:
             print(f"           fused: rollout {f['rollout_ms']:7.3f} ms ({f['ms_per_generated_step']:.3f} ms per step, "
                   f"{f['call_ms']:.3f} ms per call; floor {100 * f['floor_share']:.0f}% of it; {f['speedup']:.2f}x "
-                  f"the torch rollout); advance {f['advance_ms']:.3f} ms")  # fmt: skip
+                  f"the torch rollout); advance {f['advance_ms']:.3f} ms; MPC step's model calls "
+                  f"{f['step_ms']:.3f} ms")  # fmt: skip
     if calls["fused_reason"] is not None:
         print(f"    no fused decode: {calls['fused_reason']}")
     for key, label in (("fit", "torch"), ("fused_fit", "fused")):
@@ -174,3 +201,55 @@ def print_calls(name: str, calls: dict[str, Any]) -> None:
             line = calls[key]
             print(f"    {label}: per generated step = {line['fixed_ms']:.3f} ms fixed + {line['ms_per_row']:.4f} ms "
                   "per episode")  # fmt: skip
+
+
+def random_planner(shipped: Planner, size: str) -> Planner:
+    """A randomly initialised stacked model of ``size`` = "WIDTHxLAYERSxHEADS" (seed 0) with ``shipped``'s
+    scenario, statistics and value output; raises ``ValueError`` for a malformed size."""
+    from dataclasses import replace
+
+    from ttompc.policy.gpt import TrajectoryGPT
+
+    try:
+        width, layers, heads = (int(x) for x in size.split("x"))
+    except ValueError:
+        raise ValueError(f"--random must be WIDTHxLAYERSxHEADS, e.g. 192x4x6, got {size!r}") from None
+    cfg = replace(shipped.model.cfg, n_embd=width, n_layer=layers, n_head=heads, layout="stacked")
+    torch.manual_seed(0)
+    return Planner(TrajectoryGPT(cfg).eval(), shipped.scenario, shipped.stats)
+
+
+def main() -> None:
+    import argparse
+
+    from record import Machine, result_path, write_result
+
+    from ttompc.evaluation.problems import eval_problem
+
+    p = argparse.ArgumentParser(description="The model's calls of a TTO-MPC step, alone (module doc).")
+    p.add_argument("--model", default="quadrotor-ft-tto-v6", help="zoo name or bundle (default quadrotor-ft-tto-v6)")
+    p.add_argument("--random", default=None, help="WIDTHxLAYERSxHEADS: a random model of that size instead")
+    p.add_argument("--batches", type=int, nargs="+", default=[1])
+    p.add_argument("--horizon", type=int, default=10)
+    p.add_argument("--reps", type=int, default=30)
+    p.add_argument("--seed", type=int, default=4242, help="root seed of the evaluation problems")
+    p.add_argument("--out", default=str(result_path("model_calls")))
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    machine = Machine()
+    planner = Planner.from_pretrained(args.model)
+    if args.random:
+        planner = random_planner(planner, args.random)
+    problems = [eval_problem(planner.scenario, args.seed, i).problem for i in range(max(args.batches))]
+    cfg = planner.model.cfg
+    name = f"{args.random or args.model} ({planner.model.num_parameters() / 1e6:.2f}M, {cfg.n_embd}x{cfg.n_layer})"
+    calls = model_calls(planner, problems, args.batches, args.horizon, args.reps)
+    print_calls(name, calls)
+    result = {"bench": "model_calls", "model": name, "calls": calls, "machine": machine.record()}
+    line = {B: {"rollout_ms": round(r["fused"]["rollout_ms"], 3), "step_ms": round(r["fused"]["step_ms"], 3)}
+            for B, r in calls["batches"].items() if r["fused"]}  # fmt: skip
+    write_result(result, args.out, {"bench": "model_calls", "model": name, "fused": line})
+
+
+if __name__ == "__main__":
+    main()

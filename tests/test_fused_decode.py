@@ -14,6 +14,7 @@ from ttompc.mpc.methods import MethodInputs, model_method
 from ttompc.mpc.settings import MPCSettings
 from ttompc.mpc.tto import RolloutGroup
 from ttompc.policy import ModelConfig, Planner, RolloutContext, TrajectoryGPT
+from ttompc.policy.fused import FusedDecoder
 from ttompc.policy.rollout import stage_cost_torch
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import get_scenario
@@ -121,6 +122,31 @@ def test_deferred_extension_and_weight_updates() -> None:
     after = ctxs[1].rollout(5).actions
     assert_close(after, ctxs[0].rollout(5).actions, "after a weight update")
     assert float((after - before).abs().max()) > 1e-3 * float(before.abs().max())  # the update changed the plan
+
+
+def test_an_advance_claims_the_rollouts_first_token() -> None:
+    """The advance by the executed step t takes the token of step t that the rollout from step t wrote into the
+    history (no compute) where the step's inputs are the rollout's, and computes it where they are not (an rtg fed
+    after the rollout) or where no rollout ran at the step: in every case the history and the next rollouts equal
+    the torch path's."""
+    pl, probs = planner("quadrotor"), problems("quadrotor", 2)
+    torch_ctx, fused_ctx = (pl.context(probs, rtg0=-1.0, decoder=d) for d in ("torch", "fused"))
+    for t in range(6):
+        ref = torch_ctx.rollout(5)
+        if t != 3:  # step 3: no rollout
+            assert_close(fused_ctx.rollout(5).actions, ref.actions, f"t={t} actions")
+        if t == 4:  # a value fed after the rollout: the rollout's token of step 4 is not the history's
+            for ctx in (torch_ctx, fused_ctx):
+                ctx.rtg[:, -1] = -0.7
+        for ctx in (torch_ctx, fused_ctx):
+            ctx.advance(ref.actions[:, 0], ref.states[:, 1])
+        cache, want = fused_ctx._cache, torch_ctx._cache
+        assert cache is not None and want is not None and cache.length == want.length == t + 1
+        assert_close(cache.k[:, :, :, : t + 1], want.k[:, :, :, : t + 1], f"t={t} keys")
+        assert_close(cache.v[:, :, :, : t + 1], want.v[:, :, :, : t + 1], f"t={t} values")
+    decoder = fused_ctx._decoder
+    assert isinstance(decoder, FusedDecoder) and decoder.claimed == 4  # steps 0, 1, 2 and 5
+    assert_close(fused_ctx.rollout(5).states, torch_ctx.rollout(5).states, "after the claims")
 
 
 def test_refusals_and_fallbacks() -> None:

@@ -331,3 +331,43 @@ def test_a_new_value_form_trains_on_the_policy_of_its_source() -> None:
     gn = TrajectoryGPT(ModelConfig(**{**cfg.__dict__, "value_form": "gauss_newton", "value_activation": "silu"}))
     load_source_weights(gn, source.state_dict())
     assert all(torch.equal(gn.state_dict()[k], v) for k, v in source.state_dict().items() if "value_head" not in k)
+
+
+@pytest.mark.parametrize(
+    ("form", "activation", "dtype"),
+    [("mlp", "relu", torch.float32), ("gauss_newton", "silu", torch.float32), ("gauss_newton", "gelu", torch.float64)],
+)
+def test_cost_to_go_on_the_cpu_is_the_torch_heads(toy, toy_stats: NormStats, form: str, activation: str,
+                                                  dtype: torch.dtype) -> None:  # fmt: skip
+    """``Planner.cost_to_go`` on the CPU (the head in numpy, no torch call) gives the torch value output's
+    cost-to-go up to the rounding of the model's dtype, for each form, and reads the current weights (an in-place
+    update shows)."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(state_dim=6, control_dim=3, n_embd=16, n_layer=1, n_head=2, max_steps=12, value_width=8,
+                      value_form=form, value_activation=activation)  # fmt: skip
+    planner = Planner(TrajectoryGPT(cfg).to(dtype), toy, toy_stats)
+    for layer in planner.model.value_head.modules():  # torch's default initialisation: a value that varies
+        if isinstance(layer, torch.nn.Linear):
+            layer.reset_parameters()
+    rng = np.random.default_rng(1)
+    problems = [toy.sample(rng) for _ in range(5)]
+    X = np.stack([p.x0 + rng.normal(scale=0.3, size=6) for p in problems])
+
+    def torch_value(t: int) -> np.ndarray:
+        st = planner.stats
+        norm = lambda k, a: torch.as_tensor(st.normalize(k, a), dtype=dtype)[:, None]  # noqa: E731
+        goals = np.stack([toy.model_goal(p) for p in problems])
+        S = np.stack([toy.to_model_states(p, x[None], start=t)[0] for p, x in zip(problems, X, strict=True)])
+        with torch.no_grad():
+            v = planner.model.value(norm("goals", goals), norm("states", S), torch.full((len(X), 1), t))
+        return -st.denormalize("rtg", v.double().numpy())[:, 0, 0]
+
+    rtol = 1e-5 if dtype == torch.float32 else 1e-12
+    for t in (0, 7):
+        want = torch_value(t)
+        assert np.ptp(want) > 1e-3 * np.abs(want).max()  # the states are priced apart
+        np.testing.assert_allclose(planner.cost_to_go(problems, X, t), want, rtol=rtol, atol=rtol * np.abs(want).max())
+    with torch.no_grad():
+        next(planner.model.value_head.parameters()).mul_(1.5)
+    np.testing.assert_allclose(planner.cost_to_go(problems, X, 7), torch_value(7), rtol=rtol,
+                               atol=rtol * np.abs(torch_value(7)).max())  # fmt: skip

@@ -1,26 +1,33 @@
 """The fused decode (``RolloutContext(..., decoder="fused")``, ``MPCSettings.decoder``): a cached rollout's whole
-H-step generation in one compiled call, and the KV-cache extension of ``advance`` in another.
+H-step generation in one compiled call, and the KV-cache extension of ``advance`` in another, or in none.
 
 The torch rollout of a small model is dispatch-bound (``bench/model_calls.py``: ~60 torch ops per generated step,
 the matmul arithmetic 10–18% of the time). ``FusedDecoder`` runs the same computation in numba
-(``ttompc.policy.fused_kernel``), float32 like the torch path: per generated step the window embedding
-(``RolloutContext._window_maps``, built in torch once per rollout), the decoder layers over the cached history and
-the generated tokens, the action head, the scenario's approximate dynamics (``BatchedModel.fused_step``) and the
-rtg update with the stage cost. It reads and writes the KV cache the torch ``Decoder`` would (zero-copy numpy views
-of ``KVCache.k``/``v``): a rollout writes its tokens into the free slots after the history and leaves ``length``
-alone (what the torch path truncates back to), an extension writes its tokens and advances ``length``, so the
-torch and fused decoders can take turns on one cache. The results equal the torch path's up to float rounding
+(``ttompc.policy.fused_kernel``), float32 like the torch path: per generated step the token embedding from the
+step's un-normalised inputs (``TrajectoryGPT.embed_steps``), the decoder layers over the cached history and the
+generated tokens, the action head, the scenario's approximate dynamics (``BatchedModel.fused_step``) and the rtg
+update with the stage cost. It reads and writes the KV cache the torch ``Decoder`` would (zero-copy numpy views of
+``KVCache.k``/``v``): a rollout writes its tokens into the free slots after the history and leaves ``length`` alone
+(what the torch path truncates back to), an extension writes its tokens and advances ``length``, so the torch and
+fused decoders can take turns on one cache. The results equal the torch path's up to float rounding
 (``tests/test_fused_decode.py``), not bitwise.
+
+The first token a rollout from step t writes (position t, right after a complete history) is the token of step t
+that the extension by step t computes: the same inputs (goal, rtg, ctg, state of step t and a_{t-1}; never a_t)
+through the same embedding and trunk. So the extension by an executed step *claims* it (``FusedDecoder.extend``:
+the cache's length advances over it, no compute) when the rollout's inputs equal the executed step's, compared
+exactly; otherwise (no rollout at that step, other inputs) it computes the token. An MPC step (a rollout, then the
+advance by the executed step) is one compiled call.
 
 It runs the ``stacked`` layout with a relu, gelu or silu MLP, a float32 model on the CPU, with the KV cache, and a
 scenario whose batched model has ``fused_step`` (the three built-in ones). Elsewhere ``decoder="fused"`` raises
 ``ValueError`` naming the reason, and ``decoder="auto"`` runs the torch path, with the reason in
 ``RolloutContext.fallback`` and a ``RuntimeWarning`` (``resolve_decoder``). The weights are copied into the kernel's
-layout (``fused_kernel.TrunkWeights``) when the decoder is built, with its context: the rule of ``RolloutContext``,
-that the model's weights do not change while a context lives (its KV cache holds keys and values computed with
-them), makes watching them for changes unnecessary; a context built after an optimizer step or ``load_state_dict``
-computes with the new weights. The value output is not fused: it is one
-small MLP call per MPC step outside the rollout (``Planner.cost_to_go``, its numbers in ``bench/model_calls.py``).
+layout (``fused_kernel.TrunkWeights``, ``EmbedWeights``) when the decoder is built, with its context: the rule of
+``RolloutContext``, that the model's weights do not change while a context lives (its KV cache holds keys and values
+computed with them), makes watching them for changes unnecessary; a context built after an optimizer step or
+``load_state_dict`` computes with the new weights. The value output is not part of the decode: it prices the
+measured state before the rollout (``Planner.cost_to_go``, in numpy on the CPU: no torch call).
 
 First use compiles the kernels and the scenario's dynamics step (about 12 s on the dev VM), cached on disk by numba
 (``NUMBA_CACHE_DIR`` or the package's ``__pycache__``): later processes load them (about 0.4 s).
@@ -40,7 +47,8 @@ from ttompc.policy.gpt import Block, KVCache, TrajectoryGPT
 from ttompc.scenarios.base import BatchedModel, CostNorm
 
 if TYPE_CHECKING:
-    from ttompc.policy.fused_kernel import TrunkWeights
+    from ttompc.policy.fused_kernel import EmbedWeights, TrunkWeights
+    from ttompc.policy.stats import NormStats
 
 
 def fused_support(model: TrajectoryGPT, dynamics: BatchedModel | None = None, *, use_cache: bool = True) -> str | None:
@@ -115,24 +123,51 @@ def trunk_weights(model: TrajectoryGPT) -> TrunkWeights:
     return TrunkWeights(*norm(model.embed_ln), *norm(model.ln_f), layers)
 
 
+def embed_weights(model: TrajectoryGPT, stats: NormStats) -> EmbedWeights:
+    """The stacked embedding and action head of ``model`` with ``stats`` in the kernel's layout
+    (``fused_kernel.EmbedWeights``, float32 copies)."""
+    from ttompc.policy.fused_kernel import EmbedWeights
+
+    keys = ("goals", "rtg", "ctg", "states", "actions")  # ``embed_steps``' order of the stacked inputs
+    moments = [stats.mean_std(key, np.zeros(1)) for key in keys]
+    mu, sd = (np.concatenate(parts).astype(np.float32) for parts in zip(*moments, strict=True))
+    lin = model.embed_stacked
+    mu_a, sd_a = stats.mean_std("actions", np.zeros(1))
+    head = model.action_head
+    f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
+    return EmbedWeights(
+        mu,
+        sd,
+        f32(_numpy(lin.weight).T),
+        f32(_numpy(lin.bias)) if lin.bias is not None else np.zeros(lin.out_features, np.float32),
+        _numpy(model.embed_timestep.weight).copy(),
+        f32(_numpy(head.weight) * sd_a[:, None]),
+        f32(_numpy(head.bias) * sd_a + mu_a),
+    )
+
+
 class FusedDecoder:
-    """The trunk over a ``KVCache`` and the rollout, in one numba call each; ``decoder(tokens)`` has the contract of
-    ``Decoder.__call__`` (what ``RolloutContext`` extends its history with), ``rollout`` generates a window.
+    """The trunk over a ``KVCache`` and the rollout, in one numba call each: ``extend`` appends executed steps to
+    the history (claiming a rollout's first token where it is theirs, module doc), ``rollout`` generates a window.
+    Both take a step's un-normalised inputs u = [goal, rtg, ctg, state, a_{k-1}] (``fused_kernel.EmbedWeights``).
 
     ``dynamics`` is the context's batched model (B problems, the cache's batch); its ``fused_step`` is read once,
-    the model's weights copied once (``trunk_weights``)."""
+    the model's weights copied once (``trunk_weights``, ``embed_weights``)."""
 
-    def __init__(self, model: TrajectoryGPT, cache: KVCache, dynamics: BatchedModel) -> None:
+    def __init__(self, model: TrajectoryGPT, stats: NormStats, cache: KVCache, dynamics: BatchedModel) -> None:
         from ttompc.policy.fused_kernel import ACT_CODES
 
         self.model, self.cache = model, cache
         cfg = model.cfg
         self.n_head, self.act = cfg.n_head, ACT_CODES[cfg.activation]
-        self.weights = trunk_weights(model)
+        self.weights, self.embed = trunk_weights(model), embed_weights(model, stats)
         self.K, self.V = cache.k.numpy(), cache.v.numpy()  # (L, B, heads, capacity, hd) views, written in place
         self.step, self.params = cast(Any, dynamics).fused_step()  # the cfunc and its rows (B, P)
         if self.params.shape[0] != self.K.shape[1] or self.params.dtype != np.float32:
             raise ValueError(f"fused_step params must be float32 (B={self.K.shape[1]}, P), got {self.params.shape}")
+        # the last rollout's first token: (its position, its step's inputs (B, I)), until the cache moves on
+        self._claim: tuple[int, np.ndarray] | None = None
+        self.claimed = 0  # tokens claimed so far (module doc), for tests and benches
 
     def _room(self, tokens: int) -> int:
         start = self.cache.length
@@ -140,39 +175,33 @@ class FusedDecoder:
             raise ValueError(f"KV cache overflow: {start + tokens} tokens > capacity {self.cache.capacity}")
         return start
 
-    def __call__(self, tokens: Tensor) -> Tensor:
-        """Embedded tokens (B, T, d) -> final hidden states (B, T, d), appended after the cached ones (the cache
-        length advances by T), as ``Decoder.__call__``."""
+    def extend(self, inputs: np.ndarray, k0: int) -> None:
+        """Append the tokens of the executed steps k0..k0+T-1 from their un-normalised inputs (B, T, I) float32 after
+        the cached ones (the cache length advances by T), as ``Decoder.__call__`` of their ``embed_steps`` tokens.
+        The first one is claimed, not computed, where the last rollout wrote it from equal inputs (module doc)."""
         from ttompc.policy.fused_kernel import extend_kernel
 
-        start = self._room(tokens.shape[1])
-        out = np.empty(tokens.shape, np.float32)
-        extend_kernel(self.n_head, self.act, self.weights, self.K, self.V, start, _numpy(tokens), out)
-        self.cache.length = start + tokens.shape[1]
-        return torch.from_numpy(out)
+        start = self._room(inputs.shape[1])
+        claim, self._claim = self._claim, None
+        if claim is not None and claim[0] == start and np.array_equal(claim[1], inputs[:, 0]):
+            self.cache.length = start = start + 1
+            self.claimed += 1
+            inputs, k0 = inputs[:, 1:], k0 + 1
+        if inputs.shape[1]:
+            extend_kernel(self.n_head, self.act, self.weights, self.embed, self.K, self.V, start, k0, inputs)
+            self.cache.length = start + inputs.shape[1]
 
-    def rollout(
-        self,
-        maps: tuple[Tensor, Tensor, Tensor, Tensor],
-        state: Tensor,
-        rtg: Tensor,
-        prev_action: Tensor,
-        start: int,
-        cost_norm: CostNorm,
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """The H = maps[0].shape[1] steps from step ``start`` after the cached history (whose length is left as it
-        is; its free slots are scratch). ``maps``: ``RolloutContext._window_maps``; state (B, n), rtg (B,) and
-        prev_action (B, m) = a_{start-1}, un-normalised. -> states (B, H+1, n), actions (B, H, m), rtg (B, H+1)."""
-        from ttompc.policy.fused_kernel import COST_CODES, WindowMaps, rollout_kernel
+    def rollout(self, u0: np.ndarray, t0: int, horizon: int, cost_norm: CostNorm) -> tuple[Tensor, Tensor, Tensor]:
+        """The ``horizon`` steps from step ``t0`` after the cached history (whose length is left as it is; its free
+        slots are scratch, the first of them kept for a claim). ``u0`` (B, I) float32: the un-normalised inputs of
+        step t0 (the goal and ctg held over the window). -> states (B, H+1, n), actions (B, H, m), rtg (B, H+1)."""
+        from ttompc.policy.fused_kernel import COST_CODES, rollout_kernel
 
-        base, W, head_w, head_b = maps
-        B, H = base.shape[:2]
-        history = self._room(H)
-        S = np.empty((B, H + 1, state.shape[1]), np.float32)
-        A = np.empty((B, H, head_w.shape[0]), np.float32)
-        R = np.empty((B, H + 1), np.float32)
-        S[:, 0], R[:, 0] = _numpy(state), _numpy(rtg)
-        window = WindowMaps(_numpy(base), _numpy(W), _numpy(head_w), _numpy(head_b))
+        history = self._room(horizon)
+        B, n, m = u0.shape[0], self.model.cfg.state_dim, self.model.cfg.control_dim
+        S = np.empty((B, horizon + 1, n), np.float32)
+        A = np.empty((B, horizon, m), np.float32)
+        R = np.empty((B, horizon + 1), np.float32)
         rollout_kernel(
             self.step.address,
             self.params,
@@ -180,14 +209,15 @@ class FusedDecoder:
             self.n_head,
             self.act,
             self.weights,
+            self.embed,
             self.K,
             self.V,
             history,
-            start,
-            window,
-            _numpy(prev_action),
+            t0,
+            u0,
             S,
             A,
             R,
         )
+        self._claim = (history, u0.copy())
         return torch.from_numpy(S), torch.from_numpy(A), torch.from_numpy(R)

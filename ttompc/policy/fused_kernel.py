@@ -1,16 +1,21 @@
 """The compiled part of the fused decode (``ttompc.policy.fused``): numba functions over float32 arrays.
 
 ``rollout_kernel`` runs a whole H-step generation of ``RolloutContext.rollout`` (stacked layout) in one call:
-per generated step the window embedding, the decoder layers over the KV cache (the new token's keys/values are
+per generated step the token embedding, the decoder layers over the KV cache (the new token's keys/values are
 written into the free slots after the history, which the caller leaves unclaimed: the cache's ``length`` is never
 touched here), the action head, the scenario's approximate dynamics (a numba ``cfunc``, called by its address:
 ``ttompc.scenarios.dynamics.call_step``) and the rtg update with the stage cost. ``extend_kernel`` runs the
-trunk over T new tokens after the cached ones (the KV-cache extension of ``RolloutContext.advance``).
+trunk over T executed steps after the cached ones (the KV-cache extension of ``RolloutContext.advance``). Both embed
+a step's token from its un-normalised inputs u = [goal, rtg, ctg, state, a_{k-1}] as ``TrajectoryGPT.embed_steps``
+does (normalise, the stacked linear map, the timestep embedding: ``EmbedWeights``), so the token of a rollout's
+first step is the one an extension by that step computes from the same inputs (``FusedDecoder`` claims it).
 
 Matmuls go through ``np.dot`` (numba's BLAS binding, single-threaded under ``OMP_NUM_THREADS=1``): measured on the
 2-core dev VM it is 2× (batch 1) to 3.5× (batch 40) faster than the best plain loops at these shapes. The rest is
 loops compiled with ``reassoc``/``contract`` fast-math, so the attention's and LayerNorm's reductions vectorise
-(no NaN/inf assumptions: a diverging plan stays visible).
+(no NaN/inf assumptions: a diverging plan stays visible). At batch 1 a generated step reads every trunk weight once
+(0.6M parameters: 2.4 MB, 1.8M: 7.1 MB): the kernel is bound by the cache's bandwidth, not by arithmetic
+(``bench/model_calls.py``).
 
 The weights are a ``TrunkWeights``, the linear layers' weights transposed and contiguous (I, O): ``np.dot`` of a
 batch with torch's (O, I) layout read transposed was measured up to 2.6× slower (batch 8, 384×128).
@@ -67,12 +72,16 @@ class TrunkWeights(NamedTuple):
     layers: tuple[LayerWeights, ...]
 
 
-class WindowMaps(NamedTuple):
-    """A rollout window's embedding and action head (``RolloutContext._window_maps``): the tokens of step t0+j are
-    base[:, j] + [rtg, state, a_prev] @ Wz, and the un-normalised action of a hidden state h is head_w @ h + head_b."""
+class EmbedWeights(NamedTuple):
+    """The stacked token embedding and the action head (float32): the token of step k with un-normalised inputs
+    u = [goal (n), rtg, ctg, state (n), a_{k-1} (m)] is ((u − mu)/sd) @ in_wT + in_b + time[k] (``embed_steps``), and
+    the un-normalised action of a final hidden state h is head_w @ h + head_b (the normalisation folded in)."""
 
-    base: np.ndarray  # (B, H, C)
-    Wz: np.ndarray  # (1+n+m, C)
+    mu: np.ndarray  # (I,), I = 2n+2+m: the inputs' means ...
+    sd: np.ndarray  # (I,) ... and σ + ε (``NormStats.mean_std``)
+    in_wT: np.ndarray  # (I, C)
+    in_b: np.ndarray  # (C,)
+    time: np.ndarray  # (max_steps, C): the timestep embedding
     head_w: np.ndarray  # (m, C)
     head_b: np.ndarray  # (m,)
 
@@ -190,6 +199,18 @@ def _scratch(R: int, C: int, hidden: int, capacity: int) -> tuple:
 
 
 @jit
+def _embed(u: Any, k: int, embed: EmbedWeights, z: Any, x: Any) -> None:
+    """The tokens x (R, C) of step k from un-normalised inputs u (R, I) (``EmbedWeights``); z (R, I) scratch."""
+    for r in range(u.shape[0]):
+        for i in range(u.shape[1]):
+            z[r, i] = (u[r, i] - embed.mu[i]) / embed.sd[i]
+    np.dot(z, embed.in_wT, x)
+    for r in range(x.shape[0]):
+        for c in range(x.shape[1]):
+            x[r, c] += embed.in_b[c] + embed.time[k, c]
+
+
+@jit
 def rollout_kernel(
     step: int,
     params: Any,
@@ -197,12 +218,12 @@ def rollout_kernel(
     n_head: int,
     act: int,
     weights: TrunkWeights,
+    embed: EmbedWeights,
     K: Any,
     V: Any,
     history: int,
     t0: int,
-    maps: WindowMaps,
-    a_prev: Any,
+    u0: Any,
     S: Any,
     A: Any,
     R: Any,
@@ -211,49 +232,49 @@ def rollout_kernel(
 
     ``step``: the address of the dynamics' float32 cfunc, called as step(s, a, k, params[b], s_next); ``params``
     (B, P) its per-problem rows. ``cost``: ``COST_CODES``; ``act``: ``ACT_CODES``. K, V (L, B, heads, capacity, hd): the
-    cache; positions history..history+H-1 are written, nothing before. In: a_prev (B, m) = a_{t0-1}, S[:, 0]
-    (B, n) and R[:, 0] (B,). Out: S[:, 1:] (B, H, n), A (B, H, m), R[:, 1:]."""
+    cache; positions history..history+H-1 are written, nothing before. In: u0 (B, I), the un-normalised inputs of
+    step t0 (``EmbedWeights``; the goal and ctg are held over the window). Out: S (B, H+1, n), A (B, H, m) and
+    R (B, H+1), the window's states, actions and rtg from u0's state and rtg on."""
     B, H, m = A.shape
-    base, Wz, head_w, head_b = maps
-    n, C = S.shape[2], Wz.shape[1]
+    n, C = S.shape[2], embed.in_wT.shape[1]
     x = np.empty((B, C), np.float32)
     hid = np.empty((B, C), np.float32)
     scratch = _scratch(B, C, weights.layers[0].fc_wT.shape[1], K.shape[3])
-    z = np.empty((B, 1 + n + m), np.float32)
+    u, z = u0.copy(), np.empty_like(u0)
     for b in range(B):
-        z[b, 1 + n :] = a_prev[b]
+        R[b, 0] = u[b, n]
+        S[b, 0] = u[b, n + 2 : 2 * n + 2]
     for j in range(H):
-        for b in range(B):
-            z[b, 0] = R[b, j]
-            z[b, 1 : 1 + n] = S[b, j]
-        np.dot(z, Wz, x)
-        x += base[:, j]
+        _embed(u, t0 + j, embed, z, x)
         _trunk(x, history + j, n_head, act, weights, K, V, scratch, hid)
         for b in range(B):
             c = np.float32(0.0)
             for i in range(m):
-                a = head_b[i]
+                a = embed.head_b[i]
                 for d in range(C):
-                    a += head_w[i, d] * hid[b, d]
+                    a += embed.head_w[i, d] * hid[b, d]
                 A[b, j, i] = a
-                z[b, 1 + n + i] = a
+                u[b, 2 * n + 2 + i] = a
                 c += abs(a) if cost == 0 else a * a
             call_step(step, S[b, j], A[b, j], t0 + j, params[b], S[b, j + 1])
             R[b, j + 1] = R[b, j] + (c if cost == 0 else np.sqrt(c) if cost == 1 else np.float32(0.5) * c)
+            u[b, n] = R[b, j + 1]
+            u[b, n + 2 : 2 * n + 2] = S[b, j + 1]
 
 
 @jit
 def extend_kernel(
-    n_head: int, act: int, weights: TrunkWeights, K: Any, V: Any, start: int, tokens: Any, out: Any
+    n_head: int, act: int, weights: TrunkWeights, embed: EmbedWeights, K: Any, V: Any, start: int, k0: int, U: Any
 ) -> None:
-    """The trunk over T new tokens (B, T, C) after ``start`` cached ones, in order (token i at position start+i
-    sees positions 0..start+i): their keys/values are written at start..start+T-1 and out (B, T, C) gets their
-    final hidden states. Arguments as ``rollout_kernel``'s."""
-    B, T, C = tokens.shape
+    """The trunk over the tokens of T executed steps k0..k0+T-1 after ``start`` cached tokens, in order (step i's
+    token at position start+i sees positions 0..start+i), from their un-normalised inputs U (B, T, I): their
+    keys/values are written at start..start+T-1. Arguments as ``rollout_kernel``'s."""
+    B, T, _ = U.shape
+    C = embed.in_wT.shape[1]
     x = np.empty((B, C), np.float32)
     hid = np.empty((B, C), np.float32)
+    z = np.empty((B, U.shape[2]), np.float32)
     scratch = _scratch(B, C, weights.layers[0].fc_wT.shape[1], K.shape[3])
     for i in range(T):
-        x[:] = tokens[:, i]
+        _embed(U[:, i], k0 + i, embed, z, x)
         _trunk(x, start + i, n_head, act, weights, K, V, scratch, hid)
-        out[:, i] = hid

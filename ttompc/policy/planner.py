@@ -46,7 +46,7 @@ from ttompc.policy.config import ModelConfig
 from ttompc.policy.gpt import TrajectoryGPT
 from ttompc.policy.rollout import RolloutContext, RolloutResult
 from ttompc.policy.stats import NormStats
-from ttompc.policy.value import ValueModel
+from ttompc.policy.value import ValueModel, head_output, value_activation
 from ttompc.scenarios import Problem, Scenario, find_scenario, scenario_spec
 from ttompc.version import code_version
 
@@ -112,10 +112,23 @@ class Planner:
     @torch.no_grad()
     def cost_to_go(self, problems: Sequence[Problem], X: np.ndarray, t: int) -> np.ndarray:
         """The value output's cost-to-go V(x_t, t) = −rtg_t (B,) of B problems from their states ``X`` (B, n) at step
-        ``t``, in the optimisation representation; raises ``ValueError`` for a model without a value output."""
+        ``t``, in the optimisation representation; raises ``ValueError`` for a model without a value output. On the
+        CPU the head runs in numpy (``ttompc.policy.value.head_output``, the model's dtype), elsewhere in torch."""
         sc = self.scenario
         S = np.stack([sc.to_model_states(p, np.asarray(x)[None], start=t)[0] for p, x in zip(problems, X, strict=True)])
         goal = np.stack([sc.model_goal(p) for p in problems])
+        head = self.model.value_head
+        if head is None:
+            raise ValueError("this model has no value output (model.value_width = 0)")
+        param = next(head.parameters())
+        if param.device.type == "cpu":
+            cfg, stats = self.model.cfg, self.stats
+            ftype = np.float64 if param.dtype == torch.float64 else np.float32
+            steps = np.full((len(problems), 1), t, dtype=ftype) / ftype(cfg.max_steps)  # as ``TrajectoryGPT.value``
+            z = np.concatenate([stats.normalize("goals", goal.astype(ftype)),
+                                stats.normalize("states", S.astype(ftype)), steps], axis=1)  # fmt: skip
+            out = head_output(head, value_activation(cfg), z).astype(np.float64)
+            return -stats.denormalize("rtg", out[:, None])[:, 0]
         dtype = next(self.model.parameters()).dtype
         as_t = lambda a: torch.as_tensor(a[:, None], dtype=dtype, device=self.device)  # noqa: E731  (B, 1, n)
         steps = torch.full((len(problems), 1), t, dtype=torch.long, device=self.device)

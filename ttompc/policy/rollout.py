@@ -11,7 +11,8 @@ prefix). ``RolloutContext`` keeps the executed history of B episodes and, with `
 that history: each receding-horizon rollout appends its new tokens after the cached history and truncates back to it
 at the end, so neither the prefix nor earlier generated steps are ever re-encoded. ``use_cache=False`` re-encodes the
 whole prefix at every step like the reference (for timing parity and tests). ``decoder="fused"`` runs the cached
-rollout and the cache's extension as one compiled call each (``ttompc.policy.fused``; ``"auto"``: where it can).
+rollout as one compiled call (``ttompc.policy.fused``; ``"auto"``: where it can), and the cache's extension by an
+executed step as another, or as none where it claims the token the rollout from that step wrote.
 
 The cached rollout is written for batch-1 latency (a 0.6M-parameter model's step is dispatch-bound, measured in
 ``bench/rollout_speed.py``): the normalisation is folded into the window's embedding and action head once per
@@ -187,16 +188,29 @@ class RolloutContext:
         if self._decoder is None:
             self._cache = cache = self.model.new_cache(self.batch)
             fused = self.decoder == "fused"
-            self._decoder = FusedDecoder(self.model, cache, self.dynamics) if fused else Decoder(self.model, cache)
-        c, t = self._cached, self.t
-        if c < t:
-            prev = self.actions[:, max(c - 1, 0) : t - 1]  # a_{c-1}..a_{t-2}; none before step 0
-            tok = self._embed_steps(
-                self.goals[:, c:t], self.rtg[:, c:t], self.ctg[:, c:t], self.states[:, c:t], prev, c
+            self._decoder = (
+                FusedDecoder(self.model, self.stats, cache, self.dynamics) if fused else Decoder(self.model, cache)
             )
-            self._decoder(tok)
-            self._cached = t
-        return self._decoder
+        c, t, decode = self._cached, self.t, self._decoder
+        if c < t and isinstance(decode, FusedDecoder):
+            decode.extend(self._inputs(c, t), c)  # claims the last rollout's first token where it is step c's
+        elif c < t and isinstance(decode, Decoder):
+            prev = self.actions[:, max(c - 1, 0) : t - 1]  # a_{c-1}..a_{t-2}; none before step 0
+            decode(self._embed_steps(self.goals[:, c:t], self.rtg[:, c:t], self.ctg[:, c:t], self.states[:, c:t],
+                                     prev, c))  # fmt: skip
+        self._cached = t
+        return decode
+
+    def _inputs(self, start: int, stop: int) -> np.ndarray:
+        """The un-normalised inputs [goal, rtg, ctg, state, a_{k-1}] of steps start..stop-1 (B, L, 2n+2+m) float32,
+        a_{-1} the actions' mean (a normalised zero, as ``embed_steps``): what the fused decoder embeds."""
+        prev = self.actions[:, max(start - 1, 0) : stop - 1]
+        if start == 0:
+            mean = self.stats.mean_std("actions", prev)[0]
+            prev = torch.cat([mean.expand(self.batch, 1, -1), prev], dim=1)
+        r, c = self.rtg[:, start:stop, None], self.ctg[:, start:stop, None]
+        u = torch.cat([self.goals[:, start:stop], r, c, self.states[:, start:stop], prev], dim=2)
+        return u.numpy() if u.dtype == torch.float32 else u.to(torch.float32).numpy()
 
     def _window_maps(self, horizon: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The window's embedding and action head with the normalisation folded in, built once per rollout: the
@@ -232,16 +246,14 @@ class RolloutContext:
         if not self.use_cache:
             return self._rollout_full_recompute(horizon)
         decode = self._history()  # outside inference_mode: the cache is written in place by ``advance`` too
+        if isinstance(decode, FusedDecoder):
+            states, actions, rtg = decode.rollout(self._inputs(t0, t0 + 1)[:, 0], t0, horizon, self.cost_norm)
+            return RolloutResult(states, actions, rtg, self.ctg[:, -1:].repeat(1, horizon + 1), t0)
         history = decode.cache.length
         B, T = self.batch, model.cfg.tokens_per_step
         s, r = self.states[:, -1], self.rtg[:, -1:]  # (B, n), (B, 1)
         # a_{t0-1}; at the episode start the action's mean (a normalised zero, like ``embed_steps``)
         a = self.actions[:, -1] if t0 > 0 else self.stats.mean_std("actions", s)[0].expand(B, -1)
-        if isinstance(decode, FusedDecoder):
-            with torch.inference_mode():
-                maps = self._window_maps(horizon)
-            states, actions, rtg = decode.rollout(maps, s, r[:, 0], a, t0, self.cost_norm)
-            return RolloutResult(states, actions, rtg, self.ctg[:, -1:].repeat(1, horizon + 1), t0)
         S, A, R = [s], [], [r]
         try:
             with torch.inference_mode():  # the loop's temporaries only; the cache is written in place
