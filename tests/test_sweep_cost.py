@@ -125,7 +125,7 @@ def test_a_second_measurement_adds_its_horizons_to_the_same_settings_only() -> N
         "nominal": {"10": 1.5, "30": 3.0, "50": 6.0},
         "perturbed": {"10": 2.0, "30": 4.0},
     }
-    assert merged["episode_s"]["B"] == {"nominal": {"10": 0.5}} and merged["problem_s"] == 3.0
+    assert merged["episode_s"]["B"] == {"nominal": {"10": 0.5}} and merged["problem_s"] == 2.0
     assert merged["commands"] == ["first", "2nd"]
     other = {**_entry(), **second, "protocol": "paper"}
     assert sweep_cost.merge(first, other) == other  # measured under another protocol: it replaces the first
