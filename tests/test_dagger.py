@@ -108,9 +108,11 @@ def test_rollouts_take_the_settings_they_honour_and_refuse_the_others(
     settings = load_finetune_config(RECIPES / "freeflyer" / "finetune.yaml", overrides).dagger.eval.settings
     explore = ExplorationConfig(horizons=[5], windows=[0, 0])
     collect.collect_rollout(sc, planner, 0, 1, 5, explore, LabelConfig(kind="step", per_rollout=1), settings=settings)
-    expert = dataclasses.replace(settings, rti=False)  # the expert's plans are labels: they converge
-    assert sorted(seen, key=lambda hs: hs[0]) == [(5, settings), (sc.n_steps, expert)]  # the learner, the expert
-    learner = real(sc, sc.sample(np.random.default_rng(0)), ShiftProvider(), 5, settings)
+    assert sorted(seen, key=lambda hs: hs[0]) == [(5, settings), (sc.n_steps, settings)]  # the learner, the expert
+    everywhere = dataclasses.replace(settings, rti=True)  # RTI in every window but the expert's: its plans are labels
+    problem = sc.sample(np.random.default_rng(0))
+    assert not real(sc, problem, ShiftProvider(), sc.n_steps, everywhere).rti
+    learner = real(sc, problem, ShiftProvider(), 5, settings)
     assert learner.window(sc.n_steps - 30).length == 30 and learner.window(0).length == 5
     with pytest.raises(ConfigError, match="decode_every=2"):
         collect.collect_rollouts(sc, planner, 0, [0], 5, explore, settings=MPCSettings(decode_every=2))
@@ -131,14 +133,14 @@ def test_rollouts_run_real_time_iteration_for_the_learner_and_converge_the_exper
     import ttompc.mpc.loop as loop_module
 
     sc, planner = get_scenario(SHORT), mpc_fakes.tiny_planner()
-    settings: dict[str, MPCSettings] = {}
+    rti: dict[str, bool] = {}  # whether each controller runs RTI (one rule, MPCSettings.rti_for: never the expert)
     plans: dict[str, list[tuple[int, bool]]] = {"learner": [], "expert": []}
 
     def spy(cls, who):  # type: ignore[no-untyped-def]
         class Spy(cls):  # type: ignore[misc, valid-type]
             def __init__(self, scenario, problem, provider, horizon, s):  # type: ignore[no-untyped-def]
                 super().__init__(scenario, problem, provider, horizon, s)
-                settings[who] = s
+                rti[who] = self.rti
 
             def plan(self, t, x):  # type: ignore[no-untyped-def]
                 p = super().plan(t, x)
@@ -153,7 +155,7 @@ def test_rollouts_run_real_time_iteration_for_the_learner_and_converge_the_exper
     rows = collect.collect_rollout(
         sc, planner, 0, 1, 5, explore, LabelConfig(kind="plan", per_rollout=3), settings=MPCSettings(rti=True)
     )
-    assert settings["learner"].rti and not settings["expert"].rti
+    assert rti["learner"] and not rti["expert"]
     assert len(plans["learner"]) == sc.n_steps and len(plans["expert"]) == 3 and len(rows) == 3
     assert plans["learner"][0][0] >= 1 and all(it <= 1 for it, _ in plans["learner"][1:]), plans["learner"]
     assert all(converged for _, converged in plans["expert"]), plans["expert"]
