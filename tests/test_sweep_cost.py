@@ -47,7 +47,7 @@ def test_a_sweep_costs_its_problems_times_every_episode_of_one() -> None:
     assert sweep_cost.sweep_hours(_entry(), 3600, [10], ["nominal"]) == pytest.approx(2 + 1 + 0.5)
 
 
-def test_a_budget_buys_the_richest_grid_that_affords_the_minimum_problems() -> None:
+def test_a_budget_buys_the_paper_grid_at_the_minimum_problems_else_the_reduced_one() -> None:
     e, plants = _entry(), ["nominal"]
     per = {name: sweep_cost.sweep_hours(e, 1, grid, plants) for name, grid in sweep_cost.GRIDS.items()}
     assert per["minimal"] < per["reduced"] < per["paper"]
@@ -58,6 +58,10 @@ def test_a_budget_buys_the_richest_grid_that_affords_the_minimum_problems() -> N
     assert between["hours"] <= 150 * per["reduced"] + 1e-9
     poor = sweep_cost.plan(e, 10 * per["reduced"], plants)  # not 100 on any grid: the reduced grid, fewer problems
     assert poor["grid"] == "reduced" and poor["problems"] in (9, 10)
+    assert 100 * per["minimal"] < 50 * per["reduced"]  # the minimal grid affords 100, the reduced one 50: reduced
+    assert sweep_cost.plan(e, 50 * per["reduced"], plants)["grid"] == "reduced"
+    tiny = sweep_cost.plan(e, 1.5 * per["reduced"], plants)  # not two problems on the reduced grid: the minimal one
+    assert tiny["grid"] == "minimal" and tiny["problems"] == 5  # 1.5 x 25.5 s buys 5 of 7 s
     assert sweep_cost.plan(e, 0.0, plants)["problems"] == 0
 
 

@@ -13,8 +13,9 @@ episode on a tiny run, then planned for a budget of CPU-hours before the sweep s
   linearly (beyond them, the nearest two extrapolated); a plant that was not measured costs what ``nominal`` did.
   The sweep runs lockstep batches of ``batch`` = 10 problems: batched rollouts make its model methods' episodes
   cheaper than the measurement's smaller batch, so the estimate errs high.
-* ``plan``: for a budget of CPU-hours per scenario, the richest grid of ``GRIDS`` that affords ``MIN_PROBLEMS``, with
-  as many problems as the budget buys up to ``MAX_PROBLEMS``; when none does, the reduced grid with what it buys.
+* ``plan``: for a budget of CPU-hours per scenario, the paper's grid when it affords ``MIN_PROBLEMS``, else the
+  reduced grid (the shape of both figures before the problem count), with as many problems as the budget buys up to
+  ``MAX_PROBLEMS``; the minimal grid only when the reduced one does not buy two problems.
 
 The measurements live in one JSON file (``COST_FILE``), one entry per scenario, each written by ``measure`` with its
 command lines (a second run on more horizons adds to the first, ``merge``). The command line (``main``):
@@ -123,8 +124,10 @@ def plan(entry: dict[str, Any], budget_h: float, plants: Sequence[str]) -> dict[
     """The sweep ``budget_h`` CPU-hours buy (module doc): ``grid`` (a ``GRIDS`` name), ``problems`` and ``hours``;
     ``problems`` 0 when the budget does not buy one problem on the minimal grid."""
     per_problem = {name: sweep_hours(entry, 1, grid, plants) for name, grid in GRIDS.items()}
-    affordable = [name for name in reversed(GRIDS) if budget_h >= MIN_PROBLEMS * per_problem[name]]
-    name = affordable[0] if affordable else ("reduced" if budget_h >= 2 * per_problem["reduced"] else "minimal")
+    if budget_h >= MIN_PROBLEMS * per_problem["paper"]:
+        name = "paper"
+    else:
+        name = "reduced" if budget_h >= 2 * per_problem["reduced"] else "minimal"
     problems = min(MAX_PROBLEMS, int(budget_h / per_problem[name]))
     return {"grid": name, "problems": problems, "hours": problems * per_problem[name]}
 
