@@ -12,7 +12,9 @@ One iteration of ``_ipm``: the residuals (``_stage_residuals``, the constraints'
 test and the best iterate (``_is_best``, ``_stop``), the stage Hessians (``_stage_hessians``, the constraints'
 weights, ``_terminal_hessian``, the cone's elimination) and their factorisation (``_riccati_factor``), the
 predictor and corrector steps (right-hand sides, ``_backward_pass``, ``_forward_rollout``, step lengths) and the
-update (``_update``). The parts are inlined into ``_ipm`` (``riccati_jit.jit_inlined``): compiled, it is one loop.
+update (``_update``; the constraints take theirs in the next iteration's residual pass: four passes over each
+constraint family per iteration, ``riccati_rows``). The parts are inlined into ``_ipm``
+(``riccati_jit.jit_inlined``): compiled, it is one loop.
 
 NX and NU are compile-time constants (``numba.literally``) so the small dense loops unroll; one compilation per
 (NX, NU), cached on disk: once per machine (where the cache lives, and the times: docs/design.md).
@@ -76,16 +78,16 @@ def _ipm(qp, y, pi, opt, n, nu):
     out once, here, and the functions below take arrays: numba counts references to arrays taken out of a structure,
     which inside the iterations costs more than a small stage QP's arithmetic."""
     A, B, c, Qd, q, QN = qp.dynamics.A, qp.dynamics.B, qp.dynamics.c, qp.cost.Qd, qp.cost.q, qp.cost.QN
-    bk, bj, bs = qp.boxes.k, qp.boxes.j.reshape(-1, 1), qp.boxes.sign.reshape(-1, 1)  # boxes: rows of width 1
-    bd, brho = qp.boxes.d, qp.boxes.rho
+    bk, bj, bs, bd, brho = qp.boxes.k, qp.boxes.j, qp.boxes.sign, qp.boxes.d, qp.boxes.rho
     rk, ri, rg, rd, rrho = qp.rows.k, qp.rows.cols, qp.rows.coef, qp.rows.d, qp.rows.rho
     cw, cx = qp.cone.w, qp.cone.center
     N, ny, has_cone = A.shape[0], n + nu, cw.shape[0] > 0
     # each constraint family's state (riccati_rows); the cone's state, scaling and τ's elimination (riccati_cone)
-    zb, zr = np.zeros((family.STATE_ROWS, bk.shape[0])), np.zeros((family.STATE_ROWS, rk.shape[0]))
+    zb, zr = np.zeros((bk.shape[0], family.STATE_COLS)), np.zeros((rk.shape[0], family.STATE_COLS))
     kc, kw, pvec = np.zeros((cone.STATE_ROWS, n + 1)), np.zeros((3, n + 1, n + 1)), np.zeros(n)
     _fixed_entries(qp.dynamics.x0, y, N, n, nu)
-    n_comp = family.start(y, bk, bj, bs, bd, brho, zb) + family.start(y, rk, ri, rg, rd, rrho, zr)
+    n_comp = family.start(y, bk, bj.reshape(-1, 1), bs.reshape(-1, 1), bd, brho, zb)  # boxes: rows of width 1
+    n_comp += family.start(y, rk, ri, rg, rd, rrho, zr)
     if has_cone:
         cone.start(y, N, n, cw, cx, kc)
         n_comp += 1
@@ -97,12 +99,14 @@ def _ipm(qp, y, pi, opt, n, nu):
     PA, PB, Ruu, tmp, tu = np.zeros((n, n)), np.zeros((n, nu)), np.zeros((nu, nu)), np.zeros(n), np.zeros(nu)
     y_best, pi_best = y.copy(), pi.copy()  # the iterate closest to the tolerances, by max(res/tol, gap/gap_tol)
     best = np.array([np.inf, np.inf, np.inf, 0.0])  # its score, residual and gap; iterations since it improved
+    terms = np.zeros(2)  # the terms in α and α² of the constraints' complementarity after a step α (``family.steps``)
     res = gap = np.inf
+    alpha = 0.0  # the last step, which the constraints take in their next residual pass
     for it in range(opt.max_iter):
         # ------------------------------------------------------------------------------ residuals, convergence
         res, probe = _stage_residuals(A, B, c, Qd, q, QN, y, pi, ry, rdyn, n, nu)
-        gap_b, res_b = family.residuals(y, ry, bk, bj, bs, bd, brho, zb)
-        gap_r, res_r = family.residuals(y, ry, rk, ri, rg, rd, rrho, zr)
+        gap_b, res_b = family.box_residuals(alpha, y, ry, bk, bj, bs, bd, brho, zb)
+        gap_r, res_r = family.residuals(alpha, y, ry, rk, ri, rg, rd, rrho, zr)
         gap, res = gap_b + gap_r, max(res, res_b, res_r)
         if has_cone:
             gap, res_c = cone.residuals(gap, y, ry, N, n, cw, cx, kc)
@@ -121,36 +125,36 @@ def _ipm(qp, y, pi, opt, n, nu):
             return stop, it, best[1], best[2]
         # ---------------------------------------------------------------- stage Hessians, Riccati factorisation
         _stage_hessians(Qd, Qt, n, nu)
-        family.weights(Qt, bk, bj, bs, brho, zb)
-        family.weights(Qt, rk, ri, rg, rrho, zr)
+        _copy(ry, rt)  # the predictor's right-hand side, the constraints' terms added with their weights
+        family.box_weights(Qt, rt, bk, bj, bs, brho, zb)
+        family.weights(Qt, rt, rk, ri, rg, rrho, zr)
         _terminal_hessian(Qt, QN, P, n)
         m00inv = cone.factor(P[N], cw, kc, kw, pvec) if has_cone else 0.0
         _riccati_factor(A, B, Qt, P, S, L, K, PA, PB, Ruu, tu, n, nu)
         # ------------------------------------------------------------- predictor, then corrector step; update
         sigma_mu = 0.0
-        alpha = 1.0
         for corrector in range(2):
-            _copy(ry, rt)
-            family.rhs(corrector, sigma_mu, rt, bk, bj, bs, zb)
-            family.rhs(corrector, sigma_mu, rt, rk, ri, rg, zr)
+            if corrector:
+                _copy(ry, rt)
+                family.box_rhs(sigma_mu, rt, bk, bj, bs, zb)
+                family.rhs(sigma_mu, rt, rk, ri, rg, zr)
             if has_cone:
                 cone.rhs(corrector, sigma_mu, rt, N, n, cw, kc, kw)
             _backward_pass(A, B, P, L, S, p, rt, rdyn, dy, tmp, tu, pvec, has_cone, n, nu)
             _forward_rollout(A, B, K, rdyn, dy, n, nu)
-            amax = family.steps(1.0, dy, bk, bj, bs, brho, zb)
-            amax = family.steps(amax, dy, rk, ri, rg, rrho, zr)
+            terms[0] = terms[1] = 0.0
+            amax = family.box_steps(1.0, dy, bk, bj, bs, brho, zb, terms)
+            amax = family.steps(amax, dy, rk, ri, rg, rrho, zr, terms)
             if has_cone:
                 amax = cone.steps(amax, corrector, dy, rt, N, n, cw, m00inv, pvec, kc, kw)
             if corrector == 0:  # Mehrotra's centring from the affine step's complementarity
-                gap_aff = family.step_gap(amax, zb) + family.step_gap(amax, zr)
+                gap_aff = max(gap_b + gap_r + amax * (terms[0] + amax * terms[1]), 0.0)
                 if has_cone:
                     gap_aff = cone.step_gap(gap_aff, amax, kc)
                 sigma_mu = (gap_aff / max(n_comp, 1) / mu) ** 3 * mu
             else:
                 alpha = min(1.0, 0.995 * amax)
-        _update(alpha, P, p, dy, dpi, y, pi, n)
-        family.update(alpha, zb)
-        family.update(alpha, zr)
+        _update(alpha, P, p, dy, dpi, y, pi, n)  # the constraints' in their next residual pass
         if has_cone:
             cone.update(alpha, n, kc)
     if best[0] <= 100.0:
