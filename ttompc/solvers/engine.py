@@ -23,6 +23,7 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
     to its solution, until a fixed point (the stopping rule below), the iteration cap, or (reference formulation)
     an infeasible subproblem. Returns the best feasible iterate, else the least violating (``_Iterates``)."""
     t_start = time.perf_counter()
+    sc = scp.scenario
     _check_guess(scp, X_init, U_init)
     if scp.window.start == 0:
         scp.scenario.validate(scp.problem)
@@ -44,7 +45,7 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
     for it in range(settings.max_iters):
         model, blocks = _linearise(scp, X_ref, U_ref, penalized)
         if solver is None:  # block structure depends only on the window (Scenario.constraints): one spec per solve
-            prev_merit = _merit(scp, X_ref, U_ref, blocks)  # the warm start's (see the stopping rule below)
+            prev_merit = _merit(scp, X_ref, U_ref, blocks, sc.cost(U_ref))  # the warm start's (the stopping rule)
             solver = _subproblem_solver(scp, options, settings, model, blocks)
             shapes = _shapes(blocks)
         elif _shapes(blocks) != shapes:
@@ -59,8 +60,8 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
             if sub_failed is SCPStatus.INFEASIBLE or iterates.best is None:
                 status = sub_failed
             break
-        cost = scp.scenario.cost(U)
-        merit = _merit(scp, X, U, blocks)
+        cost = sc.cost(U)
+        merit = _merit(scp, X, U, blocks, cost)
         violation = _violation(scp, X, U, blocks)
         step = float(np.max(np.linalg.norm(X - X_ref, axis=1)))
         iterates.add(IterateRecord(it, cost, merit, violation, step, float(delta), sol.solve_time, sol.status), X, U)
@@ -82,7 +83,7 @@ def run_scp(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray, options: SC
         status=status,
         X=X_out,
         U=U_out,
-        cost=scp.scenario.cost(U_out),
+        cost=iterates.history[best_it].cost if best_it >= 0 else sc.cost(U_out),  # the iterate's, computed once
         violation=float(viol_out),
         iterations=len(iterates.history),
         solve_time=time.perf_counter() - t_start,
@@ -155,7 +156,7 @@ def _check_guess(scp: SCPProblem, X_init: np.ndarray, U_init: np.ndarray) -> Non
             f"{sc.name}: warm start must have shapes ({H + 1}, {n}) and ({H}, {m}) for a window of {H} steps, "
             f"got {X_init.shape} and {U_init.shape}"
         )
-    if not (np.all(np.isfinite(X_init)) and np.all(np.isfinite(U_init))):
+    if not (np.isfinite(X_init).all() and np.isfinite(U_init).all()):
         raise InputError(f"{sc.name}: warm start contains non-finite values")
 
 
@@ -273,10 +274,11 @@ def _end_form(terminal: TerminalCost | None) -> str:
     return "soft" if terminal.has_norm else "value"
 
 
-def _merit(scp: SCPProblem, X: np.ndarray, U: np.ndarray, blocks: list[ConstraintBlock]) -> float:
-    """Weighted stage cost + soft terminal term + soft equality penalties of a window trajectory."""
+def _merit(scp: SCPProblem, X: np.ndarray, U: np.ndarray, blocks: list[ConstraintBlock], cost: float) -> float:
+    """Weighted stage cost + soft terminal term + soft equality penalties of a window trajectory whose stage cost
+    Σ c(u_k) is ``cost`` (the caller's, computed once per iterate)."""
     terminal = 0.0 if scp.terminal is None else scp.terminal(X[-1], scp.fuel_weight)
-    return scp.fuel_weight * scp.scenario.cost(U) + terminal + _soft_eq_term(blocks, X, U, scp.soft)
+    return scp.fuel_weight * cost + terminal + _soft_eq_term(blocks, X, U, scp.soft)
 
 
 def _violation(scp: SCPProblem, X: np.ndarray, U: np.ndarray, blocks: list[ConstraintBlock]) -> float:
