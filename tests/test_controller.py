@@ -31,6 +31,28 @@ def planner() -> Planner:
     return Planner.from_pretrained(MODEL)
 
 
+def test_an_episode_is_the_same_alone_or_in_a_batch(planner: Planner) -> None:
+    """R-TTO-MPC in lockstep: each episode of a batch of two equals the same problem run alone (the robust target's
+    memory is one episode's, never shared across the batch); equal to the batched rollout's rounding (~1e-8)."""
+    from ttompc.evaluation.episodes import closed_loop_metrics
+    from ttompc.evaluation.measurement import Measurement
+
+    m = Measurement(
+        protocol="recommended",
+        problems=2,
+        seed=4242,
+        horizons=[10],
+        plants=["nominal"],
+        max_steps=12,
+        robust_blend=0.95,
+    )
+    problems = m.problem_set(planner.scenario)
+    _, batch = closed_loop_metrics(planner, m, problems)
+    for ep, together in zip(problems, batch, strict=True):
+        _, [alone] = closed_loop_metrics(planner, m, [ep])
+        np.testing.assert_allclose(alone.U, together.U, rtol=0, atol=1e-6)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("plant", ["nominal", "perturbed"])
 def test_controller_reproduces_evaluate_mpc(planner: Planner, plant: str, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -706,6 +706,7 @@ def test_methods_are_registered_once_with_what_they_need() -> None:
         assert [p.name for p in provs] == [name, name]  # a provider's name is its method's, stated once
         if method.model is not None:
             assert provs[0].group is provs[1].group  # one batched rollout per step
+            assert provs[0].target is not provs[1].target  # the robust target's memory is one episode's
             assert provs[0].target.design.blend == (0.95 if method.robust else 0.0)
             assert provs[0].target.design.weights == (2.5,)
             with pytest.raises(ValueError, match="plans with a model"):

@@ -108,13 +108,12 @@ def _tto(method: Method, x: MethodInputs) -> list[Provider]:
     assert planner is not None  # Method.providers checked it
     group, name = RolloutGroup(planner, decode_every=s.decode_every, decoder=s.decoder), method.label(s, planner)
     blend = x.robust_blend if method.robust else 0.0
-    terminal = terminal_term(s, blend, planner)
     return [
         TTOProvider(
             planner,
             name,
             rtg_scale=x.rtg_scale,
-            terminal=terminal,
+            terminal=terminal_term(s, blend, planner),  # one per episode: the robust target remembers its last
             rtg_mode=s.rtg_mode,
             group=group,
             backend=s.backend,
