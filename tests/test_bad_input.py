@@ -182,7 +182,7 @@ def test_public_calls_refuse_what_they_cannot_use_with_typed_errors() -> None:
     from ttompc.scenarios import ScenarioNotFoundError
     from ttompc.solvers.scp import SCPProblem, solve_scp
 
-    with pytest.raises(ScenarioNotFoundError, match="unknown scenario None; choose one of: freeflyer"):
+    with pytest.raises(ScenarioNotFoundError, match=r"unknown scenario None; choose one of: (.*, )?freeflyer"):
         ttompc.get_scenario(None)  # type: ignore[arg-type]
     ff = ttompc.get_scenario("freeflyer")
     problem = ff.sample(np.random.default_rng(0))
