@@ -220,14 +220,14 @@ def test_ctrl_c_during_generate_says_how_to_resume(tmp_path: Path) -> None:
     No race on how far the run got: the interrupt follows an event, the first shard's record (the pool is running
     and a shard is done), and however far each worker has started it stays quiet (workers are spawned with SIGINT
     blocked until they ignore it: ``ttompc.parallel``), with 2,000 problems still to do. The bounds only stop a
-    hung run."""
+    hung run, whose threads' stacks (faulthandler, on SIGABRT) then make the failure message."""
     out = tmp_path / "data"
     first = out / "meta" / "shard-00000.json"
     args = ["generate", "problems=2000", "shard_size=2", "workers=2", f"out={out}", "--no-progress"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "ttompc.cli", *args],
         cwd=tmp_path,
-        env=cli_env(),
+        env=cli_env(PYTHONFAULTHANDLER="1"),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -240,7 +240,11 @@ def test_ctrl_c_during_generate_says_how_to_resume(tmp_path: Path) -> None:
             assert proc.poll() is None and time.monotonic() < stop, proc.communicate()
             time.sleep(0.05)
         os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=600)
+        try:
+            _, err = proc.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.kill(proc.pid, signal.SIGABRT)
+            pytest.fail(f"no exit 120 s after Ctrl-C; its threads: {proc.communicate()[1][-8000:]}")
     finally:
         if proc.poll() is None:  # only when an assertion above failed: leave no process group behind
             os.killpg(proc.pid, signal.SIGKILL)

@@ -33,6 +33,7 @@ T = TypeVar("T")
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _STARTING = "TTOMPC_POOL_WORKER_STARTING"  # set for spawned workers until they have started (``starting_worker``)
+_GRACE_S = 5.0  # seconds a terminated worker has to exit before it is killed
 _AHEAD = 8  # tasks submitted per worker ahead of the one awaited: a slow task does not leave the others idle
 
 
@@ -213,7 +214,23 @@ def _pool_results(fn: Callable[[Any], Any], tasks: list[Any], n: int, init_args:
         ) from err
     finally:
         os.environ.pop(_STARTING, None)
-        if not finished:  # shutdown() waits for running tasks; ProcessPoolExecutor can only terminate from 3.14
-            for process in list((pool._processes or {}).values()):
-                process.terminate()
-        pool.shutdown(cancel_futures=True)
+        if finished:
+            pool.shutdown()
+        else:
+            _stop_now(pool)
+
+
+def _stop_now(pool: ProcessPoolExecutor) -> None:
+    """End ``pool`` without waiting for its running tasks, with bounded waits only: terminate each worker (kill one
+    that is still alive after ``_GRACE_S``), reap it, then shut down without joining the executor's thread, which
+    sees its workers gone and exits. ``shutdown()`` itself would wait for the running tasks (a DAgger chunk: minutes)
+    and ProcessPoolExecutor has no terminate before Python 3.14."""
+    processes = list((pool._processes or {}).values())
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(_GRACE_S)
+        if process.is_alive():
+            process.kill()
+            process.join(_GRACE_S)
+    pool.shutdown(wait=False, cancel_futures=True)

@@ -24,11 +24,14 @@ from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
 
+from ttompc.errors import InputError
+
 CostNorm = Literal["l1", "l2", "quad"]
 
 
-class InfeasibleProblemError(ValueError):
-    """A problem that cannot have a feasible solution (e.g. the start lies inside a keep-out zone)."""
+class InfeasibleProblemError(InputError):
+    """A problem that cannot have a feasible solution (e.g. the start lies inside a keep-out zone): an ``InputError``
+    (the CLI prints its one line) that callers such as data generation catch by its own type."""
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ttompc.errors import ConfigError, InputError
-from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
+from ttompc.scenarios.base import InfeasibleProblemError, Problem, Scenario, SCPSettings, Window
 from ttompc.solvers.backends.chain import check_backend
 from ttompc.solvers.results import TerminalCost
 
@@ -112,7 +112,8 @@ class SCPOptions:
 def check_problem(scenario: Scenario, problem: Problem) -> None:
     """Raise a one-line ``InputError`` for what ``scenario`` cannot solve as ``problem``: not a ``Scenario`` or not a
     ``Problem``, start or goal of another shape (another scenario's problem), another number of steps, non-finite
-    values, or one without a solution (``Scenario.validate``)."""
+    values, or one without a solution (``Scenario.validate``'s ``InfeasibleProblemError``, an ``InputError``, as
+    is)."""
     if not isinstance(scenario, Scenario):
         raise InputError(f"not a scenario: {scenario!r}", "pass ttompc.get_scenario(NAME)")
     if not isinstance(problem, Problem):
@@ -123,5 +124,7 @@ def check_problem(scenario: Scenario, problem: Problem) -> None:
         raise InputError(f"a {scenario.name} problem has start and goal of shape ({n},), got {shapes}")
     try:
         scenario.validate(problem)
-    except ValueError as err:  # InfeasibleProblemError included
+    except InfeasibleProblemError:
+        raise
+    except ValueError as err:
         raise InputError(str(err)) from None
