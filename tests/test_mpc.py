@@ -30,7 +30,7 @@ from ttompc.mpc import (
     run_mpc,
     run_mpc_batch,
 )
-from ttompc.mpc.episode import target_change
+from ttompc.mpc.episode import rel_increment, target_change
 from ttompc.mpc.settings import protocol_settings
 from ttompc.mpc.terminal import TargetFilter
 from ttompc.scenarios import get_scenario
@@ -567,6 +567,16 @@ def test_target_change_measures_consistency() -> None:
     b[3] = 0.1  # one state_scale unit of velocity
     assert target_change(sc, [a, b, None, a]) == pytest.approx(1.0)
     assert np.isnan(target_change(sc, [a, None]))
+
+
+def test_rel_increment_is_the_cost_over_j_rel_of_feasible_episodes() -> None:
+    """(J − J_REL)/J_REL by hand; nan where the episode is infeasible or has no usable J_REL."""
+    assert rel_increment(3.0, 2.0, True) == 0.5
+    assert rel_increment(1.5, 2.0, True) == -0.25  # below J_REL (a perturbed plant's luck): negative, not clipped
+    assert rel_increment(2.0, 2.0, True) == 0.0
+    assert isinstance(rel_increment(np.float64(3.0), 2.0, True), float)
+    for cost, rel, feasible in [(3.0, 2.0, False), (3.0, float("nan"), True), (3.0, 0.0, True), (3.0, -2.0, True)]:
+        assert np.isnan(rel_increment(cost, rel, feasible)), (cost, rel, feasible)
 
 
 def test_rel_mpc_starts_each_rel_from_the_previous_plan(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 from ttompc.evaluation.measurement import Measurement
 from ttompc.evaluation.problems import EvalProblem
 from ttompc.evaluation.stats import interval
-from ttompc.mpc.episode import Episode
+from ttompc.mpc.episode import Episode, rel_increment
 from ttompc.mpc.loop import run_mpc_batch
 from ttompc.mpc.methods import MethodInputs, model_method
 
@@ -26,9 +26,10 @@ if TYPE_CHECKING:
 
 
 def episode_record(e: Episode) -> dict[str, Any]:
-    """An episode's summary plus the relative cost increment (J − J_REL)/J_REL (nan when infeasible)."""
+    """An episode's summary plus the relative cost increment (J − J_REL)/J_REL (``rel_increment``: nan when
+    infeasible or without J_REL)."""
     r = e.summary()
-    r["rel_increment"] = float((e.cost - e.rel_cost) / abs(e.rel_cost)) if e.feasible else float("nan")
+    r["rel_increment"] = rel_increment(e.cost, e.rel_cost, e.feasible)
     return r
 
 

@@ -62,7 +62,11 @@ class Selection:
 
 
 def _increments(episodes: Sequence[Any]) -> list[float | None]:
-    return [float((e.cost - e.rel_cost) / e.rel_cost) if e.feasible else None for e in episodes]
+    """Each episode's (J − J_REL)/J_REL (``rel_increment``), None where it has none (infeasible, no J_REL)."""
+    from ttompc.mpc.episode import rel_increment
+
+    incs = [rel_increment(e.cost, e.rel_cost, e.feasible) for e in episodes]
+    return [None if np.isnan(v) else v for v in incs]
 
 
 def baseline_increments(scenario: Any, m: Measurement, problems: Sequence[EvalProblem]) -> list[float | None]:

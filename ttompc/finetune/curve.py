@@ -27,6 +27,7 @@ import numpy as np
 
 from ttompc.data.shards import atomic_write_json
 from ttompc.evaluation.stats import paired_points
+from ttompc.mpc.episode import rel_increment
 from ttompc.mpc.methods import model_method
 
 if TYPE_CHECKING:
@@ -97,7 +98,7 @@ def _closed_loop(planner: Planner, measurement: Any, problems: list[Any]) -> tup
 
     with single_torch_thread():
         metrics, episodes = closed_loop_metrics(planner, measurement, problems)
-    inc = np.array([(e.cost - e.rel_cost) / e.rel_cost if e.feasible else np.nan for e in episodes])
+    inc = np.array([rel_increment(e.cost, e.rel_cost, e.feasible) for e in episodes])
     return metrics, inc
 
 

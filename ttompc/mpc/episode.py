@@ -1,5 +1,6 @@
 """A closed-loop episode's record (``Episode``), built step by step (``EpisodeTrace``, from each step's ``StepPlan``)
-by the receding-horizon loop (``ttompc.mpc.loop``), and its feasibility (``episode_metrics``).
+by the receding-horizon loop (``ttompc.mpc.loop``), its feasibility (``episode_metrics``) and its relative cost
+increment over J_REL (``rel_increment``).
 
 Episodes count as reaching the goal when they ran all N steps and ‖x_N − goal‖₂ <= scenario.terminal_tol: an
 episode cut short (``max_steps`` < N, a smoke run) is ``complete`` False and never ``feasible``, whatever its cost
@@ -124,6 +125,15 @@ def episode_metrics(
         "complete": complete,
         "feasible": bool(feasible),
     }
+
+
+def rel_increment(cost: float, rel_cost: float, feasible: bool) -> float:
+    """The relative cost increment (J − J_REL)/J_REL of an episode of cost ``cost`` on a problem whose open-loop REL
+    solution costs ``rel_cost``: nan when the episode is infeasible (its cost means nothing, module doc) or J_REL is
+    missing (nan: no REL solve, e.g. an episode reset without one) or not a positive finite cost."""
+    if not feasible or not (np.isfinite(rel_cost) and rel_cost > 0):
+        return float("nan")
+    return float((cost - rel_cost) / rel_cost)
 
 
 def target_change(scenario: Scenario, targets: list[np.ndarray | None]) -> float:
