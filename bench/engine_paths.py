@@ -8,6 +8,7 @@ import re
 import time
 
 import numpy as np
+from engine_limit import kernel_flops
 
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import SCPProblem, TerminalCost, solve_problem, solve_scp
@@ -80,8 +81,8 @@ def engine(name: str, n: int) -> dict:
         for x, y in zip(a[2], b[2], strict=True)
     )
     out["kernel_us_per_ip_iteration"] = 1e6 * kernel["cpu_s"] / sum(its for _, its in calls)
-    out["kernel_flops_per_ip_iteration"] = float(np.mean([kernel_flops(qp) for qp, _ in calls]))
-    out["kernel_gflops"] = sum(its * kernel_flops(qp) for qp, its in calls) / kernel["cpu_s"] / 1e9
+    out["kernel_flops_per_ip_iteration"] = float(np.mean([kernel_flops(qp)["total"] for qp, _ in calls]))
+    out["kernel_gflops"] = sum(its * kernel_flops(qp)["total"] for qp, its in calls) / kernel["cpu_s"] / 1e9
     print(
         f"[engine {name}, {n} problems] CPU ms per problem (median): reference {out['reference']['median_cpu_ms']:.1f},"
         f" compiled {out['compiled']['median_cpu_ms']:.1f}: x{out['ratio']:.2f}; same statuses {out['same_statuses']},"
@@ -120,31 +121,3 @@ def windows(scenario, solved: list, H: int) -> dict:
     )
     ref, comp = 1e3 * min(cpu[False]), 1e3 * min(cpu[True])
     return {"windows": len(cases), "reference_cpu_ms": ref, "compiled_cpu_ms": comp, "ratio": ref / comp, "same": same}
-
-
-def kernel_flops(qp) -> float:
-    """Floating-point operations (a multiply-add is 2) of one interior-point iteration of the Riccati kernel on
-    ``qp`` (``riccati_kernel._ipm``: residuals, the constraints' weights, the factorisation, predictor and corrector
-    with their step lengths, the update), counted from its loops; the cone's few are left out."""
-    N, n, nu = qp.shape
-    ny = n + nu
-    w = qp.rows.cols.shape[1]
-    nb, nr = qp.boxes.d.shape[0], qp.rows.d.shape[0]
-    stage = (
-        2 * n * ny
-        + 4 * n * n
-        + 2 * nu * n  # residuals: dynamics, Aᵀπ, Bᵀπ
-        + 2 * n**3
-        + 4 * n * n * nu
-        + 2 * nu * nu * n
-        + nu**3 / 3
-        + 2 * n * nu * nu  # PA, PB, Ruu, S, chol, K
-        + n * (n + 1) * (n + nu)  # P
-        + 2 * (4 * n * n + 4 * n * nu + 2 * nu * nu)  # backward passes
-        + 2 * (2 * nu * n + 2 * n * ny)  # forward rollouts
-        + 2 * n * n
-        + 2 * ny
-        + 2 * n  # update
-    )
-    per_row = lambda width: 4 * width + 8 + 2 * width * width + 4 + 2 * (12 + 2 * width) + 2 * (2 * width + 12) + 8 + 8  # noqa: E731
-    return N * stage + nb * per_row(1) + nr * per_row(w)

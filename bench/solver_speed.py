@@ -20,7 +20,7 @@
    the kernel as the NumPy reference (``RiccatiSolver.compiled = False``) and compiled (``riccati_build``, the
    default), the same seeded problems, interleaved: median CPU ms per problem and the ratio, whether both paths give
    the same statuses and iterates (largest |ΔX|), interior-point iterations per subproblem, the kernel's distance
-   from its arithmetic (CPU time per interior-point iteration against its flops, ``engine_paths.kernel_flops``),
+   from its arithmetic (CPU time per interior-point iteration against its flops, ``engine_limit.kernel_flops``),
    and MPC windows (H = 10, 30) cut from the solutions, by both paths (``bench/engine_paths.py``).
 5. Naive baseline (every scenario, a few problems): time per SCP iteration of the default (``auto``) vs rebuilding a
    cvxpy problem from per-timestep constraint lists every iteration (the reference's approach), and the cost

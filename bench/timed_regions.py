@@ -1,5 +1,5 @@
-"""Nested ``perf_counter`` regions for the bench's profiles (``bench/step_profile.py``): a ``Profiler`` wraps
-functions as timed regions, named by the path of the regions they run in."""
+"""Nested timed regions for the bench's profiles (``bench/step_profile.py``, ``bench/engine_limit.py``): a ``Profiler``
+wraps functions as timed regions, named by the path of the regions they run in."""
 
 from __future__ import annotations
 
@@ -13,11 +13,12 @@ import torch
 
 
 class Profiler:
-    """Nested ``perf_counter`` regions: inclusive seconds and calls per path of region names (``step/scp/...``),
-    plus counters. Off unless ``on``: warm-up and verification runs pass through untimed."""
+    """Nested regions timed by ``clock`` (``time.perf_counter``: wall; ``time.process_time``: this process's CPU,
+    steadier on a loaded machine): inclusive seconds and calls per path of region names (``step/scp/...``), plus
+    counters. Off unless ``on``: warm-up and verification runs pass through untimed."""
 
-    def __init__(self, cuda: bool = False) -> None:
-        self.cuda, self.on = cuda, False
+    def __init__(self, cuda: bool = False, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.cuda, self.on, self.clock = cuda, False, clock
         self.reset()
 
     def reset(self) -> None:
@@ -38,13 +39,13 @@ class Profiler:
                 return fn(*args, **kwargs)
             self.stack.append(name)
             path = "/".join(self.stack)
-            t0 = time.perf_counter()
+            t0 = self.clock()
             try:
                 out = fn(*args, **kwargs)
                 if sync and self.cuda:
                     torch.cuda.synchronize()
             finally:
-                self.incl[path] += time.perf_counter() - t0
+                self.incl[path] += self.clock() - t0
                 self.calls[path] += 1
                 self.stack.pop()
             if after is not None:
