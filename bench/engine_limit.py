@@ -270,9 +270,8 @@ def python_share(scenario, seeds) -> dict:
     for path, t in prof.self_times().items():
         by_region[path.rpartition("/")[2]] += t
     total = prof.incl["engine"]
-    if prof.calls["subproblem"] and sum(c for p, c in prof.calls.items() if p.endswith("kernel")) != sum(
-        c for p, c in prof.calls.items() if p.endswith("subproblem")
-    ):
+    counts = {leaf: sum(c for p, c in prof.calls.items() if p.rpartition("/")[2] == leaf) for leaf in REGIONS}
+    if counts["kernel"] != counts["subproblem"]:
         raise RuntimeError("a subproblem went past the Riccati kernel (its fallback): the shares would mix backends")
     out = {
         "cpu_ms_per_problem": {k: 1e3 * t / len(seeds) for k, t in by_region.items()},
