@@ -35,6 +35,7 @@ class FakeScenario(Scenario):
     name: ClassVar[str] = "data-fake"
     version: ClassVar[str] = "0.1"
     n_steps: ClassVar[int] = 12
+    problem_params: ClassVar[tuple[str, ...]] = ("gain",)
     cost_norm = "l1"
     scp: ClassVar[SCPSettings] = SCPSettings(tr_start=1.0, tr_end=0.01)
     mpc: ClassVar[MPCWeights] = MPCWeights(fuel=1.0, end=10.0, target=1.0, dist=(1, 1, 1, 1, 1, 1))

@@ -22,6 +22,7 @@ from ttompc.evaluation.closed_loop import ClosedLoopConfig, run_problems
 from ttompc.mpc.controller import Controller, sample_problem
 from ttompc.mpc.plant import Plant
 from ttompc.policy import Planner
+from ttompc.scenarios import get_scenario
 
 MODEL = Path(__file__).parents[1] / "zoo" / "models" / "quadrotor-ft-tto-v6"
 
@@ -140,6 +141,9 @@ def test_bad_input_is_one_line_and_leaves_the_controller_usable(planner: Planner
     bad_problem = type(problem)(np.zeros(4), np.zeros(4), problem.dt, problem.n_steps)
     _bad(lambda: ctrl.reset(bad_problem), r"shape \(6,\)")
     _bad(lambda: ctrl.reset(dataclasses.replace(problem, n_steps=50)), "problems have 100 steps, got 50")
+    for other in ("rpod", "freeflyer"):  # of the same shape: told apart by params and dt (``Scenario.validate``)
+        theirs = sample_problem(get_scenario(other), np.random.default_rng(0))
+        _bad(lambda p=theirs: ctrl.reset(p), r"^quadrotor: its problems have .*\(another scenario's problem\?\)$")
     ctrl.reset(problem)
     _bad(lambda: ctrl.step(np.zeros(5)), r"shape \(6,\), got \(5,\)")
     _bad(lambda: ctrl.step(np.full(6, np.nan)), "NaN or inf")

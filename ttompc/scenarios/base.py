@@ -238,6 +238,8 @@ class Scenario(abc.ABC):
     # are exactly linear (e.g. position ← velocity) need none
     approximate_rows: ClassVar[tuple[int, ...]] = ()
     time_invariant: ClassVar[bool] = False  # ``step`` ignores k (and vectorises over leading axes)
+    problem_params: ClassVar[tuple[str, ...]] = ()  # the keys of every problem's ``params``, no others (``validate``)
+    problem_dt: ClassVar[float | None] = None  # every problem's dt where the scenario fixes it (``validate``)
     scp: ClassVar[SCPSettings]
     mpc: ClassVar[MPCWeights]
     # characteristic magnitudes of states and controls: the engine solves for x/scale, u/scale (non-dimensionalised
@@ -267,10 +269,16 @@ class Scenario(abc.ABC):
         """Draw one problem using only ``rng`` (reproducible, no global state)."""
 
     def validate(self, problem: Problem) -> None:
-        """Raise ``InfeasibleProblemError`` for problems that cannot have a solution; shape errors as ValueError."""
-        n = self.state_dim
-        if problem.x0.shape != (n,):
-            raise ValueError(f"{self.name}: x0 must have shape ({n},), got {problem.x0.shape}")
+        """Raise ``InfeasibleProblemError`` for problems that cannot have a solution; ValueError for another shape,
+        number of steps, non-finite values, or another scenario's ``problem_params`` keys or ``problem_dt`` (1e-6)."""
+        if problem.x0.shape != (self.state_dim,):
+            raise ValueError(f"{self.name}: x0 must have shape ({self.state_dim},), got {problem.x0.shape}")
+        dt, names = self.problem_dt, (lambda keys: ", ".join(sorted(keys)) or "none")
+        if set(problem.params) != set(self.problem_params) or not (dt is None or np.isclose(problem.dt, dt, 1e-6, 0)):
+            raise ValueError(
+                f"{self.name}: its problems have params {names(self.problem_params)} and dt {dt or 'any'}, this one "
+                f"params {names(problem.params)} and dt {problem.dt:g} (another scenario's problem?)"
+            )
         if problem.n_steps != self.n_steps:
             raise ValueError(f"{self.name}: problems have {self.n_steps} steps, got {problem.n_steps}")
         if not (np.all(np.isfinite(problem.x0)) and np.all(np.isfinite(problem.goal))):

@@ -78,6 +78,7 @@ def _step(x: Any, u: Any, k: int, p: Any, out: Any) -> None:
 @register
 class FreeFlyer(CompiledScenario):
     name: ClassVar[str] = "freeflyer"
+    problem_dt: ClassVar[float | None] = DT  # ``step``'s matrices are discretised at DT
     version: ClassVar[str] = "1.0"
     n_steps: ClassVar[int] = N_STEPS
     cost_norm = "l1"

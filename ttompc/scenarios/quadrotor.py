@@ -62,6 +62,7 @@ def _step(x: Any, u: Any, k: int, p: Any, out: Any) -> None:
 @register
 class Quadrotor(CompiledScenario):
     name: ClassVar[str] = "quadrotor"
+    problem_dt: ClassVar[float | None] = DT
     version: ClassVar[str] = "1.0"
     n_steps: ClassVar[int] = N_STEPS
     cost_norm = "quad"

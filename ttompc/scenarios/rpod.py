@@ -135,6 +135,7 @@ class Rpod(Scenario):
     cost_norm = "l2"
     rel_is_convex: ClassVar[bool] = True
     exact_linear_dynamics: ClassVar[bool] = True
+    problem_params: ClassVar[tuple[str, ...]] = ("horizon_orbits", "dock_sign", "oe0")
     # Penalty 1e2 (m/s per m or per unit scaled KOZ radius) is far above the multipliers (a metre of ROE costs
     # ~1e-3 m/s); feas_tol 1 mm on 100 m-scale positions leaves room for the conic solver's relative accuracy.
     scp: ClassVar[SCPSettings] = SCPSettings(
@@ -178,9 +179,6 @@ class Rpod(Scenario):
 
     def validate(self, problem: Problem) -> None:
         super().validate(problem)
-        missing = {"horizon_orbits", "dock_sign", "oe0"} - set(problem.params)
-        if missing:
-            raise ValueError(f"rpod: problem params lack {sorted(missing)}")
         if problem.params["dock_sign"] not in (-1, 1):
             raise ValueError(f"rpod: dock_sign must be ±1, got {problem.params['dock_sign']}")
         dt = horizon_dt(problem.params["horizon_orbits"], np.asarray(problem.params["oe0"]))
