@@ -73,7 +73,9 @@ class LabelConfig(Checked):
     kind: Literal["step", "plan"] = "step"
     per_rollout: int = setting(0, ge=0, meaning="0: every step")
     rtg: Literal["learner", "expert"] = "learner"
-    late: float = setting(0.0, ge=0, meaning="0: uniform")
+    # at most 100, the first step e^-100 as likely as the last: the draw is the last steps' alone long before e^late
+    # overflows float64 (late ~ 710), which would leave it no weights
+    late: float = setting(0.0, ge=0, le=100, meaning="0: uniform")
 
     def __post_init__(self) -> None:
         super().__post_init__()

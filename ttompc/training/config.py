@@ -96,6 +96,12 @@ class TrainerConfig(Checked):
         super().__post_init__()
         if self.max_steps == -1 and self.max_epochs is None:
             raise ValueError("invalid trainer.max_steps=-1: it trains until trainer.max_epochs, which is null")
+        for key in ("val_check_interval", "limit_val_batches"):  # above 1 Lightning counts batches: no fraction
+            value = getattr(self, key)
+            if value > 1 and not float(value).is_integer():
+                raise ValueError(
+                    f"invalid trainer.{key}={value}: <= 1 is a fraction, above it a whole number of batches"
+                )
 
 
 @dataclass
