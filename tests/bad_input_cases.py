@@ -1,5 +1,5 @@
-"""The tables of ``tests/test_bad_input.py``: bad input as a user types it (issue 58's cases, generated ones, paths),
-the folders they point at (``make_world``), and the Python entries behind the commands (``api_call``)."""
+"""The tables of ``tests/test_bad_input.py``: bad input as a user types it (issue 58's cases, generated ones, paths)
+and the folders they point at (``make_world``); the Python entries behind the commands are ``bad_input_api``'s."""
 
 from __future__ import annotations
 
@@ -149,6 +149,11 @@ LISTED: list[tuple[str, list[str], list[str]]] = [
     ),
     ("trainer-devices-0", ["train", TINY, "trainer.devices=0"], ["invalid trainer.devices=0"]),
     (
+        "limit-val-batches-between-batch-counts",
+        ["train", TINY, "trainer.limit_val_batches=1.5"],
+        ["invalid trainer.limit_val_batches=1.5", "a whole number of batches"],
+    ),
+    (
         "val-check-interval-0",
         ["train", TINY, "trainer.val_check_interval=0"],
         ["invalid trainer.val_check_interval=0.0: must be > 0"],
@@ -236,6 +241,19 @@ LISTED: list[tuple[str, list[str], list[str]]] = [
     ),
     # output folders: only new, empty or the command's own; a report of another configuration is not replaced
     ("demo-into-a-users-folder", ["demo", "--no-mpc", "out={user}"], ["{user} holds files that `ttompc demo` did not"]),
+    *[  # the library calls claim their folder too (``bad_input_api``)
+        (
+            f"{kind}-into-a-users-folder",
+            ["evaluate", kind, *source, "out={user}"],
+            ["{user} holds files that `ttompc evaluate " + kind + "` did not write (README.md, manifest.json)"],
+        )
+        for kind, source in (
+            ("mpc", ["--scenario", "freeflyer", "problems=1"]),
+            ("warmstart", ["--model", BUNDLE, "problems=1"]),
+            ("target", ["--model", BUNDLE, "problems=1"]),
+            ("loss", ["--model", BUNDLE]),
+        )
+    ],
     (
         "publish-into-a-users-folder",
         ["zoo", "publish", BUNDLE, "--name", "x", "--to", "{user}"],
@@ -288,12 +306,15 @@ def settings_of(schema: type, prefix: str = "") -> list[tuple[str, type, Allowed
 
 def generated_cases() -> list[tuple[str, list[str], str, Any, Allowed | None]]:
     """(id, argv, key, value, declared range): every numeric setting at 0, -1 and huge, every list empty and a list
-    of numbers of one huge item."""
+    of numbers of one huge item; a float setting with an upper bound (a fraction, a blend) also just above it."""
     cases = []
     for cmd, (schema, argv) in SCHEMAS.items():
         for key, kind, allowed in settings_of(schema):
             item = typing.get_args(kind)[0] if typing.get_origin(kind) is list else None
             values = [[]] if kind is list else [[], [HUGE[item]]] if item else [kind(0), kind(-1), HUGE[kind]]
+            top = None if allowed is None else allowed.le if allowed.le is not None else allowed.lt
+            if float in (kind, item) and top is not None:
+                values.append([top + 0.5] if item else top + 0.5)
             for value in values:
                 shown = json.dumps(value)
                 cases.append((f"{cmd} {key}={shown}", [*argv, f"{key}={shown}", "--print-config"], key, value, allowed))
@@ -392,78 +413,3 @@ def make_world(root: Path) -> dict[str, str]:
     out = {k: str(v) for k, v in paths.items()}
     out["root"], out["has_read_only"] = str(root), str(read_only is not None)
     return out
-
-
-def api_call(case: str, world: dict[str, str]) -> None:
-    """The Python entry of the CLI case ``case``, with the same inputs (module doc)."""
-    import numpy as np
-
-    import ttompc
-    from ttompc.data.config import GenerateConfig, SplitConfig
-    from ttompc.data.generate import generate
-    from ttompc.evaluation.closed_loop import run_closed_loop
-    from ttompc.evaluation.warmstart import run_warmstart
-    from ttompc.finetune import finetune
-    from ttompc.finetune.config import load_finetune_config
-    from ttompc.training.config import load_train_config
-    from ttompc.training.run import train
-    from ttompc.zoo import publish
-
-    one_split = SplitConfig(train=1, val=0, test=0)
-    calls = {
-        "train-resumes-another-scenario": lambda: train(
-            load_train_config(QUAD_TINY, [f"data.paths=[{world['quad']}]", f"trainer.out_dir={world['ff_run']}"])
-        ),
-        "train-into-a-users-folder": lambda: train(
-            load_train_config(TINY, [f"data.paths=[{world['ff']}]", f"trainer.out_dir={world['user']}"])
-        ),
-        "train-loader-workers-beyond-the-machine": lambda: train(
-            load_train_config(TINY, [f"data.paths=[{world['ff']}]", f"data.num_workers={MILLION}"])
-        ),
-        "finetune-into-a-users-folder": lambda: finetune(
-            load_finetune_config(FINETUNE, [f"data.paths=[{world['ff']}]", f"trainer.out_dir={world['user']}"]), "m"
-        ),
-        "generate-into-a-users-folder": lambda: generate(
-            GenerateConfig(problems=2, splits=one_split, out=world["user"]), progress=False
-        ),
-        "generate-workers-beyond-the-machine": lambda: generate(
-            GenerateConfig(problems=2, splits=one_split, workers=int(MILLION), out="o"), progress=False
-        ),
-        "warmstart-over-another-configuration": lambda: run_warmstart(
-            WarmStartConfig(model=BUNDLE, scenario="freeflyer", problems=1, out=world["ws_report"])
-        ),
-        "mpc-workers-beyond-the-machine": lambda: run_closed_loop(
-            ClosedLoopConfig(scenario="freeflyer", workers=int(MILLION))
-        ),
-        "warmstart-workers-beyond-the-machine": lambda: run_warmstart(
-            WarmStartConfig(model="m", scenario="freeflyer", workers=int(MILLION))
-        ),
-        "publish-into-a-users-folder": lambda: publish(BUNDLE, "x", world["user"]),
-        "demo-model-missing": lambda: ttompc.load_pretrained(world["missing"]),
-        "mpc-model-missing": lambda: ttompc.Controller.from_pretrained(world["missing"]),
-        "mpc-device-that-does-not-exist": lambda: ttompc.load_pretrained(BUNDLE, device="nosuch"),
-        "solve-unknown-backend": lambda: ttompc.solve_problem(
-            ttompc.get_scenario("freeflyer"),
-            ttompc.get_scenario("freeflyer").sample(np.random.default_rng(0)),
-            backend="nosuch",
-        ),
-    }
-    calls[case]()
-
-
-API_CASES = [
-    "train-resumes-another-scenario",
-    "train-into-a-users-folder",
-    "train-loader-workers-beyond-the-machine",
-    "finetune-into-a-users-folder",
-    "generate-into-a-users-folder",
-    "generate-workers-beyond-the-machine",
-    "warmstart-over-another-configuration",
-    "mpc-workers-beyond-the-machine",
-    "warmstart-workers-beyond-the-machine",
-    "publish-into-a-users-folder",
-    "demo-model-missing",
-    "mpc-model-missing",
-    "mpc-device-that-does-not-exist",
-    "solve-unknown-backend",
-]

@@ -8,8 +8,8 @@ are numbers, of one huge item, every path missing, a file, a read-only folder), 
 the schemas declare (``ttompc.ranges``). The generated settings cases go through ``--print-config``, which exits
 before any work once the settings load; what depends on the machine or the scenario (processes beyond the cores, a
 horizon beyond N) is listed, run as far as the command's checks. The Python entries (``train``, ``finetune``,
-``generate``, ``Planner.from_pretrained``, ``solve_problem``, ``get_scenario``) refuse the same inputs with the
-project's typed errors, in the words of the CLI's line.
+``generate``, the evaluations' runners, ``Planner.from_pretrained``, ``solve_problem``, ``get_scenario``;
+``bad_input_api``) refuse the same inputs with the project's typed errors, in the words of the CLI's line.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from bad_input_api import API_CALLS
 from bad_input_cases import (
-    API_CASES,
     BUNDLE,
     ENV,
     LISTED,
@@ -32,7 +32,6 @@ from bad_input_cases import (
     REPO,
     SCHEMAS,
     TINY,
-    api_call,
     generated_cases,
     make_world,
     path_cases,
@@ -156,7 +155,7 @@ def test_each_setting_at_its_edges_is_taken_or_refused_as_its_schema_declares(
         assert result["traceback"] is None and result["changed"] == []
 
 
-@pytest.mark.parametrize("case", API_CASES)
+@pytest.mark.parametrize("case", API_CALLS)
 def test_the_python_entries_refuse_in_the_clis_words(
     case: str, world: dict[str, str], results: dict[str, dict[str, Any]], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -167,7 +166,7 @@ def test_the_python_entries_refuse_in_the_clis_words(
     monkeypatch.chdir(world["root"])
     before = cli_snapshot(Path(world["root"]))
     with pytest.raises(UserError) as raised:
-        api_call(case, world)
+        API_CALLS[case](world)
     argv = next(argv for i, argv, _ in [*LISTED, *PATHS] if i == case)
     assert f"ttompc {argv[0]}: error: {raised.value}" == results[case]["stderr"].strip()
     assert cli_snapshot(Path(world["root"])) == before
@@ -192,6 +191,25 @@ def test_public_calls_refuse_what_they_cannot_use_with_typed_errors() -> None:
         ttompc.solve_problem("freeflyer", problem)  # type: ignore[arg-type]
     with pytest.raises(InputError, match=r"warm start must have shapes \(101, 6\) and \(100, 3\)"):
         solve_scp(SCPProblem(ff, problem), np.zeros((3, 6)), np.zeros((2, 3)))
+
+
+@pytest.mark.parametrize(("mine", "theirs"), [("quadrotor", "rpod"), ("rpod", "quadrotor"), ("quadrotor", "freeflyer")])
+def test_a_problem_of_another_scenario_of_the_same_shape_is_refused(mine: str, theirs: str) -> None:
+    """Free-flyer, quadrotor and RPOD problems all have 6-dim states and 100 steps; another scenario's is told apart
+    by its params keys (RPOD's orbit, horizon and port: ``Scenario.problem_params``) or fixed dt (``problem_dt``)
+    and refused by the solve in one line, while its own scenario takes it."""
+    import numpy as np
+
+    import ttompc
+    from ttompc.errors import InputError
+    from ttompc.mpc.controller import sample_problem
+    from ttompc.solvers.problem import check_problem
+
+    problem = sample_problem(ttompc.get_scenario(theirs), np.random.default_rng(0))
+    check_problem(ttompc.get_scenario(theirs), problem)
+    with pytest.raises(InputError, match=rf"^{mine}: its problems have .* \(another scenario's problem\?\)$") as err:
+        ttompc.solve_problem(ttompc.get_scenario(mine), problem)
+    assert "\n" not in str(err.value)
 
 
 def test_a_run_of_a_given_datamodule_claims_its_folder_by_scenario(tmp_path: Path) -> None:

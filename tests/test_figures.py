@@ -257,9 +257,11 @@ def test_the_written_report_records_the_command_of_its_config(kind: str, tmp_pat
     from ttompc.evaluation.warmstart import run_warmstart
     from ttompc.scenarios import get_scenario
 
+    out = tmp_path / "report"  # a folder of its own: a report folder holds nothing else (``claim_report``)
     if kind == "mpc":
         cfg = ClosedLoopConfig(model="tto-x", ft_model="ft-y", scenario="freeflyer", horizons=[10, 20], problems=3)
-        write_report(cfg, get_scenario("freeflyer"), mpc_report()["runs"], tmp_path, 1, time.perf_counter())
+        out.mkdir()
+        write_report(cfg, get_scenario("freeflyer"), mpc_report()["runs"], out, 1, time.perf_counter())
     else:
         bundle = mpc_fakes.tiny_planner().save(tmp_path / "bundle")
         run_warmstart(
@@ -269,10 +271,10 @@ def test_the_written_report_records_the_command_of_its_config(kind: str, tmp_pat
                 problems=1,
                 workers=1,
                 oracle_detours=0,
-                out=str(tmp_path),
+                out=str(out),
             )
         )
-    report = figures.load_report(tmp_path / f"{kind}.json", kind)
+    report = figures.load_report(out / f"{kind}.json", kind)
     defaults = ClosedLoopConfig() if kind == "mpc" else WarmStartConfig()
     assert report["command"] == report_command(kind, report["config"], defaults)
     assert report["command"].startswith(f"ttompc evaluate {kind} --model ")

@@ -115,18 +115,6 @@ def _announce_rtg(source: str, planner: Planner, mode: str) -> None:
         )
 
 
-def _check_output(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
-    """The report folder (``out``, else ``outputs/evaluate/<kind>-<scenario>`` as the evaluation names it) must be
-    writable before any problem is solved, not after the whole evaluation, and new, empty or a report folder of this
-    kind (its files are named ``<kind>*``: ``ttompc.outputs.claim_folder``), never a dataset or a user's folder; the
-    evaluation then compares an earlier report's configuration with its own (a sweep's episodes, a warm-start
-    report: ``report_files.check_replaceable``)."""
-    from ttompc.outputs import claim_folder
-
-    out = cfg.out or f"outputs/evaluate/{kind}-{checks.scenario(str(cfg.scenario)).name}"
-    claim_folder(out, f"evaluate {kind}", lambda folder: any(p.name.startswith(kind) for p in folder.iterdir()))
-
-
 def _announce(kind: str, cfg: WarmStartConfig | ClosedLoopConfig) -> None:
     """Loading the models and starting the workers takes a while before the progress bar appears: say so at once."""
     models = " and ".join(source for source in (cfg.model, cfg.ft_model) if source) or "no model (baselines only)"
@@ -154,7 +142,8 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _measured(kind: str, config_cls: Any, runner: Callable[[Any], dict[str, Any]], args: argparse.Namespace) -> int:
     """``evaluate mpc`` and ``evaluate target``: a closed-loop measurement, checked alike (models, scenario,
-    settings, output folder); ``--print-config`` shows the protocol's resolved settings."""
+    settings; the runner claims its output folder before any work, ``report_files.claim_report``);
+    ``--print-config`` shows the protocol's resolved settings."""
     from ttompc.evaluation.measurement import with_settings
 
     cfg = command_config(config_cls, args, _FLAGS)
@@ -163,7 +152,6 @@ def _measured(kind: str, config_cls: Any, runner: Callable[[Any], dict[str, Any]
         return 0
     _announce(kind, cfg)
     _resolve_scenario(cfg)
-    _check_output(kind, cfg)
     report = runner(cfg)
     print(report["table"])
     print(f"report: {report['out']}")
@@ -171,9 +159,8 @@ def _measured(kind: str, config_cls: Any, runner: Callable[[Any], dict[str, Any]
 
 
 def _loss(args: argparse.Namespace) -> int:
-    """``evaluate loss``: the device and the output folder (new, empty or a loss report's) are checked before the
-    model and the data are read."""
-    from ttompc.outputs import claim_folder
+    """``evaluate loss``: the device and then, in ``run_fit_loss``, the output folder (new, empty or a loss
+    report's) are checked before the model and the data are read."""
     from ttompc.ranges import check_devices
     from ttompc.training.fit_loss import LossConfig, run_fit_loss
 
@@ -182,8 +169,6 @@ def _loss(args: argparse.Namespace) -> int:
         print(json.dumps(to_container(cfg), indent=2))
         return 0
     check_devices(cfg)
-    out = cfg.out_dir()
-    claim_folder(out, "evaluate loss", lambda folder: any(p.name.startswith("loss") for p in folder.iterdir()))
     report = run_fit_loss(cfg)
     print(report["table"])
     print(f"report: {report['out']}")
@@ -206,7 +191,6 @@ def run(args: argparse.Namespace) -> int:
             )
         _announce("warmstart", cfg)
         _resolve_scenario(cfg)
-        _check_output("warmstart", cfg)
         report = run_warmstart(cfg)
     elif args.evaluation == "target":
         from ttompc.evaluation.target_error import TargetErrorConfig, run_target_error

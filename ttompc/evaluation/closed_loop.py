@@ -31,7 +31,6 @@ import time
 from collections import Counter
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ttompc.errors import UserError
@@ -41,6 +40,7 @@ from ttompc.evaluation.episodes import episode_record
 from ttompc.evaluation.machine import load_average
 from ttompc.evaluation.measurement import PLANTS, Measurement
 from ttompc.evaluation.problems import EvalProblem
+from ttompc.evaluation.report_files import claim_report
 from ttompc.evaluation.warmstart import default_workers
 from ttompc.mpc.loop import MPCRun, run_mpc_batch
 from ttompc.mpc.methods import MODEL_SLOTS, ROBUST_BLEND, MethodInputs, methods_for
@@ -199,10 +199,12 @@ def sweep_records(cfg: ClosedLoopConfig, store: EpisodeStore) -> list[dict[str, 
 
 
 def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
-    """Run the study as a resumable sweep: each task's episodes are stored as it finishes (``EpisodeStore`` in
-    ``cfg.out``), the episodes a previous run of the same configuration stored there are not run again, and a
-    progress bar counts the sweep's episodes with an ETA. Then writes ``mpc.json`` (last, marked complete),
-    ``mpc.md`` (the table), ``mpc_runs.csv`` and plots into ``cfg.out`` (``closed_loop_report.write_report``)."""
+    """Run the study as a resumable sweep into ``cfg.out`` (default ``outputs/evaluate/mpc-<scenario>``), a folder
+    claimed before any work (``report_files.claim_report``: new, empty or a closed-loop report's, else a one-line
+    ``UserError``): each task's episodes are stored as it finishes (``EpisodeStore``), the episodes a previous run
+    of the same configuration stored there are not run again, and a progress bar counts the sweep's episodes with
+    an ETA. Then writes ``mpc.json`` (last, marked complete), ``mpc.md`` (the table), ``mpc_runs.csv`` and plots
+    into it (``closed_loop_report.write_report``)."""
     from ttompc.config import to_container
 
     if cfg.scenario is None:
@@ -216,7 +218,7 @@ def run_closed_loop(cfg: ClosedLoopConfig) -> dict[str, Any]:
             f"pass horizons of at most {sc.n_steps} (horizons=[{sc.n_steps}] plans the whole remaining episode)",
         )
     cfg.horizons = sorted(set(cfg.horizons))
-    out = Path(cfg.out or f"outputs/evaluate/mpc-{sc.name}")
+    out = claim_report(cfg.out or f"outputs/evaluate/mpc-{sc.name}", "mpc")
     workers = default_workers(cfg.workers)
     t0, load = time.perf_counter(), load_average()
     store = EpisodeStore.open(out, sweep_fingerprint(cfg, sc))

@@ -11,6 +11,9 @@ A report that is computed whole (``warmstart``) is replaced by a run of the same
 of another configuration in the folder is refused before any work (``check_replaceable``), as a closed-loop sweep
 refuses episodes of another configuration (``ttompc.evaluation.episode_store``, whose comparison
 ``config_differences`` is).
+
+A report's folder is claimed before any work, by the library call as by the command (``claim_report``): it is new,
+empty or a report folder of that kind, never a dataset or a user's folder.
 """
 
 from __future__ import annotations
@@ -22,8 +25,18 @@ from typing import Any
 from ttompc.errors import UserError
 from ttompc.evaluation.metrics import write_json
 from ttompc.evaluation.reproduce import INERT
+from ttompc.outputs import claim_folder
 
 COMPLETE = "complete"
+
+
+def claim_report(folder: str | Path, kind: str) -> Path:
+    """``folder`` as the report folder of ``ttompc evaluate KIND``: refused (``UserError``, one line saying what is
+    there) unless it is missing, empty or holds files named ``<kind>*`` (a report of this kind, which the run then
+    resumes, replaces or refuses by its configuration), and unless this process can write there
+    (``ttompc.outputs.claim_folder``). Creates nothing; returns ``folder`` as a ``Path``."""
+    claim_folder(folder, f"evaluate {kind}", lambda there: any(p.name.startswith(kind) for p in there.iterdir()))
+    return Path(folder)
 
 
 def retract(path: Path) -> None:

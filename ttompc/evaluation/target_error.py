@@ -31,7 +31,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -40,6 +39,7 @@ from ttompc.errors import UserError
 from ttompc.evaluation.closed_loop import ClosedLoopConfig, model_sources, tasks
 from ttompc.evaluation.episodes import episode_record
 from ttompc.evaluation.problems import EvalProblem
+from ttompc.evaluation.report_files import claim_report
 from ttompc.evaluation.target_error_report import ERRORS, write_target_report
 from ttompc.evaluation.warmstart import default_workers
 from ttompc.mpc.episode import Episode
@@ -240,7 +240,8 @@ def _run(indices: tuple[int, ...]) -> tuple[list[dict[str, Any]], list[dict[str,
 
 def run_target_error(cfg: TargetErrorConfig) -> dict[str, Any]:
     """Run the diagnostic; writes ``target_error.json``, ``target_error.md``, ``target_error_steps.csv`` (and with
-    ``plot`` ``target_error.png``) into ``cfg.out`` (``target_error_report.write_target_report``)."""
+    ``plot`` ``target_error.png``) into ``cfg.out`` (default ``outputs/evaluate/target-<scenario>``, a folder claimed
+    before any work: ``report_files.claim_report``; ``target_error_report.write_target_report``)."""
     from ttompc.config import to_container
 
     if cfg.scenario is None:
@@ -254,7 +255,7 @@ def run_target_error(cfg: TargetErrorConfig) -> dict[str, Any]:
         )
     cfg.method_entry()  # a method without its model is one error line before the pool starts
     cfg.horizons = sorted(set(cfg.horizons))
-    out = Path(cfg.out or f"outputs/evaluate/target-{sc.name}")
+    out = claim_report(cfg.out or f"outputs/evaluate/target-{sc.name}", "target")
     workers = default_workers(cfg.workers)
     t0 = time.perf_counter()
     records: list[dict[str, Any]] = []

@@ -19,7 +19,6 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,7 +31,7 @@ from ttompc.evaluation.metrics import (
     write_csv,
 )
 from ttompc.evaluation.problems import EvalProblem, eval_problem
-from ttompc.evaluation.report_files import check_replaceable, finish, retract
+from ttompc.evaluation.report_files import check_replaceable, claim_report, finish, retract
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import format_interval, interval
 from ttompc.mpc.methods import MODEL_SLOTS
@@ -237,8 +236,9 @@ def format_table(summary: list[dict[str, Any]]) -> str:
 def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
     """Run the evaluation; writes ``warmstart.md`` (the table), ``warmstart_problems.csv``,
     ``warmstart_thresholds.csv``, ``warmstart_bins.csv``, ``warmstart_improvement.png`` and last ``warmstart.json``
-    (marked complete: ``report_files.finish``) into ``cfg.out``, replacing an earlier report of the same
-    configuration and refusing, before any work, one of another (``report_files.check_replaceable``); the
+    (marked complete: ``report_files.finish``) into ``cfg.out`` (default ``outputs/evaluate/warmstart-<scenario>``),
+    a folder claimed before any work (``report_files.claim_report``: new, empty or a warm-start report's), replacing
+    an earlier report of the same configuration and refusing one of another (``report_files.check_replaceable``); the
     report records its config and the command line that reproduces it (``command``, ``reproduce.report_command``)."""
     from ttompc.evaluation.plots import plot_warmstart
 
@@ -246,7 +246,7 @@ def run_warmstart(cfg: WarmStartConfig) -> dict[str, Any]:
         raise ValueError("WarmStartConfig.scenario is not set (the command takes it from the model)")
     check_devices(cfg)  # its device and workers exist here, as ``ttompc evaluate warmstart`` checks them
     sc = get_scenario(cfg.scenario)
-    out = Path(cfg.out or f"outputs/evaluate/warmstart-{sc.name}")
+    out = claim_report(cfg.out or f"outputs/evaluate/warmstart-{sc.name}", "warmstart")
     t0 = time.perf_counter()
     workers = default_workers(cfg.workers)
     config = {**asdict(cfg), "out": str(out), "workers": workers}

@@ -246,12 +246,15 @@ def _number(x: float) -> str:
 
 
 def run_fit_loss(cfg: LossConfig) -> dict[str, Any]:
-    """Run ``fit_losses`` and write ``loss.json`` (config and rows) and ``loss.md`` (the table) into ``cfg.out``."""
+    """Run ``fit_losses`` and write ``loss.json`` (config and rows) and ``loss.md`` (the table) into ``cfg.out_dir()``,
+    a folder claimed before the model and the data are read (``report_files.claim_report``: new, empty or a loss
+    report's, else a one-line ``UserError``)."""
     from ttompc.evaluation.metrics import write_json
+    from ttompc.evaluation.report_files import claim_report
 
+    out = claim_report(cfg.out_dir(), "loss")
     rows = fit_losses(cfg)
     table = format_losses(rows, str(cfg.model))
-    out = cfg.out_dir()
     write_json(out / "loss.json", {"config": asdict(cfg), "rows": rows})
     (out / "loss.md").write_text(table)
     return {"rows": rows, "table": table, "out": str(out)}
