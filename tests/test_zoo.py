@@ -656,11 +656,19 @@ def test_cache_corrupted_without_a_source_is_a_clear_error(env: Path) -> None:
 def test_the_zoo_imports_no_model_code(tmp_path: Path) -> None:
     """Layering: ``Planner.from_pretrained`` loads zoo names through ``ttompc.zoo``, so the zoo (cards, cache,
     downloads, publishing of bundle files) imports nothing of ttompc but itself, errors, version, the progress
-    display and the claiming of output folders (``ttompc.outputs``), not even inside a function: a checkpoint is
-    converted to a bundle by ``ttompc zoo publish``, not by ``zoo.publish``."""
+    display, the claiming of output folders (``ttompc.outputs``) and the model slots' names (``ttompc.model_slots``,
+    a card's kinds), not even inside a function: a checkpoint is converted to a bundle by ``ttompc zoo publish``, not
+    by ``zoo.publish``."""
     import ast
 
-    allowed = ("ttompc.zoo", "ttompc.errors", "ttompc.version", "ttompc.progress", "ttompc.outputs")
+    allowed = (
+        "ttompc.zoo",
+        "ttompc.errors",
+        "ttompc.version",
+        "ttompc.progress",
+        "ttompc.outputs",
+        "ttompc.model_slots",
+    )
     for path in sorted((Path(zoo.__file__).parent).glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Import):

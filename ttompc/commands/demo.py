@@ -211,13 +211,14 @@ def _closed_loop(
     "METHOD@H"); returns the two methods' keys (the model's first) and one panel per problem."""
     from ttompc.evaluation.episodes import episode_record
     from ttompc.evaluation.plots import Panel
+    from ttompc.model_slots import slot_of
     from ttompc.mpc.loop import run_mpc_batch
-    from ttompc.mpc.methods import BASELINE, METHODS, MethodInputs, model_method, slot_of
+    from ttompc.mpc.methods import BASELINE, METHODS, MethodInputs, model_method
     from ttompc.parallel import single_torch_thread
     from ttompc.progress import Bar
 
     scenario = planner.scenario
-    learned = model_method(slot_of(planner), robust=True)
+    learned = model_method(slot_of(planner.extra), robust=True)
     methods = [(learned, cfg.eval, planner), (METHODS[BASELINE], cfg.rel_loop(), None)]
     starts = [ep.start for ep in eps]
     episodes = []

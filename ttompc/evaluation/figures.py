@@ -39,7 +39,7 @@ from ttompc.evaluation.horizon_figures import horizon_figure, model_label
 from ttompc.evaluation.plots import Panel, trajectory_figure
 from ttompc.evaluation.report_files import read_report
 from ttompc.evaluation.warmstart import ORACLE
-from ttompc.mpc.methods import MODEL_SLOTS
+from ttompc.model_slots import MODEL_SLOTS
 
 WARMSTART_METHODS = (*MODEL_SLOTS, ORACLE)  # the warm starts Fig. 4 shows, as the warm-start report names them
 FILES = ("planned_trajectory.png", "warmstart.png")  # then closed_loop_<plant>.png per plant (``horizon_file``)

@@ -15,10 +15,10 @@ from __future__ import annotations
 from dataclasses import asdict
 from typing import Any
 
-from ttompc.mpc.methods import MODEL_SLOTS
+from ttompc.model_slots import MODEL_SLOTS, slot_flag
 
 INERT = ("out", "workers")  # recorded settings that do not change a report's numbers
-MODELS = tuple(("--" + key.replace("_", "-"), key) for key in MODEL_SLOTS.values())  # (flag, config key)
+MODELS = tuple((slot_flag(slot), key) for slot, key in MODEL_SLOTS.items())  # (flag, config key)
 SHOWN = {
     "warmstart": ("problems", "seed", "nonconvex_only", "rtg_scale", "oracle_detours"),
     "mpc": ("problems", "seed", "horizons", "plants", "robust_blend", "rtg_scale", "protocol"),

@@ -33,8 +33,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ttompc.errors import UserError
+from ttompc.model_slots import slot_of
 from ttompc.mpc.loop import EpisodeStart, MPCController, StepPlan, start_controller
-from ttompc.mpc.methods import METHODS, ROBUST_BLEND, Method, MethodInputs, model_method, slot_of
+from ttompc.mpc.methods import METHODS, ROBUST_BLEND, Method, MethodInputs, model_method
 from ttompc.mpc.settings import MPCSettings, protocol_settings
 from ttompc.mpc.warmup import warm_up
 from ttompc.scenarios import get_scenario
@@ -193,7 +194,7 @@ class Controller:
         scenario = get_scenario(scenario) if isinstance(scenario, str) else scenario
         planner = Planner.from_pretrained(source, scenario, device=device)
         if method is None:
-            method = model_method(slot_of(planner), robust=True).name
+            method = model_method(slot_of(planner.extra), robust=True).name
         return cls(planner.scenario, method, planner=planner, horizon=horizon, protocol=protocol, **kwargs)
 
     def _sample(self) -> Problem:

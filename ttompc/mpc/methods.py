@@ -1,7 +1,7 @@
 """The closed-loop methods, each registered once in ``METHODS``: its report name, whether it plans with a model and
-with which (the model slot: ``TTO``, ``FT-TTO`` for a fine-tuned one, None), whether it uses the robust target, its
-tag in a model card's metrics (``ttompc.evaluation.card_metrics``), and the factory of its providers (which take their
-name from it). Every other place that names a method derives it from here.
+with which (its model slot, ``ttompc.model_slots``: ``TTO``, ``FT-TTO`` for a fine-tuned one, None), whether it uses
+the robust target, its tag in a model card's metrics (``ttompc.evaluation.card_metrics``), and the factory of its
+providers (which take their name from it). Every other place that names a method derives it from here.
 
 ``ttompc evaluate mpc`` (``methods_for``), the closed-loop metrics of the training callback and of DAgger's
 keep/reject decision, DAgger's learners and the demo all take their methods from here.
@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ttompc.model_slots import MODEL_SLOTS
 from ttompc.mpc.providers import DISTProvider, OracleProvider, PlanProvider, Provider, RELProvider
 from ttompc.mpc.rtg import rtg_feed
 from ttompc.mpc.settings import MPCSettings
@@ -136,8 +137,6 @@ METHODS: dict[str, Method] = {
         Method("R-FT-TTO-MPC", "FT-TTO", True, "robust", _tto),
     )
 }
-# the model slots, in METHODS order, each with the config key (and --flag) naming its model
-MODEL_SLOTS = {"TTO": "model", "FT-TTO": "ft_model"}
 BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"  # the reports' roles of three methods
 
 
@@ -156,12 +155,6 @@ def base_method(label: str) -> str:
     """The method of a report's name (``Method.label``) without its rtg-mode label: ``FT-TTO-MPC[rtg=value]`` ->
     ``FT-TTO-MPC``."""
     return label.split("[", 1)[0]
-
-
-def slot_of(planner: Planner) -> str:
-    """The model slot ``planner`` fills: FT-TTO for a fine-tuned model (its checkpoint records what it was fine-tuned
-    from), else TTO."""
-    return "FT-TTO" if "finetuned_from" in planner.extra else "TTO"
 
 
 def model_method(slot: str, robust: bool = False) -> Method:

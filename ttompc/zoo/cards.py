@@ -30,6 +30,7 @@ from typing import Any
 
 import yaml
 
+from ttompc.model_slots import FINE_TUNED, MODEL_SLOTS
 from ttompc.zoo.errors import CardError
 from ttompc.zoo.evaluations import (
     decode_evaluations,
@@ -40,7 +41,7 @@ from ttompc.zoo.evaluations import (
 )
 from ttompc.zoo.rounding import rounded
 
-KINDS = ("TTO", "FT-TTO")  # pre-trained transformer / DAgger fine-tuned transformer
+KINDS = tuple(MODEL_SLOTS)  # a card's kind is the model slot its model fills (pre-trained or DAgger fine-tuned)
 LIBRARY_NAME = "ttompc"
 INFERENCE_KEYS = ("rtg_scale", "conditioning")  # what the card's ``inference`` section may hold
 REQUIRED_FILES = ("model.safetensors", "config.json")
@@ -140,7 +141,7 @@ class ModelCard:
         bad = [d for d in self.datasets if not _HUB_ID_RE.fullmatch(d) or ".." in d]
         if bad:
             raise CardError(f"card {self.name!r}: datasets must be Hugging Face ids ORG/NAME, got {bad}")
-        if self.base_model and (self.kind != "FT-TTO" or not _HUB_ID_RE.fullmatch(self.base_model)):
+        if self.base_model and (self.kind != FINE_TUNED or not _HUB_ID_RE.fullmatch(self.base_model)):
             raise CardError(
                 f"card {self.name!r}: base_model {self.base_model!r} must be the Hugging Face id ORG/NAME of the "
                 f"model a fine-tuned (FT-TTO) model started from; this one is {self.kind}"

@@ -28,6 +28,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ttompc.model_slots import FINE_TUNED, MODEL_SLOTS, PRETRAINED, slot_flag, slot_of
 from ttompc.outputs import claim_folder
 from ttompc.version import code_version
 from ttompc.zoo.cache import check_bundle, inside, sha256_file
@@ -186,7 +187,7 @@ def _card(
     evaluations = validate_evaluations(metrics or {})
     if previous is not None and same_files and not skip_eval:  # measured on these bytes: read from its metrics file
         evaluations = _updated(read_evaluations(previous, card_path.parent).evaluations, evaluations)
-    fields: dict[str, Any] = {"name": name, "kind": "TTO", "license": "mit", "tags": list(DEFAULT_TAGS)}
+    fields: dict[str, Any] = {"name": name, "kind": PRETRAINED, "license": "mit", "tags": list(DEFAULT_TAGS)}
     if previous is not None:  # keep what a maintainer edited by hand; evaluations and files are replaced
         fields.update(
             kind=previous.kind,
@@ -228,8 +229,8 @@ def _updated(evaluations: dict[str, dict[str, Any]], new: dict[str, dict[str, An
 def _metrics_hint(config: dict[str, Any], card_fields: dict[str, Any] | None) -> str:
     """How to make the card metrics of the bundle with ``config``: evaluate it (as ``--ft-model`` when it is
     fine-tuned), turn the two reports into card metrics with ``ttompc zoo metrics`` and publish with them."""
-    kind = (card_fields or {}).get("kind") or _from_config(config)["kind"] or "TTO"
-    flag = "--ft-model" if kind == "FT-TTO" else "--model"
+    kind = (card_fields or {}).get("kind") or _from_config(config)["kind"] or PRETRAINED
+    flag = slot_flag(kind if kind in MODEL_SLOTS else PRETRAINED)
     return (
         f"make them with `ttompc evaluate warmstart {flag} MODEL --out eval/ws` and `ttompc evaluate mpc {flag} MODEL "
         f"--out eval/mpc` (MODEL: the bundle folder or .ckpt you publish), then `ttompc zoo metrics --method {kind} "
@@ -267,8 +268,9 @@ def _from_config(config: dict[str, Any]) -> dict[str, Any]:
             "architecture config) to fill the card"
         )
     extra = _extra(config)
+    slot = slot_of(extra)
     return {
-        "kind": config.get("kind") or ("FT-TTO" if "finetuned_from" in extra else None),
+        "kind": config.get("kind") or (slot if slot == FINE_TUNED else None),  # else the earlier card's, or TTO
         "scenario": {"name": scenario["name"], "version": scenario["version"]},
         "architecture": model,
         # Planner bundles store the recipe's content; the card wants its path (pass it via card_fields).
