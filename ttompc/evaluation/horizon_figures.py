@@ -26,7 +26,8 @@ import numpy as np
 from ttompc.errors import UserError
 from ttompc.evaluation.machine import machine_label
 from ttompc.evaluation.plots import horizon_axis, horizon_cost_panel, line_style
-from ttompc.mpc.methods import METHODS, MODEL_SLOTS, base_method
+from ttompc.model_slots import MODEL_SLOTS
+from ttompc.mpc.methods import METHODS, base_method
 
 # the paper's four methods, our headline (the robust fine-tuned method) and the ceiling
 PAPER_METHODS = ("REL-MPC", "DIST-MPC", "TTO-MPC", "FT-TTO-MPC", "R-FT-TTO-MPC", "ORACLE-MPC")
@@ -62,8 +63,11 @@ def step_times(report: dict[str, Any], plant: str = "nominal") -> list[dict[str,
     error over the episodes."""
     out = []
     for row in paper_rows(report, plant):
-        runs = [r for r in report["runs"]
-                if r["plant"] == plant and r["method"] == row["method"] and r["horizon"] == row["horizon"]]  # fmt: skip
+        runs = [
+            r
+            for r in report["runs"]
+            if r["plant"] == plant and r["method"] == row["method"] and r["horizon"] == row["horizon"]
+        ]
         point: dict[str, Any] = {"method": row["method"], "horizon": row["horizon"], "runs": len(runs)}
         for key in STEP_KINDS:
             times = np.array([r[key] for r in runs])

@@ -192,8 +192,11 @@ def _plan(args: argparse.Namespace) -> str:
     ]
     for scenario in sorted(costs):
         entry = costs[scenario]
-        cells = [f"{sweep_hours(entry, n, grid, args.plants):.1f}" for grid in GRIDS.values()
-                 for n in (MIN_PROBLEMS, MAX_PROBLEMS)]  # fmt: skip
+        cells = [
+            f"{sweep_hours(entry, n, grid, args.plants):.1f}"
+            for grid in GRIDS.values()
+            for n in (MIN_PROBLEMS, MAX_PROBLEMS)
+        ]
         p = plan(entry, args.budget, args.plants)
         buy = f"FIG_GRID={p['grid']} FIG_PROBLEMS={p['problems']} ({p['hours']:.1f} h)" if p["problems"] else "–"
         lines.append(f"| {scenario} | {' | '.join(cells)} | {buy} |")

@@ -125,8 +125,10 @@ class Planner:
             cfg, stats = self.model.cfg, self.stats
             ftype = np.float64 if param.dtype == torch.float64 else np.float32
             steps = np.full((len(problems), 1), t, dtype=ftype) / ftype(cfg.max_steps)  # as ``TrajectoryGPT.value``
-            z = np.concatenate([stats.normalize("goals", goal.astype(ftype)),
-                                stats.normalize("states", S.astype(ftype)), steps], axis=1)  # fmt: skip
+            z = np.concatenate(
+                [stats.normalize("goals", goal.astype(ftype)), stats.normalize("states", S.astype(ftype)), steps],
+                axis=1,
+            )
             out = head_output(head, value_activation(cfg), z).astype(np.float64)
             return -stats.denormalize("rtg", out[:, None])[:, 0]
         dtype = next(self.model.parameters()).dtype

@@ -196,8 +196,9 @@ class RolloutContext:
             decode.extend(self._inputs(c, t), c)  # claims the last rollout's first token where it is step c's
         elif c < t and isinstance(decode, Decoder):
             prev = self.actions[:, max(c - 1, 0) : t - 1]  # a_{c-1}..a_{t-2}; none before step 0
-            decode(self._embed_steps(self.goals[:, c:t], self.rtg[:, c:t], self.ctg[:, c:t], self.states[:, c:t],
-                                     prev, c))  # fmt: skip
+            decode(
+                self._embed_steps(self.goals[:, c:t], self.rtg[:, c:t], self.ctg[:, c:t], self.states[:, c:t], prev, c)
+            )
         self._cached = t
         return decode
 

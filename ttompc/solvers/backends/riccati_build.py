@@ -49,9 +49,35 @@ def constraints(stage: Any, data: SubproblemData, d_fixed: np.ndarray) -> tuple[
         h = np.ascontiguousarray(block.h, np.float64)
         lower = h if b.is_eq or block.lower is None else np.ascontiguousarray(block.lower, np.float64)
         Gu = no_u if block.Gu is None else np.ascontiguousarray(block.Gu, np.float64)
-        nb, nr = _block(np.ascontiguousarray(block.Gx, np.float64), Gu, block.Gu is not None, h, lower, b.steps,
-                        b.live, b.single, b.cols, b.valid, b.two_sided, b.rho, stage.sx, stage.su, n,
-                        bk, bj, bs, bd, brho, nb, rk, ri, rg, rd, rrho, nr)  # fmt: skip
+        nb, nr = _block(
+            np.ascontiguousarray(block.Gx, np.float64),
+            Gu,
+            block.Gu is not None,
+            h,
+            lower,
+            b.steps,
+            b.live,
+            b.single,
+            b.cols,
+            b.valid,
+            b.two_sided,
+            b.rho,
+            stage.sx,
+            stage.su,
+            n,
+            bk,
+            bj,
+            bs,
+            bd,
+            brho,
+            nb,
+            rk,
+            ri,
+            rg,
+            rd,
+            rrho,
+            nr,
+        )
     return Boxes(bk[:nb], bj[:nb], bs[:nb], bd[:nb], brho[:nb]), Rows(rk[:nr], ri[:nr], rg[:nr], rd[:nr], rrho[:nr])
 
 
@@ -74,8 +100,35 @@ def _fixed(k, j, s, d, rho, bk, bj, bs, bd, brho):  # pragma: no cover - compile
 
 
 @KERNEL.jit
-def _block(Gx, Gu, has_u, upper, lower, steps, live, single, cols, valid, two_sided, rho, sx, su, n,
-           bk, bj, bs, bd, brho, nb, rk, ri, rg, rd, rrho, nr):  # fmt: skip  # pragma: no cover - compiled
+def _block(  # pragma: no cover - compiled
+    Gx,
+    Gu,
+    has_u,
+    upper,
+    lower,
+    steps,
+    live,
+    single,
+    cols,
+    valid,
+    two_sided,
+    rho,
+    sx,
+    su,
+    n,
+    bk,
+    bj,
+    bs,
+    bd,
+    brho,
+    nb,
+    rk,
+    ri,
+    rg,
+    rd,
+    rrho,
+    nr,
+):
     """One scenario block's constraints appended at nb (boxes) and nr (rows); returns the new counts. Rows on one
     variable (``single``) are boxes sign(g)·y ≤ upper/|g| (and −sign(g)·y ≤ −lower/|g| where two-sided) at penalty
     ρ|g|, g the scaled coefficient (none where g = 0); the others rows g/‖g‖ · y ≤ upper/‖g‖ (and the negated row
