@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
 
+from ttompc.data.config import GenerateConfig, SplitConfig
 from ttompc.policy.stats import NormStats
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import solve_rel
@@ -15,6 +17,9 @@ from ttompc.solvers.spec import SubproblemData, SubproblemSpec
 if TYPE_CHECKING:
     from ttompc.policy import Planner
     from ttompc.scenarios import Problem, Scenario
+
+# what shrinks `ttompc train` (recipes/freeflyer/tiny.yaml) to a run of seconds: one thin layer, batches of 4
+TINY_TRAIN = ("model.n_embd=32", "model.n_layer=1", "model.n_head=2", "data.batch_size=4")
 
 
 def toy_stats(seed: int = 0) -> NormStats:
@@ -46,6 +51,39 @@ def tiny_toy_planner(seed: int = 0) -> Planner:
     torch.manual_seed(seed)
     cfg = ModelConfig(n_embd=32, n_layer=2, n_head=2, max_steps=12, dropout=0.0)
     return Planner(TrajectoryGPT(cfg).eval(), get_scenario("toy"), toy_stats(seed))
+
+
+def tiny_dataset(
+    out: Path,
+    scenario: str,
+    problems: int,
+    splits: tuple[float, float, float],
+    *,
+    shard_size: int,
+    seed: int = 0,
+    workers: int = 1,
+    solver: str | None = None,
+) -> dict[str, Any]:
+    """Generate an open-loop set of ``problems`` problems of ``scenario`` into ``out``, split (train, val, test) as
+    ``splits`` says, as the tests that train on or read a small dataset do: no data card, no progress bar, the
+    default solver unless ``solver`` names one (``data_fakes.SOLVER``: instant fake solves). Returns its manifest."""
+    from ttompc.data.generate import generate
+
+    extra = {} if solver is None else {"solver": solver}
+    cfg = GenerateConfig(
+        scenario=scenario,
+        problems=problems,
+        out=str(out),
+        shard_size=shard_size,
+        workers=workers,
+        seed=seed,
+        splits=SplitConfig(*splits),
+        card_dir=None,
+        **extra,
+    )
+    manifest = generate(cfg, progress=False)
+    assert manifest is not None
+    return manifest
 
 
 def qp_subproblem(name: str, seed: int, window: Window, obstacles: bool, penalized: bool, delta: float):

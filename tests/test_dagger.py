@@ -7,12 +7,13 @@ import dataclasses
 import json
 from pathlib import Path
 
+import helpers
 import mpc_fakes
 import numpy as np
 import pytest
 
 from ttompc.config import ConfigError
-from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
+from ttompc.data.config import DataConfig
 from ttompc.data.distributed import RankInfo
 from ttompc.finetune import finetune, improves
 from ttompc.finetune.collect import collect_iteration, expert_schedule, rollout_folder
@@ -215,20 +216,8 @@ def test_expert_schedule_and_seeds() -> None:
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from ttompc.data.generate import generate
-
     out = tmp_path_factory.mktemp("ol") / "ds"
-    cfg = GenerateConfig(
-        scenario=SHORT,
-        problems=4,
-        out=str(out),
-        seed=0,
-        shard_size=4,
-        workers=1,
-        splits=SplitConfig(train=0.5, val=0.5, test=0.0),
-        card_dir=None,
-    )
-    assert generate(cfg, progress=False) is not None
+    helpers.tiny_dataset(out, SHORT, 4, (0.5, 0.5, 0.0), shard_size=4)
     return out
 
 

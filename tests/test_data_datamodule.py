@@ -6,13 +6,13 @@ import itertools
 from pathlib import Path
 
 import data_fakes as fakes
+import helpers
 import numpy as np
 import pytest
 import torch
 
-from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
+from ttompc.data.config import DataConfig
 from ttompc.data.datamodule import TrajectoryDataModule
-from ttompc.data.generate import generate
 from ttompc.data.schema import make_row, trajectory_features
 from ttompc.data.shards import ShardError, ShardWriter, read_shard
 from ttompc.scenarios import get_scenario
@@ -24,20 +24,7 @@ N, n, m = 12, 6, 3
 def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("dm")
     ol = root / "fake-ol"
-    generate(
-        GenerateConfig(
-            scenario="data-fake",
-            problems=120,
-            out=str(ol),
-            shard_size=20,
-            workers=1,
-            seed=1,
-            solver=fakes.SOLVER,
-            card_dir=None,
-            splits=SplitConfig(0.7, 0.15, 0.15),
-        ),
-        progress=False,
-    )
+    helpers.tiny_dataset(ol, "data-fake", 120, (0.7, 0.15, 0.15), shard_size=20, seed=1, solver=fakes.SOLVER)
     sc = get_scenario("data-fake")
     dirs = {}
     for it, count in ((0, 40), (1, 20)):  # two DAgger iterations written through the shared writer API

@@ -7,9 +7,8 @@ from pathlib import Path
 import helpers
 import numpy as np
 
-from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
+from ttompc.data.config import DataConfig
 from ttompc.data.datamodule import TrajectoryDataModule
-from ttompc.data.generate import generate
 from ttompc.data.schema import problem_from_row
 from ttompc.data.shards import read_shard
 from ttompc.scenarios import get_scenario
@@ -18,17 +17,7 @@ from ttompc.seeding import problem_seed
 
 def test_freeflyer_generation_end_to_end(tmp_path: Path) -> None:
     out = tmp_path / "freeflyer-mini"
-    cfg = GenerateConfig(
-        scenario="freeflyer",
-        problems=4,
-        out=str(out),
-        shard_size=2,
-        workers=2,
-        seed=11,
-        card_dir=None,
-        splits=SplitConfig(0.5, 0.25, 0.25),
-    )
-    manifest = generate(cfg, progress=False)
+    manifest = helpers.tiny_dataset(out, "freeflyer", 4, (0.5, 0.25, 0.25), shard_size=2, seed=11, workers=2)
     sc = get_scenario("freeflyer")
     rows = [r for f in sorted(out.glob("*/*.parquet")) for r in read_shard(f).with_format("numpy")]
     assert len(rows) + sum(f["stage"] in ("rel", "scp") for f in manifest["failures"]) >= 4

@@ -350,17 +350,7 @@ def test_scp_rows_carry_costates_and_shards_without_them_still_load(tmp_path: Pa
     from ttompc.data.datamodule import TrajectoryDataModule
 
     out = tmp_path / "q"
-    cfg = GenerateConfig(
-        scenario="quadrotor",
-        problems=2,
-        out=str(out),
-        shard_size=2,
-        workers=1,
-        seed=5,
-        splits=SplitConfig(train=1.0, val=0.0, test=0.0),
-        card_dir=None,
-    )
-    assert generate(cfg, progress=False) is not None
+    helpers.tiny_dataset(out, "quadrotor", 2, (1.0, 0.0, 0.0), shard_size=2, seed=5)
     (path,) = sorted((out / "train").glob("*.parquet"))
     rows = read_shard(path)
     lam = {s: np.asarray(c) for s, c in zip(rows["source"], rows["costates"], strict=True)}

@@ -8,14 +8,14 @@ import json
 from pathlib import Path
 
 import data_fakes as fakes
+import helpers
 import numpy as np
 import pytest
 import torch
 
 from ttompc.cli import main
-from ttompc.data.config import DataConfig, GenerateConfig, SplitConfig
+from ttompc.data.config import DataConfig
 from ttompc.data.datamodule import TrajectoryDataModule
-from ttompc.data.generate import generate
 from ttompc.data.schema import SOURCE_CODES, make_row, trajectory_features
 from ttompc.data.shards import ShardWriter
 from ttompc.policy import ModelConfig, Planner, TrajectoryGPT
@@ -32,21 +32,7 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     a value output, saved as a bundle."""
     root = tmp_path_factory.mktemp("loss")
     ol = root / "ol"
-    splits = SplitConfig(0.6, 0.2, 0.2)
-    generate(
-        GenerateConfig(
-            scenario="data-fake",
-            problems=30,
-            out=str(ol),
-            shard_size=10,
-            workers=1,
-            seed=1,
-            solver=fakes.SOLVER,
-            card_dir=None,
-            splits=splits,
-        ),
-        progress=False,
-    )
+    helpers.tiny_dataset(ol, "data-fake", 30, (0.6, 0.2, 0.2), shard_size=10, seed=1, solver=fakes.SOLVER)
     sc = get_scenario("data-fake")
     writer = ShardWriter(root / "dagger", trajectory_features(sc))
     rng = np.random.default_rng(0)

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import helpers
 import mpc_fakes
 import pytest
 from test_cli import cli_env
@@ -225,18 +226,12 @@ def test_evaluate_shows_progress_on_stderr_at_once(tmp_path: Path, bundle: Path)
 def test_finetune_shows_every_phase_on_stderr_and_names_the_pretrained_model(tmp_path: Path) -> None:
     """Measuring and collecting printed nothing for about 2 of 2.5 minutes, and the decision said "against iteration
     -1". Now each phase has a line and a bar on stderr, the decision names the pretrained model, stdout is JSON."""
-    from ttompc.data.config import GenerateConfig, SplitConfig
-    from ttompc.data.generate import generate
     from ttompc.data.manifests import load_manifest
     from ttompc.policy import Planner
     from ttompc.policy.stats import NormStats
 
     data = tmp_path / "data"
-    splits = SplitConfig(train=0.5, val=0.5, test=0.0)
-    cfg = GenerateConfig(
-        scenario=SHORT, problems=4, out=str(data), shard_size=4, workers=1, splits=splits, card_dir=None
-    )
-    assert generate(cfg, progress=False) is not None
+    helpers.tiny_dataset(data, SHORT, 4, (0.5, 0.5, 0.0), shard_size=4)
     planner = mpc_fakes.tiny_planner()
     stats = NormStats.from_dict(load_manifest(data)["norm_stats"])
     source = Planner(planner.model, planner.scenario, stats).save(tmp_path / "pretrained")

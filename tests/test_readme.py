@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import TINY_TRAIN
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -37,10 +38,7 @@ SMOKE: dict[str, list[str]] = {
         "trainer.val_check_interval=2",
         "trainer.limit_val_batches=1",
         "trainer.checkpoint_every_n_steps=2",
-        "model.n_embd=32",
-        "model.n_layer=1",
-        "model.n_head=2",
-        "data.batch_size=4",
+        *TINY_TRAIN,
         "logger.kind=none",
     ],
     "finetune": [

@@ -11,6 +11,7 @@ import warnings
 from pathlib import Path
 
 import pytest
+from helpers import TINY_TRAIN
 from test_training import ToyDataModule, tiny_config
 
 from ttompc.training.progress import progress_enabled
@@ -99,10 +100,7 @@ def test_train_command_stdout_is_json_and_its_one_bar_is_on_stderr(tmp_path: Pat
         str(Path(__file__).resolve().parents[1] / "recipes/freeflyer/tiny.yaml"),
         f"data.paths=[{data}]",
         f"trainer.out_dir={tmp_path / 'run'}",
-        "model.n_embd=32",
-        "model.n_layer=1",
-        "model.n_head=2",
-        "data.batch_size=4",
+        *TINY_TRAIN,
         "trainer.max_steps=4",
         "trainer.val_check_interval=2",
         "trainer.limit_val_batches=1",

@@ -282,23 +282,8 @@ def test_dataset_folder_publishes_in_one_commit_and_loads_with_datasets(
     import data_fakes as fakes
     import datasets
 
-    from ttompc.data.config import GenerateConfig, SplitConfig
-    from ttompc.data.generate import generate
-
     out = tmp_path / "fake-v1"
-    cfg = GenerateConfig(
-        scenario="data-fake",
-        problems=12,
-        out=str(out),
-        shard_size=6,
-        workers=1,
-        seed=7,
-        solver=fakes.SOLVER,
-        card_dir=None,
-        splits=SplitConfig(0.5, 0.25, 0.25),
-    )
-    manifest = generate(cfg, progress=False)
-    assert manifest is not None
+    manifest = helpers.tiny_dataset(out, "data-fake", 12, (0.5, 0.25, 0.25), shard_size=6, seed=7, solver=fakes.SOLVER)
     assert main(["zoo", "publish", str(out), "--to", "hf://datasets/org/fake-v1"]) == 0
     revision = capsys.readouterr().out.strip().rsplit(" ", 1)[1]
     assert hub.commits_posted() == 1
