@@ -42,8 +42,9 @@ from ttompc.evaluation.measurement import PLANTS, Measurement
 from ttompc.evaluation.problems import EvalProblem
 from ttompc.evaluation.report_files import claim_report
 from ttompc.evaluation.warmstart import default_workers
+from ttompc.model_slots import MODEL_SLOTS
 from ttompc.mpc.loop import MPCRun, run_mpc_batch
-from ttompc.mpc.methods import MODEL_SLOTS, ROBUST_BLEND, MethodInputs, methods_for
+from ttompc.mpc.methods import ROBUST_BLEND, MethodInputs, methods_for
 from ttompc.mpc.providers import full_horizon_plan
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map

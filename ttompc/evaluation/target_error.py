@@ -42,10 +42,11 @@ from ttompc.evaluation.problems import EvalProblem
 from ttompc.evaluation.report_files import claim_report
 from ttompc.evaluation.target_error_report import ERRORS, write_target_report
 from ttompc.evaluation.warmstart import default_workers
+from ttompc.model_slots import FINE_TUNED, PRETRAINED, slot_flag
 from ttompc.mpc.episode import Episode
 from ttompc.mpc.expert import Expert, ExpertRollout
 from ttompc.mpc.loop import MPCRun, StepPlan, run_mpc_batch
-from ttompc.mpc.methods import METHODS, MODEL_SLOTS, Method, MethodInputs, model_method
+from ttompc.mpc.methods import METHODS, Method, MethodInputs, model_method
 from ttompc.mpc.plant import PlantNoise
 from ttompc.mpc.providers import Provider, WarmStart
 from ttompc.mpc.tto import TTOProvider
@@ -78,10 +79,10 @@ class TargetErrorConfig(ClosedLoopConfig):
 
     def method_entry(self) -> Method:
         """The method measured; raises ``UserError`` when it plans with a model the config does not name."""
-        name = self.method or model_method("FT-TTO" if self.ft_model else "TTO", self.robust_blend > 0).name
+        name = self.method or model_method(FINE_TUNED if self.ft_model else PRETRAINED, self.robust_blend > 0).name
         m = METHODS[name]
         if m.model is not None and m.model not in model_sources(self):
-            flag = "--" + MODEL_SLOTS[m.model].replace("_", "-")
+            flag = slot_flag(m.model)
             raise UserError(f"method={name} plans with a model and none is given", f"pass {flag} NAME")
         if m.robust and not self.robust_blend > 0:
             raise UserError(f"method={name} needs robust_blend > 0, got {self.robust_blend}", "drop the R- prefix")

@@ -34,7 +34,7 @@ from ttompc.evaluation.problems import EvalProblem, eval_problem
 from ttompc.evaluation.report_files import check_replaceable, claim_report, finish, retract
 from ttompc.evaluation.reproduce import report_command
 from ttompc.evaluation.stats import format_interval, interval
-from ttompc.mpc.methods import MODEL_SLOTS
+from ttompc.model_slots import MODEL_SLOTS
 from ttompc.mpc.tto import check_rtg_scale
 from ttompc.parallel import WorkerState, pool_map
 from ttompc.progress import Bar

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ttompc.model_slots import MODEL_SLOTS
+from ttompc.model_slots import FINE_TUNED, MODEL_SLOTS, PRETRAINED
 from ttompc.mpc.providers import DISTProvider, OracleProvider, PlanProvider, Provider, RELProvider
 from ttompc.mpc.rtg import rtg_feed
 from ttompc.mpc.settings import MPCSettings
@@ -131,10 +131,10 @@ METHODS: dict[str, Method] = {
         Method("DIST-MPC", None, False, None, _dist),
         Method("PLAN-ONCE", None, False, "planonce", _plan_once),
         Method("ORACLE-MPC", None, False, "oracle", _oracle),
-        Method("TTO-MPC", "TTO", False, "model", _tto),
-        Method("R-TTO-MPC", "TTO", True, "robust", _tto),
-        Method("FT-TTO-MPC", "FT-TTO", False, "model", _tto),
-        Method("R-FT-TTO-MPC", "FT-TTO", True, "robust", _tto),
+        Method("TTO-MPC", PRETRAINED, False, "model", _tto),
+        Method("R-TTO-MPC", PRETRAINED, True, "robust", _tto),
+        Method("FT-TTO-MPC", FINE_TUNED, False, "model", _tto),
+        Method("R-FT-TTO-MPC", FINE_TUNED, True, "robust", _tto),
     )
 }
 BASELINE, CEILING, REFERENCE = "REL-MPC", "ORACLE-MPC", "DIST-MPC"  # the reports' roles of three methods
