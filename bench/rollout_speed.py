@@ -61,11 +61,14 @@ class StandInDoubleIntegrator:
         return torch.zeros(S.shape[0], dtype=S.dtype)
 
 
-def dynamics() -> tuple[Any, str]:
+def dynamics(batch: int = 1) -> tuple[Any, str]:
+    """The free-flyer's batched model for ``batch`` rollouts (one sampled problem's parameters each), else a
+    stand-in."""
     try:
         from ttompc.scenarios import get_scenario
 
-        return get_scenario("freeflyer").batched_model([]), "freeflyer"
+        scenario = get_scenario("freeflyer")
+        return scenario.batched_model([scenario.sample(np.random.default_rng(0))] * batch), "freeflyer"
     except (KeyError, ImportError):
         return StandInDoubleIntegrator(), "stand-in double integrator"
 
@@ -85,7 +88,7 @@ def starts(batch: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def time_rollout(model: torch.nn.Module, batch: int, use_cache: bool, reps: int, inference: bool = False) -> float:
-    dyn, _ = dynamics()
+    dyn, _ = dynamics(batch)
     s0, goal = starts(batch)
     times = []
     for _ in range(reps):
@@ -116,7 +119,7 @@ def estimate_full_recompute(model: TrajectoryGPT, batch: int, points: tuple[int,
 
 
 def action_deviation(fast: torch.nn.Module, ref: TrajectoryGPT) -> float:
-    dyn, _ = dynamics()
+    dyn, _ = dynamics(4)
     s0, goal = starts(4)
     a = rollout(ref, stats(), dyn, "l1", s0, goal, -1.0, 0.0, STEPS).actions
     b = rollout(fast, stats(), dyn, "l1", s0.to(_dtype(fast)), goal.to(_dtype(fast)), -1.0, 0.0, STEPS).actions
