@@ -8,8 +8,8 @@ Usage::
     .venv/bin/python bench/engine_limit.py --quick                                       # smoke run, no result file
 
 1. Arithmetic (``arithmetic``): every stage QP the kernel solves in REL + SCP of the first ``--kernel-problems``
-   problems, captured (copied with its starting point), re-solved ``--repeats`` times: the median CPU time per call
-   over the kernel's interior-point iterations (``us_per_ip_iteration``). Its floating-point operations per
+   problems, captured (copied with its start, warm or cold), re-solved ``--repeats`` times: the median CPU time per
+   call over the kernel's interior-point iterations (``us_per_ip_iteration``). Its floating-point operations per
    iteration (``kernel_flops``, counted from the loops of ``riccati_kernel`` and ``riccati_rows``, by part) give the
    achieved GFLOP/s and its fraction of one core's peak: ``peak`` assumes the nominal clock of the CPU's model name,
    two FMA units and the widest vectors its flags name (AVX-512: 8 doubles, AVX2: 4), and the scalar FMA peak (one
@@ -54,7 +54,7 @@ from timed_regions import Profiler
 from ttompc.scenarios import get_scenario
 from ttompc.solvers import engine, solve_problem
 from ttompc.solvers.backends import riccati_kernel
-from ttompc.solvers.backends.riccati import GAP_TOL, MAX_ITER, TOL, RiccatiSolver, StageQP
+from ttompc.solvers.backends.riccati import RiccatiSolver, StageQP
 from ttompc.solvers.backends.riccati_qp import Boxes, RiccatiOptions, Rows
 
 SCENARIOS = ("freeflyer", "quadrotor")
@@ -156,14 +156,16 @@ def _copy_qp(x):
 
 
 def capture(scenario, seeds) -> list:
-    """(stage QP, y, π, iterations) of every kernel call of REL + SCP on ``seeds``, copied before the call."""
+    """(stage QP, y, π, iterations, options, constraint state) of every kernel call of REL + SCP on ``seeds``, copied
+    before the call (the state None for a cold start: ``RiccatiSolver.warm``)."""
     calls: list = []
     original = riccati_kernel.solve
 
-    def captured(qp, y, pi, options):
+    def captured(qp, y, pi, options, state=None):
         before = (_copy_qp(qp), y.copy(), pi.copy())
-        out = original(qp, y, pi, options)
-        calls.append((*before, out.iterations))
+        start = None if state is None or options.warm == 0.0 else _copy_qp(state)
+        out = original(qp, y, pi, options, state)
+        calls.append((*before, out.iterations, options, start))
         return out
 
     riccati_kernel.solve = captured
@@ -176,19 +178,18 @@ def capture(scenario, seeds) -> list:
 
 
 def _time_calls(calls: list, repeats: int, strip: bool) -> tuple[float, int]:
-    """Σ over calls of the median CPU seconds of a solve, and Σ iterations; ``strip``: the QP without constraints,
-    run for the captured iterations (tolerances 0)."""
+    """Σ over calls of the median CPU seconds of a solve as the engine called it (its options and start), and Σ
+    iterations; ``strip``: the QP without constraints, run cold for the captured iterations (tolerances 0)."""
     seconds, iterations = 0.0, 0
-    for qp, y0, pi0, its in calls:
-        options = RiccatiOptions(TOL, GAP_TOL, MAX_ITER)
+    for qp, y0, pi0, its, options, start in calls:
         if strip:
             qp = qp._replace(boxes=Boxes.none(), rows=Rows.none(qp.rows.cols.shape[1]))
-            options = RiccatiOptions(0.0, 0.0, max(its, 1))
+            options, start = RiccatiOptions(0.0, 0.0, max(its, 1)), None
         times = []
         for _ in range(repeats):
-            y, pi = y0.copy(), pi0.copy()
+            y, pi, state = y0.copy(), pi0.copy(), None if start is None else _copy_qp(start)
             c0 = time.process_time()
-            out = riccati_kernel.solve(qp, y, pi, options)
+            out = riccati_kernel.solve(qp, y, pi, options, state)
             times.append(time.process_time() - c0)
         seconds += float(np.median(times))
         iterations += out.iterations

@@ -1,6 +1,7 @@
 """The Riccati backend's per-iteration Python around its kernel, the NumPy reference against the compiled path, in
 one run (``solver_speed.py --only engine``, part 4 there): REL + SCP per problem and MPC windows (H = 10, 30) from
-their solutions, and the kernel's distance from its arithmetic."""
+their solutions, and the kernel's distance from its arithmetic; and its warm start between SCP iterations against
+cold starts (``warm_starts``)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from engine_limit import kernel_flops
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import SCPProblem, TerminalCost, solve_problem, solve_scp
 from ttompc.solvers.backends import riccati_kernel
-from ttompc.solvers.backends.riccati import RiccatiSolver
+from ttompc.solvers.backends.riccati import WARM, RiccatiSolver
 
 
 def engine(name: str, n: int) -> dict:
@@ -24,9 +25,9 @@ def engine(name: str, n: int) -> dict:
     calls: list = []  # (stage QP, interior-point iterations) of every kernel call, counted after the timing
     original = riccati_kernel.solve
 
-    def timed(qp, y, pi, options):
+    def timed(qp, y, pi, options, state=None):
         t0 = time.process_time()
-        out = original(qp, y, pi, options)
+        out = original(qp, y, pi, options, state)
         kernel["cpu_s"] += time.process_time() - t0
         calls.append((qp, out.iterations))
         return out
@@ -59,12 +60,13 @@ def engine(name: str, n: int) -> dict:
         riccati_kernel.solve = original
         RiccatiSolver.compiled = True
     out["windows"] = {H: windows(scenario, solved, H) for H in (10, 30)}
+    out["warm_start"] = warm_starts(scenario, n)
     for label, r in rows.items():
-        cpu, kcpu = np.array([x[0] for x in r]), np.array([x[1] for x in r])
+        cpus, kcpus = np.array([x[0] for x in r]), np.array([x[1] for x in r])
         ip = [k for x in r for k in x[3]]
         out[label] = {
-            "median_cpu_ms": float(1e3 * np.median(cpu)),
-            "kernel_share": float(kcpu.sum() / cpu.sum()),
+            "median_cpu_ms": float(1e3 * np.median(cpus)),
+            "kernel_share": float(kcpus.sum() / cpus.sum()),
             "subproblems_per_problem": len(ip) / n,
             "ip_iterations_per_subproblem": float(np.mean(ip)),
         }
@@ -91,6 +93,60 @@ def engine(name: str, n: int) -> dict:
         f" {out['kernel_us_per_ip_iteration']:.0f} us per IP it. ({out['kernel_gflops']:.2f} GFLOP/s) | MPC windows "
         + ", ".join(f"H = {H}: x{w['ratio']:.2f} (same {w['same']})" for H, w in out["windows"].items()),
         flush=True,
+    )
+    w = out["warm_start"]
+    print(
+        f"[engine {name}, warm start] IP it. per subproblem: cold {w['cold']['ip_iterations_per_subproblem']:.2f},"
+        f" warm {w['warm']['ip_iterations_per_subproblem']:.2f} (later subproblems: cold"
+        f" {w['cold']['ip_iterations_per_later_subproblem']:.2f},"
+        f" warm {w['warm']['ip_iterations_per_later_subproblem']:.2f});"
+        f" same statuses {w['same_statuses']}, largest relative cost difference {w['max_rel_cost_diff']:.1e}",
+        flush=True,
+    )
+    return out
+
+
+def warm_starts(scenario, n: int) -> dict:
+    """REL + SCP per problem with the Riccati backend's warm start between SCP iterations (``RiccatiSolver.warm``, the
+    default) and with cold starts, the same seeded problems, interleaved: interior-point iterations per subproblem
+    (all, and the later ones of each solve: the first starts cold either way), subproblems per problem, median CPU ms
+    per problem, whether statuses and SCP iterations agree, and the largest relative difference of REL's and SCP's
+    costs."""
+    modes = {"cold": 0.0, "warm": WARM}
+    rows: dict[str, list] = {k: [] for k in modes}
+    try:
+        for i in range(n):
+            p = scenario.sample(np.random.default_rng(i))
+            for label in list(modes)[i % 2 :] + list(modes)[: i % 2]:
+                RiccatiSolver.warm = modes[label]
+                c0 = time.process_time()
+                rel, scp = solve_problem(scenario, p)
+                cpu = time.process_time() - c0
+                runs = [rel] if scp is None else [rel, scp]
+                ip = [
+                    [int(m.group(1)) for h in r.history if (m := re.search(r"\((\d+) it", h.solver_status))]
+                    for r in runs
+                ]
+                rows[label].append((cpu, runs, ip))
+    finally:
+        RiccatiSolver.warm = WARM
+    out: dict = {"problems": n, "delta": WARM}
+    for label, r in rows.items():
+        ip = [k for x in r for run in x[2] for k in run]
+        later = [k for x in r for run in x[2] for k in run[1:]]
+        out[label] = {
+            "median_cpu_ms": float(1e3 * np.median([x[0] for x in r])),
+            "subproblems_per_problem": len(ip) / n,
+            "ip_iterations_per_subproblem": float(np.mean(ip)),
+            "ip_iterations_per_later_subproblem": float(np.mean(later)),
+        }
+    pairs = [(a, b) for x, y in zip(rows["cold"], rows["warm"], strict=True) for a, b in zip(x[1], y[1], strict=True)]
+    out["same_statuses"] = len(rows["cold"]) == len(rows["warm"]) and all(
+        (a.status, a.iterations) == (b.status, b.iterations) for a, b in pairs
+    )
+    out["max_rel_cost_diff"] = max(abs(a.cost - b.cost) / max(abs(a.cost), 1e-12) for a, b in pairs)
+    out["ip_iterations_ratio"] = (
+        out["warm"]["ip_iterations_per_subproblem"] / out["cold"]["ip_iterations_per_subproblem"]
     )
     return out
 

@@ -21,7 +21,8 @@
    default), the same seeded problems, interleaved: median CPU ms per problem and the ratio, whether both paths give
    the same statuses and iterates (largest |ΔX|), interior-point iterations per subproblem, the kernel's distance
    from its arithmetic (CPU time per interior-point iteration against its flops, ``engine_limit.kernel_flops``),
-   and MPC windows (H = 10, 30) cut from the solutions, by both paths (``bench/engine_paths.py``).
+   MPC windows (H = 10, 30) cut from the solutions, by both paths, and the kernel's warm start between SCP
+   iterations against cold starts: interior-point iterations, costs, statuses (``bench/engine_paths.py``).
 5. Naive baseline (every scenario, a few problems): time per SCP iteration of the default (``auto``) vs rebuilding a
    cvxpy problem from per-timestep constraint lists every iteration (the reference's approach), and the cost
    difference.
@@ -432,6 +433,8 @@ def main() -> None:
     for name, row in result.get("engine", {}).items():
         headline[f"{name}_compiled_engine_ratio"] = row["ratio"]
         headline[f"{name}_compiled_engine_same_results"] = row["same_statuses"] and row["max_abs_dX"] == 0.0
+        if "warm_start" in row:
+            headline[f"{name}_warm_start_ip_iterations_ratio"] = row["warm_start"]["ip_iterations_ratio"]
         for H, w in row.get("windows", {}).items():
             headline[f"{name}_compiled_window{H}_ratio"] = w["ratio"]
     for name, row in result.get("naive", {}).items():

@@ -38,6 +38,7 @@ from ttompc.scenarios.base import BlockKind
 from ttompc.solvers.backends.base import BackendSolution, Fallback, SubproblemSolver, is_qp
 from ttompc.solvers.backends.riccati_qp import (
     Boxes,
+    DualState,
     Dynamics,
     RiccatiOptions,
     Rows,
@@ -50,6 +51,9 @@ from ttompc.solvers.spec import QuadraticTerminalCost, SubproblemData, Subproble
 TOL = 1e-8  # residuals of the scaled problem (PIQP's eps_abs)
 GAP_TOL = 1e-9  # total complementarity = duality gap: the SCP's stopping rule compares merits to 1e-6
 MAX_ITER = 100
+# the kernel's warm start between a solve's subproblems (``RiccatiOptions.warm``): its centring δ; 0 starts every
+# subproblem cold (measured, iterations per subproblem cold vs warm: docs/benchmarks.md)
+WARM = 1e-4
 
 
 def supports(spec: SubproblemSpec) -> bool:
@@ -284,31 +288,56 @@ class RiccatiSolver:
 
     ``compiled`` (a class setting, default True): the per-iteration Python around the kernel (the scenario blocks'
     constraints, the objective) runs compiled (``riccati_build``); False runs the NumPy reference, which the tests
-    and ``bench/solver_speed.py --only engine`` compare it against (the same stage QPs, iterates and statuses)."""
+    and ``bench/solver_speed.py --only engine`` compare it against (the same stage QPs, iterates and statuses).
+
+    ``warm`` (a class setting, default ``WARM``): after a converged subproblem the next one (an SCP iteration of the
+    same solve: ``restart`` ends it) starts from its solution, dynamics multipliers and the constraints' slacks and
+    multipliers (``riccati_rows.warm_start`` with centring δ = ``warm``) where its constraints are the same boxes and
+    rows; 0, or otherwise, from the reference's states with u = 0, π = 0 and a cold start. The same optimal cost,
+    not always the same optimal point: where the optimum is a face (the free-flyer's L1 fuel) a warm start stays
+    near the previous solution's point of it, a cold one nears its centre. MPC windows (an end other than "hard")
+    start cold: warm, lone and batched episodes part further on such faces (``tests/test_mpc.py``)."""
 
     name = "riccati"
     compiled: ClassVar[bool] = True
+    warm: ClassVar[float] = WARM
 
     def __init__(self, spec: SubproblemSpec, fallback: Callable[[], SubproblemSolver] | None = None) -> None:
         self.stage = StageQP(spec)
         self.fallback = Fallback(fallback)
+        self._last: tuple[np.ndarray, np.ndarray, StageQPData, DualState] | None = None  # y, π, QP, state
+        self._warm = spec.end_form == "hard"  # (the class docstring's)
 
     def restart(self) -> None:
-        """The kernel keeps nothing between solves (each starts from the data's trust-region centre); the fallback
-        restarts."""
+        """The next subproblem starts cold (``warm``); the fallback restarts."""
+        self._last = None
         self.fallback.restart()
+
+    def _start(self, qp: StageQPData, data: SubproblemData) -> tuple[np.ndarray, np.ndarray, DualState, float]:
+        """The kernel's y, π, constraint state and warm-start δ (0: cold) for ``qp`` (the class docstring's); y's
+        states are the reference's either way."""
+        st, spec, last = self.stage, self.stage.spec, self._last
+        self._last = None
+        if last is not None and _same_constraints(last[2], qp):
+            y, pi, _, state = last
+            delta = self.warm
+        else:
+            y, pi = np.zeros((spec.H + 1, spec.n + st.nu)), np.zeros((spec.H, spec.n))
+            state, delta = DualState.empty(qp), 0.0
+        y[:, : spec.n] = data.X_ref / st.sx
+        return y, pi, state, delta
 
     def solve(self, data: SubproblemData) -> tuple[np.ndarray | None, np.ndarray | None, BackendSolution]:
         t0 = time.perf_counter()
         st, spec = self.stage, self.stage.spec
         qp = st.build(data, self.compiled)
-        y = np.zeros((spec.H + 1, spec.n + st.nu))
-        y[:, : spec.n] = data.X_ref / st.sx
-        pi = np.zeros((spec.H, spec.n))
+        y, pi, state, delta = self._start(qp, data)
         # numba is imported at the first solve, not with the engine (processes that never solve do not pay it)
         from ttompc.solvers.backends.riccati_kernel import solve
 
-        out = solve(qp, y, pi, RiccatiOptions(TOL, GAP_TOL, MAX_ITER))
+        out = solve(qp, y, pi, RiccatiOptions(TOL, GAP_TOL, MAX_ITER, delta), state)
+        if out.status == 0 and self.warm > 0.0 and self._warm:  # (status 3's state is not the returned iterate's)
+            self._last = (y, pi, qp, state)
         name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[out.status]
         status = f"{name} ({out.iterations} it, residual {out.residual:.1e}, gap {out.gap:.1e})"
         ok = out.status in (0, 3)
@@ -324,3 +353,14 @@ class RiccatiSolver:
             sol.costates = pi / st.sx  # multipliers of the scaled dynamics rows x̃_{k+1} = ...: per unit of x_{k+1}
             return y[:, : spec.n] * st.sx, y[: spec.H, spec.n : spec.n + spec.m] * st.su, sol
         return self.fallback.take(data, sol)
+
+
+def _same_constraints(a: StageQPData, b: StageQPData) -> bool:
+    """Whether ``a`` and ``b`` have the same boxes and rows (places and signs; their data may differ), in order."""
+    return (
+        np.array_equal(a.boxes.k, b.boxes.k)
+        and np.array_equal(a.boxes.j, b.boxes.j)
+        and np.array_equal(a.boxes.sign, b.boxes.sign)
+        and np.array_equal(a.rows.k, b.rows.k)
+        and np.array_equal(a.rows.cols, b.rows.cols)
+    )

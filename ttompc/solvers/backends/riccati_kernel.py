@@ -30,42 +30,50 @@ from numba import literally
 from ttompc.solvers.backends import riccati_cone as cone
 from ttompc.solvers.backends import riccati_rows as family
 from ttompc.solvers.backends.riccati_jit import jit, jit_inlined
-from ttompc.solvers.backends.riccati_qp import RiccatiOptions, RiccatiResult, StageQPData
+from ttompc.solvers.backends.riccati_qp import STATE_COLS, DualState, RiccatiOptions, RiccatiResult, StageQPData
 
 
 @jit
-def solve_stage_qp(qp, y, pi, options, NX, NU):
+def solve_stage_qp(qp, y, pi, options, zb, zr, NX, NU):
     """Solve ``qp`` (a ``StageQPData``) in place from the primal guess ``y`` (N + 1, NX + NU) and multipliers ``pi``
-    (N, NX) of the dynamics, under ``options`` (a ``RiccatiOptions``).
+    (N, NX) of the dynamics, under ``options`` (a ``RiccatiOptions``); ``zb``, ``zr``: the boxes' and rows' state (a
+    ``DualState``'s arrays), the start where ``options.warm`` > 0, the last iterate's on return.
 
     Returns (status, iterations, max residual, duality gap): status 0 converged (residuals ≤ tol, total
     complementarity ≤ gap_tol), 1 iteration limit, 2 numerical breakdown (a non-finite step), 3 stalled or broke
     down within 100× both tolerances (the best iterate is returned: accurate enough for the SCP's 1e-6 merit test)."""
     NX = literally(NX)
     NU = literally(NU)
-    return _ipm(qp, y, pi, options, NX, NU)
+    return _ipm(qp, y, pi, options, zb, zr, NX, NU)
 
 
 _ENTRY: dict[tuple[int, int], Callable] = {}  # (NX, NU) -> the compiled specialisation, called directly
 
 
-def solve(qp: StageQPData, y: np.ndarray, pi: np.ndarray, options: RiccatiOptions) -> RiccatiResult:
+def solve(
+    qp: StageQPData, y: np.ndarray, pi: np.ndarray, options: RiccatiOptions, state: DualState | None = None
+) -> RiccatiResult:
     """``solve_stage_qp`` without numba's literal dispatch, which calling it from Python re-enters every time (as
     costly as the solve; measured in docs/design.md): the first call per (NX, NU) in a process goes through the
     dispatcher (compiling the kernel or loading it from the disk cache), later ones through its entry point.
     ``y`` (N + 1, NX + NU) and ``pi`` (N, NX) are the starting point and receive the solution (y's x_0 and stage N's
-    dummy controls are overwritten first); they and ``qp``'s arrays are C-contiguous float64 (int64 indices), which
-    the entry point does not check (``riccati_qp``)."""
+    dummy controls are overwritten first); ``state`` the constraints' (``DualState``: where a warm start begins, and
+    the last iterate's on return; None: a cold start's own; a ``ValueError`` if it does not fit ``qp``). They and
+    ``qp``'s arrays are C-contiguous float64 (int64 indices), which the entry point does not check (``riccati_qp``)."""
     _, n, nu = qp.dynamics.B.shape
+    if state is None:
+        state = DualState.empty(qp)
+    elif state.boxes.shape != (len(qp.boxes.d), STATE_COLS) or state.rows.shape != (len(qp.rows.d), STATE_COLS):
+        raise ValueError("riccati kernel: the DualState's arrays do not fit the QP's boxes and rows")
     entry = _ENTRY.get((n, nu))
     if entry is not None:
-        return RiccatiResult._make(entry(qp, y, pi, options, n, nu))
+        return RiccatiResult._make(entry(qp, y, pi, options, state.boxes, state.rows, n, nu))
     from ttompc.progress import status
 
     status(f"riccati backend: loading its kernel for {n} states and {nu} controls (compiled once per machine, ~20 s)")
     # the first call's types are the entry point's: the options' as documented (the entry point converts numbers)
-    options = RiccatiOptions(float(options.tol), float(options.gap_tol), int(options.max_iter))
-    out = solve_stage_qp(qp, y, pi, options, n, nu)
+    options = RiccatiOptions(float(options.tol), float(options.gap_tol), int(options.max_iter), float(options.warm))
+    out = solve_stage_qp(qp, y, pi, options, state.boxes, state.rows, n, nu)
     for sig, result in solve_stage_qp.overloads.items():
         if getattr(sig[-2], "literal_value", None) == n and getattr(sig[-1], "literal_value", None) == nu:
             _ENTRY[(n, nu)] = result.entry_point
@@ -73,7 +81,7 @@ def solve(qp: StageQPData, y: np.ndarray, pi: np.ndarray, options: RiccatiOption
 
 
 @jit
-def _ipm(qp, y, pi, opt, n, nu):
+def _ipm(qp, y, pi, opt, zb, zr, n, nu):
     """The iterations (the module docstring's); returns what ``solve_stage_qp`` does. The structures' arrays are taken
     out once, here, and the functions below take arrays: numba counts references to arrays taken out of a structure,
     which inside the iterations costs more than a small stage QP's arithmetic."""
@@ -82,12 +90,15 @@ def _ipm(qp, y, pi, opt, n, nu):
     rk, ri, rg, rd, rrho = qp.rows.k, qp.rows.cols, qp.rows.coef, qp.rows.d, qp.rows.rho
     cw, cx = qp.cone.w, qp.cone.center
     N, ny, has_cone = A.shape[0], n + nu, cw.shape[0] > 0
-    # each constraint family's state (riccati_rows); the cone's state, scaling and τ's elimination (riccati_cone)
-    zb, zr = np.zeros((bk.shape[0], family.STATE_COLS)), np.zeros((rk.shape[0], family.STATE_COLS))
+    # each constraint family's state: zb, zr (riccati_rows); the cone's state, scaling and τ's elimination
     kc, kw, pvec = np.zeros((cone.STATE_ROWS, n + 1)), np.zeros((3, n + 1, n + 1)), np.zeros(n)
     _fixed_entries(qp.dynamics.x0, y, N, n, nu)
-    n_comp = family.start(y, bk, bj.reshape(-1, 1), bs.reshape(-1, 1), bd, brho, zb)  # boxes: rows of width 1
-    n_comp += family.start(y, rk, ri, rg, rd, rrho, zr)
+    if opt.warm > 0.0:
+        n_comp = family.warm_start(y, bk, bj.reshape(-1, 1), bs.reshape(-1, 1), bd, brho, opt.warm, zb)
+        n_comp += family.warm_start(y, rk, ri, rg, rd, rrho, opt.warm, zr)
+    else:
+        n_comp = family.start(y, bk, bj.reshape(-1, 1), bs.reshape(-1, 1), bd, brho, zb)  # boxes: width-1 rows
+        n_comp += family.start(y, rk, ri, rg, rd, rrho, zr)
     if has_cone:
         cone.start(y, N, n, cw, cx, kc)
         n_comp += 1

@@ -115,11 +115,32 @@ class StageQPData(NamedTuple):
 
 
 class RiccatiOptions(NamedTuple):
-    """When the interior-point iterations stop."""
+    """When the interior-point iterations stop, and where they start."""
 
     tol: float  # largest residual (stationarity, dynamics, slack definitions, the cone's)
     gap_tol: float  # total complementarity
     max_iter: int
+    # 0: a cold start of the constraints' slacks and multipliers (``riccati_rows.start``); δ > 0: from the ones the
+    # caller's ``DualState`` holds, pushed to ≥ δ (``riccati_rows.warm_start``); the terminal cone's always cold
+    warm: float = 0.0
+
+
+STATE_COLS = 16  # columns of a ``DualState`` array (``riccati_rows``: a constraint's state is two cache lines)
+
+
+class DualState(NamedTuple):
+    """The constraints' interior-point state (``riccati_rows``' columns: slack s, multiplier λ, penalty slack e, its
+    multiplier μ, scratch), a row a constraint in the order of the QP's boxes and rows: a solve leaves its last
+    iterate's here, and one with ``RiccatiOptions.warm`` > 0 starts from it (the same constraints, in the same
+    order: the caller's to ensure)."""
+
+    boxes: np.ndarray  # (nb, STATE_COLS)
+    rows: np.ndarray  # (nr, STATE_COLS)
+
+    @classmethod
+    def empty(cls, qp: StageQPData) -> DualState:
+        """A state for ``qp``'s constraints (zeros: for a cold start)."""
+        return cls(np.zeros((qp.boxes.d.shape[0], STATE_COLS)), np.zeros((qp.rows.d.shape[0], STATE_COLS)))
 
 
 class RiccatiResult(NamedTuple):

@@ -17,12 +17,13 @@ which Mehrotra's centring needs).
 
 from __future__ import annotations
 
+import numpy as np
+
 from ttompc.solvers.backends.riccati_jit import jit, jit_inlined
 
 # slack s, multiplier λ, penalty slack e and its multiplier μ (soft only), residuals of the slack definition (rs) and
 # of e's stationarity (re), 1/λ, 1/μ, the Newton weight w, ξ, and the step (Δs, Δλ, Δe, Δμ)
-S, LAM, E, MU, RS, RE, IL, IM, W, XI, DS, DL, DE, DM = range(14)
-STATE_COLS = 16  # columns of ``z`` (14 used; a constraint's state is two cache lines)
+S, LAM, E, MU, RS, RE, IL, IM, W, XI, DS, DL, DE, DM = range(14)  # of ``riccati_qp.STATE_COLS`` (16)
 
 
 @jit
@@ -45,9 +46,44 @@ def start(y, k_of, cols, coef, d, rho, z):
         else:
             z[i, S] = max(room, 0.1)
             z[i, LAM] = 1.0
+            z[i, E] = z[i, MU] = 0.0
             count += 1
         z[i, DS] = z[i, DL] = z[i, DE] = z[i, DM] = 0.0
     return count
+
+
+@jit
+def warm_start(y, k_of, cols, coef, d, rho, delta, z):
+    """``start`` from the s, λ, e, μ in ``z`` (a previous solve's): the slacks re-evaluated at y (s = d − gᵀy + e,
+    primal residual 0), then each pair (s, λ), (e, μ) centred to a product ≥ δ by raising its smaller member (to
+    ≥ √δ if both are below it); hard rows keep e = μ = 0. The step 0; returns the number of complementarity pairs."""
+    count = 0
+    for i in range(d.shape[0]):
+        a = 0.0
+        for v in range(cols.shape[1]):
+            a += coef[i, v] * y[k_of[i], cols[i, v]]
+        if rho[i] > 0:
+            z[i, E], z[i, MU] = _centred(z[i, E], z[i, MU], delta)
+            count += 2
+        else:
+            z[i, E] = z[i, MU] = 0.0
+            count += 1
+        z[i, S], z[i, LAM] = _centred(d[i] - a + z[i, E], z[i, LAM], delta)
+        z[i, DS] = z[i, DL] = z[i, DE] = z[i, DM] = 0.0
+    return count
+
+
+@jit_inlined
+def _centred(a, b, delta):
+    """(a, b) with a·b ≥ δ: the larger raised to ≥ √δ, then the smaller to ≥ δ / the larger (a and b ≥ 0 first)."""
+    a, b = max(a, 0.0), max(b, 0.0)
+    if a >= b:
+        a = max(a, np.sqrt(delta))
+        b = max(b, delta / a)
+    else:
+        b = max(b, np.sqrt(delta))
+        a = max(a, delta / b)
+    return a, b
 
 
 @jit
