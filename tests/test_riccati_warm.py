@@ -106,6 +106,26 @@ def test_warm_start_is_centred() -> None:
             np.testing.assert_allclose(new_small, np.maximum(small, delta / new_big), rtol=1e-15)
 
 
+def test_a_warm_start_far_from_feasible_starts_cold() -> None:
+    """A warm start whose residual is above ``WARM_RESIDUAL`` (multipliers of 1e3 on every constraint) is dropped
+    after its first residual pass for the cold start from the same y, π: the cold solve's iterates to the bit, one
+    iteration later."""
+    _, spec, data = qp_subproblem("freeflyer", 2, Window(0, 100, 100), True, True, delta=0.3)
+    qp = StageQP(spec).build(data)
+    N, n, nu = qp.shape
+    ys, outs = [], []
+    for warm in (0.0, WARM):
+        state = DualState.empty(qp)
+        for z in state:
+            z[:, :4] = 1e3
+        y, pi = np.zeros((N + 1, n + nu)), np.zeros((N, n))
+        outs.append(riccati_kernel.solve(qp, y, pi, RiccatiOptions(TOL, GAP_TOL, MAX_ITER, warm), state))
+        ys.append(y)
+    assert outs[0].status == outs[1].status == 0
+    assert outs[1].iterations == outs[0].iterations + 1
+    assert np.array_equal(ys[0], ys[1])
+
+
 def test_a_state_that_does_not_fit_is_refused() -> None:
     """A ``DualState`` of another QP (one box short) is a ``ValueError``, not a write past its arrays."""
     _, spec, data = qp_subproblem("freeflyer", 2, Window(0, 100, 100), True, True, delta=0.3)

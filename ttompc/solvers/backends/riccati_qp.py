@@ -121,7 +121,8 @@ class RiccatiOptions(NamedTuple):
     gap_tol: float  # total complementarity
     max_iter: int
     # 0: a cold start of the constraints' slacks and multipliers (``riccati_rows.start``); δ > 0: from the ones the
-    # caller's ``DualState`` holds, pushed to ≥ δ (``riccati_rows.warm_start``); the terminal cone's always cold
+    # caller's ``DualState`` holds, centred by δ (``riccati_rows.warm_start``), cold after all where that start's
+    # residual is too large (``riccati_kernel.WARM_RESIDUAL``); the terminal cone's always cold
     warm: float = 0.0
 
 
