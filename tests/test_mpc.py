@@ -634,15 +634,15 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
 
 def test_presets_are_the_settings_the_cards_and_the_paper_use() -> None:
     """paper: the MPCSettings defaults (fixed H, running rtg, soft); zoo: the same with end_horizon 30; recommended:
-    the paper's conditions with the model's own cost-to-go as rtg and the scenarios' own real-time-iteration scope,
-    decoding with the fused kernel where it runs."""
+    the paper's conditions with the model's own cost-to-go as rtg, the shrinking end horizon of 30 steps and the
+    scenarios' own real-time-iteration scope, decoding with the fused kernel where it runs."""
     from ttompc.mpc.settings import preset_names, protocol_settings
 
     assert {"paper", "zoo", "recommended"} <= set(preset_names())
     assert protocol_settings("paper") == MPCSettings() and MPCSettings().end_horizon == 0
     assert MPCSettings().rtg_mode == "running"
     assert protocol_settings("zoo") == MPCSettings(end_horizon=30)
-    assert protocol_settings("recommended") == MPCSettings(rtg_mode="value", rti=None, decoder="auto")
+    assert protocol_settings("recommended") == MPCSettings(end_horizon=30, rtg_mode="value", rti=None, decoder="auto")
 
 
 def test_settings_name_self_describing_rtg_modes_and_terminal_terms() -> None:
