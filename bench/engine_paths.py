@@ -5,7 +5,6 @@ cold starts (``warm_starts``)."""
 
 from __future__ import annotations
 
-import re
 import time
 
 import numpy as np
@@ -14,7 +13,7 @@ from engine_limit import kernel_flops
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import SCPProblem, TerminalCost, solve_problem, solve_scp
 from ttompc.solvers.backends import riccati_kernel
-from ttompc.solvers.backends.riccati import WARM, RiccatiSolver
+from ttompc.solvers.backends.riccati import WARM, RiccatiSolver, status_iterations
 
 
 def engine(name: str, n: int) -> dict:
@@ -51,9 +50,7 @@ def engine(name: str, n: int) -> dict:
                 rel, scp = solve_problem(scenario, p)
                 cpu = time.process_time() - c0
                 runs = [rel] if scp is None else [rel, scp]
-                ip = [
-                    int(m.group(1)) for r in runs for h in r.history if (m := re.search(r"\((\d+) it", h.solver_status))
-                ]
+                ip = [k for r in runs for h in r.history if (k := status_iterations(h.solver_status)) is not None]
                 rows[label].append((cpu, kernel["cpu_s"] - kernel_before, runs, ip))
             solved.append((p, runs[-1]))
     finally:
@@ -123,10 +120,7 @@ def warm_starts(scenario, n: int) -> dict:
                 rel, scp = solve_problem(scenario, p)
                 cpu = time.process_time() - c0
                 runs = [rel] if scp is None else [rel, scp]
-                ip = [
-                    [int(m.group(1)) for h in r.history if (m := re.search(r"\((\d+) it", h.solver_status))]
-                    for r in runs
-                ]
+                ip = [[k for h in r.history if (k := status_iterations(h.solver_status)) is not None] for r in runs]
                 rows[label].append((cpu, runs, ip))
     finally:
         RiccatiSolver.warm = WARM

@@ -138,12 +138,11 @@ def peer(name: str, n: int) -> dict:
     """Ours (the PIQP path), the Riccati backend (the default), the conic path, built-once IPOPT and built-once fatrop
     on the same problems, interleaved; wall and CPU time of this process per problem, and the interior-point
     iterations of the Riccati kernel (over all subproblems), IPOPT and fatrop."""
-    import re
 
     from fatrop_peer import FatropPeer
     from ipopt_peer import IpoptPeer
 
-    from ttompc.solvers.backends.riccati import RiccatiSolver
+    from ttompc.solvers.backends.riccati import RiccatiSolver, status_iterations
 
     scenario = get_scenario(name)
     ipopt, fatrop = IpoptPeer(scenario), FatropPeer(scenario)
@@ -163,7 +162,7 @@ def peer(name: str, n: int) -> dict:
 
     def counted(self, data):
         result = original(self, data)
-        kernel_its.append(int(re.search(r"\((\d+) it", result[2].status).group(1)))
+        kernel_its.append(status_iterations(result[2].status))
         return result
 
     rows: dict[str, list[tuple[float, float, int, float, bool, int]]] = {k: [] for k in runners}
@@ -254,10 +253,9 @@ def peer(name: str, n: int) -> dict:
 
 def subproblems(name: str, n: int) -> dict:
     """PIQP and the Riccati backend on the same recorded subproblems, in the order the engine solves them."""
-    import re
 
     from ttompc.solvers.backends import qp as qp_module
-    from ttompc.solvers.backends.riccati import RiccatiSolver
+    from ttompc.solvers.backends.riccati import RiccatiSolver, status_iterations
 
     scenario = get_scenario(name)
     recorded: list = []
@@ -304,7 +302,7 @@ def subproblems(name: str, n: int) -> dict:
                     if label == "piqp":
                         its.append(solver.solver.result.info.iter)
                     else:
-                        its.append(int(re.search(r"\((\d+) it", sol.status).group(1)))
+                        its.append(status_iterations(sol.status))
                 best = min(best, spent)
             cpu[label] += best
             iters[label] += its

@@ -5,7 +5,6 @@ interior-point iterations, whole solves at the cold start's costs and statuses, 
 from __future__ import annotations
 
 import itertools
-import re
 
 import numpy as np
 import pytest
@@ -14,7 +13,7 @@ from helpers import qp_subproblem
 from ttompc.scenarios import Window, get_scenario
 from ttompc.solvers import SCPProblem, TerminalCost, solve_problem, solve_scp
 from ttompc.solvers.backends import riccati_kernel
-from ttompc.solvers.backends.riccati import GAP_TOL, MAX_ITER, TOL, WARM, RiccatiSolver, StageQP
+from ttompc.solvers.backends.riccati import GAP_TOL, MAX_ITER, TOL, WARM, RiccatiSolver, StageQP, status_iterations
 from ttompc.solvers.backends.riccati_qp import DualState, RiccatiOptions
 
 S, LAM, E, MU = range(4)  # riccati_rows' columns
@@ -138,7 +137,7 @@ def test_a_state_that_does_not_fit_is_refused() -> None:
 
 
 def _ip_iterations(results) -> list[int]:
-    return [int(m.group(1)) for r in results for h in r.history if (m := re.search(r"\((\d+) it", h.solver_status))]
+    return [k for r in results for h in r.history if (k := status_iterations(h.solver_status)) is not None]
 
 
 @pytest.mark.parametrize("name", ["freeflyer", "quadrotor"])

@@ -27,6 +27,7 @@ would.
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -339,6 +340,7 @@ class RiccatiSolver:
         if out.status == 0 and self.warm > 0.0 and self._warm:  # (status 3's state is not the returned iterate's)
             self._last = (y, pi, qp, state)
         name = ("RICCATI_SOLVED", "RICCATI_MAX_ITER", "RICCATI_NUMERICAL", "RICCATI_SOLVED_INACCURATE")[out.status]
+        # the format ``status_iterations`` reads
         status = f"{name} ({out.iterations} it, residual {out.residual:.1e}, gap {out.gap:.1e})"
         ok = out.status in (0, 3)
         sol = BackendSolution(
@@ -364,3 +366,10 @@ def _same_constraints(a: StageQPData, b: StageQPData) -> bool:
         and np.array_equal(a.rows.k, b.rows.k)
         and np.array_equal(a.rows.cols, b.rows.cols)
     )
+
+
+def status_iterations(status: str) -> int | None:
+    """The interior-point iterations a kernel solve's status records (``RiccatiSolver.solve``: "NAME (k it, ...)");
+    None for a status that records none (another backend's)."""
+    m = re.search(r"\((\d+) it", status)
+    return None if m is None else int(m.group(1))
