@@ -358,6 +358,16 @@ def test_end_horizon_runs_the_last_windows_to_the_end(setup: tuple) -> None:
     spy = _Windows(PlanProvider((scp.X, scp.U)))  # run_mpc passes it on
     e = run_mpc(sc, problem, spy, 10, rel_cost=rel.cost, max_steps=1, settings=MPCSettings(end_horizon=N))
     assert [w.length for w in spy.windows] == [N] and e.fallbacks == 0
+    # None (recommended's): the scenario's own K, windows and the departure sentence alike
+    K = sc.mpc.end_horizon
+    own = MPCController(sc, problem, RELProvider(), 10, MPCSettings(end_horizon=None))
+    fixed = MPCController(sc, problem, RELProvider(), 10, MPCSettings(end_horizon=K))
+    assert [own.window(t) for t in range(N)] == [fixed.window(t) for t in range(N)]
+    k = min(K, N)  # a K beyond N runs every window to N
+    assert own.window(N - k).reaches_end and (k == N or not own.window(N - k - 1).reaches_end)
+    from ttompc.mpc.departures import departures
+
+    assert any(f"N − t <= {K} " in d for d in departures(MPCSettings(end_horizon=None), sc))
 
 
 def test_rtg_modes_keep_the_fed_rtg_in_the_training_range(setup: tuple) -> None:
@@ -634,15 +644,18 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
 
 def test_presets_are_the_settings_the_cards_and_the_paper_use() -> None:
     """paper: the MPCSettings defaults (fixed H, running rtg, soft); zoo: the same with end_horizon 30; recommended:
-    the paper's conditions with the model's own cost-to-go as rtg, the shrinking end horizon of 30 steps and the
-    scenarios' own real-time-iteration scope, decoding with the fused kernel where it runs."""
+    the paper's conditions with the model's own cost-to-go as rtg, the scenarios' own shrinking end horizon and
+    real-time-iteration scope, decoding with the fused kernel where it runs."""
     from ttompc.mpc.settings import preset_names, protocol_settings
 
     assert {"paper", "zoo", "recommended"} <= set(preset_names())
     assert protocol_settings("paper") == MPCSettings() and MPCSettings().end_horizon == 0
     assert MPCSettings().rtg_mode == "running"
     assert protocol_settings("zoo") == MPCSettings(end_horizon=30)
-    assert protocol_settings("recommended") == MPCSettings(end_horizon=30, rtg_mode="value", rti=None, decoder="auto")
+    recommended = protocol_settings("recommended")
+    assert recommended == MPCSettings(end_horizon=None, rtg_mode="value", rti=None, decoder="auto")
+    ends = {name: recommended.end_horizon_on(get_scenario(name)) for name in ("freeflyer", "quadrotor", "rpod")}
+    assert ends == {"freeflyer": 50, "quadrotor": 30, "rpod": 30}  # docs/evaluation.md, "End horizon"
 
 
 def test_settings_name_self_describing_rtg_modes_and_terminal_terms() -> None:

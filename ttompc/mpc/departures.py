@@ -18,9 +18,10 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
     """The settings of a run on ``scenario`` that depart from the paper (and from the authors' code), one sentence
     each: the terminal term's (``TerminalTerm.departures``), the loop's and the rtg mode's (``RTGFeed.departures``)."""
     out = TERMINALS[settings.terminal].departures(settings, scenario)
-    if settings.end_horizon > 0:
+    end_horizon = settings.end_horizon_on(scenario)
+    if end_horizon > 0:
         out.append(
-            f"shrinking end horizon: windows run to N once N − t <= {settings.end_horizon} (the paper keeps H and "
+            f"shrinking end horizon: windows run to N once N − t <= {end_horizon} (the paper keeps H and "
             "truncates the windows at N)"
         )
     out += RTG_MODES[settings.rtg_mode].departures()

@@ -9,9 +9,10 @@ end. Hard mode keeps x_N = goal at the end while the goal is reachable from the 
 penalised solve misses it by more than the SCP's feasibility tolerance), that window is solved as in soft mode (the
 soft end term) instead of discarding its plan (counted in ``soft_ends``).
 
-``end_horizon`` (default 0: the paper's fixed H, windows truncated at N) is a departure from the paper and the
-reference: once N − t ≤ end_horizon the window runs to N (a shrinking horizon at the end), so the goal enters the
-plan while it is still reachable under the control bounds.
+``end_horizon`` (default 0: the paper's fixed H, windows truncated at N; None: the scenario's, as
+``MPCSettings.end_horizon_on`` resolves it) is a departure from the paper and the reference: once N − t ≤ end_horizon
+the window runs to N (a shrinking horizon at the end), so the goal enters the plan while it is still reachable under
+the control bounds.
 
 A failed SCP step is not an exception: the loop applies the next control of the previous plan shifted by one step
 (or the warm start's first control at t = 0), counts it in ``fallbacks`` and goes on. Programming errors propagate.
@@ -90,6 +91,7 @@ class MPCController:
         self.scenario, self.problem, self.provider, self.horizon = scenario, problem, provider, horizon
         self.settings = settings or MPCSettings()
         self.rti = self.settings.rti_for(provider.role, scenario)  # real-time iteration in its windows
+        self.end_horizon = self.settings.end_horizon_on(scenario)
         self._scale = scenario.state_units()
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
         self._last: StepPlan | None = None  # the plan this controller made at the previous step
@@ -101,7 +103,7 @@ class MPCController:
         """[t, t + H) truncated at N; the whole rest [t, N) once N − t <= ``end_horizon`` (module doc)."""
         N = self.problem.n_steps
         rest = N - t
-        return Window(t, rest if rest <= self.settings.end_horizon else min(self.horizon, rest), N)
+        return Window(t, rest if rest <= self.end_horizon else min(self.horizon, rest), N)
 
     def _terminal(self, window: Window, provided: TerminalCost | None, mode: Mode) -> TerminalCost | None:
         if not window.reaches_end:

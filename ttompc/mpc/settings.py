@@ -58,7 +58,8 @@ class MPCSettings(Checked):
     """The settings of a closed-loop run (``ttompc.mpc.loop`` documents each behaviour).
 
     ``mode``: soft (all paper analyses) or hard end condition. ``end_horizon``: windows run to N once
-    N − t <= end_horizon (0: the paper's fixed H, windows truncated at N). ``track``: terminal weight of the
+    N − t <= end_horizon (0: the paper's fixed H, windows truncated at N; None: the scenario's ``mpc.end_horizon``,
+    measured per scenario, ``end_horizon_on``). ``track``: terminal weight of the
     plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``terminal``:
     the kind of their terminal term (``ttompc.mpc.terminal.TERMINALS``). ``rtg_mode``: the reward-to-go TTO-MPC feeds
     in closed loop (``ttompc.mpc.rtg.RTG_MODES``). ``reuse``: plan reuse in windows that reach the end (same
@@ -75,7 +76,7 @@ class MPCSettings(Checked):
     "auto" (fused where it can, else torch with a warning)."""
 
     mode: Mode = "soft"
-    end_horizon: int = setting(0, ge=0, meaning="0: the paper's fixed H")
+    end_horizon: int | None = setting(0, ge=0, meaning="0: the paper's fixed H; None: the scenario's")
     track: float | None = setting(None, gt=0)
     terminal: str = "target"
     rtg_mode: str = "running"
@@ -104,6 +105,10 @@ class MPCSettings(Checked):
         if scope not in RTI_SCOPES:
             raise ValueError(f"{scenario.name}: mpc.rti must be one of {RTI_SCOPES}, got {scope!r}")
         return scope
+
+    def end_horizon_on(self, scenario: Scenario) -> int:
+        """The end horizon on ``scenario``: ``end_horizon``, or the scenario's ``mpc.end_horizon`` where it is None."""
+        return scenario.mpc.end_horizon if self.end_horizon is None else self.end_horizon
 
     def rti_for(self, role: Role, scenario: Scenario) -> bool:
         """Whether a controller on ``scenario`` whose provider has ``role`` runs real-time iteration: the one rule,

@@ -181,14 +181,13 @@ class MPCWeights:
     PLAN-ONCE, ORACLE-MPC) and P = diag(dist) towards the goal for DIST-MPC.
 
     ``track`` (None: ``target``, the paper's weight for TTO-MPC too): ‖x_{t+H} − x̄‖₂ is an exact penalty of the
-    window's terminal constraint x_{t+H} = x̄ only when the weight exceeds the 2-norm of that constraint's multiplier
-    (the marginal cost of moving x̄); below it the window leaves an optimal plan it is given. Measure the
-    multipliers along the scenario's open-loop optima with ``bench/tracking_weight.py`` and set ``track`` above
-    the largest (docs/evaluation.md, "Tracking weight").
-
-    ``rti``: the real-time-iteration scope that ``MPCSettings.rti = None`` (the ``recommended`` preset) resolves to
-    on this scenario (False, True or "model", ``ttompc.mpc.settings.RTI_SCOPES``): "model" where one SCP subproblem
-    per step was measured to keep the learned methods' closed-loop cost (docs/evaluation.md, "Real-time iteration").
+    window's terminal constraint x_{t+H} = x̄ only when the weight exceeds the 2-norm of that constraint's
+    multiplier (the marginal cost of moving x̄); below it the window leaves an optimal plan it is given: set it
+    above the largest multiplier along open-loop optima (``bench/tracking_weight.py``; docs/evaluation.md, "Tracking
+    weight"). ``recommended``'s None settings resolve to ``rti``, the real-time-iteration scope (``RTI_SCOPES``;
+    "model" where one SCP subproblem per step was measured to keep the learned methods' cost), and ``end_horizon`` K
+    (windows run to N once N − t <= K; the largest K measured to keep the learned MPC's step 2x below REL-MPC@30's
+    on both plants): docs/evaluation.md, "Real-time iteration", "End horizon".
     """
 
     fuel: float
@@ -198,6 +197,7 @@ class MPCWeights:
     waypoint: float = 1.0
     track: float | None = None
     rti: bool | str = False
+    end_horizon: int = 30
 
     @property
     def tracking(self) -> float:
