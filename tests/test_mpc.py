@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any
 
 import mpc_fakes
@@ -368,6 +369,13 @@ def test_end_horizon_runs_the_last_windows_to_the_end(setup: tuple) -> None:
     from ttompc.mpc.departures import departures
 
     assert any(f"N − t <= {K} " in d for d in departures(MPCSettings(end_horizon=None), sc))
+    sc.mpc = replace(sc.mpc, end_horizon=-1)  # an instance attribute over the class's: a scenario's bad K
+    try:
+        with pytest.raises(ValueError, match=f"{sc.name}: mpc.end_horizon must be >= 0"):
+            MPCController(sc, problem, RELProvider(), 10, MPCSettings(end_horizon=None))
+        assert MPCController(sc, problem, RELProvider(), 10, MPCSettings(end_horizon=5)).end_horizon == 5
+    finally:
+        del sc.mpc
 
 
 def test_rtg_modes_keep_the_fed_rtg_in_the_training_range(setup: tuple) -> None:

@@ -107,8 +107,12 @@ class MPCSettings(Checked):
         return scope
 
     def end_horizon_on(self, scenario: Scenario) -> int:
-        """The end horizon on ``scenario``: ``end_horizon``, or the scenario's ``mpc.end_horizon`` where it is None."""
-        return scenario.mpc.end_horizon if self.end_horizon is None else self.end_horizon
+        """The end horizon on ``scenario``: ``end_horizon``, or the scenario's ``mpc.end_horizon`` where it is None
+        (a negative one raises ``ValueError`` naming the scenario)."""
+        k = scenario.mpc.end_horizon if self.end_horizon is None else self.end_horizon
+        if k < 0:
+            raise ValueError(f"{scenario.name}: mpc.end_horizon must be >= 0, got {k}")
+        return k
 
     def rti_for(self, role: Role, scenario: Scenario) -> bool:
         """Whether a controller on ``scenario`` whose provider has ``role`` runs real-time iteration: the one rule,
