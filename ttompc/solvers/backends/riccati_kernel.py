@@ -13,8 +13,7 @@ test and the best iterate (``_is_best``, ``_stop``), the stage Hessians (``_stag
 weights, ``_terminal_hessian``, the cone's elimination) and their factorisation (``_riccati_factor``), the
 predictor and corrector steps (right-hand sides, ``_backward_pass``, ``_forward_rollout``, step lengths) and the
 update (``_update``; the constraints take theirs in the next iteration's residual pass: four passes over each
-constraint family per iteration, ``riccati_rows``). The parts are inlined into ``_ipm``
-(``riccati_jit.jit_inlined``): compiled, it is one loop.
+constraint family per iteration, ``riccati_rows``). The parts are inlined (``jit_inlined``): compiled, one loop.
 
 NX and NU are compile-time constants (``numba.literally``) so the small dense loops unroll; one compilation per
 (NX, NU), cached on disk: once per machine (where the cache lives, and the times: docs/design.md).
@@ -84,6 +83,13 @@ def solve(
 
 
 @jit
+def _cold_start(y, bk, bj, bs, bd, brho, zb, rk, ri, rg, rd, rrho, zr):
+    """The boxes' (width-1 rows) and the rows' cold start (``family.start``): their complementarity count."""
+    n_comp = family.start(y, bk, bj.reshape(-1, 1), bs.reshape(-1, 1), bd, brho, zb)
+    return n_comp + family.start(y, rk, ri, rg, rd, rrho, zr)
+
+
+@jit
 def _ipm(qp, y, pi, opt, zb, zr, n, nu):
     """The iterations (the module docstring's); returns what ``solve_stage_qp`` does. The structures' arrays are taken
     out once, here, and the functions below take arrays: numba counts references to arrays taken out of a structure,
@@ -100,8 +106,7 @@ def _ipm(qp, y, pi, opt, zb, zr, n, nu):
         n_comp = family.warm_start(y, bk, bj.reshape(-1, 1), bs.reshape(-1, 1), bd, brho, opt.warm, zb)
         n_comp += family.warm_start(y, rk, ri, rg, rd, rrho, opt.warm, zr)
     else:
-        n_comp = family.start(y, bk, bj.reshape(-1, 1), bs.reshape(-1, 1), bd, brho, zb)  # boxes: width-1 rows
-        n_comp += family.start(y, rk, ri, rg, rd, rrho, zr)
+        n_comp = _cold_start(y, bk, bj, bs, bd, brho, zb, rk, ri, rg, rd, rrho, zr)
     if has_cone:
         cone.start(y, N, n, cw, cx, kc)
         n_comp += 1
@@ -127,8 +132,7 @@ def _ipm(qp, y, pi, opt, zb, zr, n, nu):
             res = max(res, res_c)
         res = _stationarity(ry, res, probe, has_cone, n, nu)
         if it == 0 and opt.warm > 0.0 and not res <= WARM_RESIDUAL:  # too far from feasible: start cold instead
-            n_comp = family.start(y, bk, bj.reshape(-1, 1), bs.reshape(-1, 1), bd, brho, zb)
-            n_comp += family.start(y, rk, ri, rg, rd, rrho, zr) + (1 if has_cone else 0)
+            n_comp = _cold_start(y, bk, bj, bs, bd, brho, zb, rk, ri, rg, rd, rrho, zr) + (1 if has_cone else 0)
             continue
         mu = gap / max(n_comp, 1)
         if res <= opt.tol and gap <= opt.gap_tol:
