@@ -63,6 +63,23 @@ def test_pool_map_keeps_task_order_for_any_worker_count() -> None:
     assert list(pool_map(_square, [], 2)) == []
 
 
+def test_every_worker_starts_before_the_pool_thread(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A worker spawned while the executor's thread runs races that thread's walk over the worker dict when a
+    worker dies (CPython 3.11: a RuntimeError traceback from the thread, beside the one-line error)."""
+    from concurrent.futures.process import ProcessPoolExecutor
+
+    thread_running_at_spawn: list[bool] = []
+    spawn = ProcessPoolExecutor._spawn_process  # type: ignore[attr-defined]
+
+    def recording_spawn(self: ProcessPoolExecutor) -> None:
+        thread_running_at_spawn.append(self._executor_manager_thread is not None)
+        spawn(self)
+
+    monkeypatch.setattr(ProcessPoolExecutor, "_spawn_process", recording_spawn)
+    assert list(pool_map(_square, range(4), 2, pin_torch=False)) == [0, 1, 4, 9]
+    assert thread_running_at_spawn == [False, False]
+
+
 def _fail_to_start(kind: str) -> None:
     if kind == "user":
         raise UserError("no model 'nope' in the zoo", "see `ttompc zoo list`")

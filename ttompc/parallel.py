@@ -194,6 +194,10 @@ def _pool_results(fn: Callable[[Any], Any], tasks: list[Any], n: int, init_args:
     """``pool_map``'s spawn pool: results in task order, at most ``_AHEAD`` tasks per worker submitted ahead. Any
     way out but the last result (an error, Ctrl-C, a consumer that stops) terminates the workers at once."""
     pool = ProcessPoolExecutor(n, mp.get_context("spawn"), initializer=_start_pool_worker, initargs=init_args)
+    # All n workers start at the first submit, before the executor's thread: a spawn pool otherwise adds a worker per
+    # submit while that thread may already walk its worker dict after a death (CPython 3.11: "dictionary changed
+    # size during iteration", a traceback from that thread beside our one line).
+    pool._safe_to_dynamically_spawn_children = False  # type: ignore[attr-defined]
     todo = iter(tasks)
     pending: collections.deque[Future[Any]] = collections.deque()
     finished = False
