@@ -86,7 +86,8 @@ def assert_user_error(res: subprocess.CompletedProcess[str], *needles: str) -> s
             ["evaluate", "mpc", "--scenario", "freeflyer", "mpc.finish=1"],
             [
                 "unknown setting 'finish'",
-                "valid keys: mode, end_horizon, track, terminal, rtg_mode, reuse, rti, decode_every, backend",
+                "valid keys: mode, end_horizon, track, terminal, rtg_mode, reuse, end_shift, rti, decode_every,",
+                "decode_every, backend",
             ],
         ),
         (["zoo", "info", "nope"], ["no model 'nope'"]),

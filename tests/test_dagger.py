@@ -67,7 +67,9 @@ def test_protocol_reaches_the_closed_loop_measurement(monkeypatch: pytest.Monkey
     cfg = load_finetune_config(recipe)
     assert measure(cfg, object(), []) == {"feasible_rate": 1.0}  # type: ignore[arg-type]
     assert seen["measurement"] is cfg.dagger.eval  # the recipe's preset: recommended (the paper's with the value rtg)
-    assert cfg.dagger.eval.settings == MPCSettings(end_horizon=None, rtg_mode="value", rti=None, decoder="auto")
+    assert cfg.dagger.eval.settings == MPCSettings(
+        end_horizon=None, rtg_mode="value", end_shift=True, rti=None, decoder="auto"
+    )
     assert cfg.dagger.eval.horizons == [10]
     cfg = load_finetune_config(recipe, ["dagger.eval.protocol=zoo", "dagger.eval.mpc.mode=hard"])
     assert cfg.dagger.eval.settings == MPCSettings(end_horizon=30, mode="hard")

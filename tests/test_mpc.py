@@ -31,6 +31,7 @@ from ttompc.mpc import (
     run_mpc,
     run_mpc_batch,
 )
+from ttompc.mpc.departures import departures
 from ttompc.mpc.episode import rel_increment, target_change
 from ttompc.mpc.settings import protocol_settings
 from ttompc.mpc.terminal import TargetFilter
@@ -636,6 +637,10 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
     assert zoo.settings == MPCSettings(end_horizon=30, rtg_mode="reanchor")
     notes = departures(zoo.settings, sc)
     assert len(notes) == 3 and "weight 3" in notes[0] and "end horizon" in notes[1] and "reanchor" in notes[2]
+    shifted = departures(replace(zoo.settings, end_shift=True), sc)
+    assert len(shifted) == 4 and shifted[2].startswith("shifted end start: the learned methods'")
+    assert [MPCSettings(end_shift=True).shift_for(r) for r in ("learned", "baseline", "expert")] == [True, False, False]
+    assert not MPCSettings().shift_for("learned")
     bad_settings = (
         {"end_horizon": -1},
         {"rtg_mode": "budget"},
@@ -652,8 +657,9 @@ def test_closed_loop_settings_are_labelled_departures() -> None:
 
 def test_presets_are_the_settings_the_cards_and_the_paper_use() -> None:
     """paper: the MPCSettings defaults (fixed H, running rtg, soft); zoo: the same with end_horizon 30; recommended:
-    the paper's conditions with the model's own cost-to-go as rtg, the scenarios' own shrinking end horizon and
-    real-time-iteration scope, decoding with the fused kernel where it runs."""
+    the paper's conditions with the model's own cost-to-go as rtg, the scenarios' own shrinking end horizon (its
+    windows after the first started from the previous plan) and real-time-iteration scope, decoding with the fused
+    kernel where it runs."""
     from ttompc.mpc.settings import preset_names, protocol_settings
 
     assert {"paper", "zoo", "recommended"} <= set(preset_names())
@@ -661,9 +667,9 @@ def test_presets_are_the_settings_the_cards_and_the_paper_use() -> None:
     assert MPCSettings().rtg_mode == "running"
     assert protocol_settings("zoo") == MPCSettings(end_horizon=30)
     recommended = protocol_settings("recommended")
-    assert recommended == MPCSettings(end_horizon=None, rtg_mode="value", rti=None, decoder="auto")
+    assert recommended == MPCSettings(end_horizon=None, rtg_mode="value", end_shift=True, rti=None, decoder="auto")
     ends = {name: recommended.end_horizon_on(get_scenario(name)) for name in ("freeflyer", "quadrotor", "rpod")}
-    assert ends == {"freeflyer": 50, "quadrotor": 30, "rpod": 30}  # docs/evaluation.md, "End horizon"
+    assert ends == {"freeflyer": 50, "quadrotor": 50, "rpod": 30}  # docs/evaluation.md, "End horizon"
 
 
 def test_settings_name_self_describing_rtg_modes_and_terminal_terms() -> None:
@@ -814,6 +820,57 @@ def test_plan_reuse_applies_the_own_plan_tail_and_keeps_the_results(setup: tuple
     assert noisy.reuses == 0
 
 
+class _Counted:
+    """A provider that records the steps it was asked for a warm start at, with a role of the test's choosing."""
+
+    def __init__(self, inner: Any, role: str) -> None:
+        self.inner, self.role, self.name, self.asked = inner, role, inner.name, []
+
+    def reset(self, *args: Any) -> None:
+        self.inner.reset(*args)
+
+    def warm_start(self, window: Window, x: np.ndarray) -> Any:
+        self.asked.append(window.start)
+        return self.inner.warm_start(window, x)
+
+    def observe(self, *args: Any) -> Any:
+        return self.inner.observe(*args)
+
+
+def test_shifted_end_start_solves_end_windows_from_the_own_plan_tail(
+    setup: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Under ``end_shift`` a learned method's end windows after the first start, on a perturbed plant, from the
+    previous plan's tail (X[0] the measured state) without asking the provider; a baseline's and the expert's still
+    ask theirs, and without ``end_shift`` every window does."""
+    sc, problem, rel, _ = setup
+    N, K = problem.n_steps, 15
+    solves: dict[int, tuple[np.ndarray, np.ndarray, SCPResult]] = {}  # step -> the start and result of its solve
+    solve = MPCController.solve
+
+    def spy(self: MPCController, window: Window, X: np.ndarray, U: np.ndarray, *args: Any, **kw: Any) -> SCPResult:
+        res = solve(self, window, X, U, *args, **kw)
+        solves[window.start] = (X.copy(), U.copy(), res)
+        return res
+
+    monkeypatch.setattr(MPCController, "solve", spy)
+    kw: dict[str, Any] = {"rel_cost": rel.cost, "plant": PlantNoise(0.05, 0.02, 0.002), "plant_seed": 3}
+    asked = {}
+    for role, shift in (("expert", True), ("baseline", True), ("learned", False), ("learned", True)):
+        provider = _Counted(RELProvider(), role)
+        ep = run_mpc(sc, problem, provider, 10, settings=MPCSettings(end_horizon=K, end_shift=shift), **kw)
+        assert ep.complete and ep.fallbacks == 0 and ep.reuses == 0  # the plant moves the state off every plan
+        asked[role, shift] = provider.asked
+    assert asked["expert", True] == asked["baseline", True] == asked["learned", False] == list(range(N))
+    assert asked["learned", True] == list(range(N - K + 1))  # the first end window asks: the plan before stopped at H
+    for t in range(N - K + 1, N):  # solves holds the last run's, the shifted one
+        X, U, _ = solves[t]
+        prev = solves[t - 1][2]
+        np.testing.assert_array_equal(X[0], ep.X[t])
+        np.testing.assert_array_equal(X[1:], prev.X[2:])
+        np.testing.assert_array_equal(U, prev.U[1:])
+
+
 def test_remaining_rel_shifts_its_last_plan_over_skipped_steps(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
     """A controller that reused its plan did not ask its provider: the next remaining-horizon REL still starts from
     the last REL plan, shifted by the steps in between."""
@@ -892,10 +949,33 @@ def test_rti_model_scope_runs_the_learned_windows_only(setup: tuple, monkeypatch
     own = MPCSettings(rti=None)  # the scenario's measured scope (the recommended preset's)
     assert own.rti_scope(sc) == sc.mpc.rti == "model" and own.rti_for("learned", sc)
     assert not own.rti_for("baseline", sc) and not own.rti_for("expert", sc)
-    assert own.rti_scope(quad) is False and not own.rti_for("learned", quad)
+    assert own.rti_scope(quad) == "end" and own.rti_for("learned", quad) == "end"
+    assert own.rti_scope(get_scenario("rpod")) is False and not own.rti_for("learned", get_scenario("rpod"))
     assert protocol_settings("recommended").rti is None and protocol_settings("paper").rti is False
     with pytest.raises(ValueError, match="rti must be one of"):
         MPCSettings(rti="sometimes")
+
+
+def test_rti_end_scope_runs_the_learned_end_windows_only(setup: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``rti="end"``: a learned provider's controller solves its windows to convergence until they reach the end,
+    then runs one subproblem per step; a baseline's and the expert's never run it."""
+    sc, problem, rel, _ = setup
+    N, K = problem.n_steps, 12  # K > H: the windows reach the end from N − K on
+    limits: list[int | None] = []
+    real = loop_module.solve_scp
+
+    def spy(scp, X, U, options):
+        limits.append(None if options.settings is None else options.settings.max_iters)
+        return real(scp, X, U, options)
+
+    monkeypatch.setattr(loop_module, "solve_scp", spy)
+    s = MPCSettings(rti="end", end_horizon=K, reuse=False)
+    episode = run_mpc(sc, problem, TTOProvider(mpc_fakes.tiny_planner()), 10, rel_cost=rel.cost, settings=s)
+    assert episode.rti == "end" and limits == [None] * (N - K) + [1] * K
+    limits.clear()
+    assert not run_mpc(sc, problem, RELProvider(), 10, rel_cost=rel.cost, settings=s).rti and limits == [None] * N
+    assert (s.rti_for("learned", sc), s.rti_for("baseline", sc), s.rti_for("expert", sc)) == ("end", False, False)
+    assert "reach the end" in departures(s, sc)[-1]
 
 
 class _Clock:

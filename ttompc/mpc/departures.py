@@ -24,12 +24,20 @@ def departures(settings: MPCSettings, scenario: Scenario) -> list[str]:
             f"shrinking end horizon: windows run to N once N − t <= {end_horizon} (the paper keeps H and "
             "truncates the windows at N)"
         )
+    if settings.end_shift:
+        out.append(
+            "shifted end start: the learned methods' windows that reach the end start from the previous plan's "
+            "tail where that plan reached the end too (the paper warm-starts every window from its method)"
+        )
     out += RTG_MODES[settings.rtg_mode].departures()
     if settings.mode != "soft":
         out.append(f"{settings.mode} end condition (the paper's analyses: soft)")
     rti = settings.rti_scope(scenario)
     if rti:
-        whose = "the learned methods' windows (the baselines converge)" if rti == "model" else "every window"
+        whose = {
+            "model": "the learned methods' windows (the baselines converge)",
+            "end": "the learned methods' windows that reach the end (the rest converge)",
+        }.get(str(rti), "every window")
         out.append(
             f"real-time iteration in {whose}: one SCP subproblem per MPC step from the previous solution shifted (the "
             "paper solves every window to convergence)"

@@ -68,7 +68,7 @@ class Episode:
     plant: str = "nominal"  # "nominal" or "perturbed"
     soft_ends: int = 0  # hard mode: steps whose end window fell back to the soft end term (goal out of reach)
     reuses: int = 0  # steps that applied the previous plan's tail (plan reuse, loop doc)
-    rti: bool = False  # real-time iteration: one subproblem per step (loop doc)
+    rti: bool | str = False  # real-time iteration, one subproblem per step: in every window, "end" ones, none
 
     def summary(self) -> dict[str, float | int | str | bool]:
         """Flat per-episode metrics (a run's row in the reports): the fields above, with the arrays reduced to
@@ -173,7 +173,7 @@ class EpisodeTrace:
         horizon: int,
         rel_cost: float,
         plant: PlantNoise | None,
-        rti: bool,
+        rti: bool | str,
     ) -> Episode:
         """The finished episode of ``method`` at ``horizon`` on ``problem`` (J_REL ``rel_cost``) on ``plant`` (None or
         nominal: the exact dynamics; perturbed: feasible within the plant's ``path_tol``, keep-out depth included)."""

@@ -85,7 +85,8 @@ class ExpertRollout:
     ) -> ExpertRollout:
         """The episode of ``draws`` (index, seed, problem, its REL solution, H) with its expert under ``settings``
         (mode, backend, plan reuse), whose solves always converge (its provider's role is "expert", which
-        ``MPCSettings.rti_for`` never gives real-time iteration: its plans are labels)."""
+        ``MPCSettings.rti_for`` never gives real-time iteration, nor ``shift_for`` a shifted end start: its plans are
+        labels)."""
         index, seed, problem, rel, H = draws
         shift = ShiftProvider()
         shift.reset(scenario, problem, rel.cost)

@@ -26,7 +26,7 @@ providers report (``Provider.observe``, ``observe_charges``). ``run_mpc_batch`` 
 plant), which lets the TTO providers of one ``RolloutGroup`` plan all B windows of a step in one batched rollout;
 ``run_mpc`` is its B = 1 case.
 
-Two ways a step does less than SCP to convergence from the provider's warm start:
+Three ways a step does less than SCP to convergence from the provider's warm start:
 
 * *Plan reuse* (``reuse``, on by default, results unchanged): a window that reaches the end poses the same
   problem at t + 1 as at t, minus its first step (the same end term and constraints). When the measured state is
@@ -36,14 +36,19 @@ Two ways a step does less than SCP to convergence from the provider's warm start
   subproblem), so the step applies it without calling the provider or the solver (``StepPlan.reused``). This
   happens on an exact plant in the last windows (all of them with ``end_horizon``) and for the DAgger expert after
   the steps it acted in.
-* *Real-time iteration* (``rti=True``, or ``"model"`` for the controllers of learned providers only; never the
-  expert's; one rule, ``MPCSettings.rti_for`` of ``Provider.role``; a departure from the paper, which solves every
-  window to convergence): as acados' RTI, one
-  SCP subproblem per step, linearised at this controller's previous solution shifted by one step (its missing last
-  step from the provider's warm start; X[0] = the measured state), with the provider's terminal target. The first
-  step is solved to convergence. The subproblem's solution is applied even when its nonlinear violation exceeds the
-  SCP's tolerance (the next step corrects it); only a solver failure falls back. Measured against convergence in
-  docs/evaluation.md.
+* *Shifted end start* (``end_shift``; ``MPCSettings.shift_for``: the learned methods' controllers only; a
+  departure from the paper, which warm-starts every window from its method): where plan reuse does not apply (a
+  perturbed plant moved the state off the plan), a window that reaches the end starts its SCP from the tail of this
+  controller's previous plan, which reached the end too (so it covers the window; X[0] = the measured state),
+  instead of calling the provider: a TTO-MPC step then runs no rollout of up to K steps. The window still solves to
+  convergence unless real-time iteration runs there (docs/evaluation.md, "Shifted end start").
+* *Real-time iteration* (``rti=True``; ``"model"`` for the controllers of learned providers only, ``"end"`` for their
+  windows that reach the end only; never the expert's; one rule, ``MPCSettings.rti_for`` of ``Provider.role``; a
+  departure from the paper, which solves every window to convergence): as acados' RTI, one SCP subproblem per step,
+  linearised at this controller's previous solution shifted by one step (its missing last step from the provider's
+  warm start; X[0] = the measured state), with the provider's terminal target. The first step is solved to
+  convergence. The subproblem's solution is applied even when its nonlinear violation exceeds the SCP's tolerance (the
+  next step corrects it); only a solver failure falls back. Measured against convergence in docs/evaluation.md.
 
 Every episode starts with ``start_controller`` and steps with two calls of its ``MPCController``: ``plan`` from the
 measured state, then, once the control has acted, ``observe`` of its outcome. ``ttompc.mpc.controller.Controller``
@@ -67,7 +72,7 @@ import numpy as np
 
 from ttompc.mpc.episode import Episode, EpisodeTrace, StepPlan
 from ttompc.mpc.plant import Plant, PlantNoise
-from ttompc.mpc.providers import Provider
+from ttompc.mpc.providers import Provider, WarmStart
 from ttompc.mpc.settings import Mode, MPCSettings
 from ttompc.mpc.warmup import warm_up
 from ttompc.scenarios.base import Problem, Scenario, SCPSettings, Window
@@ -90,7 +95,8 @@ class MPCController:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         self.scenario, self.problem, self.provider, self.horizon = scenario, problem, provider, horizon
         self.settings = settings or MPCSettings()
-        self.rti = self.settings.rti_for(provider.role, scenario)  # real-time iteration in its windows
+        self.rti = self.settings.rti_for(provider.role, scenario)  # real-time iteration: all, "end" or no windows
+        self.end_shift = self.settings.shift_for(provider.role)  # end windows start from the own previous plan
         self.end_horizon = self.settings.end_horizon_on(scenario)
         self._scale = scenario.state_units()
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
@@ -129,18 +135,30 @@ class MPCController:
         scp = self._scp.update(window=window, terminal=self._terminal(window, terminal, mode), soft=mode == "soft")
         return solve_scp(scp, X, U, self._options.update(settings=settings))
 
-    def _reuse(self, window: Window, x: np.ndarray) -> StepPlan | None:
-        """The own previous plan's tail when it is this window's optimum (plan reuse, module doc), else None."""
-        prev, tol = self._own, self.settings.reuse_tol
-        if tol is None or prev is None or not prev.converged or not window.reaches_end:
-            return None
-        if len(prev.U) != window.length + 1:
-            return None
-        if np.max(np.abs(x - prev.X[1]) / self._scale) > tol:
+    def _own_tail(self, window: Window, x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The own previous plan shifted by one step, X[0] = x, when it covers ``window``: both reach the end (plan
+        reuse, shifted end start; module doc); else None."""
+        prev = self._own
+        if prev is None or not window.reaches_end or len(prev.U) != window.length + 1:
             return None
         X, U = prev.X[1:].copy(), prev.U[1:].copy()
         X[0] = x
+        return X, U
+
+    def _reuse(self, window: Window, x: np.ndarray) -> StepPlan | None:
+        """The own previous plan's tail when it is this window's optimum (plan reuse, module doc), else None."""
+        prev, tol, tail = self._own, self.settings.reuse_tol, self._own_tail(window, x)
+        if tol is None or tail is None or prev is None or not prev.converged:
+            return None
+        if np.max(np.abs(x - prev.X[1]) / self._scale) > tol:
+            return None
+        X, U = tail
         return StepPlan(U[0].copy(), X, U, 0.0, 0.0, 0, False, None, prev.soft_end, reused=True, converged=True)
+
+    def _warm_start(self, window: Window, x: np.ndarray) -> WarmStart:
+        """The provider's warm start, or under ``end_shift`` the own previous plan's tail (module doc)."""
+        tail = self._own_tail(window, x) if self.end_shift else None
+        return self.provider.warm_start(window, x) if tail is None else WarmStart(*tail, None)
 
     def _rti_start(self, window: Window, X: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The own previous solution shifted by one step over the window, its missing tail from the warm start."""
@@ -159,14 +177,14 @@ class MPCController:
             reused.solve_time = time.perf_counter() - t0
             self._last = reused
             return reused
-        ws = self.provider.warm_start(window, x)
+        ws = self._warm_start(window, x)
         t1 = time.perf_counter()
         if ws.X.shape != (window.length + 1, len(x)) or ws.U.shape[0] != window.length:
             raise ValueError(
                 f"{self.provider.name}: warm start shapes {ws.X.shape}, {ws.U.shape} do not fit window {window}"
             )
         X0, U0, settings = ws.X, ws.U, None
-        rti = self.rti and self._own is not None
+        rti = self._own is not None and (self.rti is True or (self.rti == "end" and window.reaches_end))
         if rti:
             X0, U0 = self._rti_start(window, ws.X, ws.U)
             settings = dataclasses.replace(self.scenario.scp, max_iters=1)

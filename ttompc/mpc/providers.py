@@ -50,7 +50,7 @@ class Provider(Protocol):
     """What the MPC loop asks of a warm-start method."""
 
     name: str  # the report name of the method it serves (``Method.providers`` passes it; standalone: the class's)
-    role: Role  # what its plans are: the one input of the RTI rule (``MPCSettings.rti_for``)
+    role: Role  # what its plans are: the input of the RTI and end-shift rules (``MPCSettings.rti_for``, ``shift_for``)
 
     def reset(self, scenario: Scenario, problem: Problem, rel_cost: float) -> None:
         """Start an episode; ``rel_cost`` is J_REL of the open-loop REL solution (TTO conditioning)."""

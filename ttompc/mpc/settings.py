@@ -36,8 +36,9 @@ PRESETS = Path(__file__).with_name("presets")
 # plan reuse: the measured state is the own plan's prediction within this many state_scale units (∞-norm). On an
 # exact plant the two differ by the subproblem solver's residual of the dynamics rows (about 1e-9 here).
 REUSE_TOL = 1e-6
-# real-time iteration: in no window, in every controller's, or in the learned methods' only (MPCSettings.rti)
-RTI_SCOPES: tuple[bool | str, ...] = (False, True, "model")
+# real-time iteration: in no window, in every controller's, in the learned methods' only, or in the learned methods'
+# windows that reach the end only (MPCSettings.rti)
+RTI_SCOPES: tuple[bool | str, ...] = (False, True, "model", "end")
 # what a provider's plans are (``Provider.role``), the one thing of a provider the RTI rule reads (``rti_for``): a
 # learned model's, a baseline's (solved), or the expert's (labels, ``ttompc.mpc.expert``)
 Role = Literal["learned", "baseline", "expert"]
@@ -57,23 +58,25 @@ def register_names(key: str, names: Collection[str]) -> None:
 class MPCSettings(Checked):
     """The settings of a closed-loop run (``ttompc.mpc.loop`` documents each behaviour).
 
-    ``mode``: soft (all paper analyses) or hard end condition. ``end_horizon``: windows run to N once
-    N − t <= end_horizon (0: the paper's fixed H, windows truncated at N; None: the scenario's ``mpc.end_horizon``,
-    measured per scenario, ``end_horizon_on``). ``track``: terminal weight of the
-    plan-tracking providers (TTO-MPC, PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``terminal``:
-    the kind of their terminal term (``ttompc.mpc.terminal.TERMINALS``). ``rtg_mode``: the reward-to-go TTO-MPC feeds
-    in closed loop (``ttompc.mpc.rtg.RTG_MODES``). ``reuse``: plan reuse in windows that reach the end (same
-    results; False re-solves every step). ``rti``: real-time iteration, one SCP subproblem per step: True in every
-    controller's windows, ``"model"`` in the windows of the methods that plan from a learned model only (TTO-MPC and
-    its variants, ``Provider.role``; the baselines REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC then solve every
-    window to convergence, as the paper's), False in none; None: the scenario's own scope (``mpc.rti``, measured per
-    scenario, as ``track``). ``rti_for`` is the one rule that decides a controller; DAgger's expert never runs RTI.
-    ``decode_every``: TTO-MPC decodes a plan from its model every k steps and serves the windows in between from
-    slices of it (``ttompc.mpc.tto.RolloutGroup``; 1: the paper's, a decode at every step). ``backend``: the
-    QP/cone backend of every solve (``ttompc.solvers.backends``). ``decoder``: how TTO-MPC's rollouts decode
-    (``ttompc.policy.config.DECODERS``): "torch" (eager ops), "fused" (one compiled call per rollout,
-    ``ttompc.policy.fused``: the same plans up to float rounding; refused for a model or scenario it cannot run) or
-    "auto" (fused where it can, else torch with a warning)."""
+    ``mode``: soft (all paper analyses) or hard end condition. ``end_horizon``: windows run to N once N − t <=
+    end_horizon (0: the paper's fixed H, windows truncated at N; None: the scenario's ``mpc.end_horizon``, measured
+    per scenario, ``end_horizon_on``). ``track``: terminal weight of the plan-tracking providers (TTO-MPC,
+    PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``terminal``: the kind of their terminal term
+    (``ttompc.mpc.terminal.TERMINALS``). ``rtg_mode``: the reward-to-go TTO-MPC feeds in closed loop
+    (``ttompc.mpc.rtg.RTG_MODES``). ``reuse``: plan reuse in windows that reach the end (same results; False
+    re-solves every step). ``end_shift``: a learned method's end window starts from its previous plan's tail
+    instead of its provider's warm start (``shift_for``). ``rti``: real-time iteration, one SCP
+    subproblem per step: True in every controller's windows, ``"model"`` in the windows of the methods that plan
+    from a learned model only (TTO-MPC and its variants, ``Provider.role``; the baselines REL-MPC, DIST-MPC,
+    PLAN-ONCE and ORACLE-MPC then solve every window to convergence, as the paper's), ``"end"`` in those methods'
+    windows that reach the end only, False in none; None: the
+    scenario's own scope (``mpc.rti``, measured per scenario, as ``track``). ``rti_for`` is the one rule that
+    decides a controller; DAgger's expert never runs RTI. ``decode_every``: TTO-MPC decodes a plan from its model
+    every k steps and serves the windows in between from slices of it (``ttompc.mpc.tto.RolloutGroup``; 1: the
+    paper's, a decode at every step). ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``).
+    ``decoder``: how TTO-MPC's rollouts decode (``ttompc.policy.config.DECODERS``): "torch" (eager ops), "fused"
+    (one compiled call per rollout, ``ttompc.policy.fused``: the same plans up to float rounding; refused for a
+    model or scenario it cannot run) or "auto" (fused where it can, else torch with a warning)."""
 
     mode: Mode = "soft"
     end_horizon: int | None = setting(0, ge=0, meaning="0: the paper's fixed H; None: the scenario's")
@@ -81,7 +84,8 @@ class MPCSettings(Checked):
     terminal: str = "target"
     rtg_mode: str = "running"
     reuse: bool = True
-    rti: bool | str | None = False  # False, True or "model" (RTI_SCOPES); None: the scenario's mpc.rti
+    end_shift: bool = False
+    rti: bool | str | None = False  # False, True, "model" or "end" (RTI_SCOPES); None: the scenario's mpc.rti
     decode_every: int = setting(1, ge=1, meaning="1: a decode at every step")
     backend: str = "auto"
     decoder: str = "torch"
@@ -114,12 +118,21 @@ class MPCSettings(Checked):
             raise ValueError(f"{scenario.name}: mpc.end_horizon must be >= 0, got {k}")
         return k
 
-    def rti_for(self, role: Role, scenario: Scenario) -> bool:
-        """Whether a controller on ``scenario`` whose provider has ``role`` runs real-time iteration: the one rule,
-        which ``MPCController`` applies and nothing overrides. The expert never does (its plans are labels); in
-        ``rti_scope``'s scope True every other controller does, in "model" the learned ones only."""
+    def rti_for(self, role: Role, scenario: Scenario) -> bool | str:
+        """Where a controller on ``scenario`` whose provider has ``role`` runs real-time iteration: True (in every
+        window), "end" (in its windows that reach the end) or False; the one rule, which ``MPCController`` applies
+        and nothing overrides. The expert never does (its plans are labels); in ``rti_scope``'s scope True every
+        other controller does, in "model" and "end" the learned ones only."""
         scope = self.rti_scope(scenario)
-        return role != "expert" and (scope is True or (scope == "model" and role == "learned"))
+        if role == "expert" or scope is False or (scope is not True and role != "learned"):
+            return False
+        return "end" if scope == "end" else True
+
+    def shift_for(self, role: Role) -> bool:
+        """Whether a controller whose provider has ``role`` starts its end windows from its own previous plan
+        (``end_shift``, ``ttompc.mpc.loop``): under ``end_shift`` the learned methods' only. A baseline's warm start
+        is part of its method (REL-MPC: the remaining-horizon REL), and the expert's plans are labels."""
+        return self.end_shift and role == "learned"
 
     @property
     def reuse_tol(self) -> float | None:

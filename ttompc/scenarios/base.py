@@ -185,9 +185,9 @@ class MPCWeights:
     multiplier (the marginal cost of moving x̄); below it the window leaves an optimal plan it is given: set it
     above the largest multiplier along open-loop optima (``bench/tracking_weight.py``; docs/evaluation.md, "Tracking
     weight"). ``recommended``'s None settings resolve to ``rti``, the real-time-iteration scope (``RTI_SCOPES``;
-    "model" where one SCP subproblem per step was measured to keep the learned methods' cost), and ``end_horizon`` K
-    (windows run to N once N − t <= K; the largest K measured to keep the learned MPC's step 2x below REL-MPC@30's
-    on both plants): docs/evaluation.md, "Real-time iteration", "End horizon".
+    "model"/"end" where one SCP subproblem per step in all / the end windows kept the learned methods' cost), and
+    ``end_horizon`` K (windows run to N once N − t <= K; the largest K measured to keep the learned MPC's step 2x
+    below REL-MPC@30's on both plants): docs/evaluation.md, "Real-time iteration", "End horizon".
     """
 
     fuel: float
