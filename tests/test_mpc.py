@@ -669,7 +669,7 @@ def test_presets_are_the_settings_the_cards_and_the_paper_use() -> None:
     recommended = protocol_settings("recommended")
     assert recommended == MPCSettings(end_horizon=None, rtg_mode="value", end_shift=True, rti=None, decoder="auto")
     ends = {name: recommended.end_horizon_on(get_scenario(name)) for name in ("freeflyer", "quadrotor", "rpod")}
-    assert ends == {"freeflyer": 50, "quadrotor": 50, "rpod": 30}  # docs/evaluation.md, "End horizon"
+    assert ends == {"freeflyer": 50, "quadrotor": 50, "rpod": 50}  # docs/evaluation.md, "End horizon"
 
 
 def test_settings_name_self_describing_rtg_modes_and_terminal_terms() -> None:
@@ -950,7 +950,7 @@ def test_rti_model_scope_runs_the_learned_windows_only(setup: tuple, monkeypatch
     assert own.rti_scope(sc) == sc.mpc.rti == "model" and own.rti_for("learned", sc)
     assert not own.rti_for("baseline", sc) and not own.rti_for("expert", sc)
     assert own.rti_scope(quad) == "end" and own.rti_for("learned", quad) == "end"
-    assert own.rti_scope(get_scenario("rpod")) is False and not own.rti_for("learned", get_scenario("rpod"))
+    assert own.rti_scope(get_scenario("rpod")) == "end" and not own.rti_for("baseline", get_scenario("rpod"))
     assert protocol_settings("recommended").rti is None and protocol_settings("paper").rti is False
     with pytest.raises(ValueError, match="rti must be one of"):
         MPCSettings(rti="sometimes")
