@@ -39,7 +39,7 @@ REUSE_TOL = 1e-6
 # real-time iteration: in no window, in every controller's, in the learned methods' only, or in the learned methods'
 # windows that reach the end only (MPCSettings.rti)
 RTI_SCOPES: tuple[bool | str, ...] = (False, True, "model", "end")
-# what a provider's plans are (``Provider.role``), the one thing of a provider the RTI rule reads (``rti_for``): a
+# what a provider's plans are (``Provider.role``), the one thing of a provider the RTI and end-shift rules read: a
 # learned model's, a baseline's (solved), or the expert's (labels, ``ttompc.mpc.expert``)
 Role = Literal["learned", "baseline", "expert"]
 # setting -> the names it takes, as their registries hold them (``register_names``: terminal, rtg_mode)
