@@ -332,10 +332,10 @@ def test_hard_mode_keeps_planning_when_the_goal_is_out_of_reach(setup: tuple) ->
 
 
 class _Windows:
-    """A provider that records the windows it is asked for (wraps another)."""
+    """A provider that records the windows it is asked for (wraps another; ``role`` replaces the inner one's)."""
 
-    def __init__(self, inner) -> None:
-        self.inner, self.name, self.role, self.windows = inner, inner.name, inner.role, []
+    def __init__(self, inner, role: str | None = None) -> None:
+        self.inner, self.name, self.role, self.windows = inner, inner.name, role or inner.role, []
 
     def reset(self, scenario, problem, rel_cost) -> None:
         self.inner.reset(scenario, problem, rel_cost)
@@ -820,23 +820,6 @@ def test_plan_reuse_applies_the_own_plan_tail_and_keeps_the_results(setup: tuple
     assert noisy.reuses == 0
 
 
-class _Counted:
-    """A provider that records the steps it was asked for a warm start at, with a role of the test's choosing."""
-
-    def __init__(self, inner: Any, role: str) -> None:
-        self.inner, self.role, self.name, self.asked = inner, role, inner.name, []
-
-    def reset(self, *args: Any) -> None:
-        self.inner.reset(*args)
-
-    def warm_start(self, window: Window, x: np.ndarray) -> Any:
-        self.asked.append(window.start)
-        return self.inner.warm_start(window, x)
-
-    def observe(self, *args: Any) -> Any:
-        return self.inner.observe(*args)
-
-
 def test_shifted_end_start_solves_end_windows_from_the_own_plan_tail(
     setup: tuple, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -857,10 +840,10 @@ def test_shifted_end_start_solves_end_windows_from_the_own_plan_tail(
     kw: dict[str, Any] = {"rel_cost": rel.cost, "plant": PlantNoise(0.05, 0.02, 0.002), "plant_seed": 3}
     asked = {}
     for role, shift in (("expert", True), ("baseline", True), ("learned", False), ("learned", True)):
-        provider = _Counted(RELProvider(), role)
+        provider = _Windows(RELProvider(), role)
         ep = run_mpc(sc, problem, provider, 10, settings=MPCSettings(end_horizon=K, end_shift=shift), **kw)
         assert ep.complete and ep.fallbacks == 0 and ep.reuses == 0  # the plant moves the state off every plan
-        asked[role, shift] = provider.asked
+        asked[role, shift] = [w.start for w in provider.windows]
     assert asked["expert", True] == asked["baseline", True] == asked["learned", False] == list(range(N))
     assert asked["learned", True] == list(range(N - K + 1))  # the first end window asks: the plan before stopped at H
     for t in range(N - K + 1, N):  # solves holds the last run's, the shifted one
