@@ -64,19 +64,19 @@ class MPCSettings(Checked):
     PLAN-ONCE, ORACLE-MPC); None: the scenario's ``mpc.tracking``. ``terminal``: the kind of their terminal term
     (``ttompc.mpc.terminal.TERMINALS``). ``rtg_mode``: the reward-to-go TTO-MPC feeds in closed loop
     (``ttompc.mpc.rtg.RTG_MODES``). ``reuse``: plan reuse in windows that reach the end (same results; False
-    re-solves every step). ``end_shift``: a learned method's end window starts from its previous plan's tail
-    instead of its provider's warm start (``shift_for``). ``rti``: real-time iteration, one SCP
-    subproblem per step: True in every controller's windows, ``"model"`` in the windows of the methods that plan
-    from a learned model only (TTO-MPC and its variants, ``Provider.role``; the baselines REL-MPC, DIST-MPC,
-    PLAN-ONCE and ORACLE-MPC then solve every window to convergence, as the paper's), ``"end"`` in those methods'
-    windows that reach the end only, False in none; None: the
-    scenario's own scope (``mpc.rti``, measured per scenario, as ``track``). ``rti_for`` is the one rule that
-    decides a controller; DAgger's expert never runs RTI. ``decode_every``: TTO-MPC decodes a plan from its model
-    every k steps and serves the windows in between from slices of it (``ttompc.mpc.tto.RolloutGroup``; 1: the
-    paper's, a decode at every step). ``backend``: the QP/cone backend of every solve (``ttompc.solvers.backends``).
-    ``decoder``: how TTO-MPC's rollouts decode (``ttompc.policy.config.DECODERS``): "torch" (eager ops), "fused"
-    (one compiled call per rollout, ``ttompc.policy.fused``: the same plans up to float rounding; refused for a
-    model or scenario it cannot run) or "auto" (fused where it can, else torch with a warning)."""
+    re-solves every step). ``end_shift``: a learned method's end window starts from its previous plan's tail instead
+    of its provider's warm start (``shift_for``). ``rti``: real-time iteration, one SCP subproblem per step: True in
+    every controller's windows, ``"model"`` in the windows of the methods that plan from a learned model only
+    (TTO-MPC and its variants, ``Provider.role``; the baselines REL-MPC, DIST-MPC, PLAN-ONCE and ORACLE-MPC then
+    solve every window to convergence, as the paper's), ``"end"`` in those methods' windows that reach the end only,
+    False in none; None: the scenario's own scope (``mpc.rti``, measured per scenario, as ``track``). ``rti_for`` is
+    the one rule that decides a controller; DAgger's expert never runs RTI. ``decode_every``: TTO-MPC decodes a plan
+    from its model every k steps and serves the windows in between from slices of it
+    (``ttompc.mpc.tto.RolloutGroup``; 1: the paper's, a decode at every step). ``backend``: the QP/cone backend of
+    every solve (``ttompc.solvers.backends``). ``decoder``: how TTO-MPC's rollouts decode
+    (``ttompc.policy.config.DECODERS``): "torch" (eager ops), "fused" (one compiled call per rollout,
+    ``ttompc.policy.fused``: the same plans up to float rounding; refused for a model or scenario it cannot run) or
+    "auto" (fused where it can, else torch with a warning)."""
 
     mode: Mode = "soft"
     end_horizon: int | None = setting(0, ge=0, meaning="0: the paper's fixed H; None: the scenario's")
